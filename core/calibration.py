@@ -1,0 +1,135 @@
+"""A calibration result: a saveable object with its metadata (imucal's style).
+
+Convention (the same everywhere in gravcal, and in ``gravcal calibrate --json``)::
+
+    raw = sensitivity @ a + offset          a in g, raw in the recording's raw units
+    a   = sensitivity^-1 (raw - offset)
+
+``sensitivity`` is 3x3 (diagonal for the 6-parameter model), in raw units per g;
+``offset`` in raw units. ``covariance`` is over the estimated parameters named in
+``param_names``, in the same raw units; parameters held fixed have no entry.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+SCHEMA = "gravcal.calibration/1"
+
+
+@dataclass
+class Calibration:
+    model: str
+    offset: np.ndarray
+    sensitivity: np.ndarray
+    covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    param_names: list[str] = field(default_factory=list)
+    n_windows: int = 0
+    converged: bool = True
+    observable: bool = True
+    message: str = ""
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.offset = np.asarray(self.offset, dtype=float).reshape(3)
+        self.sensitivity = np.asarray(self.sensitivity, dtype=float).reshape(3, 3)
+        self.covariance = np.asarray(self.covariance, dtype=float)
+        if self.covariance.size == 0:
+            self.covariance = np.zeros((len(self.param_names), len(self.param_names)))
+
+    # -- use -------------------------------------------------------------------------
+    def apply(self, raw: np.ndarray) -> np.ndarray:
+        """Calibrated acceleration [g] from raw triad rows (N, 3) or one row (3,)."""
+        raw = np.asarray(raw, dtype=float)
+        return np.linalg.solve(self.sensitivity, (raw - self.offset).T).T
+
+    @property
+    def std(self) -> dict[str, float]:
+        d = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+        return {name: float(s) for name, s in zip(self.param_names, d)}
+
+    # -- persistence -----------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "schema": SCHEMA,
+            "model": self.model,
+            "offset": self.offset.tolist(),
+            "sensitivity": self.sensitivity.tolist(),
+            "param_names": list(self.param_names),
+            "covariance": self.covariance.tolist(),
+            "std": self.std,
+            "n_windows": int(self.n_windows),
+            "converged": bool(self.converged),
+            "observable": bool(self.observable),
+            "message": self.message,
+            "metadata": _jsonable(self.metadata),
+        }
+
+    def to_json(self, **kwargs: Any) -> str:
+        return json.dumps(self.to_dict(), **kwargs)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Calibration":
+        if d.get("schema") != SCHEMA:
+            raise ValueError(f"not a gravcal calibration (schema {d.get('schema')!r}, expected {SCHEMA!r})")
+        try:
+            cal = cls(
+                model=str(d["model"]),
+                offset=np.asarray(d["offset"], dtype=float),
+                sensitivity=np.asarray(d["sensitivity"], dtype=float),
+                covariance=np.asarray(d.get("covariance", []), dtype=float),
+                param_names=list(d.get("param_names", [])),
+                n_windows=int(d.get("n_windows", 0)),
+                converged=bool(d.get("converged", True)),
+                observable=bool(d.get("observable", True)),
+                message=str(d.get("message", "")),
+                metadata=dict(d.get("metadata", {})),
+            )
+        except (KeyError, ValueError, TypeError) as exc:
+            raise ValueError(f"malformed calibration: {exc}") from exc
+        if not (np.all(np.isfinite(cal.offset)) and np.all(np.isfinite(cal.sensitivity))):
+            raise ValueError("malformed calibration: non-finite offset or sensitivity")
+        if abs(np.linalg.det(cal.sensitivity)) < 1e-300:
+            raise ValueError("malformed calibration: singular sensitivity matrix")
+        n = len(cal.param_names)
+        if cal.covariance.shape != (n, n):
+            raise ValueError(f"malformed calibration: covariance shape {cal.covariance.shape} != ({n}, {n})")
+        return cal
+
+    @classmethod
+    def from_json(cls, text: str) -> "Calibration":
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"calibration is not valid JSON: {exc}") from exc
+        if not isinstance(d, dict):
+            raise ValueError("calibration JSON must be an object")
+        return cls.from_dict(d)
+
+    @classmethod
+    def nominal(cls, offset: np.ndarray, sensitivity: np.ndarray | float, model: str = "nominal") -> "Calibration":
+        """A calibration from datasheet values, with no data behind it."""
+        s = np.asarray(sensitivity, dtype=float)
+        k = np.diag(np.broadcast_to(s, (3,))) if s.ndim < 2 else s
+        return cls(model=model, offset=offset, sensitivity=k, n_windows=0, message="nominal (datasheet) values")
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return v if math.isfinite(v) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x

@@ -1,0 +1,1 @@
+"""Estimators: Lötters (offsets / 6), starting points, held-out evaluation."""

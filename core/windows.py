@@ -1,0 +1,80 @@
+"""Quasi-static windows: what the detectors emit and the estimators consume.
+
+A window is summarised by sufficient statistics only (count, mean, covariance of the
+samples, and the means of auxiliary channels such as temperature), so that a week of data
+becomes a few thousand rows and estimators never touch samples again.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Window:
+    start: int  # index of the first sample (global, counted from the start of the stream)
+    end: int  # index one past the last sample
+    t_start: float  # time of the first sample [s]
+    t_end: float  # time of the last sample [s]
+    mean: np.ndarray  # (3,) mean of the samples, in the units the detector was fed
+    cov: np.ndarray  # (3, 3) sample covariance (ddof=1) of the samples
+    aux_mean: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (k,) means of auxiliary channels (e.g. temperature)
+
+    @property
+    def n(self) -> int:
+        return self.end - self.start
+
+    @property
+    def t_mid(self) -> float:
+        return 0.5 * (self.t_start + self.t_end)
+
+
+@dataclass
+class WindowSet:
+    """Windows as arrays (M rows), the form estimators take."""
+
+    mean: np.ndarray  # (M, 3)
+    cov: np.ndarray  # (M, 3, 3) sample covariance
+    n: np.ndarray  # (M,)
+    t: np.ndarray  # (M,) mid time [s]
+    aux: np.ndarray  # (M, k)
+    start: np.ndarray  # (M,)
+    end: np.ndarray  # (M,)
+
+    def __len__(self) -> int:
+        return int(self.mean.shape[0])
+
+    @property
+    def cov_of_mean(self) -> np.ndarray:
+        """Covariance of each window mean (white-noise assumption): cov / n."""
+        return self.cov / self.n[:, None, None]
+
+    def subset(self, idx: np.ndarray) -> "WindowSet":
+        idx = np.asarray(idx)
+        return WindowSet(self.mean[idx], self.cov[idx], self.n[idx], self.t[idx], self.aux[idx], self.start[idx], self.end[idx])
+
+    @classmethod
+    def from_windows(cls, windows: list[Window]) -> "WindowSet":
+        m = len(windows)
+        k = windows[0].aux_mean.shape[0] if m else 0
+        return cls(
+            mean=np.array([w.mean for w in windows], dtype=float).reshape(m, 3),
+            cov=np.array([w.cov for w in windows], dtype=float).reshape(m, 3, 3),
+            n=np.array([w.n for w in windows], dtype=float),
+            t=np.array([w.t_mid for w in windows], dtype=float),
+            aux=np.array([w.aux_mean for w in windows], dtype=float).reshape(m, k),
+            start=np.array([w.start for w in windows], dtype=np.int64),
+            end=np.array([w.end for w in windows], dtype=np.int64),
+        )
+
+    @classmethod
+    def from_points(cls, mean: np.ndarray, var: float | np.ndarray, n: int = 1) -> "WindowSet":
+        """Windows from bare mean vectors (M, 3) with isotropic per-sample variance ``var``
+        (the paper's simulation: points on the ellipsoid with C_mu diagonal)."""
+        mean = np.asarray(mean, dtype=float).reshape(-1, 3)
+        m = mean.shape[0]
+        v = np.broadcast_to(np.asarray(var, dtype=float), (m,))
+        cov = v[:, None, None] * np.eye(3)[None] * n
+        return cls(mean, cov, np.full(m, float(n)), np.arange(m, dtype=float), np.zeros((m, 0)),
+                   np.arange(m, dtype=np.int64), np.arange(m, dtype=np.int64) + 1)

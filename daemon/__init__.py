@@ -1,0 +1,1 @@
+"""gravcal.daemon: wiring and service: gravcald, socket protocol, persistence, systemd, CLI."""
