@@ -1,0 +1,115 @@
+"""Parameterizations of the calibration-level sensor model raw = K a + o.
+
+An estimator never hard-codes which parameters it estimates: it asks a parameterization
+for (K, o) given the parameter vector p and for the Jacobian of the corrected acceleration
+a = K^-1 (raw - o) with respect to p. The Lötters measurement is h = |a| (eq. 8), so
+
+    dh/dp = (a / |a|)^T  da/dp,      da/dp_m = -K^-1 (dK/dp_m a + do/dp_m)
+
+which for the 6-parameter model reduces to the paper's eq. 13a. Every parameterization here
+is linear in p (dK/dp and do/dp are constant), which keeps the Jacobian exact and cheap.
+Adding a model order (9, 12, temperature terms, ...) means adding a subclass.
+"""
+from __future__ import annotations
+
+from abc import ABC
+from typing import ClassVar
+
+import numpy as np
+
+AXES = ("x", "y", "z")
+
+
+class Parameterization(ABC):
+    """p <-> (K, o) with constant derivatives dK (P, 3, 3) and do (P, 3).
+
+    ``K0``, ``o0`` hold the values of whatever this parameterization does not estimate
+    (e.g. the sensitivities in offsets-only mode, or the frame rotation in 12-in-use).
+    """
+
+    model: ClassVar[str]
+    names: list[str]
+    dK: np.ndarray
+    do: np.ndarray
+
+    def __init__(self, K0: np.ndarray, o0: np.ndarray):
+        self.K0 = np.asarray(K0, dtype=float).reshape(3, 3).copy()
+        self.o0 = np.asarray(o0, dtype=float).reshape(3).copy()
+
+    @property
+    def n_params(self) -> int:
+        return len(self.names)
+
+    def unpack(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(K, o) for parameter vector p."""
+        p = np.asarray(p, dtype=float)
+        K = self.K_const + np.tensordot(p, self.dK, axes=1)
+        o = self.o_const + p @ self.do
+        return K, o
+
+    def pack(self, K: np.ndarray, o: np.ndarray) -> np.ndarray:
+        """The p whose (K, o) is closest (least squares in the entries) to the given (K, o)."""
+        A = np.concatenate([self.dK.reshape(self.n_params, 9), self.do], axis=1).T  # (12, P)
+        b = np.concatenate([(np.asarray(K) - self.K_const).ravel(), np.asarray(o) - self.o_const])
+        return np.linalg.lstsq(A, b, rcond=None)[0]
+
+    # Constant parts: the values of K and o at p = 0.
+    K_const: np.ndarray
+    o_const: np.ndarray
+
+    def accel_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """a = K^-1 (raw - o) for rows raw (M, 3), and da/dp (M, 3, P)."""
+        K, o = self.unpack(p)
+        Kinv = np.linalg.inv(K)
+        a = (np.asarray(raw, dtype=float) - o) @ Kinv.T  # (M, 3)
+        # dK/dp_m a + do/dp_m  for every window and parameter: (M, 3, P)
+        inner = np.einsum("pij,mj->mip", self.dK, a) + self.do.T[None, :, :]
+        J = -np.einsum("ij,mjp->mip", Kinv, inner)
+        return a, J
+
+    def norm_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """h = |a| (eq. 8), dh/dp (M, P) (eq. 13a generalised), and a itself."""
+        a, J = self.accel_and_jacobian(p, raw)
+        h = np.linalg.norm(a, axis=1)
+        B = np.einsum("mi,mip->mp", a / h[:, None], J)
+        return h, B, a
+
+
+class OffsetsOnly(Parameterization):
+    """p = (o_x, o_y, o_z); K held at K0 (the paper's "offsets only")."""
+
+    model = "offsets"
+
+    def __init__(self, K0: np.ndarray, o0: np.ndarray):
+        super().__init__(K0, o0)
+        self.names = [f"o_{a}" for a in AXES]
+        self.dK = np.zeros((3, 3, 3))
+        self.do = np.eye(3)
+        self.K_const = self.K0
+        self.o_const = np.zeros(3)
+
+
+class SixParameter(Parameterization):
+    """p = (s_x, s_y, s_z, o_x, o_y, o_z), K = diag(s): the paper's eq. 6.
+
+    Off-diagonal entries of K0 (a known cross-axis part, e.g. from a lab calibration) are held.
+    """
+
+    model = "6"
+
+    def __init__(self, K0: np.ndarray, o0: np.ndarray):
+        super().__init__(K0, o0)
+        self.names = [f"s_{a}" for a in AXES] + [f"o_{a}" for a in AXES]
+        self.dK = np.zeros((6, 3, 3))
+        for i in range(3):
+            self.dK[i, i, i] = 1.0
+        self.do = np.zeros((6, 3))
+        self.do[3:, :] = np.eye(3)
+        self.K_const = self.K0 - np.diag(np.diag(self.K0))
+        self.o_const = np.zeros(3)
+
+
+PARAMETERIZATIONS: dict[str, type[Parameterization]] = {
+    OffsetsOnly.model: OffsetsOnly,
+    SixParameter.model: SixParameter,
+}
