@@ -109,7 +109,72 @@ class SixParameter(Parameterization):
         self.o_const = np.zeros(3)
 
 
+# -- in-use 9 / 12 (H-twelve; the argument is in docs/twelve-parameters.md) ------------------
+# From the gravity norm alone only K K^T and o are identifiable: |R K^-1 (r - o)| = |K^-1 (r - o)|
+# for every rotation R, so K is known only up to K -> K R^T. Writing K = S R0 (left polar
+# decomposition, S symmetric positive definite, R0 orthogonal), S (6) and o (3) are the 9
+# identifiable parameters and R0 (3) is the frame, which the norm cannot see.
+SYMMETRIC_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+def polar_frame(K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(S, R) with K = S @ R, S symmetric positive definite, R orthogonal (left polar decomposition)."""
+    from scipy.linalg import polar
+
+    R, S = polar(np.asarray(K, dtype=float).reshape(3, 3), side="left")
+    return 0.5 * (S + S.T), R
+
+
+class _SymmetricInFrame(Parameterization):
+    """p = (s_xx, s_yy, s_zz, s_xy, s_xz, s_yz, o_x, o_y, o_z); K = S R0 with S symmetric.
+
+    ``pack`` maps any (K, o) to the S with the same gravity norm, S = (K K^T)^1/2, so a start
+    from any convention (diagonal, triangular, full lab K) enters without changing |a|.
+    """
+
+    def _frame(self) -> np.ndarray:  # pragma: no cover - subclasses define it
+        raise NotImplementedError
+
+    def __init__(self, K0: np.ndarray, o0: np.ndarray):
+        super().__init__(K0, o0)
+        self.R0 = self._frame()
+        self.names = [f"s_{AXES[i]}{AXES[j]}" for i, j in SYMMETRIC_PAIRS] + [f"o_{a}" for a in AXES]
+        E = np.zeros((6, 3, 3))
+        for m, (i, j) in enumerate(SYMMETRIC_PAIRS):
+            E[m, i, j] = E[m, j, i] = 1.0
+        self.dK = np.concatenate([E @ self.R0, np.zeros((3, 3, 3))])
+        self.do = np.zeros((9, 3))
+        self.do[6:, :] = np.eye(3)
+        self.K_const = np.zeros((3, 3))
+        self.o_const = np.zeros(3)
+
+    def pack(self, K: np.ndarray, o: np.ndarray) -> np.ndarray:
+        S, _ = polar_frame(K)
+        return np.concatenate([[S[i, j] for i, j in SYMMETRIC_PAIRS], np.asarray(o, dtype=float).reshape(3)])
+
+
+class NineParameter(_SymmetricInFrame):
+    """In-use 9: K = S symmetric (R0 = I, the convention when there is no lab frame) + offsets."""
+
+    model = "9"
+
+    def _frame(self) -> np.ndarray:
+        return np.eye(3)
+
+
+class TwelveInUse(_SymmetricInFrame):
+    """In-use 12: K = S R0 with the 9 of S, o updated and the frame R0 held: R0 is the orthogonal
+    polar factor of K0 (the lab calibration's K, or the previous 12-in-use K, which carries it)."""
+
+    model = "12"
+
+    def _frame(self) -> np.ndarray:
+        return polar_frame(self.K0)[1]
+
+
 PARAMETERIZATIONS: dict[str, type[Parameterization]] = {
     OffsetsOnly.model: OffsetsOnly,
     SixParameter.model: SixParameter,
+    NineParameter.model: NineParameter,
+    TwelveInUse.model: TwelveInUse,
 }

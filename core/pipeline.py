@@ -1,0 +1,242 @@
+"""Offline calibration of a recording (what `gravcal calibrate` runs), numerics only.
+
+    bootstrap start (start.bootstrap: raw data in unknown units)
+      -> quasi-static windows (streaming detector, detection signal in g via the start)
+      -> re-detection with the fitted calibration if it moved the start a lot
+      -> LottersBatch fit (eq. 11a iterated; C_e eq. 11b)
+      -> held-out error on 5 contiguous folds of windows (core.heldout)
+
+Scales to a week at 100 Hz (60 M samples): the samples are read in chunks (arrays or
+np.memmap columns are never copied whole; each chunk is converted to float64 on its own), the
+detector streams, and only window statistics are kept. The bootstrap sees at most
+``BOOTSTRAP_MAX_SAMPLES`` samples, taken as evenly spaced contiguous segments.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from gravcal.core.calibration import Calibration
+from gravcal.core.estimators.lotters import (START_TOLERANCE, LottersBatch, _relative_difference,
+                                             resolve_parameterization, start_far_note)
+from gravcal.core.heldout import HeldoutResult, heldout_error
+from gravcal.core.windows import WindowSet
+
+log = logging.getLogger(__name__)
+
+CHUNK = 1 << 18  # samples per detector block (~6 MB of float64 triad; bounds the detector temporaries)
+BOOTSTRAP_MAX_SAMPLES = 300_000  # 50 min at 100 Hz, in BOOTSTRAP_SEGMENTS pieces spread over the recording
+BOOTSTRAP_SEGMENTS = 30  # 100 s each at 100 Hz
+MAX_WINDOW_STD_G = 0.05  # per-axis std inside a window above which it is not quasi-static [g] (bias < 1.3 mg)
+FALLBACK_DETECTOR = "variance"
+REDETECT_CHANGE = 0.02  # re-detect when the fit moved the start by more than 2 % of 1 g (eq. 15-16 units)
+
+
+@dataclass
+class CalibrationReport:
+    calibration: Calibration
+    windows: WindowSet
+    heldout_rms_mg: float  # RMS |a| - 1 g on windows not used for the fit [mg]
+    insample_rms_mg: float  # RMS |a| - 1 g on the fitted windows [mg]
+    n_windows: int
+    notes: list[str] = field(default_factory=list)
+    heldout: HeldoutResult | None = None
+    start: Calibration | None = None
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """The `gravcal calibrate --json` object (raw units: offset [raw], sensitivity [raw per g])."""
+        cal = self.calibration
+        d = {
+            "model": cal.model,
+            "offset": cal.offset.tolist(),
+            "sensitivity": cal.sensitivity.tolist(),
+            "std": cal.std,
+            "n_windows": int(self.n_windows),
+            "heldout_rms_mg": _finite_or_none(self.heldout_rms_mg),
+            "insample_rms_mg": _finite_or_none(self.insample_rms_mg),
+            "converged": bool(cal.converged),
+            "observable": bool(cal.observable),
+            "message": cal.message,
+            "heldout_scheme": None if self.heldout is None else f"{self.heldout.scheme}:{self.heldout.folds}",
+            "heldout_fold_rms_mg": [] if self.heldout is None else [_finite_or_none(x) for x in self.heldout.fold_rms_mg],
+            "sigma_floor_g": cal.metadata.get("sigma_floor_g"),
+            "reduced_chi2": _finite_or_none(cal.metadata.get("reduced_chi2", float("nan"))),
+            "notes": list(self.notes),
+            "calibration": cal.to_dict(),
+        }
+        return d
+
+
+def _finite_or_none(x: Any) -> float | None:
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if np.isfinite(v) else None
+
+
+class _Columns:
+    """Uniform chunked access to raw as an (N, 3) array/memmap or a sequence of three (N,) columns."""
+
+    def __init__(self, raw: Any):
+        if isinstance(raw, (list, tuple)):
+            if len(raw) != 3:
+                raise ValueError(f"raw must be (N, 3) or three columns, got {len(raw)} columns")
+            self.cols: Sequence[np.ndarray] | None = [np.asarray(c) if not isinstance(c, np.ndarray) else c for c in raw]
+            n = {c.shape[0] for c in self.cols}
+            if len(n) != 1 or any(c.ndim != 1 for c in self.cols):
+                raise ValueError("raw columns must be 1-D and of equal length")
+            self.n = n.pop()
+            self.arr = None
+        else:
+            arr = raw if isinstance(raw, np.ndarray) else np.asarray(raw)
+            if arr.ndim != 2 or arr.shape[1] != 3:
+                raise ValueError(f"raw must be (N, 3) (ax, ay, az in raw units), got shape {arr.shape}")
+            self.arr, self.cols, self.n = arr, None, arr.shape[0]
+
+    def block(self, i: int, j: int) -> np.ndarray:
+        if self.arr is not None:
+            return np.asarray(self.arr[i:j], dtype=float)
+        out = np.empty((j - i, 3))
+        for k, c in enumerate(self.cols):
+            out[:, k] = c[i:j]
+        return out
+
+
+def _estimate_fs(t: np.ndarray) -> float:
+    head = np.asarray(t[: min(len(t), 100_000)], dtype=float)
+    dt = np.diff(head[np.isfinite(head)])
+    dt = dt[dt > 0]
+    if dt.size == 0:
+        raise ValueError("cannot estimate the sample rate from t: pass fs")
+    return float(1.0 / np.median(dt))
+
+
+def _bootstrap(t: np.ndarray, cols: _Columns, fs: float) -> Calibration:
+    from gravcal.core.estimators.start import bootstrap
+
+    n = cols.n
+    if n <= BOOTSTRAP_MAX_SAMPLES:
+        return bootstrap(np.asarray(t, dtype=float), cols.block(0, n), fs)
+    # evenly spaced contiguous segments, re-timed as one continuous stream (the joins look like
+    # movement to a variance detector, which only costs a few seconds per join)
+    seg = BOOTSTRAP_MAX_SAMPLES // BOOTSTRAP_SEGMENTS
+    starts = np.linspace(0, n - seg, BOOTSTRAP_SEGMENTS).astype(np.int64)
+    raw = np.concatenate([cols.block(int(s), int(s) + seg) for s in starts])
+    tt = np.arange(raw.shape[0]) / fs
+    return bootstrap(tt, raw, fs)
+
+
+def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calibration, temp: Any,
+            detector_kw: dict[str, Any]) -> WindowSet:
+    from gravcal.core.detectors import DETECTORS
+
+    if detector not in DETECTORS:
+        raise ValueError(f"unknown detector {detector!r}; choose one of {sorted(DETECTORS)}")
+    det = DETECTORS[detector](fs, to_g=to_g, **detector_kw)
+    windows = []
+    for i in range(0, cols.n, CHUNK):
+        j = min(i + CHUNK, cols.n)
+        aux = None if temp is None else np.asarray(temp[i:j], dtype=float)[:, None]
+        windows += det.update(np.asarray(t[i:j], dtype=float), cols.block(i, j), aux)
+    windows += det.flush()
+    if not windows:
+        k = 0 if temp is None else 1
+        return WindowSet(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0), np.zeros((0, k)),
+                         np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    return WindowSet.from_windows(windows)
+
+
+def window_std_g(ws: WindowSet, cal: Calibration) -> np.ndarray:
+    """Largest per-axis std [g] of the samples inside each window, under ``cal``."""
+    Kinv = np.linalg.inv(cal.sensitivity)
+    cov_g = np.einsum("ij,mjk,lk->mil", Kinv, ws.cov, Kinv)
+    return np.sqrt(np.clip(np.diagonal(cov_g, axis1=1, axis2=2), 0, None)).max(axis=1)
+
+
+def screen_windows(ws: WindowSet, cal: Calibration, max_std_g: float) -> tuple[WindowSet, int]:
+    """Drop windows whose samples move more than ``max_std_g`` on some axis.
+
+    A detector working on |a| (Lötters eq. 1-2) cannot see a slow rotation at constant |a|: such a
+    window averages several postures and its mean lies INSIDE the ellipsoid (|a| of the mean
+    shrinks by ~std²/2), which biases the fit. Per-axis spread exposes it.
+    """
+    keep = window_std_g(ws, cal) <= max_std_g
+    return ws.subset(np.flatnonzero(keep)), int((~keep).sum())
+
+
+def calibrate_recording(
+    t: Any,
+    raw: Any,
+    *,
+    temp: Any = None,
+    model: Any = "6",
+    fs: float | None = None,
+    detector: str = "lotters",
+    start: Calibration | None = None,
+    folds: int = 5,
+    sigma_floor_g: float | None = None,
+    detector_kw: dict[str, Any] | None = None,
+    max_window_std_g: float = MAX_WINDOW_STD_G,
+) -> CalibrationReport:
+    """Calibrate a recording: t (N,) [s], raw (N, 3) or three (N,) columns [raw units: ax, ay, az],
+    optional temp (N,) [°C] (kept as the windows' aux mean). Raises ValueError with a precise
+    message on unusable input (no quasi-static windows, too few, bad shapes)."""
+    cols = _Columns(raw)
+    t = t if isinstance(t, np.ndarray) else np.asarray(t)
+    if t.ndim != 1 or t.shape[0] != cols.n:
+        raise ValueError(f"t must be 1-D with one time per raw row: t {t.shape}, raw has {cols.n} rows")
+    if temp is not None and np.shape(temp)[0] != cols.n:
+        raise ValueError(f"temp must have one value per raw row ({cols.n}), got {np.shape(temp)[0]}")
+    if cols.n < 2:
+        raise ValueError(f"recording too short: {cols.n} sample(s)")
+    if folds < 2:
+        raise ValueError(f"folds must be >= 2, got {folds}")
+    detector_kw = dict(detector_kw or {})
+    fs = _estimate_fs(t) if fs is None else float(fs)
+    notes: list[str] = []
+
+    user_start = start
+    if start is None:
+        start = _bootstrap(t, cols, fs)
+        notes.append(f"start: {start.message or 'bootstrap'}")
+    ws, dropped = screen_windows(_detect(t, cols, fs, detector, start, temp, detector_kw), start, max_window_std_g)
+    if dropped:
+        notes.append(f"dropped {dropped} window(s) moving more than {max_window_std_g * 1e3:.0f} mg on an axis")
+    if dropped > len(ws) and detector != FALLBACK_DETECTOR:
+        # most "still" periods spanned posture changes: the |a| detector cannot see rotations at 1 g
+        ws2, dropped2 = screen_windows(_detect(t, cols, fs, FALLBACK_DETECTOR, start, temp, {}), start, max_window_std_g)
+        if len(ws2) > len(ws):
+            notes.append(f"detector {detector!r} mostly found periods spanning posture changes; used "
+                         f"{FALLBACK_DETECTOR!r} instead ({len(ws2)} windows)")
+            ws, detector, detector_kw = ws2, FALLBACK_DETECTOR, {}
+    n_params = resolve_parameterization(model, start).n_params
+    if len(ws) == 0:
+        raise ValueError("no quasi-static windows found in the recording (is it all motion? is the start in the "
+                         "right units?)")
+    if len(ws) < n_params:
+        raise ValueError(f"only {len(ws)} quasi-static window(s) found, need at least {n_params} for model {model!r}")
+    estimator = LottersBatch(model, sigma_floor_g=sigma_floor_g)
+    cal = estimator.fit(ws, start)
+    change = _relative_difference(cal, start)
+    if change > REDETECT_CHANGE and cal.converged:
+        # the detection signal |a| used the start: with a better calibration the still/moving split changes
+        ws2, _ = screen_windows(_detect(t, cols, fs, detector, cal, temp, detector_kw), cal, max_window_std_g)
+        if len(ws2) >= n_params:
+            notes.append(f"re-detected windows with the fitted calibration (it moved the start by {change * 100:.1f} % "
+                         f"of 1 g): {len(ws)} -> {len(ws2)} windows")
+            ws = ws2
+            cal = estimator.fit(ws, cal)
+    if user_start is not None:
+        off = _relative_difference(cal, user_start)
+        if off > START_TOLERANCE and "too far off" not in cal.message:
+            note = start_far_note(off)
+            cal.message = f"{cal.message}; {note}" if cal.message else note
+    ho = heldout_error(ws, model, scheme="contiguous", folds=min(folds, len(ws)), start=start, full_fit=cal,
+                       estimator=estimator)
+    notes += ho.notes
+    log.info("calibrated %d windows: held-out %.3g mg, in-sample %.3g mg", len(ws), ho.heldout_rms_mg, ho.insample_rms_mg)
+    return CalibrationReport(cal, ws, ho.heldout_rms_mg, ho.insample_rms_mg, len(ws), notes, ho, start)

@@ -1,0 +1,131 @@
+"""The ``gravcal`` command line: argparse with one module per subcommand.
+
+Each subcommand lives in ``daemon/cmd_<name>.py`` and exposes ``add_parser(subparsers)``
+and ``run(args) -> int``. Modules import their numerics lazily inside ``run`` so that
+``gravcal --help`` works even while a part of core is missing.
+
+Exit status: 0 ok, 1 internal error, 2 bad input (one line ``gravcal: error: ...`` on
+stderr), 3 calibration computed but not trustworthy (not converged / not observable),
+130 interrupted. ``--debug`` shows the traceback of any error.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import pkgutil
+import sys
+import traceback
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Sequence
+
+from .errors import GravcalError, InputError
+
+EXIT_OK = 0
+EXIT_INTERNAL = 1
+EXIT_BAD_INPUT = 2
+EXIT_NOT_TRUSTWORTHY = 3
+EXIT_INTERRUPTED = 130
+
+COMMANDS = ("demo", "simulate", "calibrate", "reproduce", "emulate", "watch")
+"""--help order of the known subcommands; any other daemon/cmd_<name>.py is listed after them,
+and a module that is not there (yet) is skipped."""
+
+log = logging.getLogger("gravcal")
+_UNAVAILABLE: dict[str, str] = {}  # subcommand -> why it could not be loaded
+
+
+def _version() -> str:
+    try:
+        return version("gravcal")
+    except PackageNotFoundError:  # pragma: no cover - running from a bare checkout
+        return "unknown"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="gravcal",
+        description="In-use calibration of body-worn accelerometers from quasi-static moments (Lötters et al. 1998).",
+        epilog="Exit status: 0 ok, 2 bad input, 3 calibration not trustworthy (flags in the output), 1 internal error.",
+    )
+    parser.add_argument("--version", action="version", version=f"gravcal {_version()}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)")
+    parser.add_argument("--debug", action="store_true", help="show the traceback of any error")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _command_names():
+        try:
+            module = importlib.import_module(f"gravcal.daemon.cmd_{name}")
+        except ImportError as exc:
+            if getattr(exc, "name", "") != f"gravcal.daemon.cmd_{name}":
+                # present but broken (e.g. an optional dependency missing): the other
+                # subcommands must keep working; say why this one is absent.
+                _UNAVAILABLE[name] = f"{type(exc).__name__}: {exc}"
+            continue
+        sp = module.add_parser(sub)
+        sp.set_defaults(_run=module.run)
+    return parser
+
+
+def _command_names() -> list[str]:
+    here = Path(__file__).resolve().parent
+    found = sorted(m.name[4:] for m in pkgutil.iter_modules([str(here)]) if m.name.startswith("cmd_"))
+    return [c for c in COMMANDS if c in found] + [c for c in found if c not in COMMANDS]
+
+
+def _setup_logging(verbosity: int) -> None:
+    level = logging.WARNING if verbosity <= 0 else logging.INFO if verbosity == 1 else logging.DEBUG
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("gravcal: %(levelname)s: %(message)s"))
+    root = logging.getLogger()
+    # In-process callers (tests) may call main() many times: replace our handler, keep theirs.
+    for h in list(root.handlers):
+        if getattr(h, "_gravcal", False):
+            root.removeHandler(h)
+    handler._gravcal = True  # type: ignore[attr-defined]
+    root.addHandler(handler)
+    root.setLevel(level)
+
+
+def _error(msg: str) -> None:
+    # One line, always: a message spanning lines would read as a traceback.
+    print(f"gravcal: error: {' '.join(str(msg).split())}", file=sys.stderr)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point (``gravcal``). Returns the exit status instead of raising SystemExit
+    for the program's own outcomes; argparse usage errors still exit with status 2."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose)
+    for name, why in _UNAVAILABLE.items():
+        log.info("subcommand %r unavailable: %s", name, why)
+    if not getattr(args, "_run", None):
+        parser.print_help(sys.stderr)
+        return EXIT_BAD_INPUT
+    try:
+        return int(args._run(args))
+    except KeyboardInterrupt:
+        print("gravcal: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # e.g. `gravcal demo | head`
+        return EXIT_OK
+    except (InputError, ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
+        if args.debug:
+            traceback.print_exc()
+        _error(exc)
+        return EXIT_BAD_INPUT
+    except (GravcalError, OSError) as exc:
+        if args.debug:
+            traceback.print_exc()
+        _error(exc)
+        return EXIT_INTERNAL
+    except Exception as exc:  # noqa: BLE001 - the user gets one line; --debug gives the traceback
+        if args.debug:
+            traceback.print_exc()
+        _error(f"internal error: {type(exc).__name__}: {exc} (run with --debug for the traceback)")
+        return EXIT_INTERNAL
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,85 @@
+"""``gravcal watch``: print calibrated samples and calibration changes from gravcald."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from typing import Any, TextIO
+
+from .client import Client, default_socket_path
+from .errors import InputError
+from .protocol import STANDARD_GRAVITY
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "watch",
+        help="print calibrated samples and calibration changes from gravcald",
+        description="Connect to gravcald's socket and print calibrated samples (m/s²) and calibration changes.",
+    )
+    p.add_argument("--socket", metavar="PATH", default=None,
+                   help=f"gravcald socket (default: $GRAVCAL_SOCKET or {default_socket_path()})")
+    p.add_argument("--rate", metavar="HZ", type=float, default=10.0,
+                   help="at most this many samples per second (0: every sample; default 10)")
+    p.add_argument("--raw", action="store_true", help="also show the raw duty cycles")
+    p.add_argument("--count", metavar="N", type=int, default=0, help="stop after N samples (default: run until Ctrl-C)")
+    p.add_argument("--json", action="store_true", help="print the server's JSON messages as they are")
+    p.add_argument("--timeout", metavar="S", type=float, default=10.0,
+                   help="give up when nothing arrives for S seconds (default 10)")
+    p.set_defaults(func=run)
+    return p
+
+
+def format_imu(msg: dict[str, Any], raw: bool = False) -> str:
+    acc = msg.get("acc") or [None] * 3
+    if all(isinstance(v, (int, float)) for v in acc):
+        norm = math.sqrt(sum(v * v for v in acc))
+        acc_s = " ".join(f"{v:+8.3f}" for v in acc) + f"  |a| {norm:7.3f} m/s² ({norm / STANDARD_GRAVITY:6.4f} g)"
+    else:
+        acc_s = "acc unavailable (missing channel)"
+    gyro = msg.get("gyro")
+    gyro_s = f"  gyro {gyro:+7.3f} rad/s" if isinstance(gyro, (int, float)) else ""
+    line = f"IMU {msg.get('seq'):>9} t {msg.get('t', float('nan')):12.3f} s  acc {acc_s}{gyro_s}  {'static' if msg.get('static') else 'moving'}"
+    if raw and msg.get("duty") is not None:
+        line += "  duty " + " ".join("  null  " if d is None else f"{d:.5f}" for d in msg["duty"])
+    return line
+
+
+def format_calib(msg: dict[str, Any]) -> str:
+    off = msg.get("offset") or []
+    sens = msg.get("sensitivity") or []
+    diag = [row[i] for i, row in enumerate(sens)] if sens else []
+    state = "accepted" if msg.get("accepted") else "not accepted"
+    return (
+        f"CALIB revision {msg.get('revision')} model {msg.get('model')} ({state}, {msg.get('n_windows', 0)} windows)"
+        f"  offset {' '.join(f'{v:.5f}' for v in off)}  sensitivity {' '.join(f'{v:.5f}' for v in diag)} /g"
+        + (f"  {msg['message']}" if msg.get("message") else "")
+    )
+
+
+def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
+    out = out or sys.stdout
+    if args.rate is not None and (args.rate < 0 or not math.isfinite(args.rate)):
+        raise InputError(f"--rate must be a number of Hz >= 0, got {args.rate}")
+    if args.count < 0:
+        raise InputError(f"--count must be >= 0, got {args.count}")
+    seen = 0
+    with Client(args.socket, timeout=args.timeout) as client:
+        for msg in client.watch(rate=args.rate, raw=args.raw):
+            cls = msg.get("class")
+            if args.json:
+                print(json.dumps(msg, separators=(",", ":")), file=out, flush=True)
+            elif cls == "IMU":
+                print(format_imu(msg, args.raw), file=out, flush=True)
+            elif cls == "CALIB":
+                print(format_calib(msg), file=out, flush=True)
+            elif cls == "DROPPED":
+                print(f"DROPPED {msg.get('count')} messages (too slow; {msg.get('total')} in total)", file=out, flush=True)
+            elif cls == "ERROR":
+                print(f"ERROR {msg.get('message')}", file=sys.stderr, flush=True)
+            if cls == "IMU":
+                seen += 1
+                if args.count and seen >= args.count:
+                    return 0
+    return 0

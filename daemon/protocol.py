@@ -1,0 +1,341 @@
+"""The gravcald socket protocol (gpsd's JSON style): requests in, JSON lines out.
+
+Every message the server sends is one JSON object on one line with a ``class``. Clients
+send gpsd-style commands, one or more per line::
+
+    ?WATCH={"enable":true,"raw":false,"rate":50};
+    ?POLL;  ?CALIB;  ?STATUS;  ?VERSION;
+
+This module is pure (no sockets): it parses requests into :class:`Request` objects and
+encodes messages to bytes. docs/socket-protocol.md documents every class and field.
+Units on the socket are SI: acceleration in m/s², angular rate in rad/s, time in s.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..core.samples import duty_ratios
+
+PROTOCOL_MAJOR = 1
+PROTOCOL_MINOR = 0
+
+STANDARD_GRAVITY = 9.80665  # m/s² per g (CGPM 1901)
+
+MAX_REQUEST_BYTES = 1024
+"""Default bound on one request line (bytes, without the newline)."""
+
+COMMANDS = ("WATCH", "POLL", "CALIB", "STATUS", "VERSION")
+WATCH_FIELDS = ("enable", "raw", "rate", "json")
+
+
+class ProtocolError(ValueError):
+    """A request the server cannot honour; the message is sent to the client as ERROR."""
+
+
+def gravcal_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("gravcal")
+    except Exception:  # not installed (running from a source tree)
+        return "unknown"
+
+
+# -- requests ------------------------------------------------------------------------
+
+
+@dataclass
+class Request:
+    """One parsed command. ``args`` is the JSON object of ``?WATCH={...}`` (None if absent)."""
+
+    command: str
+    args: dict[str, Any] | None = None
+
+
+@dataclass
+class WatchPolicy:
+    """A client's subscription: what it receives and how often.
+
+    ``rate`` [Hz] bounds IMU messages to at most one per 1/rate seconds of sample time
+    (0 = every sample).
+    """
+
+    enable: bool = False
+    raw: bool = False
+    rate: float = 0.0
+
+    def updated(self, args: dict[str, Any] | None) -> "WatchPolicy":
+        """A new policy with the fields present in ``args`` changed (gpsd semantics:
+        absent fields keep their value). Raises ProtocolError naming a bad field."""
+        new = WatchPolicy(self.enable, self.raw, self.rate)
+        if args is None:
+            return new
+        unknown = [k for k in args if k not in WATCH_FIELDS]
+        if unknown:
+            raise ProtocolError(
+                f"?WATCH: unknown field {unknown[0]!r}; known fields: {', '.join(WATCH_FIELDS)}"
+            )
+        for name in ("enable", "raw"):
+            if name in args:
+                if not isinstance(args[name], bool):
+                    raise ProtocolError(f"?WATCH: field {name!r} must be true or false, got {json.dumps(args[name])}")
+                setattr(new, name, args[name])
+        if "json" in args and args["json"] is not True:
+            # Accepted for gpsd habits; JSON is the only encoding there is.
+            raise ProtocolError("?WATCH: field 'json' can only be true (gravcald speaks JSON only)")
+        if "rate" in args:
+            rate = args["rate"]
+            if rate is None:
+                rate = 0.0
+            if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not math.isfinite(rate) or rate < 0:
+                raise ProtocolError(
+                    f"?WATCH: field 'rate' must be a number of Hz >= 0 (0 = every sample), got {json.dumps(rate)}"
+                )
+            new.rate = float(rate)
+        return new
+
+    def to_message(self) -> dict[str, Any]:
+        return {"class": "WATCH", "enable": self.enable, "raw": self.raw, "rate": self.rate}
+
+
+def _excerpt(text: str, n: int = 80) -> str:
+    return text if len(text) <= n else text[:n] + "..."
+
+
+def parse_requests(line: bytes | str) -> list[Request | ProtocolError]:
+    """Parse one request line into commands, in order.
+
+    A bad command yields a ProtocolError in its place; parsing stops at the first bad
+    command because its end cannot be trusted. Empty lines give an empty list.
+    """
+    if isinstance(line, bytes):
+        try:
+            text = line.decode("utf-8")
+        except UnicodeDecodeError:
+            return [ProtocolError("request is not valid UTF-8")]
+    else:
+        text = line
+    text = text.strip()
+    out: list[Request | ProtocolError] = []
+    pos = 0
+    decoder = json.JSONDecoder()
+    while True:
+        while pos < len(text) and text[pos] in " \t\r;":
+            pos += 1
+        if pos >= len(text):
+            return out
+        if text[pos] != "?":
+            out.append(ProtocolError(f"requests start with '?', e.g. ?WATCH={{\"enable\":true}}; got {_excerpt(text[pos:])!r}"))
+            return out
+        end = pos + 1
+        while end < len(text) and (text[end].isalnum() or text[end] == "_"):
+            end += 1
+        name = text[pos + 1 : end].upper()
+        if name not in COMMANDS:
+            shown = text[pos:end] or text[pos : pos + 10]
+            out.append(ProtocolError(f"unknown command {shown!r}; known: {', '.join('?' + c for c in COMMANDS)}"))
+            return out
+        args = None
+        pos = end
+        if pos < len(text) and text[pos] == "=":
+            if name != "WATCH":
+                out.append(ProtocolError(f"?{name} takes no arguments"))
+                return out
+            try:
+                args, pos = decoder.raw_decode(text, pos + 1)
+            except json.JSONDecodeError as exc:
+                out.append(ProtocolError(f"?{name}: argument is not valid JSON: {exc.msg} at column {exc.colno}"))
+                return out
+            if not isinstance(args, dict):
+                out.append(ProtocolError(f"?{name}: argument must be a JSON object, got {type(args).__name__}"))
+                return out
+        if pos < len(text) and text[pos] not in " \t\r;":
+            out.append(ProtocolError(f"?{name}: unexpected text after the command: {_excerpt(text[pos:])!r}"))
+            return out
+        out.append(Request(name, args))
+
+
+# -- messages ------------------------------------------------------------------------
+
+
+def encode(message: dict[str, Any]) -> bytes:
+    """One message as a JSON line (non-finite floats become null)."""
+    return (json.dumps(_finite(message), separators=(",", ":"), allow_nan=False) + "\n").encode()
+
+
+def _finite(x: Any) -> Any:
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    if isinstance(x, np.generic):
+        return _finite(x.item())
+    if isinstance(x, np.ndarray):
+        return _finite(x.tolist())
+    return x
+
+
+def version_message() -> dict[str, Any]:
+    return {
+        "class": "VERSION",
+        "release": gravcal_version(),
+        "proto_major": PROTOCOL_MAJOR,
+        "proto_minor": PROTOCOL_MINOR,
+    }
+
+
+def error_message(message: str, request: str | None = None) -> dict[str, Any]:
+    msg: dict[str, Any] = {"class": "ERROR", "message": message}
+    if request:
+        msg["request"] = _excerpt(request)
+    return msg
+
+
+def dropped_message(count: int, total: int) -> dict[str, Any]:
+    """Notice to a slow client: ``count`` of its oldest queued messages were discarded
+    since the previous notice (``total`` since it connected)."""
+    return {"class": "DROPPED", "count": int(count), "total": int(total)}
+
+
+def calib_message(
+    calibration: Any,
+    *,
+    revision: int,
+    updated: float | None,
+    accepted: bool,
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """CALIB payload from a core Calibration (raw = sensitivity @ a[g] + offset).
+
+    ``updated`` is Unix time [s] of the last estimator update (None: never).
+    """
+    msg: dict[str, Any] = {
+        "class": "CALIB",
+        "revision": int(revision),
+        "model": str(calibration.model),
+        "accepted": bool(accepted),
+        "converged": bool(calibration.converged),
+        "observable": bool(calibration.observable),
+        "n_windows": int(calibration.n_windows),
+        "updated": updated,
+        "offset": np.asarray(calibration.offset, dtype=float).tolist(),
+        "sensitivity": np.asarray(calibration.sensitivity, dtype=float).tolist(),
+        "std": dict(calibration.std),
+        "message": str(calibration.message),
+    }
+    if extra:
+        msg.update(extra)
+    return msg
+
+
+# IMU lines are formatted with %-templates: the hot path of the server (one line per sample
+# per encoding), and several times faster than json.dumps on a dict.
+_IMU_HEAD = '{"class":"IMU","seq":%d,"t":%.6f,"acc":[%.5f,%.5f,%.5f],"gyro":%s,"static":%s,"temp":%.2f,"vsupply":%.3f'
+_RAW_TAIL = ',"duty":[%s],"t1":[%d,%d,%d,%d],"t2":[%d,%d],"gyro_counts":%d,"tick":%d,"flags":%d}\n'
+
+
+def _num(x: float, fmt: str) -> str:
+    return fmt % x if math.isfinite(x) else "null"
+
+
+def encode_imu(
+    samples: np.ndarray,
+    acc_ms2: np.ndarray,
+    gyro_rads: np.ndarray,
+    static: np.ndarray,
+    *,
+    raw: bool = False,
+) -> list[bytes]:
+    """IMU lines for a block of samples (SAMPLE_DTYPE) with their calibrated values.
+
+    acc_ms2 (N, 3) calibrated specific force [m/s²]; gyro_rads (N,) rate [rad/s] (NaN:
+    not calibrated -> null); static (N,) bool. ``raw`` adds the driver's raw fields.
+    """
+    n = samples.shape[0]
+    acc = np.asarray(acc_ms2, dtype=float).reshape(n, 3)
+    gyro = np.asarray(gyro_rads, dtype=float).reshape(n)
+    stat = np.asarray(static, dtype=bool).reshape(n)
+    seq = samples["seq"].tolist()
+    t = samples["t"].tolist()
+    temp = samples["temp"].astype(float).tolist()
+    vs = samples["vsupply"].astype(float).tolist()
+    accl = acc.tolist()
+    gyro_s = [("%.6f" % g) if math.isfinite(g) else "null" for g in gyro.tolist()]
+    stat_s = ["true" if s else "false" for s in stat.tolist()]
+    finite = bool(np.all(np.isfinite(acc)) and np.all(np.isfinite(samples["t"])))
+    if finite and np.all(np.isfinite(samples["temp"])) and np.all(np.isfinite(samples["vsupply"])):
+        heads = [
+            _IMU_HEAD % (seq[i], t[i], a[0], a[1], a[2], gyro_s[i], stat_s[i], temp[i], vs[i])
+            for i, a in enumerate(accl)
+        ]
+    else:  # rare: missing channels (T2 = 0) give NaN; JSON has no NaN, so null
+        heads = []
+        for i, a in enumerate(accl):
+            acc_s = "[" + ",".join(_num(v, "%.5f") for v in a) + "]"
+            heads.append(
+                '{"class":"IMU","seq":%d,"t":%s,"acc":%s,"gyro":%s,"static":%s,"temp":%s,"vsupply":%s'
+                % (seq[i], _num(t[i], "%.6f"), acc_s, gyro_s[i], stat_s[i], _num(temp[i], "%.2f"), _num(vs[i], "%.3f"))
+            )
+    if not raw:
+        return [(h + "}\n").encode() for h in heads]
+    duty = duty_ratios(samples)
+    # A missing period (T2 = 0) gives a NaN duty cycle -> null.
+    duty_s = [",".join(_num(v, "%.6f") for v in row) for row in duty.tolist()]
+    t1 = samples["t1"].tolist()
+    t2 = samples["t2"].tolist()
+    g = samples["gyro"].tolist()
+    tick = samples["tick"].tolist()
+    flags = samples["flags"].tolist()
+    out = []
+    for i, h in enumerate(heads):
+        out.append((h + _RAW_TAIL % (duty_s[i], *t1[i], *t2[i], g[i], tick[i], flags[i])).encode())
+    return out
+
+
+def decimation_mask(t: np.ndarray, rate: float, last_bucket: float) -> tuple[np.ndarray, float]:
+    """Which samples a client with ``rate`` [Hz] receives, and its new last bucket.
+
+    Sample time is cut into buckets of 1/rate s; the first sample of each new bucket is
+    sent, so at most ``rate`` messages per second of sample time go out, and every bucket
+    that holds a sample yields one (no beat pattern with the sampling rate).
+    """
+    if rate <= 0 or t.size == 0:
+        return np.ones(t.shape[0], dtype=bool), last_bucket
+    buckets = np.floor(np.asarray(t, dtype=float) * rate)
+    prev = np.empty_like(buckets)
+    prev[0] = last_bucket
+    prev[1:] = buckets[:-1]
+    mask = buckets > prev
+    # Non-monotonic time (e.g. a replay restarting) must not silence the client.
+    mask |= buckets < prev
+    return mask, float(buckets[-1])
+
+
+@dataclass
+class ImuBlock:
+    """A block handed from acquisition to the server (all arrays length N)."""
+
+    samples: np.ndarray
+    acc_ms2: np.ndarray
+    gyro_rads: np.ndarray
+    static: np.ndarray
+    _lines: dict[bool, list[bytes]] = field(default_factory=dict, repr=False)
+
+    def lines(self, raw: bool) -> list[bytes]:
+        """Encoded IMU lines, computed once per encoding and shared by every client."""
+        got = self._lines.get(raw)
+        if got is None:
+            got = self._lines[raw] = encode_imu(self.samples, self.acc_ms2, self.gyro_rads, self.static, raw=raw)
+        return got
+
+    def last_message(self, raw: bool = False) -> dict[str, Any] | None:
+        if self.samples.shape[0] == 0:
+            return None
+        return json.loads(self.lines(raw)[-1])

@@ -1,0 +1,589 @@
+"""Recordings on disk: read one for ``gravcal calibrate``, write one from ``gravcal simulate``.
+
+Two formats hold the same columns:
+
+- CSV: a header row, then one sample per line. Columns ``t`` [s], ``ax``, ``ay``, ``az``
+  (raw units of any scale: counts, volts, duty cycle or g); optional ``gx``, ``gy``, ``gz``
+  (gyro, any unit) and ``temp`` [°C]; any other column is ignored. Delimiter ``,`` (``;`` or
+  tab are recognised from the header), ``#`` starts a comment line.
+- ``.npy``: a structured array with the same field names, opened memory-mapped so a week at
+  100 Hz (60 M samples) is not copied; ``t``, ``ax``, ``ay``, ``az`` come back as views.
+
+Reading validates and says precisely what is wrong (:class:`~gravcal.daemon.errors.InputError`):
+missing file, empty file, no header, missing columns, text in numbers (line and column),
+NaN/inf (dropped with a warning when few, an error when most), clipped/saturated samples,
+time going backwards or repeated, too few samples. Validation runs in chunks so its
+temporaries stay small next to a memory-mapped week.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_triad
+
+from .errors import InputError
+
+log = logging.getLogger(__name__)
+
+REQUIRED = ("t", "ax", "ay", "az")
+OPTIONAL = ("gx", "gy", "gz", "temp")
+MIN_SAMPLES = 50
+"""Fewer samples than this cannot hold even one quasi-static window at any usual rate."""
+MAX_NONFINITE_FRACTION = 0.5
+"""NaN/inf rows are dropped with a warning up to this fraction; beyond it the file is refused."""
+MAX_SATURATED_FRACTION = 0.05
+"""Saturated rows are dropped with a warning up to this fraction. Beyond it the sensor sat at
+its rail for whole postures, and any calibration from the rest would be biased: refused."""
+SATURATION_MIN_COUNT = 20
+SATURATION_MIN_FRACTION = 0.005
+"""A channel is clipped when at least this many / this fraction of its samples sit exactly on
+its extreme value. Continuous data almost never repeats its extreme exactly ..."""
+SATURATION_MIN_DISTINCT = 200
+"""... unless it is coarsely quantised: the heuristic only applies when a subsample holds at
+least this many distinct values (otherwise only a ``flags`` column can mark saturation)."""
+CHUNK = 1 << 20  # rows per chunk of the slow paths (bounded temporaries)
+SCAN_CHUNK = 1 << 16  # rows per chunk of the validation scan: small enough to stay in the CPU cache
+
+
+@dataclass
+class Recording:
+    """A validated recording in memory (or memory-mapped).
+
+    ``raw`` is (N, 3) in the file's raw units; ``t`` (N,) [s]; ``temp`` (N,) [°C] or None;
+    ``gyro`` (N, 3) in the file's gyro units or None; ``fs`` [Hz] estimated from ``t``.
+    """
+
+    t: np.ndarray
+    raw: np.ndarray
+    temp: np.ndarray | None
+    gyro: np.ndarray | None
+    fs: float
+    source: Path
+    n_dropped: int = 0  # rows dropped for NaN/inf
+    n_saturated: int = 0  # rows dropped as saturated
+    columns: tuple[str, ...] = ()  # every column/field name found in the file
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def duration_s(self) -> float:
+        return float(self.t[-1] - self.t[0]) if self.n_samples else 0.0
+
+
+# ---------------------------------------------------------------------------------------
+# reading
+# ---------------------------------------------------------------------------------------
+def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_saturation: bool = True) -> Recording:
+    """Read and validate a CSV or ``.npy`` recording (format chosen by the extension)."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file")
+    if path.is_dir():
+        raise InputError(f"{path}: is a directory, expected a .csv or .npy recording")
+    if path.stat().st_size == 0:
+        raise InputError(f"{path}: empty file (expected a header row t,ax,ay,az and samples)")
+    if path.suffix.lower() == ".npy":
+        cols, where, columns = _load_npy(path)
+    else:
+        cols, where, columns = _load_csv(path)
+    return _validate(path, cols, where, columns, min_samples=min_samples, check_saturation=check_saturation)
+
+
+def _missing_columns_error(path: Path, found: list[str], what: str = "column") -> InputError:
+    missing = [c for c in REQUIRED if c not in found]
+    shown = ", ".join(found) if found else "(none)"
+    return InputError(
+        f"{path}: missing {what}{'s' if len(missing) > 1 else ''} {', '.join(missing)}; found: {shown} "
+        f"(need {', '.join(REQUIRED)}; optional {', '.join(OPTIONAL)})"
+    )
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True
+
+
+def _sniff_delimiter(header: str) -> str | None:
+    for d in (",", ";", "\t"):
+        if d in header:
+            return d
+    return None  # whitespace
+
+
+def _split(line: str, delim: str | None) -> list[str]:
+    if delim is None:
+        return line.split()
+    return next(csv.reader([line], delimiter=delim))
+
+
+def _load_csv(path: Path) -> tuple[dict[str, np.ndarray], "_Where", tuple[str, ...]]:
+    with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
+        header = f.readline()
+        while header and header.lstrip().startswith("#"):
+            header = f.readline()
+    if not header.strip():
+        raise InputError(f"{path}: no header row (the first line is empty; expected a header like t,ax,ay,az)")
+    delim = _sniff_delimiter(header)
+    names = [n.strip().strip('"').strip().lower() for n in _split(header.rstrip("\r\n"), delim)]
+    if names and all(_is_number(n) for n in names if n):
+        raise InputError(
+            f"{path}: no header row (the first line holds numbers: {header.strip()[:60]!r}); "
+            f"expected a header naming the columns, e.g. t,ax,ay,az"
+        )
+    if any(c not in names for c in REQUIRED):
+        raise _missing_columns_error(path, names)
+    wanted = [c for c in REQUIRED + OPTIONAL if c in names] + (["flags"] if "flags" in names else [])
+    dup = [c for c in wanted if names.count(c) > 1]
+    if dup:
+        raise InputError(f"{path}: column {dup[0]!r} appears {names.count(dup[0])} times in the header")
+    usecols = [names.index(c) for c in wanted]
+    header_line = _header_line_number(path)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # "input contained no data": handled below
+            data = np.loadtxt(
+                path, delimiter=delim, skiprows=header_line, usecols=usecols, dtype=np.float64,
+                ndmin=2, comments="#", encoding="utf-8-sig",
+            )
+    except ValueError:
+        # Slow path only on trouble: locate the first bad line exactly (and accept empty
+        # fields as missing values, which the NaN policy then handles).
+        data = _parse_csv_slow(path, delim, names, usecols, header_line)
+    if data.shape[0] == 0:
+        raise InputError(f"{path}: empty input: a header but no samples")
+    cols = {c: np.ascontiguousarray(data[:, i]) for i, c in enumerate(wanted)}
+    return cols, _Where(path=path, csv_header_line=header_line, csv_delim=delim), tuple(names)
+
+
+def _header_line_number(path: Path) -> int:
+    """1-based line number of the header (comment lines may precede it)."""
+    with open(path, encoding="utf-8-sig", errors="replace") as f:
+        for i, line in enumerate(f, start=1):
+            if not line.lstrip().startswith("#"):
+                return i
+    return 1
+
+
+def _data_lines(path: Path, header_line: int) -> Iterator[tuple[int, str]]:
+    """(line number, text) of each data line, skipping blank and comment lines like np.loadtxt."""
+    with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
+        for i, line in enumerate(f, start=1):
+            if i <= header_line:
+                continue
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            yield i, line.rstrip("\r\n")
+
+
+def _parse_csv_slow(path: Path, delim: str | None, names: list[str], usecols: list[int], header_line: int) -> np.ndarray:
+    rows: list[list[float]] = []
+    for lineno, line in _data_lines(path, header_line):
+        fields = _split(line, delim)
+        if len(fields) <= max(usecols):
+            raise InputError(
+                f"{path}: line {lineno} has {len(fields)} fields, the header has {len(names)} "
+                f"(column {names[max(usecols)]!r} is missing on that line)"
+            )
+        row = []
+        for j in usecols:
+            s = fields[j].strip()
+            if s == "":
+                row.append(math.nan)  # a missing value: handled by the NaN/inf policy
+                continue
+            try:
+                row.append(float(s))
+            except ValueError:
+                raise InputError(
+                    f"{path}: line {lineno}, column {names[j]!r}: {s[:40]!r} is not a number"
+                ) from None
+        rows.append(row)
+    return np.array(rows, dtype=np.float64).reshape(len(rows), len(usecols))
+
+
+def _load_npy(path: Path) -> tuple[dict[str, np.ndarray], "_Where", tuple[str, ...]]:
+    layout = "a structured array with fields t, ax, ay, az (optional gx, gy, gz, temp)"
+    try:
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(f"{path}: not a readable .npy file ({exc}); expected {layout}") from None
+    if isinstance(arr, np.lib.npyio.NpzFile):  # pragma: no cover - np.load only returns this for .npz content
+        raise InputError(f"{path}: is an .npz archive; expected a .npy file holding {layout}")
+    names = arr.dtype.names
+    if names is None:
+        raise InputError(
+            f"{path}: holds a plain {arr.dtype} array of shape {arr.shape}; expected {layout} "
+            f"(e.g. np.save(path, np.rec.fromarrays([t, ax, ay, az], names='t,ax,ay,az')))"
+        )
+    if arr.ndim != 1:
+        raise InputError(f"{path}: structured array has shape {arr.shape}; expected one dimension (one row per sample)")
+    if len(arr) == 0:
+        raise InputError(f"{path}: empty input: the array holds no samples")
+    lower = {n.lower(): n for n in names}
+    if any(c not in lower for c in REQUIRED):
+        raise _missing_columns_error(path, list(lower), what="field")
+    for c in REQUIRED + OPTIONAL:
+        if c in lower and (arr.dtype[lower[c]].kind not in "fiu" or arr.dtype[lower[c]].shape != ()):
+            raise InputError(f"{path}: field {c!r} has type {arr.dtype[lower[c]]}; expected a scalar number per sample")
+    cols = {c: arr[lower[c]] for c in REQUIRED + OPTIONAL if c in lower}
+    if "flags" in lower:
+        cols["flags"] = arr[lower["flags"]]
+    triad = _triad_view(arr, [lower[c] for c in ("ax", "ay", "az")])
+    if triad is not None:
+        cols["_triad"] = triad
+    return cols, _Where(path=path), tuple(names)
+
+
+def _triad_view(arr: np.ndarray, fields: list[str]) -> np.ndarray | None:
+    """An (N, 3) view (no copy) of three adjacent fields of one float type, else None."""
+    dts = [arr.dtype.fields[f][0] for f in fields]
+    offs = [arr.dtype.fields[f][1] for f in fields]
+    if len({d.str for d in dts}) != 1 or dts[0].kind != "f":
+        return None
+    size = dts[0].itemsize
+    if offs != [offs[0], offs[0] + size, offs[0] + 2 * size]:
+        return None
+    return np.ndarray(shape=(arr.shape[0], 3), dtype=dts[0], buffer=arr, offset=offs[0], strides=(arr.strides[0], size))
+
+
+@dataclass
+class _Where:
+    """Turns a row index into a place a user can find (CSV line number or .npy index)."""
+
+    path: Path
+    csv_header_line: int | None = None
+    csv_delim: str | None = None
+
+    def __call__(self, row: int) -> str:
+        if self.csv_header_line is None:
+            return f"row {row}"
+        for k, (lineno, _) in enumerate(_data_lines(self.path, self.csv_header_line)):
+            if k == row:
+                return f"line {lineno}"
+        return f"data row {row}"  # pragma: no cover
+
+
+def _chunks(n: int, size: int = CHUNK) -> Iterator[slice]:
+    for i in range(0, n, size):
+        yield slice(i, min(n, i + size))
+
+
+@dataclass
+class _Scan:
+    """What one chunked pass over the columns finds (the fast path reads every byte once)."""
+
+    finite: bool = True
+    min_dt: float = math.inf  # smallest time step (<= 0: time not increasing somewhere)
+    dt_medians: list[float] = field(default_factory=list)  # median step of sampled chunks
+    lo: np.ndarray = field(default_factory=lambda: np.full(3, np.inf))  # per-channel minimum
+    hi: np.ndarray = field(default_factory=lambda: np.full(3, -np.inf))  # per-channel maximum
+    n_lo: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))  # samples exactly at the minimum
+    n_hi: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))  # samples exactly at the maximum
+    n_flagged: int = 0  # samples flagged saturated by the logger
+
+
+def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None) -> _Scan:
+    n = int(t.shape[0])
+    sc = _Scan()
+    prev_t: float | None = None
+    for k, s in enumerate(_chunks(n, SCAN_CHUNK)):
+        tc = np.asarray(t[s], dtype=np.float64)
+        chans = [np.ascontiguousarray(raw[s, c]) for c in range(3)]  # contiguous: reductions run at full speed
+        if sc.finite and not (np.isfinite(tc).all() and all(np.isfinite(ch).all() for ch in chans)
+                              and all(np.isfinite(np.asarray(e[s], dtype=np.float64)).all() for e in extra)):
+            sc.finite = False
+            return sc  # the caller drops the bad rows and scans again
+        dt = np.diff(tc) if prev_t is None else np.diff(tc, prepend=prev_t)
+        prev_t = float(tc[-1])
+        if dt.size:
+            sc.min_dt = min(sc.min_dt, float(dt.min()))
+            if k % 64 == 0:
+                sc.dt_medians.append(float(np.median(dt)))
+        for c, ch in enumerate(chans):
+            cmin, cmax = ch.min(), ch.max()
+            if cmin <= sc.lo[c]:
+                nmin = int(np.count_nonzero(ch == cmin))
+                sc.n_lo[c] = nmin if cmin < sc.lo[c] else sc.n_lo[c] + nmin
+                sc.lo[c] = cmin
+            if cmax >= sc.hi[c]:
+                nmax = int(np.count_nonzero(ch == cmax))
+                sc.n_hi[c] = nmax if cmax > sc.hi[c] else sc.n_hi[c] + nmax
+                sc.hi[c] = cmax
+        if flags is not None:
+            sc.n_flagged += int(np.count_nonzero(np.asarray(flags[s]).astype(np.int64) & FLAG_SATURATED))
+    return sc
+
+
+def _validate(path: Path, cols: dict[str, np.ndarray], where: _Where, columns: tuple[str, ...], *,
+              min_samples: int, check_saturation: bool) -> Recording:
+    t = cols["t"]
+    raw = cols.pop("_triad", None)
+    if raw is None:
+        raw = np.column_stack([cols["ax"], cols["ay"], cols["az"]]).astype(np.float64, copy=False)
+    temp = cols.get("temp")
+    gyro = np.column_stack([cols[c] for c in ("gx", "gy", "gz")]) if all(c in cols for c in ("gx", "gy", "gz")) else None
+    flags = cols.get("flags")
+    n = int(t.shape[0])
+    notes: list[str] = []
+    extra = [v for v in (temp,) if v is not None] + ([gyro[:, i] for i in range(3)] if gyro is not None else [])
+    scan = _scan(t, raw, extra, flags)
+
+    # 1. NaN / inf in any column we use: drop the rows (a copy; only when there are any).
+    keep: np.ndarray | None = None
+    n_dropped = 0
+    if not scan.finite:
+        used = {"t": t, "ax": raw[:, 0], "ay": raw[:, 1], "az": raw[:, 2]}
+        if temp is not None:
+            used["temp"] = temp
+        if gyro is not None:
+            used.update(gx=gyro[:, 0], gy=gyro[:, 1], gz=gyro[:, 2])
+        bad = _nonfinite_rows(used, n)
+        n_dropped = int(bad.sum())
+        first = int(np.argmax(bad))
+        which = [name for name, v in used.items() if not np.isfinite(v[first])]
+        msg = (f"{n_dropped} of {n} samples ({100.0 * n_dropped / n:.1f} %) hold NaN/inf or empty values "
+               f"(first at {where(first)}, column {', '.join(which)})")
+        if n_dropped > MAX_NONFINITE_FRACTION * n:
+            raise InputError(f"{path}: {msg}: too many to drop")
+        notes.append(f"dropped {msg}")
+        keep = ~bad
+        sub_flags = flags[keep] if flags is not None else None
+        scan = _scan(t[keep], raw[keep], [], sub_flags)
+
+    # 2. Saturated (clipped) samples: a flags column says so exactly; else the pile-up heuristic.
+    n_saturated = 0
+    if check_saturation:
+        sat, detail = _saturated_rows(raw, flags, keep, scan)
+        if sat is not None:
+            n_saturated = int(sat.sum())
+            n_valid = n - n_dropped
+            first = int(np.argmax(sat))
+            msg = (f"{n_saturated} of {n_valid} samples ({100.0 * n_saturated / n_valid:.1f} %) are saturated "
+                   f"(sensor at the end of its range: {detail}; first at {where(first)})")
+            if n_saturated > MAX_SATURATED_FRACTION * n_valid:
+                raise InputError(
+                    f"{path}: {msg}: too many to drop, a calibration from the rest would be biased "
+                    f"(use a wider range or --no-saturation-check if the data is merely quantised)"
+                )
+            notes.append(f"dropped {msg}")
+            keep = ~sat if keep is None else keep & ~sat
+
+    if keep is not None:
+        t, raw = t[keep], raw[keep]
+        temp = temp[keep] if temp is not None else None
+        gyro = gyro[keep] if gyro is not None else None
+        orig_index = np.flatnonzero(keep)
+    else:
+        orig_index = None
+    n_kept = int(t.shape[0])
+    if n_kept < max(min_samples, 2):
+        extra_msg = f" after dropping {n - n_kept} bad ones" if n_kept != n else ""
+        raise InputError(f"{path}: too few samples: {n_kept}{extra_msg}; need at least {max(min_samples, 2)}")
+
+    # 3. Time strictly increasing (the scan's smallest step; locate the culprit only when needed).
+    if not scan.min_dt > 0:
+        _check_time(path, t, where, orig_index)  # raises with the line
+    fs = 1.0 / float(np.median(scan.dt_medians))
+    for note in notes:
+        log.warning("%s: %s", path, note)
+    return Recording(t=t, raw=raw, temp=temp, gyro=gyro, fs=fs, source=path, n_dropped=n_dropped,
+                     n_saturated=n_saturated, columns=columns, warnings=notes)
+
+
+def _nonfinite_rows(used: dict[str, np.ndarray], n: int) -> np.ndarray:
+    """Boolean mask of rows with a non-finite value in any of ``used``."""
+    bad = np.zeros(n, dtype=bool)
+    for v in used.values():
+        for s in _chunks(n):
+            bad[s] |= ~np.isfinite(v[s])
+    return bad
+
+
+def _saturated_rows(raw: np.ndarray, flags: np.ndarray | None, keep: np.ndarray | None,
+                    scan: _Scan) -> tuple[np.ndarray | None, str]:
+    """Mask of saturated rows (None when there are none) and what marked them.
+
+    Uses the scan's per-channel extremes and their counts; builds a mask only when needed.
+    """
+    n = raw.shape[0]
+    n_valid = n if keep is None else int(keep.sum())
+    piles = []  # (channel, label, edge) with an exact pile-up at the extreme
+    step = max(1, n // 100_000)
+    for c, name in enumerate(("ax", "ay", "az")):
+        for label, edge, count in (("minimum", scan.lo[c], scan.n_lo[c]), ("maximum", scan.hi[c], scan.n_hi[c])):
+            if count >= max(SATURATION_MIN_COUNT, SATURATION_MIN_FRACTION * n_valid):
+                sub = np.asarray(raw[::step, c], dtype=np.float64)
+                if np.unique(sub[np.isfinite(sub)]).size >= SATURATION_MIN_DISTINCT:  # else merely quantised
+                    piles.append((c, name, label, float(edge)))
+    if not piles and scan.n_flagged == 0:
+        return None, ""
+    sat = np.zeros(n, dtype=bool)
+    details = []
+    if scan.n_flagged:
+        for s in _chunks(n):
+            sat[s] |= (np.asarray(flags[s]).astype(np.int64) & FLAG_SATURATED) != 0
+        details.append("flagged saturated by the logger")
+    for c, name, label, edge in piles:
+        hit = np.zeros(n, dtype=bool)
+        for s in _chunks(n):
+            hit[s] = raw[s, c] == edge
+        sat |= hit
+        details.append(f"{name} sits at its {label} {edge:.6g} in {int(hit.sum())} samples")
+    if keep is not None:
+        sat &= keep
+    return sat, "; ".join(details)
+
+
+def _check_time(path: Path, t: np.ndarray, where: _Where, orig_index: np.ndarray | None) -> None:
+    """Raise, naming the place, if time does not increase strictly."""
+    n = int(t.shape[0])
+    for s in _chunks(n):
+        lo = max(0, s.start - 1)  # overlap one sample so the step across chunk borders is checked too
+        dt = np.diff(np.asarray(t[lo:s.stop], dtype=np.float64))
+        bad = dt <= 0
+        if bad.any():
+            k = lo + int(np.argmax(bad)) + 1  # index of the offending sample
+            orig = int(orig_index[k]) if orig_index is not None else k
+            prev = int(orig_index[k - 1]) if orig_index is not None else k - 1
+            if t[k] == t[k - 1]:
+                raise InputError(f"{path}: duplicated time t={float(t[k]):.9g} s at {where(prev)} and {where(orig)}")
+            raise InputError(
+                f"{path}: time goes backwards at {where(orig)}: t={float(t[k]):.9g} s after t={float(t[k - 1]):.9g} s "
+                f"(time must increase strictly)"
+            )
+
+
+# ---------------------------------------------------------------------------------------
+# writing
+# ---------------------------------------------------------------------------------------
+def recording_columns(samples: np.ndarray) -> dict[str, np.ndarray]:
+    """The calibrate-format columns of SAMPLE_DTYPE rows.
+
+    ``ax``, ``ay``, ``az``: the triad's duty cycles T1/T2 (core.samples.raw_triad), the raw
+    units the estimators work in; ``ax2``: the redundant channel's duty cycle; ``gyro`` [ADC
+    counts], ``temp`` [°C], ``vsupply`` [V], ``seq``, ``flags``; ``t1_<channel>`` and
+    ``t2_a``/``t2_b`` [timer counts] so nothing of the sample is lost.
+    """
+    tri = raw_triad(samples)
+    duty = duty_ratios(samples)
+    out: dict[str, np.ndarray] = {
+        "t": samples["t"], "ax": tri[:, 0], "ay": tri[:, 1], "az": tri[:, 2], "ax2": duty[:, 3],
+        "gyro": samples["gyro"], "temp": samples["temp"], "vsupply": samples["vsupply"],
+        "seq": samples["seq"], "flags": samples["flags"],
+    }
+    for i, ch in enumerate(CHANNELS):
+        out[f"t1_{ch}"] = samples["t1"][:, i]
+    out["t2_a"] = samples["t2"][:, 0]
+    out["t2_b"] = samples["t2"][:, 1]
+    return out
+
+
+RECORDING_DTYPE = np.dtype([
+    ("t", "<f8"), ("ax", "<f8"), ("ay", "<f8"), ("az", "<f8"), ("ax2", "<f8"),
+    ("gyro", "<u2"), ("temp", "<f4"), ("vsupply", "<f4"), ("seq", "<i8"), ("flags", "<u2"),
+    ("t1_ax", "<u4"), ("t1_ay", "<u4"), ("t1_az", "<u4"), ("t1_ax2", "<u4"), ("t2_a", "<u4"), ("t2_b", "<u4"),
+])
+"""The .npy layout ``gravcal simulate`` writes (ax, ay, az adjacent float64: read as one (N, 3) view)."""
+
+_CSV_FORMATS = {"t": "%.6f", "ax": "%.10g", "ay": "%.10g", "az": "%.10g", "ax2": "%.10g", "temp": "%.3f", "vsupply": "%.4f"}
+
+
+def to_recording_array(samples: np.ndarray) -> np.ndarray:
+    """SAMPLE_DTYPE rows -> RECORDING_DTYPE rows."""
+    cols = recording_columns(samples)
+    out = np.empty(samples.shape[0], dtype=RECORDING_DTYPE)
+    for name in RECORDING_DTYPE.names:
+        out[name] = cols[name]
+    return out
+
+
+def write_recording(path: str | Path, blocks: np.ndarray | Iterable[np.ndarray], n_total: int | None = None) -> int:
+    """Write SAMPLE_DTYPE rows (one array or an iterable of blocks) as CSV or .npy (by extension).
+
+    For .npy from an iterable, ``n_total`` (rows) lets the file be written block by block
+    through a memory map; without it the blocks are collected first. Returns rows written.
+    """
+    path = Path(path)
+    if isinstance(blocks, np.ndarray):
+        blocks = [blocks]
+        n_total = len(blocks[0])
+    if path.suffix.lower() == ".npy":
+        return _write_npy(path, blocks, n_total)
+    return _write_csv(path, blocks)
+
+
+def _write_csv(path: Path, blocks: Iterable[np.ndarray]) -> int:
+    names = RECORDING_DTYPE.names
+    fmt = [_CSV_FORMATS.get(n, "%d") for n in names]
+    n = 0
+    with open(path, "w", encoding="utf-8", newline="\n") as f:
+        f.write(",".join(names) + "\n")
+        for block in blocks:
+            cols = recording_columns(block)
+            np.savetxt(f, np.column_stack([np.asarray(cols[c], dtype=np.float64) for c in names]), fmt=fmt, delimiter=",")
+            n += len(block)
+    return n
+
+
+def _write_npy(path: Path, blocks: Iterable[np.ndarray], n_total: int | None) -> int:
+    if n_total is None:
+        arr = np.concatenate([to_recording_array(b) for b in blocks]) if blocks else np.empty(0, RECORDING_DTYPE)
+        np.save(path, arr)
+        return len(arr)
+    mm = np.lib.format.open_memmap(path, mode="w+", dtype=RECORDING_DTYPE, shape=(n_total,))
+    i = 0
+    for block in blocks:
+        k = min(len(block), n_total - i)
+        mm[i:i + k] = to_recording_array(block[:k])
+        i += k
+    mm.flush()
+    del mm
+    if i != n_total:
+        raise ValueError(f"{path}: expected {n_total} samples, the source gave {i}")
+    return i
+
+
+def truth_path(path: str | Path) -> Path:
+    """Where the true parameters of a simulated recording go: FILE.csv -> FILE.truth.json."""
+    path = Path(path)
+    return path.with_name(path.stem + ".truth.json")
+
+
+def write_truth(path: str | Path, truth: dict[str, Any]) -> Path:
+    """Write the simulator's truth dict as JSON beside the recording ``path``; returns its path."""
+    out = truth_path(path)
+    out.write_text(json.dumps(jsonable(truth), indent=2) + "\n", encoding="utf-8")
+    return out
+
+
+def jsonable(x: Any) -> Any:
+    """x with numpy types as Python ones and non-finite floats as None (strict JSON has no NaN)."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        return v if math.isfinite(v) else None
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x

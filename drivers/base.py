@@ -1,0 +1,344 @@
+"""One small driver interface for all buses, and ``open_driver(spec)``.
+
+Like python-can's ``BusABC``: every bus (serial, CAN, I2C) is a :class:`Driver` with the same
+four calls; which one you get is chosen by a URL-like spec, pyserial style::
+
+    serial:///dev/ttyUSB0?baudrate=460800      serial:loop://  (pyserial's loopback, in-process)
+    can://slcan/dev/ttyACM0?bitrate=1000000    can://socketcan/can0    can://virtual/gravcal0
+    i2c://1/0x42?rate=200                      i2c://fake/0x42?scenario=static&seed=1&speed=1
+
+``read`` never raises for transient bus trouble (a cable pulled, a bus-off, a NACK): the
+driver counts it, reopens the device with exponential backoff inside later ``read`` calls,
+and flags the first sample after the outage with FLAG_RECONNECT (and FLAG_GAP_BEFORE from the
+sequence counter). Only ``open`` raises :class:`DriverError`, with a message naming the
+problem (missing device, missing group membership, wrong device at the address).
+"""
+from __future__ import annotations
+
+import errno
+import grp
+import logging
+import os
+import threading
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, Callable
+from urllib.parse import parse_qsl
+
+import numpy as np
+
+from ..core.samples import FLAG_RECONNECT, SAMPLE_DTYPE
+from .codec import TICK_HZ
+
+log = logging.getLogger(__name__)
+
+PERMISSION_ERRNOS = (errno.EACCES, errno.EPERM)
+
+
+class DriverError(Exception):
+    """The device cannot be opened or used; the message says why and what to do."""
+
+
+def permission_hint(path: str, default_group: str) -> str:
+    """'add your user to group X' where X is the device's group (default_group if unknown)."""
+    group = default_group
+    try:
+        gid = os.stat(path).st_gid
+        name = grp.getgrgid(gid).gr_name
+        if gid != 0:
+            group = name
+    except (OSError, KeyError):
+        pass
+    return (
+        f"permission denied opening {path}: add your user to group '{group}' "
+        f"(sudo usermod -aG {group} $USER, then log in again)"
+    )
+
+
+@dataclass
+class Backoff:
+    """Exponential reconnect backoff [s]: initial, doubling up to maximum; reset on success."""
+
+    initial_s: float = 0.05
+    maximum_s: float = 1.0
+    _delay: float = 0.0
+    _next_at: float = 0.0
+
+    def reset(self) -> None:
+        self._delay = 0.0
+        self._next_at = 0.0
+
+    def failed(self, now: float) -> None:
+        self._delay = self.initial_s if self._delay == 0 else min(self._delay * 2, self.maximum_s)
+        self._next_at = now + self._delay
+
+    def wait_s(self, now: float) -> float:
+        return max(0.0, self._next_at - now)
+
+
+class Driver(ABC):
+    """Common interface: ``open()``, ``read(max_samples, timeout)``, ``close()``, ``stats()``.
+
+    Subclasses implement ``_connect`` (raise DriverError or a transient error),
+    ``_disconnect``, and ``_read_block(deadline)`` returning decoded SAMPLE_DTYPE samples with
+    seq unwrapped and flags set (t may be NaN: the base stamps host time from device ticks).
+    """
+
+    bus: str = "?"
+    transient_errors: tuple[type[BaseException], ...] = (OSError,)
+
+    def __init__(self, *, tick_hz: float | None = TICK_HZ, backoff: Backoff | None = None):
+        self.tick_hz = tick_hz
+        self.backoff = backoff or Backoff()
+        self._opened = False
+        self._connected = False
+        self._closing = threading.Event()
+        self._pending = np.zeros(0, dtype=SAMPLE_DTYPE)
+        self._flag_reconnect = False
+        self._lost_at: float | None = None
+        self._rate = _RateEstimate()
+        self.counters: dict[str, Any] = {
+            "samples": 0,
+            "disconnects": 0,
+            "reconnects": 0,
+            "reconnect_failures": 0,
+            "last_error": "",
+        }
+
+    # -- subclass hooks -------------------------------------------------------------
+    @property
+    @abstractmethod
+    def description(self) -> str:
+        """Human-readable device name for messages, e.g. '/dev/ttyUSB0'."""
+
+    @abstractmethod
+    def _connect(self, *, first: bool) -> None: ...
+
+    @abstractmethod
+    def _disconnect(self) -> None: ...
+
+    @abstractmethod
+    def _read_block(self, deadline: float) -> np.ndarray: ...
+
+    def _after_reconnect(self) -> None:
+        """Reset framing state after a reopen (partial frames are meaningless now)."""
+
+    def _codec_stats(self) -> dict[str, Any]:
+        return {}
+
+    def _unwrapper(self):
+        return None
+
+    # -- public interface -----------------------------------------------------------
+    def open(self) -> "Driver":
+        """Open the device; raises DriverError with a clear message if it cannot."""
+        if self._opened:
+            return self
+        self._closing.clear()
+        self._connect(first=True)
+        self._opened = self._connected = True
+        return self
+
+    def read(self, max_samples: int = 256, timeout: float = 0.1) -> np.ndarray:
+        """Up to ``max_samples`` samples (SAMPLE_DTYPE), waiting at most ``timeout`` s.
+
+        Returns an empty block when nothing arrives in time. Transient bus errors are counted
+        (``stats()``) and handled by reconnecting with backoff; they are never raised.
+        """
+        if not self._opened:
+            raise DriverError(f"{self.bus} driver for {self.description} is not open")
+        if max_samples <= 0:
+            raise ValueError(f"max_samples must be positive, got {max_samples}")
+        if self._pending.shape[0]:
+            return self._take(max_samples)
+        deadline = time.monotonic() + max(0.0, timeout)
+        while not self._closing.is_set():
+            if not self._connected and not self._reconnect(deadline):
+                break
+            try:
+                block = self._read_block(deadline)
+            except self.transient_errors as exc:
+                self._lost(exc)
+                continue
+            if block.shape[0]:
+                self._stamp(block, time.monotonic())
+                if self._flag_reconnect:
+                    block["flags"][0] |= FLAG_RECONNECT
+                    self._flag_reconnect = False
+                self._pending = block
+                return self._take(max_samples)
+            if time.monotonic() >= deadline:
+                break
+        return np.zeros(0, dtype=SAMPLE_DTYPE)
+
+    def close(self) -> None:
+        """Close the device (idempotent); a read blocked in another thread returns soon."""
+        self._closing.set()
+        if self._connected:
+            try:
+                self._disconnect()
+            except Exception as exc:  # closing a dead device must not raise
+                log.debug("closing %s: %s", self.description, exc)
+        self._connected = False
+        self._opened = False
+
+    def stats(self) -> dict[str, Any]:
+        """Counters: samples, frames, crc_errors, gaps, missing, reconnects, ... (bus-specific extras)."""
+        out = dict(self.counters)
+        out.update(self._codec_stats())
+        out["connected"] = self._connected
+        out["bus"] = self.bus
+        out["device"] = self.description
+        return out
+
+    def __enter__(self) -> "Driver":
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.description} {'open' if self._opened else 'closed'}>"
+
+    # -- internals ------------------------------------------------------------------
+    def _take(self, max_samples: int) -> np.ndarray:
+        out, self._pending = self._pending[:max_samples], self._pending[max_samples:]
+        self.counters["samples"] += out.shape[0]
+        return out
+
+    def _lost(self, exc: BaseException) -> None:
+        self.counters["disconnects"] += 1
+        self.counters["last_error"] = f"{type(exc).__name__}: {exc}"
+        log.warning("%s %s lost: %s; reconnecting", self.bus, self.description, exc)
+        try:
+            self._disconnect()
+        except Exception as exc2:
+            log.debug("closing dead %s: %s", self.description, exc2)
+        self._connected = False
+        self._lost_at = time.monotonic()
+        self.backoff.reset()
+        self.backoff.failed(self._lost_at)  # first attempt after the initial delay
+
+    def _reconnect(self, deadline: float) -> bool:
+        while not self._closing.is_set():
+            now = time.monotonic()
+            wait = self.backoff.wait_s(now)
+            if wait > 0 and now + wait > deadline:  # not due within this read: wait it out
+                self._closing.wait(max(0.0, deadline - now))
+                return False
+            if wait > 0 and self._closing.wait(wait):
+                return False
+            try:
+                self._connect(first=False)
+            except (DriverError, *self.transient_errors) as exc:
+                self.counters["reconnect_failures"] += 1
+                self.counters["last_error"] = str(exc)
+                log.debug("reopening %s failed: %s", self.description, exc)
+                self.backoff.failed(time.monotonic())
+                if time.monotonic() >= deadline:
+                    return False
+                continue
+            self._connected = True
+            self.counters["reconnects"] += 1
+            self._flag_reconnect = True
+            self.backoff.reset()
+            self._after_reconnect()
+            unwrapper = self._unwrapper()
+            rate = self._rate.rate_hz
+            if unwrapper is not None and rate and self._lost_at is not None:
+                unwrapper.expect_advance((time.monotonic() - self._lost_at) * rate)
+            log.info("%s %s reconnected", self.bus, self.description)
+            return True
+        return False
+
+    def _stamp(self, block: np.ndarray, t_recv: float) -> None:
+        """Host time [s, time.monotonic]: the newest sample at reception, earlier ones by tick."""
+        if self.tick_hz:
+            back = (int(block["tick"][-1]) - block["tick"].astype(np.int64)) & 0xFFFFFFFF
+            back = np.where(back > 0x7FFFFFFF, 0, back)  # ticks going backwards: device reset
+            block["t"] = t_recv - back / float(self.tick_hz)
+        else:
+            block["t"] = t_recv
+        self._rate.update(block, t_recv)
+
+
+class _RateEstimate:
+    """Sample rate [Hz] from unwrapped seq vs host time, for resolving long outages."""
+
+    def __init__(self) -> None:
+        self._first: tuple[int, float] | None = None
+        self.rate_hz: float | None = None
+
+    def update(self, block: np.ndarray, t_recv: float) -> None:
+        seq = int(block["seq"][-1])
+        if self._first is None:
+            self._first = (seq, t_recv)
+        elif t_recv - self._first[1] > 1.0:
+            self.rate_hz = (seq - self._first[0]) / (t_recv - self._first[1])
+
+
+# ---------------------------------------------------------------- specs
+@dataclass
+class DriverSpec:
+    """A parsed driver spec: scheme, host-ish part, path, options (strings)."""
+
+    scheme: str
+    host: str
+    path: str
+    options: dict[str, str]
+
+
+def parse_spec(spec: str) -> DriverSpec:
+    if not isinstance(spec, str) or not spec.strip():
+        raise DriverError("empty driver spec; expected e.g. serial:///dev/ttyUSB0")
+    spec = spec.strip()
+    if spec.startswith("/"):
+        spec = "serial://" + spec  # a bare device path means a serial port
+    scheme, sep, rest = spec.partition(":")
+    if not sep:
+        raise DriverError(f"driver spec {spec!r} has no scheme; use serial:, can: or i2c:")
+    scheme = scheme.lower()
+    rest, _, query = rest.partition("?")
+    try:
+        options = dict(parse_qsl(query, keep_blank_values=True, strict_parsing=bool(query)))
+    except ValueError:
+        raise DriverError(f"driver spec {spec!r}: cannot parse options {query!r}") from None
+    if rest.startswith("//"):
+        host, _, path = rest[2:].partition("/")
+        path = "/" + path if path else ""
+    else:
+        host, path = "", rest
+    return DriverSpec(scheme, host, path, options)
+
+
+def take_options(spec: DriverSpec, known: dict[str, Callable[[str], Any]]) -> dict[str, Any]:
+    """Convert the spec's options with ``known`` converters; unknown names are an error."""
+    out = {}
+    for name, value in spec.options.items():
+        if name not in known:
+            raise DriverError(
+                f"unknown option {name!r} for {spec.scheme} driver; known: {', '.join(sorted(known))}"
+            )
+        try:
+            out[name] = known[name](value)
+        except ValueError:
+            raise DriverError(f"option {name}={value!r} for {spec.scheme} driver is not valid") from None
+    return out
+
+
+def open_driver(spec: str, *, open: bool = True) -> Driver:
+    """A driver for ``spec`` (see the module docstring), opened unless ``open=False``."""
+    parsed = parse_spec(spec)
+    if parsed.scheme == "serial":
+        from .serial import SerialDriver as cls
+    elif parsed.scheme == "can":
+        from .can import CanDriver as cls
+    elif parsed.scheme == "i2c":
+        from .i2c import I2CDriver as cls
+    else:
+        raise DriverError(f"unknown bus {parsed.scheme!r} in driver spec {spec!r}; use serial, can or i2c")
+    driver = cls.from_spec(parsed)
+    if open:
+        driver.open()
+    return driver

@@ -1,0 +1,80 @@
+"""Run ``gravcal emulate`` in a child process and talk to it: for HIL tests and scripts.
+
+    with EmulatorProcess(["--bus", "serial", "--scenario", "pattern", "--duration", "5"]) as emu:
+        with open_driver(emu.spec) as drv:
+            ...
+        emu.wait_done(timeout=30)
+
+The child's stdout protocol: first line the driver spec, then ``event: ...`` lines, then
+``done: ...``. The child lingers (``--linger``) after the stream until this object stops it.
+"""
+from __future__ import annotations
+
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Sequence
+
+
+class EmulatorProcess:
+    def __init__(self, args: Sequence[str], *, linger: float = 120.0, start_timeout: float = 30.0):
+        self.args = [sys.executable, "-m", "gravcal.daemon.cmd_emulate", *args, "--linger", str(linger)]
+        self.start_timeout = start_timeout
+        self.proc: subprocess.Popen | None = None
+        self.spec = ""
+        self.events: list[str] = []
+        self.done_line: str | None = None
+        self._lines: queue.Queue[str | None] = queue.Queue()
+        self._done = threading.Event()
+        self.stderr_path: Path | None = None
+
+    def __enter__(self) -> "EmulatorProcess":
+        self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        threading.Thread(target=self._pump, daemon=True).start()
+        try:
+            line = self._lines.get(timeout=self.start_timeout)
+        except queue.Empty:
+            line = None
+        if not line:
+            err = self._stop()
+            raise RuntimeError(f"emulator did not start: {err.strip()[-2000:]}")
+        self.spec = line.strip()
+        return self
+
+    def _pump(self) -> None:
+        first = True
+        for line in self.proc.stdout:
+            if first:
+                self._lines.put(line)
+                first = False
+            elif line.startswith("event:"):
+                self.events.append(line[6:].strip())
+            elif line.startswith("done:"):
+                self.done_line = line[5:].strip()
+                self._done.set()
+        self._lines.put(None)
+        self._done.set()
+
+    def wait_done(self, timeout: float) -> bool:
+        """True once the stream has ended (``done:`` printed or the child exited)."""
+        return self._done.wait(timeout)
+
+    def _stop(self) -> str:
+        if self.proc is None:
+            return ""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.stderr.read() if self.proc.stderr else ""
+
+    def __exit__(self, *exc) -> None:
+        self.stderr = self._stop()

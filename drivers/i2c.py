@@ -1,0 +1,227 @@
+"""I2C driver (smbus2): the logger MCU as an I2C target with a sample FIFO.
+
+Register map (8-bit registers; multi-byte reads auto-increment, except FIFO_DATA)::
+
+    0x00 WHO_AM_I    r   0x47 ('G')
+    0x01 VERSION     r   1 (FIFO entries are the serial frame of codec.py, FRAME_LEN bytes)
+    0x02 STATUS      r   bit0 DATA_READY (FIFO not empty), bit1 FIFO_OVERFLOW (latched:
+                         samples were lost because the FIFO was full; cleared by reading STATUS),
+                         bit2 RUNNING
+    0x03 FIFO_COUNT  r   complete frames in the FIFO (0..FIFO_DEPTH)
+    0x04 FIFO_DEPTH  r   FIFO capacity in frames (32 on the logger)
+    0x05 ODR         rw  output data rate code: rate = 25 Hz * 2**code (0..5: 25..800 Hz)
+    0x06 CTRL        rw  bit0 FIFO_RESET (self-clearing), bit1 ENABLE
+    0x10 FIFO_DATA   r   burst read: whole frames, oldest first; bytes past the FIFO's
+                         content read as 0x00
+
+When the FIFO is full the newest sample is discarded (the FIFO content stays contiguous), so
+an overflow always shows as a sequence gap right after the entries that were in the FIFO.
+The driver polls STATUS+FIFO_COUNT in one two-byte read and drains the FIFO with
+``i2c_rdwr`` bursts of up to ``burst_frames`` frames.
+"""
+from __future__ import annotations
+
+import errno
+import time
+from typing import Any, Callable
+
+import numpy as np
+from smbus2 import SMBus, i2c_msg
+
+from ..core.samples import FLAG_FIFO_OVERFLOW, FLAG_GAP_BEFORE, SAMPLE_DTYPE
+from .base import PERMISSION_ERRNOS, Backoff, Driver, DriverError, DriverSpec, permission_hint, take_options
+from .codec import FRAME_LEN, TICK_HZ, FrameDecoder
+
+DEFAULT_ADDRESS = 0x42
+WHO_AM_I_VALUE = 0x47
+PROTOCOL_VERSION = 1
+
+REG_WHO_AM_I = 0x00
+REG_VERSION = 0x01
+REG_STATUS = 0x02
+REG_FIFO_COUNT = 0x03
+REG_FIFO_DEPTH = 0x04
+REG_ODR = 0x05
+REG_CTRL = 0x06
+REG_FIFO_DATA = 0x10
+
+STATUS_DATA_READY = 1 << 0
+STATUS_FIFO_OVERFLOW = 1 << 1
+STATUS_RUNNING = 1 << 2
+CTRL_FIFO_RESET = 1 << 0
+CTRL_ENABLE = 1 << 1
+
+ODR_BASE_HZ = 25.0
+ODR_CODES = {code: ODR_BASE_HZ * 2**code for code in range(6)}  # code -> Hz
+
+
+def odr_code(rate_hz: float) -> int:
+    """The ODR register code for ``rate_hz``; ValueError if the logger has no such rate."""
+    for code, hz in ODR_CODES.items():
+        if abs(hz - rate_hz) < 1e-9:
+            return code
+    raise ValueError(f"output rate {rate_hz} Hz not supported; choose one of {sorted(ODR_CODES.values())}")
+
+
+_NACK_ERRNOS = (errno.ENXIO, errno.EREMOTEIO, errno.EIO, errno.ETIMEDOUT, errno.EAGAIN)
+
+
+class I2CDriver(Driver):
+    """Samples from the logger's FIFO over I2C.
+
+    ``smbus_factory(bus)`` makes the SMBus object (default ``smbus2.SMBus``); tests and the
+    emulator substitute a fake device at exactly this boundary.
+    """
+
+    bus = "i2c"
+
+    def __init__(
+        self,
+        bus: int | str,
+        address: int = DEFAULT_ADDRESS,
+        *,
+        rate: float | None = None,
+        burst_frames: int = 16,
+        poll_s: float | None = None,
+        reset_fifo: bool = True,
+        smbus_factory: Callable[[Any], Any] = SMBus,
+        tick_hz: float | None = TICK_HZ,
+        backoff: Backoff | None = None,
+    ):
+        super().__init__(tick_hz=tick_hz, backoff=backoff)
+        if not 0x03 <= int(address) <= 0x77:
+            raise DriverError(f"I2C address 0x{int(address):02X} is outside the 7-bit range 0x03..0x77")
+        if rate is not None:
+            try:
+                odr_code(rate)
+            except ValueError as exc:
+                raise DriverError(str(exc)) from None
+        self.i2c_bus = bus
+        self.address = int(address)
+        self.rate = rate
+        self.burst_frames = max(1, int(burst_frames))
+        self.poll_s = poll_s
+        self.reset_fifo = reset_fifo
+        self.smbus_factory = smbus_factory
+        self.decoder = FrameDecoder()
+        self._smbus = None
+        self._overflow_pending = False
+        self._poll = 0.02
+        self.counters.update(fifo_overflows=0, polls=0, bursts=0)
+
+    @classmethod
+    def from_spec(cls, spec: DriverSpec) -> "I2CDriver":
+        if spec.host == "fake":
+            from .fakes import fake_i2c_driver
+
+            return fake_i2c_driver(spec)
+        opts = take_options(spec, {"rate": float, "burst_frames": int, "poll_s": float, "tick_hz": float})
+        try:
+            bus: int | str = int(spec.host)
+        except ValueError:
+            raise DriverError(f"I2C bus {spec.host!r} is not a number (i2c://1/0x42 means /dev/i2c-1)") from None
+        try:
+            address = int(spec.path.strip("/") or str(DEFAULT_ADDRESS), 0)
+        except ValueError:
+            raise DriverError(f"I2C address {spec.path.strip('/')!r} is not a number like 0x42") from None
+        return cls(bus, address, **opts)
+
+    @property
+    def description(self) -> str:
+        bus = self.i2c_bus
+        dev = f"/dev/i2c-{bus}" if isinstance(bus, int) else str(bus)
+        return f"{dev}@0x{self.address:02X}"
+
+    @property
+    def _dev_path(self) -> str:
+        return f"/dev/i2c-{self.i2c_bus}" if isinstance(self.i2c_bus, int) else str(self.i2c_bus)
+
+    # -- connection -----------------------------------------------------------------
+    def _connect(self, *, first: bool) -> None:
+        try:
+            sm = self.smbus_factory(self.i2c_bus)
+        except FileNotFoundError:
+            raise DriverError(
+                f"I2C bus {self._dev_path} does not exist (enable the I2C controller and load "
+                f"i2c-dev: sudo modprobe i2c-dev)"
+            ) from None
+        except OSError as exc:
+            if exc.errno in PERMISSION_ERRNOS:
+                raise DriverError(permission_hint(self._dev_path, "i2c")) from None
+            raise DriverError(f"cannot open I2C bus {self._dev_path}: {exc}") from None
+        try:
+            who = sm.read_byte_data(self.address, REG_WHO_AM_I)
+            if who != WHO_AM_I_VALUE:
+                raise DriverError(
+                    f"device at {self.description} is not a gravcal logger: WHO_AM_I = 0x{who:02X}, "
+                    f"expected 0x{WHO_AM_I_VALUE:02X}"
+                )
+            depth = sm.read_byte_data(self.address, REG_FIFO_DEPTH)
+            if self.rate is not None:
+                sm.write_byte_data(self.address, REG_ODR, odr_code(self.rate))
+            rate = ODR_CODES.get(sm.read_byte_data(self.address, REG_ODR) & 0x07, 200.0)
+            ctrl = CTRL_ENABLE | (CTRL_FIFO_RESET if first and self.reset_fifo else 0)
+            sm.write_byte_data(self.address, REG_CTRL, ctrl)
+        except OSError as exc:
+            sm.close()
+            if exc.errno in _NACK_ERRNOS:
+                raise DriverError(f"no device answers at address 0x{self.address:02X} on {self._dev_path}") from None
+            raise DriverError(f"I2C error talking to {self.description}: {exc}") from None
+        except DriverError:
+            sm.close()
+            raise
+        # Poll at a quarter of the FIFO's fill time: it never overflows while read() is called.
+        self._poll = self.poll_s if self.poll_s else min(0.05, max(0.002, depth / rate / 4 if depth else 0.01))
+        self._smbus = sm
+
+    def _disconnect(self) -> None:
+        sm, self._smbus = self._smbus, None
+        if sm is not None:
+            sm.close()
+
+    def _after_reconnect(self) -> None:
+        self.decoder.discard_partial()
+
+    def _unwrapper(self):
+        return self.decoder.unwrapper
+
+    def _codec_stats(self):
+        return self.decoder.stats()
+
+    # -- reading --------------------------------------------------------------------
+    def _status(self) -> tuple[int, int]:
+        w, r = i2c_msg.write(self.address, [REG_STATUS]), i2c_msg.read(self.address, 2)
+        self._smbus.i2c_rdwr(w, r)
+        self.counters["polls"] += 1
+        status, count = bytes(r)
+        return status, count
+
+    def _burst(self, frames: int) -> bytes:
+        w, r = i2c_msg.write(self.address, [REG_FIFO_DATA]), i2c_msg.read(self.address, frames * FRAME_LEN)
+        self._smbus.i2c_rdwr(w, r)
+        self.counters["bursts"] += 1
+        return bytes(r)
+
+    def _read_block(self, deadline: float) -> np.ndarray:
+        while True:
+            status, count = self._status()
+            if status & STATUS_FIFO_OVERFLOW:
+                self.counters["fifo_overflows"] += 1
+                self._overflow_pending = True
+            if count:
+                break
+            remaining = deadline - time.monotonic()
+            if remaining <= 0 or self._closing.wait(min(self._poll, remaining)):
+                return np.zeros(0, SAMPLE_DTYPE)
+        blocks = []
+        while count > 0:
+            n = min(count, self.burst_frames)
+            blocks.append(self.decoder.feed(self._burst(n)))
+            count -= n
+        samples = np.concatenate(blocks) if len(blocks) > 1 else blocks[0]
+        if self._overflow_pending and samples.shape[0]:
+            gaps = np.flatnonzero(samples["flags"] & FLAG_GAP_BEFORE)
+            if gaps.shape[0]:
+                samples["flags"][gaps[0]] |= FLAG_FIFO_OVERFLOW
+                self._overflow_pending = False
+        return samples
