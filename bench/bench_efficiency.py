@@ -70,28 +70,58 @@ def run(dirs_fn, seeds: int, model: str = "9", start_err: float = 0.01) -> dict[
 SWITCH_FRACTION: list[float] = []  # where the ordered recursion reached the full set (fraction of the windows)
 
 
-def recursive_with_order(ws, start: Calibration, every: int = 10) -> Calibration:
-    """The daemon's protocol: update recursively only the parameters the windows so far determine
-    (OnlineOrderSelector, observability part); when the order grows, re-seed the recursion with a batch
-    fit of the stored windows (they are sufficient statistics), then continue one window at a time."""
-    from gravcal.core.estimators.order import OnlineOrderSelector  # noqa: PLC0415
+def recursive_with_order(ws, start: Calibration, systematic_g: float = 0.0) -> Calibration:
+    """The daemon's online path: OnlineCalibrator (core/estimators/online.py) fed one window at a time: it
+    updates only the order the windows so far determine and re-seeds the recursion with a batch fit of
+    its (bounded) window store when the order grows or the store has doubled. systematic_g = 0: the
+    window-level simulation has no per-window model error (see docs/twelve-parameters.md)."""
+    from gravcal.core.estimators.online import OnlineCalibrator  # noqa: PLC0415
 
-    sel = OnlineOrderSelector(start, every=every, compare_every=10**9, candidates=("offsets", "6", "9"))
-    rec, model = None, "none"
+    oc = OnlineCalibrator(start, systematic_g=systematic_g)
+    reached = None
     for i in range(len(ws)):
-        row = ws.subset(np.arange(i, i + 1))
-        if rec is not None:
-            rec.step(row.mean[0], row.cov_of_mean[0], float(row.t[0]))
-        d = sel.update(row)
-        if d.model not in ("none", model) and (model == "none" or int(d.model != "offsets") > 0):
-            base = rec.calibration if rec is not None else start
-            seed_cal = LottersBatch(d.model, sigma_floor_g=0.0).fit(ws.subset(np.arange(i + 1)), base)
-            rec, model = LottersRecursive(seed_cal, d.model, sigma_floor_g=0.0), d.model
-            sel.start = seed_cal
-            SWITCH_FRACTION.append((i + 1) / len(ws)) if model == "9" else None
-        elif rec is not None and i % every == 0:
-            sel.start = rec.calibration
-    return rec.calibration if model == "9" else LottersBatch("9", sigma_floor_g=0.0).fit(ws, start)
+        oc.update(ws.subset(np.arange(i, i + 1)))
+        if reached is None and oc.model == "9":
+            reached = (i + 1) / len(ws)
+    SWITCH_FRACTION.append(1.0 if reached is None else reached)
+    FINAL_ORDERS.append(oc.model)
+    return oc.calibration
+
+
+FINAL_ORDERS: list[str] = []
+
+
+def timing() -> None:
+    """Cost per window: plain LottersRecursive.step (6 and 9), and the OnlineCalibrator amortised over a
+    long daily-living stream (order checks, 6-vs-9 comparisons, re-seeding batch fits included)."""
+    from gravcal.core.estimators.online import OnlineCalibrator  # noqa: PLC0415
+
+    rng = np.random.default_rng(0)
+    m = 6000
+    ws = windows_on_ellipsoid(TRUTH, daily_living_directions(m, rng, MOUNT2), noise_g=NOISE_G, n=N_SAMPLES, rng=rng)
+    cm = ws.cov_of_mean
+    for model in ("6", "9"):
+        r = LottersRecursive(TRUTH, model, sigma_floor_g=0.0)
+        t0 = time.perf_counter()
+        for i in range(m):
+            r.step(ws.mean[i], cm[i], float(ws.t[i]))
+        print(f"  LottersRecursive.step model {model}: {(time.perf_counter() - t0) / m * 1e6:6.1f} µs/window")
+    rows = [ws.subset(np.arange(i, i + 1)) for i in range(m)]
+    oc = OnlineCalibrator(Calibration("s", O + 0.001, K_MIS * 1.01), capacity=4000)
+    t0 = time.perf_counter()
+    for row in rows:
+        oc.update(row)
+    dt = time.perf_counter() - t0
+    st = oc.stats()
+    print(f"  OnlineCalibrator.update (store 4000, {m} windows): {dt / m * 1e6:6.0f} µs/window amortised "
+          f"({st['n_checks']} order checks, {st['n_compares']} comparisons, {st['n_reseeds']} re-seeds, "
+          f"{st['evicted']} evicted; final order {st['model']})")
+    r = oc.recursive
+    t0 = time.perf_counter()
+    for i in range(m):
+        r.step(ws.mean[i], cm[i], float(ws.t[i]))
+    print(f"  its plain per-window update (LottersRecursive.step, order {st['model']}): "
+          f"{(time.perf_counter() - t0) / m * 1e6:6.1f} µs/window")
 
 
 def crlb_accel(F: np.ndarray) -> float:
@@ -142,26 +172,33 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=300)
     ap.add_argument("--no-time-series", action="store_true")
+    ap.add_argument("--timing-only", action="store_true")
     args = ap.parse_args()
+    print("cost per window:")
+    timing()
+    if args.timing_only:
+        return
     print(f"window level: {M_WINDOWS} windows x {N_SAMPLES} samples, {NOISE_G * 1e3:g} mg/sample, model 9, "
           f"{args.seeds} seeds; recursive start = truth after 1 % drift")
     print("efficiency tr(CRLB)/tr(MSE) ± se (whitened P/mean(e^T F e)); 'recursive' = one IEKF pass over all 9 "
-          "from the start; 'ordered' = recursive updating only the observable order, re-seeded by a batch fit "
-          "when the order grows")
-    print(f"{'scenario':26s} {'CRLB mg':>7s} {'batch':>19s} {'recursive':>19s} {'ordered':>19s}")
+          "from the start; 'online' = OnlineCalibrator: recursion on the observable order only, re-seeded by a "
+          "batch fit of its window store when the order grows or the store doubles")
+    print(f"{'scenario':26s} {'CRLB mg':>7s} {'batch':>19s} {'recursive':>19s} {'online':>19s}")
     for name, fn in SCENARIOS.items():
         t0 = time.perf_counter()
         r = run(fn, args.seeds)
         cols = " ".join(f"{r[k + '_eff']:6.3f}±{r[k + '_eff_se']:.3f} ({1 / r[k + '_whitened']:.3f})"
                         for k in ("batch", "recursive", "ordered"))
-        print(f"{name:26s} {r['crlb_accel_rms_mg']:7.3f} {cols}   ({time.perf_counter() - t0:.1f} s; ordered reached "
-              f"9 after {np.median(SWITCH_FRACTION) * 100:.0f} % of the windows, median)")
+        print(f"{name:26s} {r['crlb_accel_rms_mg']:7.3f} {cols}   ({time.perf_counter() - t0:.1f} s; online reached "
+              f"9 after {np.median(SWITCH_FRACTION) * 100:.0f} % of the windows, median; final orders "
+              f"{dict(zip(*np.unique(FINAL_ORDERS, return_counts=True)))})")
         SWITCH_FRACTION.clear()
+        FINAL_ORDERS.clear()
     print("recursive efficiency vs the drift since the start calibration (daily_living):")
     for err in (0.002, 0.005, 0.01, 0.02):
         r = run(SCENARIOS["daily_living (or2 mount)"], max(100, args.seeds // 3), start_err=err)
         print(f"  start error {err * 100:4.1f} % of 1 g: recursive {r['recursive_eff']:.3f}±{r['recursive_eff_se']:.3f}, "
-              f"ordered {r['ordered_eff']:.3f}±{r['ordered_eff_se']:.3f}, batch {r['batch_eff']:.3f}")
+              f"online {r['ordered_eff']:.3f}±{r['ordered_eff_se']:.3f}, batch {r['batch_eff']:.3f}")
     if not args.no_time_series:
         time_series_run()
 

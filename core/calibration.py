@@ -66,7 +66,7 @@ class Calibration:
             "converged": bool(self.converged),
             "observable": bool(self.observable),
             "message": self.message,
-            "metadata": _jsonable(self.metadata),
+            "metadata": jsonable(self.metadata),
         }
 
     def to_json(self, **kwargs: Any) -> str:
@@ -118,18 +118,19 @@ class Calibration:
         return cls(model=model, offset=offset, sensitivity=k, n_windows=0, message="nominal (datasheet) values")
 
 
-def _jsonable(x: Any) -> Any:
+def jsonable(x: Any) -> Any:
+    """``x`` with numpy types as Python ones and non-finite floats as None (strict JSON has no NaN)."""
     if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
+        return {str(k): jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
+        return [jsonable(v) for v in x]
     if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
+        return jsonable(x.tolist())
     if isinstance(x, (np.floating, float)):
         v = float(x)
         return v if math.isfinite(v) else None
-    if isinstance(x, np.integer):
-        return int(x)
     if isinstance(x, np.bool_):
         return bool(x)
+    if isinstance(x, np.generic):
+        return x.item()
     return x

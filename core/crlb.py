@@ -117,19 +117,26 @@ def bound_from_fisher(model: str, names: list[str], F: np.ndarray, G: np.ndarray
 
 
 def fisher_inuse(ws: WindowSet, cal: Calibration, model: str | Parameterization = "9", *,
-                 sigma_floor_g: float = 0.0) -> tuple[np.ndarray, Parameterization]:
+                 sigma_floor_g: float = 0.0, unit_floor_g: float | None = None):
     """Fisher information of the in-use (norm) problem at calibration ``cal`` (the truth for a bound,
-    the current estimate for a decision). Returns (F (P, P) [1/raw^2], the parameterization)."""
+    the current estimate for a decision). Returns (F (P, P) [1/raw^2], the parameterization); with
+    ``unit_floor_g`` also a third item, the information with that floor instead of ``sigma_floor_g``
+    (same Jacobian, computed once: order.observability's per-window geometry)."""
     param = make_parameterization(model, cal)
     if len(ws) == 0:
-        return np.zeros((param.n_params, param.n_params)), param
+        Z = np.zeros((param.n_params, param.n_params))
+        return (Z, param) if unit_floor_g is None else (Z, param, Z.copy())
     _, r_star = on_ellipsoid(ws, cal)
     p = param.pack(cal.sensitivity, cal.offset)
     _, B, _ = param.norm_and_jacobian(p, r_star)
-    var = norm_noise_var(ws, cal, sigma_floor_g=sigma_floor_g)
+    var0 = norm_noise_var(ws, cal)
+    var = var0 + float(sigma_floor_g) ** 2
     if np.any(var <= 0):
         raise ValueError("window noise is zero: give window covariances (cov, n) or a sigma_floor_g > 0")
-    return (B / var[:, None]).T @ B, param
+    F = (B / var[:, None]).T @ B
+    if unit_floor_g is None:
+        return F, param
+    return F, param, (B / (var0 + float(unit_floor_g) ** 2)[:, None]).T @ B
 
 
 def crlb(ws: WindowSet, cal: Calibration, model: str = "9", *, sigma_floor_g: float = 0.0) -> Bound:

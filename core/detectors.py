@@ -29,12 +29,14 @@ Streaming is exact: every decision is a function of the sample stream alone, nev
 it was split into blocks. Filter states (sosfilt ``zi``) and running sums (np.cumsum
 with the carried sum prepended) evaluate the same floating-point operations in the same
 order for any split, so window boundaries are bit-identical; window means/covariances are
-accumulated per block with np.add.reduceat and agree to rounding (~1e-15 relative).
+accumulated per block with np.add.reduceat and agree to rounding (tests: means 1e-12,
+covariances 1e-8 relative).
 A sample is decided ``guard`` samples after it arrives (the erosion looks ahead).
 """
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -86,6 +88,41 @@ def _as_to_g(to_g: ToG) -> Callable[[np.ndarray], np.ndarray]:
     raise TypeError(f"to_g must be a Calibration, a callable raw -> g, or None (got {type(to_g).__name__})")
 
 
+def _diagonal_affine(to_g: ToG) -> tuple[np.ndarray, np.ndarray] | None:
+    """(offset, 1/diag(sensitivity)) when to_g is a Calibration with a diagonal sensitivity:
+    the detector then computes the axes in g straight into its workspace, else None."""
+    if not isinstance(to_g, Calibration):
+        return None
+    m = np.linalg.inv(to_g.sensitivity)
+    if np.count_nonzero(m - np.diag(np.diag(m))):
+        return None
+    return to_g.offset.copy(), np.diag(m).copy()
+
+
+try:  # the compiled kernel behind signal.sosfilt: filters (signals, n) and zi (signals, sections, 2) in place
+    from scipy.signal._sosfilt import _sosfilt as _sosfilt_kernel
+except ImportError:  # pragma: no cover - another SciPy layout: the public function, same arithmetic
+    _sosfilt_kernel = None
+
+
+def _filter_rows(sos_hp, sos_lp, v, zi_hp, zi_lp) -> None:
+    _sosfilt_inplace(sos_hp, v, zi_hp)
+    np.abs(v, out=v)
+    _sosfilt_inplace(sos_lp, v, zi_lp)  # eq. 2
+
+
+def _sosfilt_inplace(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> None:
+    """signal.sosfilt along axis 1 of a C-contiguous x (signals, n), in place, with the state
+    zi (signals, sections, 2) updated in place. signal.sosfilt validates, copies x and moves
+    axes around the same kernel: ~50 µs per call, which dominated small blocks."""
+    if _sosfilt_kernel is not None:
+        _sosfilt_kernel(sos, x, zi)
+        return
+    y, z = signal.sosfilt(sos, x, axis=-1, zi=np.moveaxis(zi, 1, 0))
+    x[...] = y
+    zi[...] = np.moveaxis(z, 0, 1)
+
+
 def _forward_fill(values: np.ndarray, ok: np.ndarray, carry: np.ndarray) -> np.ndarray:
     """Replace rows where ``ok`` is False by the last good row (``carry`` before the block)."""
     idx = np.where(ok, np.arange(1, ok.shape[0] + 1), 0)
@@ -94,14 +131,97 @@ def _forward_fill(values: np.ndarray, ok: np.ndarray, carry: np.ndarray) -> np.n
     return ext[idx]
 
 
+class _Rows:
+    """The samples decided by a block, addressed by global sample index from ``d0``: the
+    previous block's undecided tail followed by the block, channel-major (raw (3, n), aux
+    (k, n), t (n,)), concatenated only where a requested range straddles the two."""
+
+    def __init__(self, p_raw, p_aux, p_t, raw, aux, t, d0: int):
+        self._p = (p_raw, p_aux, p_t)
+        self._b = (raw, aux, t)
+        self.d0, self.np = d0, p_t.shape[0]
+
+    def _get(self, k: int, lo: int, hi: int) -> np.ndarray:
+        i, j, P = lo - self.d0, hi - self.d0, self.np
+        if j <= P:
+            return self._p[k][..., i:j]
+        if i >= P:
+            return self._b[k][..., i - P:j - P]
+        return np.concatenate([self._p[k][..., i:], self._b[k][..., :j - P]], axis=-1)
+
+    def raw(self, lo: int, hi: int) -> np.ndarray:
+        return self._get(0, lo, hi)
+
+    def aux(self, lo: int, hi: int) -> np.ndarray:
+        return self._get(1, lo, hi)
+
+    def t(self, lo: int, hi: int) -> np.ndarray:
+        return self._get(2, lo, hi)
+
+    def t_at(self, i: int) -> float:
+        i -= self.d0
+        return float(self._p[2][i] if i < self.np else self._b[2][i - self.np])
+
+    def sums(self, ps: np.ndarray, pe: np.ndarray, ref0: np.ndarray | None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per part [ps, pe): its reference ``ref`` (q, 3) = its first sample (``ref0`` for the
+        first part when given: a continued window keeps its own), sums of (x - ref) (q, 3), of
+        their products (q, 6: _I6/_J6) and of aux (q, k)."""
+        q = ps.shape[0]
+        k = self._b[1].shape[0]
+        refs, s1, s2, sa = np.empty((q, 3)), np.empty((q, 3)), np.empty((q, 6)), np.empty((q, k))
+        lens = pe - ps
+        if q <= 2 or int(lens.sum()) >= _LOOP_MIN_MEAN_PART * q:
+            for j in range(q):  # long parts: contiguous rows, one dot product per sum
+                lo, hi = int(ps[j]), int(pe[j])
+                x = self.raw(lo, hi)
+                refs[j] = ref0 if j == 0 and ref0 is not None else x[:, 0]
+                d = x - refs[j][:, None]
+                s1[j] = d.sum(axis=1)
+                for c in range(6):
+                    s2[j, c] = np.dot(d[_I6[c]], d[_J6[c]])
+                sa[j] = self.aux(lo, hi).sum(axis=1)
+            return refs, s1, s2, sa
+        # many short parts: sums over the span at once, shifted by one reference r_b and cut
+        # at [lo, hi) pairs by reduceat (the odd results, between parts, are unused), then
+        # re-referenced to each part's own ref (exact algebra)
+        base, top = int(ps[0]), int(pe[-1])
+        span = self.raw(base, top)
+        m = span.shape[1]
+        refs[:] = span[:, ps - base].T
+        if ref0 is not None:
+            refs[0] = ref0
+        r_b = refs[0]
+        rows = np.empty((9, m + 1))
+        rows[:, m] = 0.0
+        d = rows[:3, :m]
+        np.subtract(span, r_b[:, None], out=d)
+        with np.errstate(invalid="ignore", over="ignore"):  # NaN/inf samples lie between parts only
+            for c in range(6):  # explicit rows: fancy-indexed temporaries cost more than the products
+                np.multiply(d[_I6[c]], d[_J6[c]], out=rows[3 + c, :m])
+            cuts = np.empty(2 * q, dtype=np.int64)
+            cuts[0::2], cuts[1::2] = ps - base, pe - base
+            sums = np.add.reduceat(rows, cuts, axis=1)[:, 0::2].T  # (q, 9)
+            if k:
+                aux_rows = np.zeros((k, m + 1))
+                aux_rows[:, :m] = self.aux(base, top)
+                sa[:] = np.add.reduceat(aux_rows, cuts, axis=1)[:, 0::2].T
+        delta = refs - r_b
+        n = lens.astype(float)[:, None]
+        b1 = sums[:, :3]
+        s1[:] = b1 - n * delta
+        s2[:] = (sums[:, 3:] - delta[:, _I6] * b1[:, _J6] - delta[:, _J6] * b1[:, _I6]
+                 + n * delta[:, _I6] * delta[:, _J6])
+        return refs, s1, s2, sa
+
+
 @dataclass
 class _OpenWindow:
     """Running sums of the window being accumulated (shifted by ``ref``, its first sample,
     so that raw counts of ~3e4 with a noise of a few counts keep their precision)."""
 
     ws: int  # global index of its first sample (also its identity)
-    last: int  # global index of its last sample so far
-    n: int
+    n: int  # samples accumulated so far (the window is contiguous: ws .. ws + n - 1)
     ref: np.ndarray  # (3,)
     s1: np.ndarray  # (3,) sum of (x - ref)
     s2: np.ndarray  # (6,) sums of products of (x - ref), entries _I6/_J6
@@ -110,8 +230,24 @@ class _OpenWindow:
     t_last: float
 
 
+# Parts of windows at least this long on average get their sums by one matrix product each
+# (a Python step per part); shorter ones are summed all at once with np.add.reduceat.
+_LOOP_MIN_MEAN_PART = 512
+_NO_END = np.iinfo(np.int64).max // 4  # "still run not ended yet"
+_DETECT_BLOCK = 1 << 16  # samples per update() in detect()
+_THREAD_MIN_BLOCK = 8192  # samples: below this a thread hand-off costs more than it saves
+_KEEP_WORKSPACE = 1 << 18  # samples: larger blocks get a temporary workspace, not a kept one
+
+
 class _Windower:
-    """Turns per-sample still flags into Windows (erosion, max/min duration, statistics)."""
+    """Turns per-sample still flags into Windows (erosion, max/min duration, statistics).
+
+    Works on runs, not samples: a still run [lo, hi) (global sample indices) holds the
+    in-window samples [lo + guard, hi - guard); those are cut into pieces of max_n samples
+    counted from the first; a piece is emitted once its last sample is decided (``guard``
+    samples after it arrived). Only the runs and pieces touched by a block cost Python
+    steps; the samples themselves are handled by numpy.
+    """
 
     def __init__(self, fs: float, *, min_duration_s: float, max_duration_s: float | None, guard_s: float):
         if not (fs > 0 and math.isfinite(fs)):
@@ -122,7 +258,7 @@ class _Windower:
         self.guard = int(round(guard_s * fs))
         self.min_n = max(2, int(math.ceil(min_duration_s * fs - 1e-9)))  # a covariance needs 2 samples
         if max_duration_s is None or math.isinf(max_duration_s):
-            self.max_n = np.iinfo(np.int64).max // 4
+            self.max_n = _NO_END
         else:
             self.max_n = int(round(max_duration_s * fs))
             if self.max_n < self.min_n:
@@ -131,123 +267,106 @@ class _Windower:
 
     def _reset_windower(self) -> None:
         self.n_seen = 0  # global index of the next sample
-        self._c = 0  # length of the still run ending at the last sample seen
+        self._run_lo = -1  # first sample of the still run that includes the last sample seen (-1: not still)
         self._k: int | None = None  # number of aux channels, fixed by the first block
-        self._pend_raw = np.zeros((0, 3))
+        # the samples not decided yet (the last `guard` ones): [n_seen - len, n_seen)
+        self._pend_raw = np.zeros((3, 0))  # channel-major
         self._pend_aux = np.zeros((0, 0))
         self._pend_t = np.zeros(0)
-        self._prev_in = False  # was the last decided sample in a window?
-        self._rs = -1  # first sample of the current in-window run
         self._open: _OpenWindow | None = None
         self.counts = {"samples": 0, "nonfinite": 0, "gaps": 0, "windows": 0, "short_dropped": 0}
 
     # -- the engine ----------------------------------------------------------------------
     def _windows_from_still(self, t: np.ndarray, raw: np.ndarray, aux: np.ndarray, still: np.ndarray) -> list[Window]:
+        """t (n,), raw (3, n) and aux (k, n) channel-major (rows contiguous), still (n,) bool."""
         n = still.shape[0]
         g = self.guard
         j0 = self.n_seen
-        # run length of still samples ending at each sample; "last not-still" index carried
-        idx = np.arange(j0, j0 + n, dtype=np.int64)
-        last_false = np.where(still, j0 - 1 - self._c, idx)
-        np.maximum.accumulate(last_false, out=last_false)
-        c = idx - last_false
-        if n:
-            self._c = int(c[-1])
-        self.n_seen += n
-
-        # samples are decided g samples late: in_window[i] <=> still[i-g .. i+g] <=> c[i+g] >= 2g+1
-        raw_c = np.concatenate([self._pend_raw, raw]) if self._pend_raw.shape[0] else raw
-        aux_c = np.concatenate([self._pend_aux, aux]) if self._pend_aux.shape[0] else aux
-        t_c = np.concatenate([self._pend_t, t]) if self._pend_t.shape[0] else t
-        first = j0 - self._pend_raw.shape[0]
-        nd = max(0, raw_c.shape[0] - g)
-        self._pend_raw, self._pend_aux, self._pend_t = raw_c[nd:], aux_c[nd:], t_c[nd:]
-        if nd == 0:
+        j1 = self.n_seen = j0 + n
+        d0, d1 = max(0, j0 - g), max(0, j1 - g)  # samples [d0, d1) are decided by this block
+        src = _Rows(self._pend_raw, self._pend_aux, self._pend_t, raw, aux, t, d0)
+        keep = j1 - d1  # the new undecided tail
+        if keep == 0:
+            self._pend_raw, self._pend_aux, self._pend_t = raw[:, :0], aux[:, :0], t[:0]
+        elif n >= keep:
+            self._pend_raw, self._pend_aux, self._pend_t = (raw[:, n - keep:].copy(), aux[:, n - keep:].copy(),
+                                                            t[n - keep:].copy())
+        else:
+            self._pend_raw, self._pend_aux, self._pend_t = (src.raw(j1 - keep, j1).copy(), src.aux(j1 - keep, j1).copy(),
+                                                            src.t(j1 - keep, j1).copy())
+        if n == 0:
             return []
-        dec = np.arange(first, first + nd, dtype=np.int64)
-        inw = c[dec + g - j0] >= 2 * g + 1
-        return self._accumulate(dec, inw, raw_c[:nd], aux_c[:nd], t_c[:nd])
 
-    def _accumulate(self, dec, inw, raw, aux, t) -> list[Window]:
-        """Add the decided samples ``dec`` (global indices) with in-window flags ``inw``."""
-        prev = np.concatenate([[self._prev_in], inw[:-1]])
-        run_start = np.where(inw & ~prev, dec, -1)
-        if run_start.shape[0]:
-            run_start[0] = max(run_start[0], self._rs if inw[0] and self._prev_in else -1)
-        np.maximum.accumulate(run_start, out=run_start)
-        self._prev_in = bool(inw[-1])
-        self._rs = int(run_start[-1]) if self._prev_in else -1
+        # still runs of the block: [lo, hi) global; the last one is open when the block ends still
+        n_still = int(np.count_nonzero(still))
+        if n_still == 0:
+            lo, hi = [], []
+        elif n_still == n:
+            lo, hi = [j0], [j1]
+        else:
+            e = np.flatnonzero(still[1:] != still[:-1]) + 1
+            starts, ends = (e[1::2], e[0::2]) if still[0] else (e[0::2], e[1::2])
+            if still[0]:
+                starts = np.concatenate([[0], starts])
+            if still[-1]:
+                ends = np.concatenate([ends, [n]])
+            if starts.shape[0] > 8:  # only runs longer than 2 guards hold window samples (and the ends)
+                keep_run = ends - starts > 2 * g
+                keep_run[0] = keep_run[-1] = True
+                starts, ends = starts[keep_run], ends[keep_run]
+            lo, hi = (starts + j0).tolist(), (ends + j0).tolist()
+        if lo and lo[0] == j0 and self._run_lo >= 0:
+            lo[0] = self._run_lo
+        open_last = bool(still[-1])
+        self._run_lo = lo[-1] if open_last else -1
 
-        pos = np.flatnonzero(inw)
+        # in-window samples decided now, [x0, x1) of each run's eroded interval [lo + g, hi - g),
+        # cut into pieces of max_n samples from its first: part [ps, pe) of piece [p, p + max_n)
+        m = self.max_n
+        parts = []  # (p, ps, pe, complete: the piece's last sample is decided)
+        last = len(lo) - 1
+        for r in range(len(lo)):
+            a = lo[r] + g
+            still_open = open_last and r == last
+            x0, x1 = max(a, d0), (d1 if still_open else min(hi[r] - g, d1))
+            if x1 <= x0:
+                continue
+            p = a + (x0 - a) // m * m
+            while p < x1:
+                q = p + m
+                pe = min(q, x1)
+                parts.append((p, max(p, x0), pe, pe == q or not still_open))
+                p = q
         done: list[_OpenWindow] = []
-        if pos.shape[0] == 0:
-            if self._open is not None:  # a decided sample that is not in it has arrived
+        cont = bool(parts) and self._open is not None and parts[0][0] == self._open.ws
+        if not cont:  # the open window is complete once a decided sample follows it
+            if self._open is not None and self._open.ws + self._open.n < d1:
                 done.append(self._open)
                 self._open = None
+        # complete pieces below min_n are dropped without sums
+        short = [complete and pe - p < self.min_n for p, _, pe, complete in parts]
+        if any(short):
+            self.counts["short_dropped"] += sum(short)
+            if cont and short[0]:
+                self._open, cont = None, False
+            parts = [x for x, s in zip(parts, short) if not s]
+        if not parts:
             return self._emit(done)
-
-        gi = dec[pos]
-        rs = run_start[pos]
-        ws = rs + ((gi - rs) // self.max_n) * self.max_n  # window = piece of max_n samples of its run
-        seg = np.flatnonzero(np.diff(ws)) + 1
-        seg_start = np.concatenate([[0], seg])
-        seg_len = np.diff(np.concatenate([seg_start, [pos.shape[0]]]))
-        seg_ws = ws[seg_start]
-        seg_last = seg_start + seg_len - 1
-        lo, hi = pos[seg_start], pos[seg_last] + 1  # each segment is contiguous in the decided samples
-
-        # Sums over all decided samples (no gather), shifted by one block reference r_b and
-        # cut at [lo, hi) pairs by reduceat; the odd results (between segments) are unused.
-        m = raw.shape[0]
-        r_b = raw[pos[0]].copy()
-        rows = np.empty((9, m + 1))
-        rows[:, m] = 0.0
-        d = rows[:3, :m]
-        np.subtract(raw.T, r_b[:, None], out=d)
-        for k in range(6):  # explicit rows: fancy-indexed temporaries cost more than the products
-            np.multiply(d[_I6[k]], d[_J6[k]], out=rows[3 + k, :m])
-        cuts = np.empty(2 * lo.shape[0], dtype=np.int64)
-        cuts[0::2], cuts[1::2] = lo, hi
-        with np.errstate(invalid="ignore"):  # NaN samples lie between segments only
-            sums = np.add.reduceat(rows, cuts, axis=1)[:, 0::2].T  # (segments, 9)
-        if aux.shape[1]:
-            aux_rows = np.empty((aux.shape[1], m + 1))
-            aux_rows[:, :m] = aux.T
-            aux_rows[:, m] = 0.0
-            with np.errstate(invalid="ignore"):
-                aux_s = np.add.reduceat(aux_rows, cuts, axis=1)[:, 0::2].T
-        else:
-            aux_s = np.zeros((lo.shape[0], 0))
-
-        # re-reference each segment's sums to its window's first sample (exact algebra)
-        cont = self._open is not None and seg_ws[0] == self._open.ws
-        ref = raw[lo].copy()
-        if cont:
-            ref[0] = self._open.ref
-        delta = ref - r_b
-        n_seg = seg_len.astype(float)
-        b1 = sums[:, :3]
-        s1 = b1 - n_seg[:, None] * delta
-        s2 = (sums[:, 3:] - delta[:, _I6] * b1[:, _J6] - delta[:, _J6] * b1[:, _I6]
-              + n_seg[:, None] * delta[:, _I6] * delta[:, _J6])
-        segs = [
-            _OpenWindow(int(seg_ws[k]), int(gi[seg_last[k]]), int(seg_len[k]), ref[k], s1[k], s2[k], aux_s[k],
-                        float(t[lo[k]]), float(t[hi[k] - 1]))
-            for k in range(seg_start.shape[0])
-        ]
-        if cont:
-            o, s = self._open, segs[0]
-            segs[0] = _OpenWindow(o.ws, s.last, o.n + s.n, o.ref, o.s1 + s.s1, o.s2 + s.s2, o.aux_sum + s.aux_sum,
-                                  o.t_first, s.t_last)
-        elif self._open is not None:
-            done.append(self._open)
-        self._open = None
-        done.extend(segs[:-1])
-        last = segs[-1]
-        if last.n >= self.max_n or dec[-1] > last.last:
-            done.append(last)
-        else:
-            self._open = last
+        ps = np.array([x[1] for x in parts], dtype=np.int64)
+        pe = np.array([x[2] for x in parts], dtype=np.int64)
+        # a new piece's first part starts at the piece's first sample: its reference
+        refs, s1, s2, sa = src.sums(ps, pe, self._open.ref if cont else None)
+        for j, (p, a, b, complete) in enumerate(parts):
+            w = _OpenWindow(p, b - a, refs[j], s1[j], s2[j], sa[j], src.t_at(a), src.t_at(b - 1))
+            if j == 0 and cont:
+                o = self._open
+                w = _OpenWindow(o.ws, o.n + w.n, o.ref, o.s1 + w.s1, o.s2 + w.s2, o.aux_sum + w.aux_sum,
+                                o.t_first, w.t_last)
+                self._open = None
+            if complete:
+                done.append(w)
+            else:
+                self._open = w  # only the last part can be incomplete
         return self._emit(done)
 
     def _emit(self, done: list[_OpenWindow]) -> list[Window]:
@@ -260,7 +379,7 @@ class _Windower:
             prod = w.s2 - w.s1[_I6] * w.s1[_J6] / w.n
             cov[_I6, _J6] = prod
             cov[_J6, _I6] = prod
-            out.append(Window(start=w.ws, end=w.last + 1, t_start=w.t_first, t_end=w.t_last,
+            out.append(Window(start=w.ws, end=w.ws + w.n, t_start=w.t_first, t_end=w.t_last,
                               mean=w.ref + w.s1 / w.n, cov=cov / (w.n - 1), aux_mean=w.aux_sum / w.n))
         self.counts["windows"] += len(out)
         return out
@@ -288,16 +407,30 @@ class _Windower:
             raise ValueError(f"aux has {aux.shape[0]} rows but raw has {n}")
         if self._k is None:
             self._k = aux.shape[1]
-            self._pend_aux = np.zeros((0, self._k))
+            self._pend_aux = np.zeros((self._k, 0))
         elif aux.shape[1] != self._k:
             raise ValueError(f"aux has {aux.shape[1]} channels, earlier blocks had {self._k}")
+        with np.errstate(over="ignore", invalid="ignore"):  # a finite sum proves every entry finite
+            fine = np.isfinite(raw.sum()) and np.isfinite(t.sum()) and (aux.shape[1] == 0 or np.isfinite(aux.sum()))
+        if fine:
+            return t, raw, aux, None  # ok = None: every sample is finite
         ok = _finite_rows(raw) & np.isfinite(t)
         if aux.shape[1]:
             ok &= _finite_rows(aux)
         return t, raw, aux, ok
 
-    def _gaps(self, t: np.ndarray, ok: np.ndarray) -> np.ndarray:
-        """gap_before[i]: time jumped by more than 1.5/fs (a dropout) or did not increase."""
+    def _gaps(self, t: np.ndarray, ok: np.ndarray | None) -> np.ndarray | None:
+        """gap_before[i]: time jumped by more than 1.5/fs (a dropout) or did not increase.
+        None when there is no gap (the common case: one diff, one min and one max)."""
+        n = t.shape[0]
+        if ok is None and n:  # t all finite
+            step = 1.5 / self.fs
+            first = t[0] - self._last_t
+            if not (math.isfinite(first) and not (first > 0 and first <= step)):  # NaN: stream start
+                dt = t[1:] - t[:-1]
+                if n == 1 or (dt.min() > 0 and dt.max() <= step):
+                    self._last_t = float(t[-1])
+                    return None
         t_ok = np.isfinite(t)
         tf = t if t_ok.all() else _forward_fill(t, t_ok, np.asarray(self._last_t))
         prev_t = np.concatenate([[self._last_t], tf[:-1]])
@@ -306,7 +439,7 @@ class _Windower:
             gap = np.isfinite(prev_t) & ~((dt > 0) & (dt <= 1.5 / self.fs))
         if t.shape[0]:
             self._last_t = float(tf[-1])
-        self.counts["gaps"] += int(np.count_nonzero(gap & ok))
+        self.counts["gaps"] += int(np.count_nonzero(gap if ok is None else gap & ok))
         return gap
 
     def stats(self) -> dict[str, int]:
@@ -329,7 +462,8 @@ class QuasiStaticDetector(_Windower):
     transfer, only its role does — above the detector's output at rest, below ordinary
     movement. So the default is derived for our sensor instead:
 
-    - at rest the norm carries the ADXL210 noise, ~500 µg/√Hz; over the ~50 Hz output
+    - at rest the norm carries the ADXL210 noise, ~500 µg/√Hz (ADXL202/210 rev. B; the
+      ADXL210E and gravcal's simulator: 200 µg/√Hz, 2.5× less); over the ~50 Hz output
       bandwidth of a 100 Hz logger that is σ ≈ 500e-6·√(1.57·50) ≈ 4.5 mg rms (duty-cycle
       timer quantisation adds a few mg more). The 0.5 Hz high-pass passes nearly all of it,
       the rectifier gives its mean absolute value √(2/π)·σ ≈ 3.6 mg, and the 0.5 Hz
@@ -354,6 +488,9 @@ class QuasiStaticDetector(_Windower):
     alone merged turns into windows (window |mean| off 1 g by 0.55 g rms); per-axis
     removed that. Turns slower than ~1°/s pass both detectors: keep max_duration_s short.
 
+    ``threads=2`` filters half the channels of blocks of >= 8192 samples in a second thread
+    (same results; for offline use on a machine with a spare core).
+
     Start-up: the high-pass state starts at steady state for the first finite sample; the
     first ``settle_s`` seconds (default: the time both filters' step responses need to
     settle within 1 %, ≈ 4.7 s at 0.5 Hz) are never still. Non-finite samples are held
@@ -364,7 +501,8 @@ class QuasiStaticDetector(_Windower):
 
     def __init__(self, fs: float, *, hp_hz: float = 0.5, lp_hz: float = 0.5, threshold_g: float = 0.02,
                  min_duration_s: float = 1.0, max_duration_s: float | None = 60.0, guard_s: float = 0.5,
-                 settle_s: float | None = None, order: int = 2, per_axis: bool = True, to_g: ToG = None):
+                 settle_s: float | None = None, order: int = 2, per_axis: bool = True, to_g: ToG = None,
+                 threads: int = 1):
         super().__init__(fs, min_duration_s=min_duration_s, max_duration_s=max_duration_s, guard_s=guard_s)
         self.per_axis = bool(per_axis)
         self._channels = 4 if per_axis else 1
@@ -378,6 +516,13 @@ class QuasiStaticDetector(_Windower):
         self.sos_lp = signal.butter(order, lp_hz, "lowpass", fs=fs, output="sos")
         self.settle_n = (int(round(settle_s * fs)) if settle_s is not None
                          else _settle_samples(self.sos_hp, 0.0, fs, hp_hz) + _settle_samples(self.sos_lp, 1.0, fs, lp_hz))
+        self._sos_hp = np.ascontiguousarray(self.sos_hp)
+        self._sos_lp = np.ascontiguousarray(self.sos_lp)
+        # high-pass state at rest for a unit input, (1, sections, 2): scaled by the first sample
+        self._zi_hp_unit = signal.sosfilt_zi(self.sos_hp)[None]
+        self._work = np.empty(0)
+        # a second thread filters half the channels of large blocks (threads > 1; offline use)
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="gravcal-qsd") if threads > 1 and per_axis else None
         self.to_g = to_g
         self.reset()
 
@@ -391,12 +536,13 @@ class QuasiStaticDetector(_Windower):
         if the norm changes: that reads as movement for a moment (conservative)."""
         self._to_g = _as_to_g(value)
         self._to_g_src = value
+        self._diag = _diagonal_affine(value)
 
     def reset(self) -> None:
         """Forget the stream: filters, pending samples, the open window, counters."""
         self._reset_windower()
         self._zi_hp: np.ndarray | None = None  # None until the first finite sample
-        self._zi_lp = np.zeros((self.sos_lp.shape[0], self._channels, 2))
+        self._zi_lp = np.zeros((self._channels, self.sos_lp.shape[0], 2))
         self._last_u = np.full(self._channels, np.nan)
         self._start: int | None = None  # global index of the first finite sample
         self._last_t = np.nan
@@ -409,40 +555,84 @@ class QuasiStaticDetector(_Windower):
         n = raw.shape[0]
         j0 = self.n_seen
         self.counts["samples"] += n
-        x = self._to_g(raw)
+        u = self._channels_of(raw)  # (channels, n): the norm (eq. 1), then the axes (per_axis)
         with np.errstate(invalid="ignore", over="ignore"):
-            norm = np.sqrt(x[:, 0] * x[:, 0] + x[:, 1] * x[:, 1] + x[:, 2] * x[:, 2])  # eq. 1
-        ok &= np.isfinite(norm)
-        self.counts["nonfinite"] += int(n - np.count_nonzero(ok))
+            if ok is not None or not np.isfinite(np.add.reduce(u[0])):  # a norm may overflow, or to_g give NaN
+                fin = np.isfinite(u[0])
+                ok = fin if ok is None else ok & fin
+        if ok is not None:
+            self.counts["nonfinite"] += int(n - np.count_nonzero(ok))
         gap = self._gaps(t, ok)
 
-        u = np.empty((self._channels, n))  # channel 0: the norm (eq. 1); 1-3: the axes (per_axis)
-        u[0] = norm
-        if self.per_axis:
-            u[1:] = x.T
-        det = np.full(n, np.inf)
+        det = np.empty(n)
         begin = 0
         if self._zi_hp is None and n:
-            good = np.flatnonzero(ok)
+            good = np.zeros(1, dtype=np.int64) if ok is None else np.flatnonzero(ok)[:1]
             if good.shape[0]:
                 begin = int(good[0])
                 self._start = j0 + begin
-                self._zi_hp = signal.sosfilt_zi(self.sos_hp)[:, None, :] * u[None, :, begin, None]
+                self._zi_hp = self._zi_hp_unit * u[:, begin, None, None]  # (channels, sections, 2)
                 self._last_u = u[:, begin].copy()
+        det[:begin] = np.inf
         if self._zi_hp is not None and begin < n:
-            u = u[:, begin:]
-            if not ok[begin:].all():
-                u = _forward_fill(u.T, ok[begin:], self._last_u).T
-            self._last_u = u[:, -1].copy()
-            h, self._zi_hp = signal.sosfilt(self.sos_hp, u, axis=-1, zi=self._zi_hp)
-            np.abs(h, out=h)
-            lp, self._zi_lp = signal.sosfilt(self.sos_lp, h, axis=-1, zi=self._zi_lp)  # eq. 2
-            det[begin:] = lp.max(axis=0)
+            v = u if begin == 0 else np.ascontiguousarray(u[:, begin:])
+            if ok is not None and not ok[begin:].all():
+                v = np.ascontiguousarray(_forward_fill(v.T, ok[begin:], self._last_u).T)
+            self._last_u = v[:, -1].copy()
+            self._filter(v)
+            np.maximum.reduce(v, axis=0, out=det[begin:])
+        else:
+            det[begin:] = np.inf
         self.last_detection = det
 
-        still = ok & ~gap & (det < self.threshold_g)
+        still = det < self.threshold_g
+        if ok is not None:
+            still &= ok
+        if gap is not None:
+            still &= ~gap
         _unsettled(still, j0, self._start, self.settle_n)
-        return self._windows_from_still(t, raw, aux, still)
+        return self._windows_from_still(t, *_channel_major(raw, aux), still)
+
+    def _filter(self, v: np.ndarray) -> None:
+        """HPF -> rectifier -> LPF (eq. 2) of every channel of v (channels, n), in place. With
+        ``threads`` > 1 the channels are split between threads (the SciPy kernel releases the
+        GIL); each channel's arithmetic is the same either way, so the results are too."""
+        h = v.shape[0] // 2
+        if self._pool is None or h == 0 or v.shape[1] < _THREAD_MIN_BLOCK:
+            _filter_rows(self._sos_hp, self._sos_lp, v, self._zi_hp, self._zi_lp)
+            return
+        job = self._pool.submit(_filter_rows, self._sos_hp, self._sos_lp, v[h:], self._zi_hp[h:], self._zi_lp[h:])
+        _filter_rows(self._sos_hp, self._sos_lp, v[:h], self._zi_hp[:h], self._zi_lp[:h])
+        job.result()
+
+    def _channels_of(self, raw: np.ndarray) -> np.ndarray:
+        """The filters' input (channels, n), C-contiguous, in a workspace reused across blocks:
+        row 0 |to_g(raw)| (eq. 1), rows 1-3 the axes of to_g(raw); elementwise arithmetic only,
+        so every sample's value is independent of the block it came in."""
+        n = raw.shape[0]
+        if self._work.shape[0] < 5 * n:
+            work = np.empty(5 * n)
+            if n <= _KEEP_WORKSPACE:
+                self._work = work
+        else:
+            work = self._work
+        w = work[:5 * n].reshape(5, n)
+        x, scratch = w[1:4], w[4]
+        if self._diag is not None:
+            o, inv_s = self._diag
+            for c in range(3):
+                np.subtract(raw[:, c], o[c], out=x[c])  # contiguous when raw is channel-major (Fortran order)
+                x[c] *= inv_s[c]
+        else:
+            x[...] = self._to_g(raw).T
+        with np.errstate(invalid="ignore", over="ignore"):
+            np.multiply(x[0], x[0], out=w[0])
+            np.multiply(x[1], x[1], out=scratch)
+            w[0] += scratch
+            np.multiply(x[2], x[2], out=scratch)
+            w[0] += scratch
+            np.sqrt(w[0], out=w[0])
+        return w[:self._channels]
 
     def flush(self) -> list[Window]:
         """End of stream: emit the open window (the last guard is trimmed), then start a new
@@ -503,11 +693,15 @@ class MovingVarianceDetector(_Windower):
         j0 = self.n_seen
         self.counts["samples"] += n
         x = self._to_g(raw)
-        ok &= _finite_rows(x)
-        self.counts["nonfinite"] += int(n - np.count_nonzero(ok))
+        with np.errstate(invalid="ignore", over="ignore"):
+            if ok is not None or not np.isfinite(np.add.reduce(x, axis=None)):  # to_g may give NaN/inf
+                fin = _finite_rows(x)
+                ok = fin if ok is None else ok & fin
+        if ok is not None:
+            self.counts["nonfinite"] += int(n - np.count_nonzero(ok))
         gap = self._gaps(t, ok)
-        if self._ref is None and ok.any():
-            first = int(np.flatnonzero(ok)[0])
+        if self._ref is None and n and (ok is None or ok.any()):
+            first = 0 if ok is None else int(np.flatnonzero(ok)[0])
             self._ref, self._start = x[first].copy(), j0 + first
             self._last_y = np.zeros(3)
         # rows (6, n+w): y then y², the w samples before the block first (ext[:, j] is w before j)
@@ -518,7 +712,7 @@ class MovingVarianceDetector(_Windower):
             y[:] = 0.0
         else:
             np.subtract(x.T, self._ref[:, None], out=y)
-            if not ok.all():
+            if ok is not None and not ok.all():
                 y[:] = _forward_fill(y.T, ok, self._last_y).T
         np.multiply(y, y, out=ext[3:, self.w:])
         if n:
@@ -533,11 +727,23 @@ class MovingVarianceDetector(_Windower):
         var = (sums[3:] - sums[:3] * sums[:3] / self.w) / (self.w - 1)
         det = np.sqrt(np.clip(np.maximum(np.maximum(var[0], var[1]), var[2]), 0.0, None))
         self.last_detection = det
-        still = ok & ~gap & (det < self.threshold_g)
+        still = det < self.threshold_g
+        if ok is not None:
+            still &= ok
+        if gap is not None:
+            still &= ~gap
         _unsettled(still, j0, self._start, self.w - 1)
-        return self._windows_from_still(t, raw, aux, still)
+        return self._windows_from_still(t, *_channel_major(raw, aux), still)
 
     flush = QuasiStaticDetector.flush
+
+
+def _channel_major(raw: np.ndarray, aux: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """raw (n, 3) -> (3, n) and aux (n, k) -> (k, n) with contiguous rows (views when the input
+    is already in Fortran order, e.g. columns read straight from a file)."""
+    r = raw.T if raw.T.flags.c_contiguous else np.ascontiguousarray(raw.T)
+    a = aux.T if aux.T.flags.c_contiguous else np.ascontiguousarray(aux.T)
+    return r, a
 
 
 def _finite_rows(a: np.ndarray) -> np.ndarray:
@@ -577,7 +783,7 @@ def estimate_fs(t: np.ndarray) -> float:
 
 
 def detect(t, raw, *, method: str = "lotters", fs: float | None = None, to_g: ToG = None, aux=None, **kw) -> WindowSet:
-    """All quasi-static windows of a recording, as a WindowSet (one block + flush).
+    """All quasi-static windows of a recording, as a WindowSet (blocks of 65536 samples + flush).
 
     method "lotters" (QuasiStaticDetector) or "variance" (MovingVarianceDetector); fs [Hz]
     is estimated from t when None; ``kw`` go to the detector (threshold_g, guard_s, ...).
@@ -586,7 +792,17 @@ def detect(t, raw, *, method: str = "lotters", fs: float | None = None, to_g: To
         raise ValueError(f"unknown detector method {method!r}; choose one of {sorted(DETECTORS)}")
     fs = estimate_fs(t) if fs is None else fs
     det = DETECTORS[method](fs, to_g=to_g, **kw)
-    windows = det.update(t, raw, aux) + det.flush()
+    t, raw = np.asarray(t), np.asarray(raw)
+    aux = None if aux is None else np.asarray(aux)
+    n = t.shape[0] if t.ndim == 1 else -1
+    if raw.ndim != 2 or raw.shape[0] != n or (aux is not None and aux.shape[0] != n):
+        windows = det.update(t, raw, aux)  # raises, naming the problem
+    else:
+        windows = []
+        for i in range(0, n, _DETECT_BLOCK):  # blocks: the same windows (streaming is exact), small temporaries
+            windows += det.update(t[i:i + _DETECT_BLOCK], raw[i:i + _DETECT_BLOCK],
+                                  None if aux is None else aux[i:i + _DETECT_BLOCK])
+    windows += det.flush()
     k = 0 if aux is None else (1 if np.ndim(aux) == 1 else np.shape(aux)[1])
     if not windows:
         return WindowSet(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0), np.zeros((0, k)),

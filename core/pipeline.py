@@ -14,6 +14,7 @@ detector streams, and only window statistics are kept. The bootstrap sees at mos
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -27,12 +28,22 @@ from gravcal.core.windows import WindowSet
 
 log = logging.getLogger(__name__)
 
-CHUNK = 1 << 18  # samples per detector block (~6 MB of float64 triad; bounds the detector temporaries)
+CHUNK = 1 << 16  # samples per detector block (the detector's 5 x 0.5 MB workspace stays in the CPU cache)
+DETECTOR_THREADS = min(2, os.cpu_count() or 1)  # the Lötters detector filters half its channels in a 2nd thread
 BOOTSTRAP_MAX_SAMPLES = 300_000  # 50 min at 100 Hz, in BOOTSTRAP_SEGMENTS pieces spread over the recording
 BOOTSTRAP_SEGMENTS = 30  # 100 s each at 100 Hz
 MAX_WINDOW_STD_G = 0.05  # per-axis std inside a window above which it is not quasi-static [g] (bias < 1.3 mg)
 FALLBACK_DETECTOR = "variance"
+SELECT_SIGMA_FLOOR_G = 0.002  # order selection's quasi-static floor [g] (order.SIGMA_FLOOR_G)
 REDETECT_CHANGE = 0.02  # re-detect when the fit moved the start by more than 2 % of 1 g (eq. 15-16 units)
+
+
+MODELS = ("auto",)  # model names calibrate_recording accepts beyond PARAMETERIZATIONS (`gravcal calibrate --model`)
+AUTO_MIN_WINDOWS = 3  # auto needs at least the offsets' 3 windows (6 for sensitivities)
+
+
+class OrderNotDetermined(ValueError):
+    """model="auto" found that the windows determine nothing (order "none"); the message says why."""
 
 
 @dataclass
@@ -45,6 +56,7 @@ class CalibrationReport:
     notes: list[str] = field(default_factory=list)
     heldout: HeldoutResult | None = None
     start: Calibration | None = None
+    order: dict[str, Any] | None = None  # {"model", "reason", "evidence"}: which order was fitted and why
 
     def to_json_dict(self) -> dict[str, Any]:
         """The `gravcal calibrate --json` object (raw units: offset [raw], sensitivity [raw per g])."""
@@ -65,9 +77,28 @@ class CalibrationReport:
             "sigma_floor_g": cal.metadata.get("sigma_floor_g"),
             "reduced_chi2": _finite_or_none(cal.metadata.get("reduced_chi2", float("nan"))),
             "notes": list(self.notes),
+            "order": _jsonable(self.order if self.order is not None else
+                               {"model": cal.model, "reason": "", "evidence": {}}),
             "calibration": cal.to_dict(),
         }
         return d
+
+
+def _jsonable(x: Any) -> Any:
+    """Evidence dicts hold numpy scalars/arrays and non-finite floats: plain JSON values (None for nan/inf)."""
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items() if not str(k).startswith("_")}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(x) else None
+    return x
 
 
 def _finite_or_none(x: Any) -> float | None:
@@ -98,12 +129,13 @@ class _Columns:
             self.arr, self.cols, self.n = arr, None, arr.shape[0]
 
     def block(self, i: int, j: int) -> np.ndarray:
-        if self.arr is not None:
-            return np.asarray(self.arr[i:j], dtype=float)
-        out = np.empty((j - i, 3))
-        for k, c in enumerate(self.cols):
-            out[:, k] = c[i:j]
-        return out
+        """Rows i..j as float64 (j - i, 3) in Fortran order: each channel converted on its own
+        into a contiguous row (3x faster than converting interleaved rows of a structured
+        memmap), which is the layout the detectors work in (no further copy)."""
+        out = np.empty((3, j - i))
+        for k in range(3):
+            out[k] = self.arr[i:j, k] if self.arr is not None else self.cols[k][i:j]
+        return out.T
 
 
 def _estimate_fs(t: np.ndarray) -> float:
@@ -136,7 +168,10 @@ def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calib
 
     if detector not in DETECTORS:
         raise ValueError(f"unknown detector {detector!r}; choose one of {sorted(DETECTORS)}")
-    det = DETECTORS[detector](fs, to_g=to_g, **detector_kw)
+    kw = dict(detector_kw)
+    if detector == "lotters" and "threads" not in kw:
+        kw["threads"] = DETECTOR_THREADS
+    det = DETECTORS[detector](fs, to_g=to_g, **kw)
     windows = []
     for i in range(0, cols.n, CHUNK):
         j = min(i + CHUNK, cols.n)
@@ -173,7 +208,7 @@ def calibrate_recording(
     raw: Any,
     *,
     temp: Any = None,
-    model: Any = "6",
+    model: Any = "auto",
     fs: float | None = None,
     detector: str = "lotters",
     start: Calibration | None = None,
@@ -181,10 +216,18 @@ def calibrate_recording(
     sigma_floor_g: float | None = None,
     detector_kw: dict[str, Any] | None = None,
     max_window_std_g: float = MAX_WINDOW_STD_G,
+    lab: Calibration | None = None,
 ) -> CalibrationReport:
     """Calibrate a recording: t (N,) [s], raw (N, 3) or three (N,) columns [raw units: ax, ay, az],
     optional temp (N,) [°C] (kept as the windows' aux mean). Raises ValueError with a precise
-    message on unusable input (no quasi-static windows, too few, bad shapes)."""
+    message on unusable input (no quasi-static windows, too few, bad shapes).
+
+    ``model``: "auto" (default: ``order.select_order`` on the windows chooses offsets, 6, or the full
+    identifiable set 9 / 12 and the report's ``order`` says why; OrderNotDetermined, a ValueError, when
+    nothing is determined), or an order name ("offsets", "6", "9", "12", an extended name). Explicit
+    offsets/6/9/12 are refused (ValueError saying what is missing) when the windows cannot determine
+    them to Lötters' 3 %. ``lab``: a lab calibration (Bragge, ``gravcal calibrate --lab``) whose frame
+    model "12" holds; it is also the start when ``start`` is not given."""
     cols = _Columns(raw)
     t = t if isinstance(t, np.ndarray) else np.asarray(t)
     if t.ndim != 1 or t.shape[0] != cols.n:
@@ -199,7 +242,12 @@ def calibrate_recording(
     fs = _estimate_fs(t) if fs is None else float(fs)
     notes: list[str] = []
 
+    if not (model == "auto" or isinstance(model, str)):
+        raise ValueError(f"model must be 'auto' or a model name, not {type(model).__name__}")
     user_start = start
+    if start is None and lab is not None:
+        start = lab
+        notes.append("start: the lab calibration")
     if start is None:
         start = _bootstrap(t, cols, fs)
         notes.append(f"start: {start.message or 'bootstrap'}")
@@ -213,30 +261,87 @@ def calibrate_recording(
             notes.append(f"detector {detector!r} mostly found periods spanning posture changes; used "
                          f"{FALLBACK_DETECTOR!r} instead ({len(ws2)} windows)")
             ws, detector, detector_kw = ws2, FALLBACK_DETECTOR, {}
-    n_params = resolve_parameterization(model, start).n_params
     if len(ws) == 0:
         raise ValueError("no quasi-static windows found in the recording (is it all motion? is the start in the "
                          "right units?)")
-    if len(ws) < n_params:
-        raise ValueError(f"only {len(ws)} quasi-static window(s) found, need at least {n_params} for model {model!r}")
-    estimator = LottersBatch(model, sigma_floor_g=sigma_floor_g)
-    cal = estimator.fit(ws, start)
+    fitted = _fit_order(ws, model, start, lab, sigma_floor_g, folds)
+    cal = fitted.calibration
     change = _relative_difference(cal, start)
     if change > REDETECT_CHANGE and cal.converged:
         # the detection signal |a| used the start: with a better calibration the still/moving split changes
         ws2, _ = screen_windows(_detect(t, cols, fs, detector, cal, temp, detector_kw), cal, max_window_std_g)
-        if len(ws2) >= n_params:
+        if len(ws2) >= fitted.n_params:
             notes.append(f"re-detected windows with the fitted calibration (it moved the start by {change * 100:.1f} % "
                          f"of 1 g): {len(ws)} -> {len(ws2)} windows")
             ws = ws2
-            cal = estimator.fit(ws, cal)
+            fitted = _fit_order(ws, model, cal, lab, sigma_floor_g, folds)
+            cal = fitted.calibration
     if user_start is not None:
         off = _relative_difference(cal, user_start)
         if off > START_TOLERANCE and "too far off" not in cal.message:
             note = start_far_note(off)
             cal.message = f"{cal.message}; {note}" if cal.message else note
-    ho = heldout_error(ws, model, scheme="contiguous", folds=min(folds, len(ws)), start=start, full_fit=cal,
-                       estimator=estimator)
+    ho = heldout_error(ws, fitted.model, scheme="contiguous", folds=min(folds, len(ws)), start=fitted.fold_start,
+                       full_fit=cal, estimator=fitted.estimator)
     notes += ho.notes
-    log.info("calibrated %d windows: held-out %.3g mg, in-sample %.3g mg", len(ws), ho.heldout_rms_mg, ho.insample_rms_mg)
-    return CalibrationReport(cal, ws, ho.heldout_rms_mg, ho.insample_rms_mg, len(ws), notes, ho, start)
+    log.info("calibrated %d windows (order %s): held-out %.3g mg, in-sample %.3g mg", len(ws), fitted.model,
+             ho.heldout_rms_mg, ho.insample_rms_mg)
+    return CalibrationReport(cal, ws, ho.heldout_rms_mg, ho.insample_rms_mg, len(ws), notes, ho, start, fitted.order)
+
+
+@dataclass
+class _Fitted:
+    model: str  # the order fitted
+    calibration: Calibration
+    estimator: LottersBatch  # for the held-out folds
+    fold_start: Calibration  # start (and held values: frame, cross-axis terms) of every fold fit
+    n_params: int
+    order: dict[str, Any]
+
+
+def _fit_order(ws: WindowSet, model: Any, start: Calibration, lab: Calibration | None,
+               sigma_floor_g: float | None, folds: int) -> _Fitted:
+    """Choose (auto) or check (explicit) the model order, then fit it (docs/twelve-parameters.md)."""
+    from gravcal.core.estimators.inuse12 import with_frame
+    from gravcal.core.estimators.order import N_PARAMS, _reference_start, check_observable, select_order
+
+    m = len(ws)
+    if model == "auto":
+        if m < AUTO_MIN_WINDOWS:
+            raise OrderNotDetermined(
+                f"only {m} quasi-static window(s) found: model auto needs at least {AUTO_MIN_WINDOWS} for the offsets; "
+                f"need at least 6, in different postures, for sensitivities")
+        d = select_order(ws, start=start, lab=lab, sigma_floor_g=SELECT_SIGMA_FLOOR_G, folds=folds)
+        if d.model == "none":
+            why = d.reason.replace("; holding the current calibration", "")
+            raise OrderNotDetermined(f"model auto: the windows determine nothing: {why}. Record several "
+                                     f"still postures (sitting, lying, bending); with little variety give a --start calibration "
+                                     f"(datasheet values) so the windows are seen in g")
+        chosen = d.model
+        fit_start = start if chosen == "offsets" else _reference_start(chosen, start, lab)
+        order = {"model": chosen, "reason": f"auto: {d.reason}", "evidence": d.evidence}
+    else:
+        chosen = model
+        if model == "12" and lab is None:
+            raise ValueError("model 12 holds the frame of a lab calibration: give lab= (gravcal calibrate --lab "
+                             "--json output, --lab-calibration FILE.json), or use model 9 (frame convention R0 = I)")
+        fit_start = with_frame(start, lab if model == "12" else None) if model in ("9", "12") else start
+        n_params = resolve_parameterization(model, fit_start).n_params
+        if m < n_params:
+            raise ValueError(f"only {m} quasi-static window(s) found, need at least {n_params} for model {model!r}")
+        if model in N_PARAMS:  # refused beyond Lötters' 3 % (30 mg), with what is missing; flagged beyond 10 mg
+            obs = check_observable(ws, model, fit_start)
+            ev = {k: v for k, v in obs.items() if not k.startswith("_")}
+            reason = (f"requested (--model {model}); predicted error {obs['predicted_mg']} mg "
+                      f"(amplification {obs['amplification']})")
+        else:
+            ev, reason = {}, f"requested (--model {model})"
+        order = {"model": model, "reason": reason, "evidence": ev}
+    estimator = LottersBatch(chosen, sigma_floor_g=sigma_floor_g)
+    cal = estimator.fit(ws, fit_start)
+    if chosen in ("9", "12"):
+        from gravcal.core.estimators.inuse12 import FRAME_CONVENTION, frame_of, rotation_angle_deg
+
+        cal.metadata.update({"frame": frame_of(cal).tolist(), "frame_angle_deg": rotation_angle_deg(frame_of(cal)),
+                             "frame_source": "lab calibration" if chosen == "12" else FRAME_CONVENTION})
+    return _Fitted(chosen, cal, estimator, fit_start, resolve_parameterization(chosen, fit_start).n_params, order)

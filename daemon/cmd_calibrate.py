@@ -1,9 +1,11 @@
 """``gravcal calibrate FILE.csv|FILE.npy``: offline in-use calibration of a recording.
 
 Reads and validates the recording (daemon.recordings), runs
-gravcal.core.pipeline.calibrate_recording (detector -> start -> Lötters batch estimator ->
-held-out error over contiguous folds of windows) and prints a summary, or with ``--json``
-exactly one JSON object. Exit 3 (with the JSON still printed) when the calibration is not
+gravcal.core.pipeline.calibrate_recording (detector -> start -> model order (``--model auto``,
+the default: order.select_order) -> Lötters batch estimator -> held-out error over contiguous
+folds of windows), or with ``--lab`` bragge.calibrate_lab (six faces, all 12 parameters), and
+prints a summary, or with ``--json`` exactly one JSON object (its "order" says which parameters
+were fitted and why; model "none" from auto is an error, exit 2). Exit 3 (with the JSON still printed) when the calibration is not
 converged or not observable.
 """
 from __future__ import annotations
@@ -60,8 +62,17 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     # `gravcal --help`; run() validates and names the known values.
     from gravcal.core.estimators.parameterization import PARAMETERIZATIONS  # numpy only: cheap
 
-    p.add_argument("--model", default="6", metavar="|".join(PARAMETERIZATIONS),
-                   help="parameters to estimate: offsets only, 6 (sensitivity + offset per axis), ... (default 6)")
+    p.add_argument("--model", default="auto", metavar="|".join(("auto",) + tuple(m for m in PARAMETERIZATIONS if "+" not in m)),
+                   help="parameters to estimate: auto (default: the largest order the windows determine - offsets, "
+                        "6, or the full identifiable set 9/12 - chosen by observability, then BIC and held-out error; "
+                        "the output says which and why), offsets only, 6 (sensitivity + offset per axis), 9 (symmetric "
+                        "K + offsets: the identifiable part of the 12), 12 (9 updated + the frame of --lab-calibration)")
+    p.add_argument("--lab", action="store_true",
+                   help="the recording is a six-position lab session: find the faces (no markers) and fit all 12 "
+                        "parameters from the known directions (Bragge); same JSON keys, model 12")
+    p.add_argument("--lab-calibration", type=Path, metavar="LAB.json",
+                   help="a lab calibration (gravcal JSON from --lab --save, or the --lab --json output): its frame is "
+                        "held by --model 12 (and auto's full order), and it is the start unless --start is given")
     p.add_argument("--detector", default="lotters", metavar="lotters|variance",
                    help="quasi-static detector (default lotters: Lötters' norm high-pass/rectify/low-pass; "
                         "variance: moving variance)")
@@ -89,6 +100,28 @@ def _load_start(path: Path):
         raise InputError(f"{path}: {exc}") from None
 
 
+def _load_lab(path: Path):
+    """The lab calibration of --lab-calibration: a gravcal calibration JSON, or a `calibrate --lab --json` object."""
+    from gravcal.core.calibration import Calibration
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file (--lab-calibration)") from None
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{path}: not JSON ({exc.msg} at line {exc.lineno}) (--lab-calibration)") from None
+    try:
+        cal = Calibration.from_dict(obj["calibration"] if isinstance(obj, dict) and "calibration" in obj else obj)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path}: {exc} (--lab-calibration)") from None
+    if cal.model != "12":
+        raise InputError(f"{path}: a model {cal.model!r} calibration carries no frame; --lab-calibration needs a lab "
+                         f"calibration (model 12, from `gravcal calibrate LAB.csv --lab --save LAB.json`)")
+    return cal
+
+
 def run(args: argparse.Namespace) -> int:
     from gravcal.core.pipeline import calibrate_recording
 
@@ -97,6 +130,11 @@ def run(args: argparse.Namespace) -> int:
     models = model_choices()
     if args.model not in models:
         raise InputError(f"unknown --model {args.model!r}; choose one of {', '.join(models)}")
+    if args.lab and args.model not in ("auto", "12"):
+        raise InputError(f"--lab fits all 12 parameters from the six faces; --model {args.model} does not apply")
+    if args.lab and args.lab_calibration:
+        raise InputError("--lab computes a lab calibration; --lab-calibration gives one: use one of them")
+    lab = _load_lab(args.lab_calibration) if args.lab_calibration else None
     detectors = detector_choices()
     if args.detector not in detectors:
         raise InputError(f"unknown --detector {args.detector!r}; choose one of {', '.join(detectors)}")
@@ -108,8 +146,13 @@ def run(args: argparse.Namespace) -> int:
     t_read = time.perf_counter() - t0
     log.info("read %s: %d samples, %.1f s at %.6g Hz in %.2f s", rec.source, rec.n_samples, rec.duration_s, rec.fs, t_read)
     t0 = time.perf_counter()
-    report = calibrate_recording(rec.t, rec.raw, temp=rec.temp, model=args.model, fs=rec.fs,
-                                 detector=args.detector, start=start, folds=args.folds)
+    if args.lab:
+        from gravcal.core.estimators.bragge import calibrate_lab
+
+        report = calibrate_lab(rec.t, rec.raw, fs=rec.fs, to_g=start)
+    else:
+        report = calibrate_recording(rec.t, rec.raw, temp=rec.temp, model=args.model, fs=rec.fs,
+                                     detector=args.detector, start=start, folds=args.folds, lab=lab)
     t_cal = time.perf_counter() - t0
     cal = report.calibration
     out = dict(report.to_json_dict())
@@ -129,6 +172,10 @@ def run(args: argparse.Namespace) -> int:
         "n_dropped_nonfinite": rec.n_dropped, "n_dropped_saturated": rec.n_saturated, "warnings": list(rec.warnings),
     }
     out["timing_s"] = {"read": t_read, "calibrate": t_cal}
+    if rec.gyro is not None:  # issue 7 (H-gyro): gyro bias/sensitivity from the same quasi-static windows
+        from gravcal.core.gyro import gyro_report
+
+        out["gyro"] = gyro_report(rec.t, rec.gyro, report, fs=rec.fs)
     if args.save:
         args.save.write_text(cal.to_json(indent=2) + "\n", encoding="utf-8")
     trustworthy = bool(cal.converged and cal.observable)
@@ -160,25 +207,35 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
         lines.append(f"warning     {w}")
     state = ("converged" if cal.converged else "NOT CONVERGED") + ", " + ("observable" if cal.observable else "NOT OBSERVABLE")
     lines.append(f"model       {cal.model}: {out.get('n_windows', cal.n_windows)} quasi-static windows, {state}")
+    order = out.get("order") or {}
+    if order.get("reason"):
+        lines.append(f"order       {order.get('model')}: {order['reason']}")
+    if out.get("faces"):
+        lines.append("faces       " + ", ".join(f"{f} ({v['windows']} window(s), tilt {v['tilt_deg']:.2g}°)"
+                                             for f, v in out["faces"].items()))
     diagonal = np.allclose(cal.sensitivity, np.diag(np.diag(cal.sensitivity)))
     lines.append("axis        offset [raw]            sensitivity [raw/g]")
     for i, ax in enumerate(AXES):
         o_s = std.get(f"o_{ax}")
-        s_s = std.get(f"s_{ax}", std.get(f"s_{ax}{ax}"))
+        s_s = std.get(f"s_{ax}", std.get(f"s_{ax}{ax}", std.get(f"k_{i + 1}{i + 1}")))
         o = f"{cal.offset[i]:.6g}" + (f" ± {o_s:.2g}" if o_s is not None else " (held)")
         if diagonal:
             s = f"{cal.sensitivity[i, i]:.6g}" + (f" ± {s_s:.2g}" if s_s is not None else " (held)")
         else:
             s = "  ".join(f"{v: .6g}" for v in cal.sensitivity[i])
         lines.append(f"  {ax}         {o:<24}{s}")
-    lines.append(
-        f"|a| - 1 g   held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg "
-        f"(contiguous folds of windows), in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg"
-    )
+    if out.get("heldout_scheme") == "leave-one-face-out":
+        lines.append(f"|a - known| held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg (leave one face out), "
+                     f"in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg")
+    else:
+        lines.append(
+            f"|a| - 1 g   held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg "
+            f"(contiguous folds of windows), in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg"
+        )
     if cal.message:
         lines.append(f"note        {cal.message}")
     for note in out.get("notes", []) or []:
-        if note and note != cal.message:
+        if note and note not in (cal.message or ""):
             lines.append(f"note        {note}")
     lines.append("convention  a [g] = sensitivity^-1 (raw - offset)")
     if saved:

@@ -28,6 +28,7 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
+from gravcal.core.calibration import jsonable  # noqa: F401  (re-exported for the cmd_* modules)
 from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_triad
 
 from .errors import InputError
@@ -569,21 +570,3 @@ def write_truth(path: str | Path, truth: dict[str, Any]) -> Path:
     out = truth_path(path)
     out.write_text(json.dumps(jsonable(truth), indent=2) + "\n", encoding="utf-8")
     return out
-
-
-def jsonable(x: Any) -> Any:
-    """x with numpy types as Python ones and non-finite floats as None (strict JSON has no NaN)."""
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if isinstance(x, (np.floating, float)):
-        v = float(x)
-        return v if math.isfinite(v) else None
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.bool_):
-        return bool(x)
-    return x

@@ -3,6 +3,7 @@ list giving exit 2 (or a flagged exit 3) with one line naming the problem."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from importlib.metadata import version
@@ -171,21 +172,57 @@ def test_bad_options(capsys, six, tmp_path):
     code, _, err = run_cli(capsys, "simulate", "--out", tmp_path / "x.txt")
     assert code == 2
     assert_one_error_line(err, "extension must be .csv or .npy")
+    code, out, err = run_cli(capsys, "demo", "--model", "12", "--speed", "0")
+    assert code == 2 and out == ""  # refused before the session starts
+    assert_one_error_line(err, "unknown --model '12'", "auto, offsets, 6, 9")
+    code, out, err = run_cli(capsys, "demo", "--start-hour", "24", "--speed", "0")
+    assert code == 2 and out == ""
+    assert_one_error_line(err, "--start-hour must be in [0, 24)")
 
 
-# -- flagged, not refused --------------------------------------------------------------------------
-def test_not_observable_exits_3_and_still_prints_the_json(capsys, tmp_path):
-    """Postures within 10° of standing: nothing but maybe one offset is determined -> exit 3, flags in the JSON."""
-    out = tmp_path / "narrow.csv"
-    assert main(["simulate", "--scenario", "loetters", "--set", "theta_max_deg=10", "--duration", "900",
+# -- refused / flagged by the observability rule (core/estimators/order.py) -----------------------------
+def loetters_csv(tmp_path, theta_deg: float):
+    """15 min of Lötters' orientation-1 protocol, postures within ``theta_deg`` of standing (seed 0)."""
+    out = tmp_path / f"loetters_{theta_deg:g}.csv"
+    assert main(["simulate", "--scenario", "loetters", "--set", f"theta_max_deg={theta_deg:g}", "--duration", "900",
                  "--out", str(out)]) == 0
+    return out
+
+
+def test_auto_determining_nothing_exits_2_with_the_reason(capsys, tmp_path):
+    """Postures within 10° of standing: auto (the default) finds not even the offsets determined -> exit 2,
+    one line saying why (the predicted error against the 10 mg tolerance), nothing on stdout."""
+    out = loetters_csv(tmp_path, 10)
     capsys.readouterr()
     code, stdout, err = run_cli(capsys, "calibrate", out, "--json")
+    assert code == 2 and stdout == ""
+    assert_one_error_line(err, "model auto: the windows determine nothing", "not even the offsets are determined",
+                          "Record several still postures")
+    m = re.search(r"predicted error ([0-9.e+]+) mg > 10 mg", err)
+    assert m and float(m.group(1)) > 10, err
+
+
+def test_explicit_model_fitted_but_not_observable_exits_3_and_still_prints_the_json(capsys, tmp_path):
+    """Postures within 75° of standing: --model 6 predicts ~18 mg, between the 10 mg rule and the 30 mg
+    at which an explicit model is refused -> fitted, flagged not observable, exit 3 with the JSON printed.
+    auto on the same recording fits the offsets only (exit 0) and says why not 6."""
+    out = loetters_csv(tmp_path, 75)
+    capsys.readouterr()
+    code, stdout, err = run_cli(capsys, "calibrate", out, "--model", "6", "--json")
     assert code == 3
     d = json.loads(stdout)
-    assert d["observable"] is False
-    assert "not observable" in d["message"]
+    assert d["model"] == "6" and d["converged"] is True and d["observable"] is False
+    predicted = d["order"]["evidence"]["predicted_mg"]
+    assert 10 < predicted <= 30, d["order"]
+    assert "sensitivities not observable" in d["message"] and "use --model offsets" in d["message"]
+    assert set(d["std"]) == {"o_x", "o_y", "o_z", "s_x", "s_y", "s_z"}
     assert "calibration not trustworthy" in err and "Traceback" not in err
+
+    code, stdout, err = run_cli(capsys, "calibrate", out, "--json")
+    a = json.loads(stdout)
+    assert code == 0 and a["model"] == "offsets" and a["observable"] is True and set(a["std"]) == {"o_x", "o_y", "o_z"}
+    m = re.search(r"not observable: 6: predicted error ([0-9.]+) mg", a["order"]["reason"])
+    assert m and float(m.group(1)) == pytest.approx(predicted, rel=0.01), a["order"]["reason"]
 
 
 def test_start_far_off_is_flagged_not_silently_used(capsys, tmp_path, six):

@@ -250,3 +250,50 @@ def test_per_axis_channels_see_turns_that_keep_the_norm():
     assert np.all(np.abs(np.linalg.norm(good.mean, axis=1) - 1) < 5 * NOISE_G / np.sqrt(good.n))
     spans_turn = [not any(a <= s and e <= b for a, b in still) for s, e in zip(paper.start, paper.end)]
     assert any(spans_turn) and len(paper) < len(still)
+
+
+@pytest.mark.parametrize("cls,max_s", [(QuasiStaticDetector, 60.0), (QuasiStaticDetector, 1.7), (MovingVarianceDetector, 1.7)])
+def test_window_statistics_are_those_of_its_samples(cls, max_s):
+    """Means/covariances from the running sums equal numpy's over the window's samples, both
+    for long windows (one dot product per sum) and many short ones (reduceat over the block)."""
+    t, raw, aux = _invariance_stream()
+    det = cls(FS, **{**DETECTOR_KW, "max_duration_s": max_s})
+    windows = _run_blocks(det, t, raw, aux, [5000])
+    assert len(windows) >= 4
+    for w in windows:
+        x = raw[w.start:w.end]
+        assert np.all(np.isfinite(x)) and w.t_start == t[w.start] and w.t_end == t[w.end - 1]
+        np.testing.assert_allclose(w.mean, x.mean(axis=0), rtol=1e-12)
+        np.testing.assert_allclose(w.cov, np.cov(x.T), rtol=1e-8, atol=1e-10)
+        np.testing.assert_allclose(w.aux_mean, aux[w.start:w.end].mean(axis=0), rtol=1e-12)
+
+
+def test_threads_fortran_input_and_public_sosfilt_give_identical_results(monkeypatch):
+    """threads=2 splits the channels between threads, Fortran-ordered raw skips a transpose,
+    and without SciPy's private kernel the public sosfilt runs: none may change a bit."""
+    from gravcal.core import detectors
+
+    rng = np.random.default_rng(11)
+    t, f, _, _ = make_stream(rng, n_postures=12, still_s=60.0)
+    raw = 4096.0 * f + 32768.0
+    kw = dict(to_g=CAL_COUNTS, max_duration_s=20.0)
+
+    def run(raw, **extra):
+        det = QuasiStaticDetector(FS, **kw, **extra)
+        out, dets = [], []
+        for i in range(0, t.shape[0], 20000):
+            out += det.update(t[i:i + 20000], raw[i:i + 20000])
+            dets.append(det.last_detection)
+        return out + det.flush(), np.concatenate(dets)
+
+    ref, ref_det = run(raw)
+    assert len(ref) >= 12
+    variants = [run(raw, threads=2), run(np.asfortranarray(raw))]
+    monkeypatch.setattr(detectors, "_sosfilt_kernel", None)
+    variants.append(run(raw))
+    for windows, det in variants:
+        np.testing.assert_array_equal(det, ref_det)
+        assert [(w.start, w.end) for w in windows] == [(w.start, w.end) for w in ref]
+        for a, b in zip(windows, ref):
+            np.testing.assert_allclose(a.mean, b.mean, rtol=1e-14)
+            np.testing.assert_allclose(a.cov, b.cov, rtol=1e-9)

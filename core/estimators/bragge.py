@@ -264,8 +264,15 @@ def calibrate_faces(ws: WindowSet, *, to_g: Calibration | None = None, placement
     cal.message = "; ".join(notes)
     cal.metadata.update({"faces": {h.face: h.windows for h in holds}, "heldout_rms_mg": heldout,
                          "insample_rms_mg": ins})
+    order = {"model": "12",
+             "reason": (f"lab session (Bragge): faces {', '.join(h.face for h in holds)} found without markers in "
+                        f"{len(ws)} windows; all 12 parameters from the known directions (eq. 2-4), "
+                        f"leave-one-face-out error {'n/a' if heldout is None else f'{heldout:.3g} mg'}"),
+             "evidence": {"faces": {h.face: len(h.windows) for h in holds}, "windows_not_on_a_face": len(others),
+                          "reduced_chi2": cal.metadata["reduced_chi2"], "placement_deg": placement_deg}}
     return LabReport(calibration=cal, windows=ws, heldout_rms_mg=math.nan if heldout is None else heldout,
-                     insample_rms_mg=ins, n_windows=len(ws), notes=notes, faces=holds, other_norm_rms_mg=other)
+                     insample_rms_mg=ins, n_windows=len(ws), notes=notes, order=order, faces=holds,
+                     other_norm_rms_mg=other)
 
 
 def _isotropic_scale(raw: np.ndarray) -> Calibration:
@@ -301,6 +308,8 @@ def calibrate_lab(t: np.ndarray, raw: np.ndarray, *, fs: float | None = None, de
             from .start import bootstrap  # noqa: PLC0415 (H-detect's module)
 
             det_to_g = bootstrap(t, raw, fs)
+            if det_to_g.metadata.get("fallback"):  # no ellipsoid from the data (e.g. 7 postures, one off-face):
+                det_to_g = _isotropic_scale(raw)  # a six-face session spans -1..+1 g on every axis
         except (ImportError, ValueError):
             det_to_g = _isotropic_scale(raw)
     ws = detect(t, raw, method=detector, fs=fs, to_g=det_to_g, **detect_kw)

@@ -50,6 +50,10 @@ def resolve_parameterization(model: str | type[Parameterization] | Parameterizat
     if isinstance(model, type) and issubclass(model, Parameterization):
         return model(start.sensitivity, start.offset)
     if isinstance(model, str):
+        if "+" in model and model not in PARAMETERIZATIONS:  # "<base>+<term>...": registered on first use
+            from gravcal.core.estimators.extended import extended_class  # noqa: PLC0415
+
+            extended_class(model)
         try:
             cls = PARAMETERIZATIONS[model]
         except KeyError:
@@ -192,6 +196,10 @@ class LottersBatch:
         Default 0.03: the paper's 3 % criterion.
     retry_from_ellipsoid: when a given start ends > 5 % away or does not converge, also try the
         ellipsoid-fit start and keep the better converged fit (False: the paper's setting, start trusted).
+    tol_g: the observability rule's tolerance [g] (``order.is_observable``: predicted RMS acceleration error
+        of the order over all orientations, including the geometry's amplification of per-window model
+        error). Default ``order.TOL_G`` (10 mg, what ``--model auto`` uses), or inf (no rule) when
+        max_std_g is inf (reproducing the paper's tables, which report every estimate).
     """
 
     def __init__(
@@ -203,6 +211,7 @@ class LottersBatch:
         tol: float = 1e-10,
         max_std_g: float = 0.03,
         retry_from_ellipsoid: bool = True,
+        tol_g: float | None = None,
     ):
         if sigma_floor_g is not None and not (sigma_floor_g >= 0 and math.isfinite(sigma_floor_g)):
             raise ValueError(f"sigma_floor_g must be a finite number >= 0, got {sigma_floor_g!r}")
@@ -212,6 +221,11 @@ class LottersBatch:
         self.tol = float(tol)
         self.max_std_g = float(max_std_g)
         self.retry_from_ellipsoid = bool(retry_from_ellipsoid)
+        if tol_g is None:
+            from gravcal.core.estimators.order import TOL_G  # noqa: PLC0415 (order imports this module)
+
+            tol_g = TOL_G if math.isfinite(self.max_std_g) else math.inf
+        self.tol_g = float(tol_g)
 
     # -- core iteration --------------------------------------------------------------
     def _solve(self, par: Parameterization, p0: np.ndarray, anchor: np.ndarray, mean: np.ndarray,
@@ -287,7 +301,7 @@ class LottersBatch:
             raise ValueError("start calibration has non-finite offset or sensitivity")
         if abs(np.linalg.det(start.sensitivity)) < 1e-300:
             raise ValueError("start calibration has a singular sensitivity matrix")
-        par = resolve_parameterization(self.model, start)
+        par = resolve_parameterization(self.model, start).at_windows(ws)  # per-window covariates, if any
         validate_windows(ws, par.n_params)
 
         mean = ws.mean
@@ -354,7 +368,7 @@ class LottersBatch:
         std_g = std / scale_ref  # fractions of 1 g (eq. 15-16)
         # window spread judged with the estimate when it converged (a far-off start distorts angles)
         view = Calibration(par.model, o, K) if sol.converged else start
-        observable, obs_msg = self._observability(par, sol, cov, std_g, mean, Calibration(par.model, o, K), view)
+        observable, obs_msg = self._observability(par, sol, cov, std_g, ws, Calibration(par.model, o, K), view)
         converged = bool(sol.converged and np.all(np.isfinite(sol.p)))
         if not converged:
             notes.insert(0, f"did not converge in {sol.iterations} iterations (start {start_source}); "
@@ -385,33 +399,56 @@ class LottersBatch:
             n_windows=m, converged=converged, observable=observable, message="; ".join(notes), metadata=metadata,
         )
 
-    def _observability(self, par, sol: _Solve, cov, std_g, mean, cal, start) -> tuple[bool, str]:
-        """Decide from the Fisher information B^T C_mu^-1 B whether every requested parameter is determined."""
+    def _observability(self, par, sol: _Solve, cov, std_g, ws: WindowSet, cal, start) -> tuple[bool, str]:
+        """Is every requested parameter determined? gravcal's one rule (``order.is_observable``: predicted
+        RMS acceleration error of this order <= ``tol_g``, the rule ``select_order`` uses, so an order auto
+        would not choose is never flagged observable here), plus a numerically singular Fisher information
+        B^T C_mu^-1 B and, as before, every parameter's std <= ``max_std_g`` (fractions of 1 g)."""
+        from gravcal.core.estimators.order import N_PARAMS, is_observable  # noqa: PLC0415 (order imports this module)
+
+        mean = ws.mean
         eig = sol.fisher_eig  # information in (fraction of 1 g)^-2
         singular = eig.size == 0 or eig.min() <= max(_RCOND * eig.max(), 1.0 / self.max_std_g**2)
         bad = [n for n, s in zip(par.names, std_g) if not (s <= self.max_std_g)]
-        if not singular and not bad:
+        # the order rule: on this parameterization, or on the base order of an extended one (extra terms: std rule)
+        base = par.model if par.model in N_PARAMS else getattr(par, "base_model", None)
+        rule_ok, obs = True, None
+        if base in N_PARAMS and math.isfinite(self.tol_g):
+            try:
+                rule_ok, obs = is_observable(ws, cal, par if base == par.model else base, tol_g=self.tol_g)
+            except (ValueError, np.linalg.LinAlgError):
+                rule_ok = False
+        if not singular and not bad and rule_ok:
             return True, ""
-        if singular and not bad:
-            bad = list(par.names)
+        offsets_ok = False  # worth saying "use --model offsets"? (only computed for a negative verdict)
+        if par.model != "offsets" and math.isfinite(self.tol_g):
+            try:
+                offsets_ok = is_observable(ws, cal, "offsets", tol_g=self.tol_g)[0]
+            except (ValueError, np.linalg.LinAlgError):
+                pass
+        if (singular or not rule_ok) and not bad:
+            if base == "offsets":
+                bad = [n for n in par.names if n.startswith("o_")]
+            elif offsets_ok:
+                bad = [n for n in par.names if n.startswith("s_")]
+            else:
+                bad = list(par.names)
         spread = window_directions_spread_deg(mean, start)
         kinds = {n.split("_")[0] for n in bad}
         what = {"s": "sensitivities", "o": "offsets"}.get(next(iter(kinds)), "") if len(kinds) == 1 else ""
+        if what == "sensitivities" and base in ("9", "12"):
+            what = "sensitivities and cross-axis terms"
         what = what or ", ".join(bad)
         worst = max((s for s in std_g if np.isfinite(s)), default=float("inf"))
         msg = (f"{what} not observable: all {len(mean)} windows within {spread:.0f}° of one direction "
-               f"(std up to {worst * 100:.3g} % of 1 g > {self.max_std_g * 100:.3g} %)")
-        if par.model != "offsets" and "offsets" in PARAMETERIZATIONS:
-            off_idx = [i for i, n in enumerate(par.names) if n.startswith("o_")]
-            if off_idx:
-                Fo = (sol.B[:, off_idx].T / sol.var_g2) @ sol.B[:, off_idx]
-                try:
-                    dvar = np.diag(np.linalg.inv(Fo))
-                    so = np.sqrt(np.abs(dvar)) / np.mean(np.abs(np.diag(cal.sensitivity)))
-                    if np.all(dvar > 0) and np.all(so <= self.max_std_g):
-                        msg += "; use --model offsets"
-                except np.linalg.LinAlgError:
-                    pass
+               f"(std up to {worst * 100:.3g} % of 1 g")
+        if obs is not None and not rule_ok:
+            pred = "unbounded" if obs["predicted_mg"] is None else f"{obs['predicted_mg']:.3g} mg"
+            msg += f"; predicted error {pred} > {self.tol_g * 1e3:.3g} mg)"
+        else:
+            msg += f" > {self.max_std_g * 100:.3g} %)"
+        if offsets_ok:
+            msg += "; use --model offsets"
         return False, msg
 
 
@@ -505,6 +542,7 @@ class LottersRecursive:
         # dh/dp_k = -sum_ij g_i dK_k[i, j] a_j: contract dK_k with the outer product g a^T (row-major i, j)
         self._dKg = self._dK9
         self._do = np.ascontiguousarray(par.do)  # (P, 3)
+        self._dK9_ref, self._do_ref = self._dK9, self._do  # at the reference covariates (what .calibration reports)
         self._has_Q = bool(np.any(self.Q != 0))
         self._n = n
         self.t_last: float | None = None
@@ -548,12 +586,20 @@ class LottersRecursive:
              + g2 * (Cm[6] * g0 + Cm[7] * g1 + Cm[8] * g2)) + self.R_floor
         return h, B, R
 
-    def step(self, mean: np.ndarray, cov_of_mean: np.ndarray, t: float | None = None) -> bool:
-        """Process one window (mean and covariance of the mean in raw units, mid time t [s]).
-        Returns True if accepted, False if gated out as an outlier."""
+    def step(self, mean: np.ndarray, cov_of_mean: np.ndarray, t: float | None = None, aux: np.ndarray | None = None) -> bool:
+        """Process one window (mean and covariance of the mean in raw units, mid time t [s], aux means
+        e.g. temperature [°C]). Returns True if accepted, False if gated out as an outlier."""
         m = tuple(float(x) for x in np.ravel(mean))
         if len(m) != 3 or not all(math.isfinite(x) for x in m):
             raise ValueError(f"window mean must be 3 finite values, got {mean!r}")
+        if self.par.covariates:  # derivatives depend on this window's covariates (extended.py)
+            one = WindowSet(np.reshape(np.asarray(mean, dtype=float), (1, 3)), np.zeros((1, 3, 3)), np.ones(1),
+                            np.array([0.0 if t is None else float(t)]),
+                            np.reshape(np.zeros(0) if aux is None else np.asarray(aux, dtype=float), (1, -1)),
+                            np.zeros(1, dtype=np.int64), np.ones(1, dtype=np.int64))
+            pw = self.par.at_windows(one)
+            self._dK9 = self._dKg = np.ascontiguousarray(pw.dK.reshape(self._n, 9))
+            self._do = np.ascontiguousarray(pw.do)
         Cm = np.ravel(cov_of_mean).tolist()
         if t is not None:
             if self.t_last is not None and t > self.t_last and self._has_Q:
@@ -586,13 +632,13 @@ class LottersRecursive:
     def update(self, window: Window | WindowSet) -> Calibration:
         """Update with one Window (or every row of a WindowSet, in order) and return the calibration."""
         if isinstance(window, Window):
-            self.step(window.mean, window.cov / max(window.n, 1), window.t_mid)
+            self.step(window.mean, window.cov / max(window.n, 1), window.t_mid, window.aux_mean)
         elif isinstance(window, WindowSet):
             if len(window):
                 validate_windows(window)
             cm = window.cov_of_mean
             for i in range(len(window)):
-                self.step(window.mean[i], cm[i], float(window.t[i]))
+                self.step(window.mean[i], cm[i], float(window.t[i]), window.aux[i])
         else:
             raise ValueError(f"expected a Window or WindowSet, got {type(window).__name__}")
         return self.calibration
@@ -601,8 +647,8 @@ class LottersRecursive:
     def calibration(self) -> Calibration:
         """The current estimate as a Calibration (covariance = P); cheap enough to build per window."""
         par = self.par
-        K = (par.K_const.ravel() + self.p @ self._dK9).reshape(3, 3)
-        o = par.o_const + self.p @ self._do
+        K = (par.K_const.ravel() + self.p @ self._dK9_ref).reshape(3, 3)
+        o = par.o_const + self.p @ self._do_ref
         std_g = np.sqrt(np.maximum(np.diagonal(self.P), 0.0)) * (3.0 / (abs(K[0, 0]) + abs(K[1, 1]) + abs(K[2, 2])))
         notes = []
         observable = bool((std_g <= self.max_std_g).all())
@@ -618,7 +664,8 @@ class LottersRecursive:
             n_windows=self.n_updates, converged=converged, observable=observable, message="; ".join(notes),
             metadata={"estimator": "lotters_recursive", "n_rejected": self.n_rejected,
                       "mean_nis": self.nis_sum / self.n_updates if self.n_updates else float("nan"),
-                      "std_g": dict(zip(self.names, std_g.tolist()))},
+                      "std_g": dict(zip(self.names, std_g.tolist())),
+                      "params": dict(zip(self.names, self.p.tolist()))},
         )
 
 

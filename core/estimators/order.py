@@ -80,12 +80,11 @@ def coverage(ws: WindowSet, cal: Calibration) -> dict[str, Any]:
 def observability(ws: WindowSet, cal: Calibration, model: str, *, sigma_floor_g: float = SIGMA_FLOOR_G,
                   systematic_g: float = SYSTEMATIC_G) -> dict[str, Any]:
     """Predicted errors of order ``model`` for these windows at ``cal`` (see module docstring)."""
-    F, param = fisher_inuse(ws, cal, model, sigma_floor_g=sigma_floor_g)
+    # one Jacobian for both informations: with the window noise (+ floor), and per window at unit noise
+    F, param, Fu = fisher_inuse(ws, cal, model, sigma_floor_g=sigma_floor_g, unit_floor_g=1.0)
     G = sphere_metric(param, cal)
     bound = bound_from_fisher(param.model, param.names, F, G, len(ws))
-    # per-window information at unit norm noise: geometry only
-    Fu, _ = fisher_inuse(ws, cal, model, sigma_floor_g=1.0) if len(ws) else (F, None)
-    Fbar = Fu / max(len(ws), 1)
+    Fbar = Fu / max(len(ws), 1)  # geometry only
     w = np.linalg.eigvalsh(Fbar) if len(ws) else np.zeros(1)
     if len(ws) == 0 or w.min() <= 1e-12 * max(w.max(), 1e-300):
         amp = math.inf
@@ -104,6 +103,17 @@ def observability(ws: WindowSet, cal: Calibration, model: str, *, sigma_floor_g:
         "undetermined": bound.undetermined,
         "_total_g": total,
     }
+
+
+def is_observable(ws: WindowSet, cal: Calibration, model, *, tol_g: float = TOL_G,
+                  sigma_floor_g: float = SIGMA_FLOOR_G, systematic_g: float = SYSTEMATIC_G) -> tuple[bool, dict[str, Any]]:
+    """THE observability rule of gravcal (one place; select_order, check_observable and LottersBatch's
+    ``observable`` flag all use it): order ``model`` (a name or a Parameterization, evaluated at ``cal``)
+    is observable from ``ws`` when there are at least as many windows as parameters and the predicted
+    RMS calibrated-acceleration error sqrt(stat² + (amp·systematic)²) [g] over all orientations is
+    <= ``tol_g``. Returns (verdict, the numbers of ``observability``)."""
+    obs = observability(ws, cal, model, sigma_floor_g=sigma_floor_g, systematic_g=systematic_g)
+    return bool(len(ws) >= obs["n_params"] and obs["_total_g"] <= tol_g), obs
 
 
 def _mg(x: float) -> float | None:
@@ -127,8 +137,8 @@ def check_observable(ws: WindowSet, model: str, start: Calibration, *, tol_g: fl
         raise ValueError(f"model {model} has {P} parameters but there are only {m} quasi-static window(s): "
                          f"need at least {P}, from different postures")
     cov = coverage(ws, start)
-    obs = observability(ws, start, model, sigma_floor_g=sigma_floor_g, systematic_g=systematic_g)
-    if obs["_total_g"] > tol_g:
+    ok, obs = is_observable(ws, start, model, tol_g=tol_g, sigma_floor_g=sigma_floor_g, systematic_g=systematic_g)
+    if not ok:
         what = "offsets" if model == "offsets" else ("sensitivities" if model == "6" else "sensitivities and cross-axis terms")
         pred = "unbounded (singular Fisher information)" if obs["predicted_mg"] is None else f"{obs['predicted_mg']:.3g} mg"
         raise ValueError(
@@ -247,8 +257,7 @@ def select_order(ws: WindowSet, *, start: Calibration | None = None, lab: Calibr
                                 "sigma_floor_mg": sigma_floor_g * 1e3, "orders": {}}
     observable = []
     for c in cands:
-        ob = observability(ws, start, c, sigma_floor_g=sigma_floor_g, systematic_g=systematic_g)
-        ok = len(ws) >= N_PARAMS[c] and ob["_total_g"] <= tol_g
+        ok, ob = is_observable(ws, start, c, tol_g=tol_g, sigma_floor_g=sigma_floor_g, systematic_g=systematic_g)
         ob = {k: v for k, v in ob.items() if not k.startswith("_")}
         ob["observable"] = bool(ok)
         evidence["orders"][c] = ob

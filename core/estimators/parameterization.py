@@ -40,6 +40,15 @@ class Parameterization(ABC):
     def n_params(self) -> int:
         return len(self.names)
 
+    covariates: ClassVar[tuple[str, ...]] = ()
+    """Per-window covariates dK/do depend on (e.g. "temp_c", "t_s"; core/estimators/extended.py).
+    Empty (every parameterization here): constant derivatives."""
+
+    def at_windows(self, ws) -> "Parameterization":
+        """This parameterization bound to the covariates of the windows ``ws`` (a WindowSet, same rows
+        as the means it will be given); itself when it has no covariates."""
+        return self
+
     def unpack(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(K, o) for parameter vector p."""
         p = np.asarray(p, dtype=float)

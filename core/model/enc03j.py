@@ -119,3 +119,37 @@ def gyro_null_counts(model: Any) -> float:
 
 
 ENC03J_TERMS: tuple[str, ...] = ("gyro_sensor", "gyro_conditioning", "gyro_adc")
+
+
+# -- issue 7: what the conditioning does to the signal, and the gyro's calibration-level truth ----
+def conditioning_response(model: Any, f_hz: Any, fs: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
+    """Gain (relative to the pass band, unitless) and phase [deg] of the conditioning stage
+    (high-pass + low-pass as simulated, bilinear at ``fs``) at frequencies ``f_hz`` [Hz].
+
+    With the defaults (HP 0.3 Hz, LP 25 Hz, fs 100 Hz) the gait band is not flat: 0.5 Hz is
+    passed at 0.86 with +30° phase lead, 1 Hz at 0.96 / +15°, 2 Hz at 0.99 / +5°, 5 Hz at
+    0.99 / -6° (the low-pass). A pose change
+    (a rate pulse of ~1 s) therefore integrates to a wrong angle unless the high-pass is
+    undone (``gravcal.core.gyro.conditioning.HighPassInverse``)."""
+    f = np.atleast_1d(np.asarray(f_hz, dtype=float))
+    _, h = signal.sosfreqz(model["gyro_conditioning"].sos(fs), worN=f, fs=fs)
+    return np.abs(h), np.degrees(np.angle(h))
+
+
+def gyro_truth(model: Any, vsupply: float = 3.3) -> dict[str, float]:
+    """What an ideal in-use gyro calibration should find for the simulated ENC-03J path.
+
+    ``bias_counts``: the ADC reading at zero rate. The high-pass removes the sensor's null
+    voltage (and its temperature drift), so the DC level at the ADC is the conditioning stage's
+    reference vref_ratio * Vsupply, ratiometric to the ADC: vref_ratio * 2^bits counts, minus
+    half a count for the ADC's floor (the noise dithers it). A drifting null is not entirely
+    removed: a first-order high-pass passes a ramp as the offset gain * tau * dV0/dt (0.02 counts
+    for 0.5 mV/°C and a 10 °C warm-up over 20 min; not included here). ``sensitivity_counts_per_rad_s``:
+    the pass-band gain of the whole path at ``vsupply`` [V] (the ENC-03J itself is not
+    ratiometric, so the count scale goes as 1/Vsupply). ``axis``: the sensitive axis (board).
+    """
+    return {"bias_counts": gyro_null_counts(model) - 0.5,
+            "sensitivity_counts_per_rad_s": gyro_scale_counts_per_rad_s(model, vsupply),
+            "hp_hz": float(model["gyro_conditioning"].params["hp_hz"]),
+            "axis": np.asarray(model["gyro_sensor"].params["axis"], float).tolist(),
+            "range_rad_s": float(model["gyro_sensor"].params["range_dps"]) * DEG}

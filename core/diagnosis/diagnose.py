@@ -1,0 +1,286 @@
+"""diagnose: what the baseline simulation gets wrong on a recording, the cause, the extension, the gain.
+
+    a. windows (core.pipeline.calibrate_recording's detector and screening), baseline = the
+       simulator's default terms at calibration level (6 parameters; offsets only when the
+       sensitivities are not observable: order.select_order's rule), held-out error;
+    b. window-level re-simulation with the fitted baseline and the measured noise; statistics
+       compared (compare.py); Allan deviation of static stretches vs white noise;
+    c. catalogue terms tested (terms.py: observable, ΔBIC > 10, held-out lower); colored_noise and
+       quantization on the static samples (noise.py);
+    d. extended model = base + found terms, refit, held-out gain, re-simulated comparison;
+    e. a JSON-able result (Diagnosis.to_json_dict).
+"""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from gravcal.core.calibration import Calibration
+from gravcal.core.estimators.extended import EXTRA_TERMS, ExtendedParameterization, extended_residuals_g
+from gravcal.core.estimators.lotters import LottersBatch
+from gravcal.core.estimators.order import coverage, select_order
+from gravcal.core.windows import WindowSet
+
+from .compare import Comparison, simulate_compare
+from .noise import AllanResult, colored_noise_test, flat_stretches, pooled_allan, quantization_test
+from .terms import TermSelector, TermTest, select_terms
+
+log = logging.getLogger(__name__)
+
+CATALOGUE: tuple[str, ...] = ("misalignment", "nonlinearity", "temperature_offset", "temperature_sensitivity",
+                              "offset_drift", "sensitivity_drift", "colored_noise", "quantization")
+OUTLIER_SIGMA = 6.0  # robust (MAD) std of the baseline residual beyond which a window is excluded
+DOMINANT_POSTURE_DEG = 20.0  # offsets-only baseline: term tests on windows this close to the dominant posture
+MIN_WINDOWS = 8  # fewer quasi-static windows: nothing can be tested
+MIN_ALLAN_STRETCH_S = 20.0  # colored noise needs a static stretch at least this long [s]
+
+
+@dataclass
+class Diagnosis:
+    base_model: str
+    extended_model: str
+    n_windows: int
+    baseline_heldout_mg: float | None
+    extended_heldout_mg: float | None
+    baseline_insample_mg: float
+    extended_insample_mg: float
+    findings: list[dict[str, Any]]
+    untestable: list[dict[str, str]]
+    tests: list[TermTest]
+    baseline_cal: Calibration
+    extended_cal: Calibration
+    compare_baseline: Comparison | None
+    compare_extended: Comparison | None
+    allan: AllanResult | None
+    coverage: dict[str, Any]
+    floor_mg: float
+    notes: list[str] = field(default_factory=list)
+    windows: WindowSet | None = None
+    resid_baseline_g: np.ndarray | None = None
+    resid_extended_g: np.ndarray | None = None
+    has_temp: bool = False
+    white_g: np.ndarray | None = None
+
+    @property
+    def heldout_gain_mg(self) -> float | None:
+        if self.baseline_heldout_mg is None or self.extended_heldout_mg is None:
+            return None
+        return self.baseline_heldout_mg - self.extended_heldout_mg
+
+    def to_json_dict(self) -> dict[str, Any]:
+        r = lambda x: None if x is None or not math.isfinite(x) else round(float(x), 4)  # noqa: E731
+        return {
+            "findings": self.findings,
+            "baseline": {"model": self.base_model, "heldout_rms_mg": r(self.baseline_heldout_mg),
+                         "insample_rms_mg": r(self.baseline_insample_mg),
+                         "simulation": None if self.compare_baseline is None else self.compare_baseline.to_dict()},
+            "extended": {"model": self.extended_model, "heldout_rms_mg": r(self.extended_heldout_mg),
+                         "insample_rms_mg": r(self.extended_insample_mg),
+                         "heldout_gain_mg": r(self.heldout_gain_mg),
+                         "calibration": self.extended_cal.to_dict(),
+                         "simulation": None if self.compare_extended is None else self.compare_extended.to_dict()},
+            "untestable": self.untestable,
+            "not_found": [{"effect": t.effect, "why": t.why, "evidence": t.evidence()} for t in self.tests
+                          if t.status == "not_found"],
+            "n_windows": self.n_windows,
+            "coverage": self.coverage,
+            "quasi_static_floor_mg": r(self.floor_mg),
+            "allan": None if self.allan is None else self.allan.to_dict(),
+            "notes": self.notes,
+        }
+
+
+def sensor_model_term(effect: str, magnitude: dict[str, Any]) -> dict[str, Any] | None:
+    """The finding as a term of the sensor model (core/model; channels ax, ay, az, ax2 = x, y, z, x)."""
+    v = magnitude.get("value", {})
+    ch = lambda f: [f(v.get("x", 0.0)), f(v.get("y", 0.0)), f(v.get("z", 0.0)), f(v.get("x", 0.0))]  # noqa: E731
+    if effect == "temperature_offset":
+        return {"name": "temperature_offset", "params": {"coef_g_per_c": ch(lambda x: x * 1e-3), "t0_c": 25.0}}
+    if effect == "temperature_sensitivity":
+        return {"name": "temperature_sensitivity", "params": {"coef_per_c": ch(lambda x: x * 1e-2), "t0_c": 25.0}}
+    if effect == "offset_drift":
+        return {"name": "offset_drift", "params": {"rate_g_per_h": ch(lambda x: x * 1e-3),
+                                                   "walk_g_per_sqrt_h": [0.0] * 4}}
+    if effect == "sensitivity_drift":
+        return {"name": "sensitivity_drift", "params": {"rate_per_h": ch(lambda x: x * 1e-2),
+                                                        "walk_per_sqrt_h": [0.0] * 4}}
+    if effect == "nonlinearity":
+        return {"name": "nonlinearity", "params": {"c2": ch(float), "c3": [0.0] * 4}}
+    return None
+
+
+def _static_stretches(ws: WindowSet, max_gap: int) -> list[tuple[int, int]]:
+    """Consecutive windows (gap <= max_gap samples) merged into static stretches (start, end)."""
+    order = np.argsort(ws.start)
+    out: list[list[int]] = []
+    for i in order:
+        s, e = int(ws.start[i]), int(ws.end[i])
+        if out and s - out[-1][1] <= max_gap:
+            out[-1][1] = max(out[-1][1], e)
+        else:
+            out.append([s, e])
+    return [(a, b) for a, b in out]
+
+
+def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candidates: tuple[str, ...] = CATALOGUE,
+                     replicas: int = 40, folds: int = 5, seed: int = 0, base: str | None = None,
+                     simulate: bool = True) -> Diagnosis:
+    """Steps a-e on quasi-static windows alone (no sample-level noise tests: colored_noise and
+    quantization are reported untestable)."""
+    notes: list[str] = []
+    if len(ws) < MIN_WINDOWS:
+        raise ValueError(f"only {len(ws)} quasi-static window(s): need at least {MIN_WINDOWS} to fit a baseline and "
+                         f"test any term (record longer, with still moments)")
+    if base is None:
+        dec = select_order(ws, start=start, candidates=("offsets", "6"), compare=False)
+        base = "6" if dec.model == "6" else "offsets"
+        if dec.model == "none":
+            raise ValueError(f"not even the offsets are determined by these windows: {dec.reason}")
+        if base == "offsets":
+            notes.append(f"baseline: offsets only ({dec.reason})")
+    base_cal = LottersBatch(base).fit(ws, start)
+    if not base_cal.converged:
+        raise ValueError(f"the baseline fit ({base}) did not converge: {base_cal.message}")
+    # windows the baseline misses by far more than the rest (handling, a posture change inside the window,
+    # unobservable sensitivities at a rare posture) would dominate every chi² and held-out fold: excluded
+    r0 = 1.0 - np.linalg.norm(base_cal.apply(ws.mean), axis=1)
+    mad = 1.4826 * float(np.median(np.abs(r0 - np.median(r0))))
+    out = np.abs(r0 - np.median(r0)) > OUTLIER_SIGMA * max(mad, 1e-6)
+    if out.any() and len(ws) - int(out.sum()) >= MIN_WINDOWS:
+        notes.append(f"excluded {int(out.sum())} of {len(ws)} window(s) whose baseline norm error exceeds "
+                     f"{OUTLIER_SIGMA:g} robust std ({OUTLIER_SIGMA * mad * 1e3:.3g} mg) from the term tests")
+        ws = ws.subset(np.flatnonzero(~out))
+        base_cal = LottersBatch(base).fit(ws, base_cal)
+    if base == "offsets":
+        # sensitivities unobservable: windows at rare postures carry the scale error of the held K, which no
+        # offset-type term can explain; test the terms where an offsets-only baseline is valid
+        a = base_cal.apply(ws.mean)
+        u = a / np.linalg.norm(a, axis=1, keepdims=True)
+        c = np.median(u, axis=0)
+        c /= np.linalg.norm(c)
+        near = np.degrees(np.arccos(np.clip(u @ c, -1, 1))) <= DOMINANT_POSTURE_DEG
+        if (~near).any() and int(near.sum()) >= MIN_WINDOWS:
+            notes.append(f"sensitivities unobservable: terms tested on the {int(near.sum())} windows within "
+                         f"{DOMINANT_POSTURE_DEG:g}° of the dominant posture ({int((~near).sum())} others excluded)")
+            ws = ws.subset(np.flatnonzero(near))  # base_cal stays the fit on all windows (offsets determined)
+    cov = coverage(ws, base_cal)
+    sel = TermSelector(ws, base, base_cal, has_temp=has_temp, folds=folds)
+    chosen, held, tests = select_terms(sel, tuple(c for c in candidates if c in EXTRA_TERMS), cov["spread_deg"])
+    p_max = sel.par(tuple(t.effect for t in tests if t.status != "untestable")).n_params
+    par_b, fit_b = sel.fit((), {})
+    par_e, fit_e = sel.fit(chosen, held)
+    ho_b = sel.heldout_mg((), {}, p_max)
+    ho_e = sel.heldout_mg(chosen, held, p_max) if chosen else ho_b
+    res_b = extended_residuals_g(par_b, fit_b.p, ws)
+    res_e = extended_residuals_g(par_e, fit_e.p, ws)
+    cmp_b = cmp_e = None
+    if simulate:
+        cmp_b = simulate_compare(par_b, fit_b.p, ws, sel.var0 + 0.0, res_b, has_temp=has_temp, replicas=replicas, seed=seed)
+        cmp_e = simulate_compare(par_e, fit_e.p, ws, sel.var0 + 0.0, res_e, has_temp=has_temp, replicas=replicas,
+                                 seed=seed + 1, free=sel.free_mask(sel.par(chosen), held)) if chosen else cmp_b
+    ext_cal = fit_e.calibration(len(ws))
+    findings = []
+    for t in tests:
+        if t.status == "found":
+            ev = t.evidence()
+            term = sensor_model_term(t.effect, t.magnitude)
+            if term:
+                ev["sensor_model_term"] = term
+            findings.append({"effect": t.effect, "magnitude": t.magnitude, "evidence": ev})
+    untestable = [{"effect": t.effect, "why": t.why} for t in tests if t.status == "untestable"]
+    return Diagnosis(base, ext_cal.model, len(ws), ho_b, ho_e, float(np.sqrt(np.mean(res_b**2)) * 1e3),
+                     float(np.sqrt(np.mean(res_e**2)) * 1e3), findings, untestable, tests, base_cal, ext_cal,
+                     cmp_b, cmp_e, None, cov, sel.floor_g * 1e3, notes, ws, res_b, res_e, has_temp)
+
+
+def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, fs: float | None = None,
+             candidates: tuple[str, ...] = CATALOGUE, replicas: int = 40, folds: int = 5, seed: int = 0,
+             simulate: bool = True) -> Diagnosis:
+    """Diagnose a recording: t (N,) [s], raw (N, 3) [raw units], temp (N,) [°C] or None."""
+    from gravcal.core.pipeline import calibrate_recording  # noqa: PLC0415
+
+    t = np.asarray(t, dtype=float)
+    raw = np.asarray(raw, dtype=float)
+    if raw.ndim != 2 or raw.shape[1] != 3 or t.shape != (raw.shape[0],):
+        raise ValueError(f"need t (N,) and raw (N, 3); got {t.shape} and {raw.shape}")
+    notes: list[str] = []
+    for i, name in enumerate(("ax", "ay", "az")):
+        if np.ptp(raw[:, i]) == 0:
+            raise ValueError(f"channel {name} is constant ({raw[0, i]:g} in every sample): a dead or disconnected "
+                             f"channel; nothing can be calibrated or diagnosed")
+    if temp is not None:
+        temp = np.asarray(temp, dtype=float)
+        if np.ptp(temp) == 0:
+            notes.append(f"the temperature column is constant ({temp[0]:g} °C): temperature terms untestable")
+    flats = flat_stretches(raw)
+    fs = float(fs) if fs else 1.0 / float(np.median(np.diff(t[: 100_000])))
+    if flats.runs:
+        # idle-sleep / frozen output: zero variance that is not stillness (it would also fool the detector's
+        # noise level); the rows are removed, time keeps its gap
+        notes.append(f"{len(flats.runs)} stretch(es) of exactly repeated samples ({flats.n_samples} samples, longest "
+                     f"{max(b - a for a, b in flats.runs)}, first at t = {t[flats.runs[0][0]]:.3f} s): idle-sleep / "
+                     f"frozen output, not real stillness (chance repeat rate {flats.repeat_prob:.3g} per sample); "
+                     f"removed before detection")
+        keep = np.ones(raw.shape[0], dtype=bool)
+        for a, b in flats.runs:
+            keep[a + 1:b] = False  # the first sample of a run is a real one
+        t, raw = t[keep], raw[keep]
+        temp = None if temp is None else temp[keep]
+    rep = calibrate_recording(t, raw, temp=temp, model="offsets", fs=fs)
+    ws = rep.windows
+    has_temp = temp is not None and np.ptp(temp) > 0
+    d = diagnose_windows(ws, rep.start or rep.calibration, has_temp=has_temp, candidates=candidates,
+                         replicas=replicas, folds=folds, seed=seed, simulate=simulate)
+    d.notes = notes + d.notes
+    # noise tests on static stretches (samples in g through the diagonal of the baseline K)
+    scale = np.abs(np.diag(d.baseline_cal.sensitivity))
+    stretches = _static_stretches(ws, max_gap=int(0.5 * fs))
+    parts_raw = [raw[a:b] for a, b in stretches]
+    parts_g = [(p - p.mean(axis=0)) / scale for p in parts_raw]
+    longest = max((p.shape[0] for p in parts_g), default=0) / fs
+    extra_tests: list[TermTest] = []
+    if "colored_noise" in candidates:
+        if longest < MIN_ALLAN_STRETCH_S:
+            extra_tests.append(TermTest("colored_noise", "untestable", f"the longest static stretch is {longest:.1f} s "
+                                        f"(need >= {MIN_ALLAN_STRETCH_S:g} s for the Allan deviation)"))
+        else:
+            if len(parts_g) >= 2:
+                train, test = parts_g[0::2], parts_g[1::2]
+            else:
+                h = parts_g[0].shape[0] // 2
+                train, test = [parts_g[0][:h]], [parts_g[0][h:]]
+            d.allan = pooled_allan(parts_g, fs)
+            tr, te = pooled_allan(train, fs), pooled_allan(test, fs)
+            res = colored_noise_test(tr, te) if tr is not None else {"found": False}
+            tt = TermTest("colored_noise", "found" if res["found"] else "not_found",
+                          "" if res["found"] else "Allan deviation explained by white noise (ΔBIC <= 10 or no "
+                          "held-out gain)", res.get("delta_bic"))
+            tt.magnitude = {"unit": "mg", "value": dict(zip("xyz", res.get("bias_instability_mg", [0, 0, 0])))}
+            tt._extra = res  # type: ignore[attr-defined]
+            extra_tests.append(tt)
+    if "quantization" in candidates:
+        if not parts_raw:
+            extra_tests.append(TermTest("quantization", "untestable", "no static stretch"))
+        else:
+            res = quantization_test(parts_raw, scale)
+            tt = TermTest("quantization", "found" if res["found"] else "not_found",
+                          "" if res["found"] else "samples look continuous at the noise level (ΔBIC <= 10 or no "
+                          "held-out gain)", res.get("delta_bic"))
+            tt.magnitude = {"unit": "mg_per_lsb", "value": {a: r.get("lsb_mg", 0.0) for a, r in zip("xyz", res["axes"])},
+                            "noise_std_lsb": {a: r.get("noise_std_lsb") for a, r in zip("xyz", res["axes"])}}
+            tt._extra = res  # type: ignore[attr-defined]
+            extra_tests.append(tt)
+    for tt in extra_tests:
+        d.tests.append(tt)
+        if tt.status == "found":
+            ev = {"delta_bic": tt.delta_bic, "delta_bic_threshold": 10.0, **getattr(tt, "_extra", {})}
+            d.findings.append({"effect": tt.effect, "magnitude": tt.magnitude, "evidence": ev})
+        elif tt.status == "untestable":
+            d.untestable.append({"effect": tt.effect, "why": tt.why})
+    if d.allan is not None:
+        d.white_g = d.allan.white_g
+    return d

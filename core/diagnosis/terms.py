@@ -1,0 +1,297 @@
+"""Name the cause: test catalogue terms against the window residuals.
+
+Significance rule (stated once, used everywhere): a candidate term is FOUND when, added to the
+current model,
+
+1. it is observable: every axis kept has an effect std <= ``TOL_G`` (10 mg, order.TOL_G, the model-order
+   rule) over the covered covariate range; axes that are not determined are held at 0 and named;
+2. BIC prefers it by more than ``DELTA_BIC`` = 10 ("strong evidence"): chi²(M) - chi²(M+T) - k ln m > 10,
+   chi² with the SAME per-window variances for every model (window noise + one quasi-static floor);
+3. it lowers the held-out RMS norm error (time-contiguous folds: windows not used for the fit).
+
+Terms are added forward-stepwise (the best ΔBIC first, then the rest re-tested given it), so of two
+terms that explain the same residual only the better one is named; a term whose columns the current
+model already spans is reported untestable ("indistinguishable from ...").
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import brentq
+
+from gravcal.core.calibration import Calibration
+from gravcal.core.estimators.extended import (EXTRA_TERMS, ExtendedParameterization, extended_class,
+                                              extended_residuals_g, fit_extended, model_name)
+from gravcal.core.estimators.order import TOL_G
+from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
+from gravcal.core.windows import WindowSet
+
+from .noise import DELTA_BIC
+
+MIN_TEMP_SPAN_C = 2.0  # temperature terms need windows spread over at least this [°C]
+MIN_TIME_SPAN_S = 600.0  # drift terms need windows spread over at least this [s]
+SENSITIVITY_TERMS = ("misalignment", "nonlinearity", "temperature_sensitivity", "sensitivity_drift")
+CONFOUND_FRACTION = 0.02  # a column with < 2 % of its weighted norm outside the model's span is confounded
+
+
+@dataclass
+class TermTest:
+    effect: str
+    status: str  # "found" | "not_found" | "untestable"
+    why: str = ""
+    delta_bic: float | None = None
+    heldout_before_mg: float | None = None
+    heldout_after_mg: float | None = None
+    magnitude: dict[str, Any] = field(default_factory=dict)
+    undetermined_axes: list[str] = field(default_factory=list)
+
+    def evidence(self) -> dict[str, Any]:
+        return {"delta_bic": self.delta_bic, "delta_bic_threshold": DELTA_BIC,
+                "heldout_rms_mg_without": self.heldout_before_mg, "heldout_rms_mg_with": self.heldout_after_mg,
+                "undetermined_axes": self.undetermined_axes, "rule": "found = observable and ΔBIC > 10 and "
+                "held-out RMS lower"}
+
+
+def norm_var_g2(ws: WindowSet, cal: Calibration, floor_g: float) -> np.ndarray:
+    """Per-window variance of h = |a| [g²]: delta method on cov/n plus floor²."""
+    a = cal.apply(ws.mean)
+    u = a / np.linalg.norm(a, axis=1, keepdims=True)
+    g = u @ np.linalg.inv(cal.sensitivity)
+    return np.einsum("mi,mij,mj->m", g, ws.cov_of_mean, g) + floor_g**2
+
+
+def floor_for(resid_g: np.ndarray, var0: np.ndarray, dof: int) -> float:
+    """Quasi-static floor [g] making the reduced chi² of these residuals 1 (0 when already <= 1)."""
+    r2 = resid_g**2
+    if dof <= 0 or float(np.sum(r2 / var0)) <= dof:
+        return 0.0
+    f2 = brentq(lambda f2: float(np.sum(r2 / (var0 + f2))) - dof, 0.0, float(r2.max()) * 10 + 1e-18, xtol=1e-20)
+    return math.sqrt(f2)
+
+
+class TermSelector:
+    """Fits and held-out scores of base + terms on one WindowSet with fixed weights."""
+
+    def __init__(self, ws: WindowSet, base: str, base_cal: Calibration, *, has_temp: bool, folds: int = 5,
+                 t_ref_c: float | None = None, t0_s: float | None = None):
+        self.ws, self.base, self.base_cal, self.has_temp = ws, base, base_cal, has_temp
+        self.m = len(ws)
+        self.t_ref_c = float(np.median(ws.aux[:, 0])) if (has_temp and t_ref_c is None) else (t_ref_c or 25.0)
+        self.t0_s = float(ws.t.min()) if t0_s is None else float(t0_s)
+        self.var0 = norm_var_g2(ws, base_cal, 0.0)
+        self.var = self.var0
+        self.order = np.argsort(ws.t, kind="stable")
+        self.folds = folds
+        # base parameters these windows do not determine (e.g. the offsets across the axis of a single
+        # posture) stay at base_cal: left free, they would let the fit turn the direction and hide a trend
+        self.held_base: list[int] = []
+        par, f = self.fit((), {})
+        self.var = self.var0 + floor_for(f.resid_g, self.var0, self.m - par.n_params) ** 2  # provisional floor
+        s = float(np.mean(np.abs(np.diag(base_cal.sensitivity))))
+        while len(self.held_base) < par.n_params:  # hold the worst-determined one at a time (a single posture
+            _, f = self.fit((), {})                  # determines one combination of the offsets: keep that one)
+            rel = np.where(np.isin(np.arange(par.n_params), self.held_base), 0.0, f.std / s)
+            if rel.max() <= TOL_G:
+                break
+            self.held_base.append(int(np.argmax(rel)))
+
+    # -- model objects -----------------------------------------------------------------------------
+    def par(self, terms: tuple[str, ...]):
+        name = model_name(self.base, terms)
+        K0, o0 = self.base_cal.sensitivity, self.base_cal.offset
+        if not terms:
+            return PARAMETERIZATIONS[self.base](K0, o0)
+        return extended_class(name)(K0, o0, t_ref_c=self.t_ref_c, t0_s=self.t0_s)
+
+    def free_mask(self, par, held: dict[str, list[int]]) -> np.ndarray:
+        free = np.ones(par.n_params, dtype=bool)
+        free[self.held_base] = False
+        if isinstance(par, ExtendedParameterization):
+            k = par.base.n_params
+            for term in par.terms:
+                for i in held.get(term, []):
+                    free[k + i] = False
+                k += 3
+        return free
+
+    def fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None = None):
+        par = self.par(terms)
+        ws = self.ws if idx is None else self.ws.subset(idx)
+        var = self.var if idx is None else self.var[idx]
+        p0 = par.pack(self.base_cal.sensitivity, self.base_cal.offset)
+        return par, fit_extended(par, ws, p0, var, free=self.free_mask(par, held))
+
+    def n_folds(self, n_params: int) -> int:
+        return int(min(self.folds, self.m // max(n_params, 1)))  # training folds keep >= (k-1)/k m >= P windows
+
+    def heldout_mg(self, terms: tuple[str, ...], held: dict[str, list[int]], n_params_max: int) -> float | None:
+        """RMS 1 - |a| [mg] over time-contiguous held-out folds (None: too few windows for 2 folds)."""
+        k = self.n_folds(n_params_max)
+        if k < 2:
+            return None
+        res = np.empty(self.m)
+        for test in np.array_split(self.order, k):
+            train = np.setdiff1d(self.order, test)
+            try:
+                par, f = self.fit(terms, held, train)
+            except (ValueError, np.linalg.LinAlgError):
+                return None
+            res[test] = extended_residuals_g(par, f.p, self.ws.subset(test))
+        return float(np.sqrt(np.mean(res * res)) * 1e3)
+
+    # -- observability of one term's axes -----------------------------------------------------------
+    def effect_std_g(self, par, f, term: str) -> np.ndarray:
+        """Std [g] of each axis' effect over the covered range (temperature span, time span, 1 g, 1 rad)."""
+        k = par.base.n_params + 3 * list(par.terms).index(term)
+        sd = f.std[k:k + 3]
+        s = np.abs(np.diag(self.base_cal.sensitivity))
+        if term.startswith("temperature"):
+            span = float(np.ptp(self.ws.aux[:, 0]))
+        elif term.endswith("drift"):
+            span = float(np.ptp(self.ws.t)) / 3600.0
+        else:
+            span = 1.0
+        if term == "misalignment":
+            return sd / np.sqrt([s[0] * s[1], s[0] * s[2], s[1] * s[2]])
+        if term == "nonlinearity":
+            return sd  # relative per g² at 1 g
+        return sd * span / s
+
+    def confounded(self, terms: tuple[str, ...], held: dict[str, list[int]], term: str) -> list[int]:
+        """Axes of ``term`` whose Jacobian column lies (almost) in the span of the current model's free columns."""
+        par = self.par(terms + (term,))
+        p = par.pack(self.base_cal.sensitivity, self.base_cal.offset)
+        bound = par.at_windows(self.ws)
+        _, B, _ = bound.norm_and_jacobian(p, self.ws.mean)
+        w = 1.0 / np.sqrt(self.var)
+        Bw = B * w[:, None]
+        k = par.base.n_params + 3 * list(par.terms).index(term)
+        free = self.free_mask(par, held)
+        others = [j for j in range(par.n_params) if free[j] and not (k <= j < k + 3)]
+        A = Bw[:, others]
+        out = []
+        for i in range(3):
+            col = Bw[:, k + i]
+            nc = np.linalg.norm(col)
+            if nc == 0:
+                out.append(i)
+                continue
+            r = col - A @ np.linalg.lstsq(A, col, rcond=None)[0]
+            if np.linalg.norm(r) < CONFOUND_FRACTION * nc:
+                out.append(i)
+        return out
+
+
+def untestable_reason(term: str, sel: TermSelector, spread_deg: float) -> str | None:
+    """Why ``term`` cannot be tested on these windows (None: it can)."""
+    ws = sel.ws
+    if term.startswith("temperature"):
+        if not sel.has_temp:
+            return "no temperature column in the recording"
+        span = float(np.ptp(ws.aux[:, 0]))
+        if span < MIN_TEMP_SPAN_C:
+            return f"the windows span only {span:.2f} °C (need >= {MIN_TEMP_SPAN_C:g} °C)"
+    if term.endswith("drift"):
+        span = float(np.ptp(ws.t))
+        if span < MIN_TIME_SPAN_S:
+            return f"the windows span only {span:.0f} s (need >= {MIN_TIME_SPAN_S:.0f} s)"
+    if term in SENSITIVITY_TERMS and sel.base == "offsets":
+        return (f"sensitivities are not observable (all {len(ws)} windows within {spread_deg:.0f}° of one "
+                f"direction), so a term acting through the sensitivity cannot be separated from the offsets")
+    if term == "misalignment" and sel.base in ("9", "12"):
+        return "the base model already estimates the cross-axis terms"
+    return None
+
+
+def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: float
+                 ) -> tuple[tuple[str, ...], dict[str, list[int]], list[TermTest]]:
+    """Forward-stepwise selection (module docstring). Returns (terms found, held axes, one TermTest per candidate)."""
+    tests: dict[str, TermTest] = {}
+    testable = []
+    for term in candidates:
+        if term not in EXTRA_TERMS:
+            continue
+        why = untestable_reason(term, sel, spread_deg)
+        if why:
+            tests[term] = TermTest(term, "untestable", why)
+        else:
+            testable.append(term)
+    # one floor for every model: from the largest model (base + all testable terms, determined axes)
+    held_all: dict[str, list[int]] = {t: [] for t in testable}
+    for term in testable:  # each term on its own with the base: hold its worst-determined axis until the rest are
+        while len(held_all[term]) < 3:
+            par, f = sel.fit((term,), held_all)
+            sd = np.where(np.isin(np.arange(3), held_all[term]), 0.0, np.nan_to_num(sel.effect_std_g(par, f, term),
+                                                                                   nan=np.inf))
+            if sd.max() <= TOL_G:
+                break
+            held_all[term].append(int(np.argmax(sd)))
+    live = [t for t in testable if len(held_all[t]) < 3]
+    for term in testable:
+        if term not in live:
+            tests[term] = TermTest(term, "untestable", f"not observable: effect std > {TOL_G * 1e3:.0f} mg on every "
+                                                       f"axis with these windows", undetermined_axes=list("xyz"))
+    p_max = sel.par(tuple(live)).n_params
+    if live:
+        par, f = sel.fit(tuple(live), held_all)
+        floor = floor_for(f.resid_g, sel.var0, sel.m - int(sel.free_mask(par, held_all).sum()))
+    else:
+        par, f = sel.fit((), {})
+        floor = floor_for(f.resid_g, sel.var0, sel.m - par.n_params)
+    sel.var = sel.var0 + floor**2
+    sel.floor_g = floor
+
+    chosen: tuple[str, ...] = ()
+    held: dict[str, list[int]] = {}
+    remaining = list(live)
+    while remaining:
+        par_m, f_m = sel.fit(chosen, held)
+        ho_m = sel.heldout_mg(chosen, held, p_max)
+        best = None
+        for term in remaining:
+            conf = sel.confounded(chosen, held, term)
+            h = sorted(set(held_all[term]) | set(conf))
+            if len(h) == 3:
+                tests[term] = TermTest(term, "untestable", "indistinguishable from " + (", ".join(chosen) if chosen
+                                       else "the base parameters") + " with these windows (orientations / covariates)",
+                                       undetermined_axes=list("xyz"))
+                continue
+            hh = {**held, term: h}
+            par_t, f_t = sel.fit(chosen + (term,), hh)
+            k_free = 3 - len(h)
+            d_bic = (f_m.chi2 - f_t.chi2) - k_free * math.log(sel.m)
+            ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
+            better = ho_m is not None and ho_t is not None and ho_t < ho_m
+            mag = par_t.magnitudes(f_t.p, f_t.std)[term] if isinstance(par_t, ExtendedParameterization) else {}
+            for i in h:
+                key = list(mag.get("value", {}))[i] if mag else None
+                if key is not None:
+                    mag["value"][key] = 0.0
+            tt = TermTest(term, "not_found", "", round(d_bic, 2), _r(ho_m), _r(ho_t), mag, ["xyz"[i] for i in h])
+            if ho_m is None or ho_t is None:
+                tt.status = "untestable"
+                tt.why = (f"{sel.m} windows are too few for held-out folds of the {p_max}-parameter model "
+                          f"(need >= {2 * p_max}); ΔBIC alone {d_bic:.1f} is not enough by the rule")
+            elif d_bic <= DELTA_BIC:
+                tt.why = f"ΔBIC {d_bic:.1f} <= {DELTA_BIC:g}"
+            elif not better:
+                tt.why = "does not lower the held-out error"
+            tests[term] = tt
+            if d_bic > DELTA_BIC and better and (best is None or d_bic > tests[best].delta_bic):
+                best = term
+        remaining = [t for t in remaining if tests[t].status != "untestable"]
+        if best is None:
+            break
+        tests[best].status, tests[best].why = "found", ""
+        chosen = chosen + (best,)
+        held[best] = ["xyz".index(a) for a in tests[best].undetermined_axes]
+        remaining.remove(best)
+    ordered = [tests[t] for t in candidates if t in tests]
+    return chosen, held, ordered
+
+
+def _r(x: float | None) -> float | None:
+    return None if x is None else round(x, 4)

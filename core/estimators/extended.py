@@ -1,0 +1,373 @@
+"""Parameterizations extended by catalogue terms whose effect depends on per-window covariates.
+
+The sensor model's terms (core/model/adxl210.py) have a calibration-level view (``linear_part``):
+at a window with temperature T [°C] and mid time t [s] the triad reads
+
+    raw = K(T, t) (a + q(a)) + o(T, t)
+
+    temperature_offset       o += c_T (T - T_ref)              c_T (3,) [raw/°C]
+    temperature_sensitivity  K += diag(k_T) (T - T_ref)        k_T (3,) [raw/g/°C]
+    offset_drift             o += r_o (t - t0) / 3600          r_o (3,) [raw/h]
+    sensitivity_drift        K += diag(r_s) (t - t0) / 3600    r_s (3,) [raw/g/h]
+    nonlinearity             o += diag(K0) c2 * a0²            c2 (3,) [1/g], a0 = K0^-1 (m - o0)
+    misalignment             K += symmetric off-diagonal       m_xy, m_xz, m_yz [raw/g] (the 9-param cross-axis part)
+
+Every extra parameter enters linearly, with derivatives that depend on the window's covariates
+(T, t, a0) instead of being constant. So an extended parameterization is a Parameterization
+whose ``at_windows(ws)`` returns the same thing bound to those windows' covariates (per-row
+dK, do); at the reference (T = T_ref, t = t0) it reduces to its base ("offsets", "6", "9"),
+which is what ``unpack`` returns. ``LottersRecursive`` uses it window by window (it passes
+each window's aux and time; see the hook there), ``fit_extended`` below in batch.
+
+Names are ``"<base>+<term>+<term>..."`` (e.g. ``"6+temperature_offset"``); :func:`extended_class`
+builds and registers the class in PARAMETERIZATIONS on first use; common ones are registered at
+import. Temperature is the windows' ``aux[:, temp_column]`` (the pipeline puts temp there).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from gravcal.core.calibration import Calibration
+from gravcal.core.estimators.parameterization import AXES, PARAMETERIZATIONS, Parameterization
+from gravcal.core.windows import WindowSet
+
+EXTRA_TERMS: tuple[str, ...] = ("misalignment", "nonlinearity", "temperature_offset", "temperature_sensitivity",
+                                "offset_drift", "sensitivity_drift")
+"""Catalogue terms with a calibration-level (window-mean) effect, in canonical order."""
+
+T_REF_C = 25.0  # reference temperature [°C] of the extended K, o (the model's t0_c)
+_PAIRS = ((0, 1), (0, 2), (1, 2))
+
+
+def _extra_names(term: str) -> list[str]:
+    if term == "misalignment":
+        return [f"m_{AXES[i]}{AXES[j]}" for i, j in _PAIRS]
+    prefix = {"nonlinearity": "q2", "temperature_offset": "oT", "temperature_sensitivity": "sT",
+              "offset_drift": "oh", "sensitivity_drift": "sh"}[term]
+    return [f"{prefix}_{a}" for a in AXES]
+
+
+class ExtendedParameterization(Parameterization):
+    """Base parameterization (``base_model``) plus the extra terms (``terms``); see module docstring.
+
+    Class attributes set by :func:`extended_class`; instances are built like any parameterization,
+    ``cls(K0, o0)``, with optional keyword ``t_ref_c`` [°C], ``t0_s`` [s], ``temp_column``.
+    """
+
+    base_model: ClassVar[str] = "6"
+    terms: ClassVar[tuple[str, ...]] = ()
+    covariates: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, K0: np.ndarray, o0: np.ndarray, *, t_ref_c: float = T_REF_C, t0_s: float = 0.0,
+                 temp_column: int = 0):
+        super().__init__(K0, o0)
+        self.base = PARAMETERIZATIONS[self.base_model](K0, o0)
+        self.t_ref_c, self.t0_s, self.temp_column = float(t_ref_c), float(t0_s), int(temp_column)
+        nb = self.base.n_params
+        self.extra_names = [n for term in self.terms for n in _extra_names(term)]
+        self.names = list(self.base.names) + self.extra_names
+        P = len(self.names)
+        # at the reference (T = T_ref, t = t0, a0² = 0): the base, extras without effect, except the
+        # misalignment terms, whose derivative is constant
+        self.dK = np.zeros((P, 3, 3))
+        self.do = np.zeros((P, 3))
+        self.dK[:nb], self.do[:nb] = self.base.dK, self.base.do
+        self.K_const, self.o_const = self.base.K_const, self.base.o_const
+        k = nb
+        for term in self.terms:
+            if term == "misalignment":
+                for m, (i, j) in enumerate(_PAIRS):
+                    self.dK[k + m, i, j] = self.dK[k + m, j, i] = 1.0
+            k += 3
+        self._K0inv = np.linalg.inv(self.K0)
+        self._diagK0 = np.abs(np.diag(self.K0))
+
+    def pack(self, K: np.ndarray, o: np.ndarray) -> np.ndarray:
+        """Base parameters of (K, o) (the base's own pack), extras 0 (no term effect)."""
+        return np.concatenate([self.base.pack(K, o), np.zeros(len(self.extra_names))])
+
+    # -- covariates ------------------------------------------------------------------------------
+    def window_covariates(self, ws: WindowSet) -> dict[str, np.ndarray]:
+        """dT [°C] from T_ref, dt [h] from t0, a0² [g²] per window (only those the terms need)."""
+        out: dict[str, np.ndarray] = {}
+        if any(t.startswith("temperature") for t in self.terms):
+            if ws.aux.ndim != 2 or ws.aux.shape[1] <= self.temp_column:
+                raise ValueError(f"{'/'.join(t for t in self.terms if t.startswith('temperature'))} needs the "
+                                 f"windows' temperature (aux column {self.temp_column}); the windows have none")
+            out["dT"] = ws.aux[:, self.temp_column] - self.t_ref_c
+        if any(t.endswith("drift") for t in self.terms):
+            out["dt_h"] = (ws.t - self.t0_s) / 3600.0
+        if "nonlinearity" in self.terms:
+            a0 = (ws.mean - self.o0) @ self._K0inv.T
+            out["a2"] = a0 * a0
+        return out
+
+    def at_windows(self, ws: WindowSet) -> "Parameterization":
+        """This parameterization bound to the windows' covariates (per-row derivatives)."""
+        return _Bound(self, ws)
+
+    def row_derivatives(self, ws: WindowSet) -> tuple[np.ndarray, np.ndarray]:
+        """Per-window dK (M, P, 3, 3) and do (M, P, 3)."""
+        z = self.window_covariates(ws)
+        M = len(ws)
+        dK = np.broadcast_to(self.dK, (M,) + self.dK.shape).copy()
+        do = np.broadcast_to(self.do, (M,) + self.do.shape).copy()
+        k = self.base.n_params
+        for term in self.terms:
+            for i in range(3):
+                if term == "temperature_offset":
+                    do[:, k + i, i] = z["dT"]
+                elif term == "temperature_sensitivity":
+                    dK[:, k + i, i, i] = z["dT"]
+                elif term == "offset_drift":
+                    do[:, k + i, i] = z["dt_h"]
+                elif term == "sensitivity_drift":
+                    dK[:, k + i, i, i] = z["dt_h"]
+                elif term == "nonlinearity":
+                    do[:, k + i, i] = self._diagK0[i] * z["a2"][:, i]
+            k += 3
+        return dK, do
+
+    # -- physical magnitudes ---------------------------------------------------------------------
+    def magnitudes(self, p: np.ndarray, std: np.ndarray | None = None) -> dict[str, dict[str, Any]]:
+        """Each extra term in physical units (per axis), with std when given."""
+        K, _ = self.unpack(p)
+        s = np.abs(np.diag(K))
+        out: dict[str, dict[str, Any]] = {}
+        k = self.base.n_params
+        for term in self.terms:
+            v = np.asarray(p[k:k + 3], dtype=float)
+            sd = None if std is None else np.asarray(std[k:k + 3], dtype=float)
+            if term == "misalignment":
+                den = np.array([math.sqrt(s[i] * s[j]) for i, j in _PAIRS])
+                conv, unit, keys = np.degrees(1.0) / den, "deg", ["xy", "xz", "yz"]
+            else:
+                keys = list(AXES)
+                conv, unit = {"temperature_offset": (1e3 / s, "mg_per_C"),
+                              "temperature_sensitivity": (100.0 / s, "pct_per_C"),
+                              "offset_drift": (1e3 / s, "mg_per_h"),
+                              "sensitivity_drift": (100.0 / s, "pct_per_h"),
+                              "nonlinearity": (np.ones(3), "c2_per_g")}[term]
+            val = v * conv
+            d: dict[str, Any] = {"unit": unit, "value": dict(zip(keys, val.tolist()))}
+            if sd is not None:
+                d["std"] = dict(zip(keys, (sd * np.abs(conv)).tolist()))
+            out[term] = d
+            k += 3
+        return out
+
+
+class _Bound(Parameterization):
+    """An ExtendedParameterization bound to M windows: per-row derivatives (for the batch fit);
+    with M == 1 also exposes them as ``dK``/``do`` (for the recursive estimator's per-window step)."""
+
+    def __init__(self, par: ExtendedParameterization, ws: WindowSet):
+        super().__init__(par.K0, par.o0)
+        self.parent = par
+        self.model = par.model
+        self.names = list(par.names)
+        self.K_const, self.o_const = par.K_const, par.o_const
+        self.dK_rows, self.do_rows = par.row_derivatives(ws)
+        self.dK, self.do = (self.dK_rows[0], self.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
+        self.n_rows = len(ws)
+
+    def pack(self, K, o):
+        return self.parent.pack(K, o)
+
+    def rows_K_o(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """K (M, 3, 3), o (M, 3) of every bound window at p."""
+        K = self.K_const[None] + np.einsum("p,mpij->mij", p, self.dK_rows)
+        o = self.o_const[None] + np.einsum("p,mpi->mi", p, self.do_rows)
+        return K, o
+
+    def accel_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        raw = np.asarray(raw, dtype=float).reshape(-1, 3)
+        if raw.shape[0] != self.n_rows:
+            raise ValueError(f"bound to {self.n_rows} windows, got {raw.shape[0]} means: bind with at_windows(ws)")
+        K, o = self.rows_K_o(p)
+        Kinv = np.linalg.inv(K)
+        a = np.einsum("mij,mj->mi", Kinv, raw - o)
+        inner = np.einsum("mpij,mj->mip", self.dK_rows, a) + np.transpose(self.do_rows, (0, 2, 1))
+        J = -np.einsum("mij,mjp->mip", Kinv, inner)
+        return a, J
+
+
+def extended_class(name: str) -> type[ExtendedParameterization]:
+    """The class for ``"<base>+<term>+..."``, created and registered in PARAMETERIZATIONS on first use."""
+    if name in PARAMETERIZATIONS:
+        cls = PARAMETERIZATIONS[name]
+        if not (isinstance(cls, type) and issubclass(cls, ExtendedParameterization)):
+            raise ValueError(f"{name!r} is not an extended parameterization")
+        return cls
+    base, *terms = name.split("+")
+    if base not in PARAMETERIZATIONS or not terms:
+        raise ValueError(f"extended model {name!r}: expected '<base>+<term>[+<term>...]' with base in "
+                         f"{sorted(k for k in PARAMETERIZATIONS if '+' not in k)} and terms in {list(EXTRA_TERMS)}")
+    bad = [t for t in terms if t not in EXTRA_TERMS]
+    if bad:
+        raise ValueError(f"extended model {name!r}: unknown term(s) {bad}; known: {list(EXTRA_TERMS)}")
+    if "misalignment" in terms and base in ("9", "12"):
+        raise ValueError(f"extended model {name!r}: base {base} already has the cross-axis terms")
+    terms = sorted(set(terms), key=EXTRA_TERMS.index)
+    canonical = "+".join([base, *terms])
+    if canonical in PARAMETERIZATIONS:
+        return PARAMETERIZATIONS[canonical]  # type: ignore[return-value]
+    covs = tuple(sorted({"temp_c" for t in terms if t.startswith("temperature")}
+                        | {"t_s" for t in terms if t.endswith("drift")} | {"mean" for t in terms if t == "nonlinearity"}))
+    cls = type(f"Extended_{canonical.replace('+', '_')}", (ExtendedParameterization,),
+               {"model": canonical, "base_model": base, "terms": tuple(terms), "covariates": covs,
+                "__doc__": f"{base} parameters + {', '.join(terms)} (calibration-level view of those model terms)."})
+    PARAMETERIZATIONS[canonical] = cls
+    if canonical != name:
+        PARAMETERIZATIONS[name] = cls
+    return cls
+
+
+def model_name(base: str, terms: tuple[str, ...] | list[str]) -> str:
+    """Canonical name of base + terms (the base itself when there are no terms)."""
+    terms = sorted(set(terms), key=EXTRA_TERMS.index)
+    return "+".join([base, *terms]) if terms else base
+
+
+def parameterization(model: str, K0: np.ndarray, o0: np.ndarray, **kw: Any) -> Parameterization:
+    """An instance of a base or extended model by name."""
+    if "+" in model:
+        return extended_class(model)(K0, o0, **kw)
+    return PARAMETERIZATIONS[model](K0, o0)
+
+
+# common ones, so they can be named in configs and on the command line
+for _n in ("offsets+temperature_offset", "6+temperature_offset", "6+temperature_offset+temperature_sensitivity",
+           "9+temperature_offset", "9+temperature_offset+temperature_sensitivity", "6+offset_drift",
+           "offsets+offset_drift"):
+    extended_class(_n)
+
+
+# -- batch fit with fixed weights ------------------------------------------------------------------
+@dataclass
+class ExtendedFit:
+    """Result of :func:`fit_extended`: parameter vector p and covariance (raw units), residuals 1 - |a| [g]."""
+
+    par: Parameterization
+    p: np.ndarray
+    cov: np.ndarray
+    resid_g: np.ndarray
+    chi2: float
+    converged: bool
+    iterations: int
+
+    @property
+    def std(self) -> np.ndarray:
+        return np.sqrt(np.clip(np.diag(self.cov), 0, None))
+
+    def calibration(self, n_windows: int) -> Calibration:
+        K, o = self.par.unpack(self.p)
+        par = getattr(self.par, "parent", self.par)
+        meta: dict[str, Any] = {"estimator": "fit_extended", "params": dict(zip(par.names, self.p.tolist()))}
+        if isinstance(par, ExtendedParameterization):
+            meta["extended"] = {"terms": list(par.terms), "t_ref_c": par.t_ref_c, "t0_s": par.t0_s,
+                                "temp_column": par.temp_column,
+                                "magnitudes": par.magnitudes(self.p, self.std)}
+        return Calibration(model=par.model, offset=o, sensitivity=K, covariance=self.cov, param_names=list(par.names),
+                           n_windows=n_windows, converged=self.converged, observable=True, metadata=meta)
+
+
+def fit_extended(par: Parameterization, ws: WindowSet, p0: np.ndarray, var_g2: np.ndarray, *,
+                 free: np.ndarray | None = None, max_iter: int = 30, tol: float = 1e-12) -> ExtendedFit:
+    """Iterated eq. 11a (Gauss-Newton on 1 - |a|) with FIXED per-window variances ``var_g2`` [g²].
+
+    Fixed weights (the same for every candidate model of one recording) make the chi² of
+    different models comparable, which the information criterion needs; LottersBatch re-derives
+    its floor per fit. ``par`` is bound to ``ws`` here when it has covariates. ``free`` (P,) bool:
+    parameters estimated; the others stay at p0 (axes of a term the windows do not determine).
+    """
+    free = np.ones(len(p0), dtype=bool) if free is None else np.asarray(free, dtype=bool)
+    bound = par.at_windows(ws) if isinstance(par, ExtendedParameterization) else par
+    w = 1.0 / np.asarray(var_g2, dtype=float)
+    p = np.array(p0, dtype=float)
+    mean = ws.mean
+
+    def cost_at(q):
+        h, B, _ = bound.norm_and_jacobian(q, mean)
+        xi = 1.0 - h
+        return xi, B, float(np.sum(w * xi * xi))
+
+    xi, B, cost = cost_at(p)
+    if not free.any():
+        return ExtendedFit(bound, p, np.zeros((len(p), len(p))), xi, cost, True, 0)
+    B = B[:, free]
+    converged, it = False, 0
+    for it in range(1, max_iter + 1):
+        F = (B.T * w) @ B
+        scale = np.sqrt(np.maximum(np.diag(F), 1e-300))
+        Fn = F / np.outer(scale, scale)
+        step = np.zeros(len(p))
+        step[free] = np.linalg.lstsq(Fn, ((B.T * w) @ xi) / scale, rcond=1e-12)[0] / scale
+        lam = 1.0
+        while lam > 1e-6:
+            try:
+                xt, Bt, ct = cost_at(p + lam * step)
+            except np.linalg.LinAlgError:
+                ct = math.inf
+            if math.isfinite(ct) and ct <= cost * (1 + 1e-12):
+                break
+            lam *= 0.5
+        else:
+            break
+        p = p + lam * step
+        done = abs(cost - ct) <= tol * max(cost, 1e-300) or np.max(np.abs(lam * step[free]) * scale) < 1e-8
+        xi, B, cost = xt, Bt[:, free], ct
+        if done:
+            converged = True
+            break
+    cov = np.zeros((len(p), len(p)))
+    F = (B.T * w) @ B
+    d = np.sqrt(np.maximum(np.diag(F), 1e-300))
+    lam, V = np.linalg.eigh(F / np.outer(d, d))
+    lam = np.maximum(lam, 1e-12 * max(float(lam[-1]), 1e-300))  # a void direction gets a huge, finite variance
+    cov[np.ix_(free, free)] = ((V / lam) @ V.T) / np.outer(d, d)
+    return ExtendedFit(bound, p, cov, xi, cost, converged, it)
+
+
+def extended_residuals_g(par: Parameterization, p: np.ndarray, ws: WindowSet) -> np.ndarray:
+    """1 - |a| [g] of windows ``ws`` under parameters p (covariates of ``ws``)."""
+    par = getattr(par, "parent", par)  # unbind
+    bound = par.at_windows(ws) if isinstance(par, ExtendedParameterization) else par
+    a, _ = bound.accel_and_jacobian(p, ws.mean)
+    return 1.0 - np.linalg.norm(a, axis=1)
+
+
+def apply_extended(cal: Calibration, raw: np.ndarray, *, temp: np.ndarray | None = None,
+                   t: np.ndarray | None = None) -> np.ndarray:
+    """Calibrated acceleration [g] of raw samples (N, 3) under an extended calibration (at each
+    sample's temperature [°C] and time [s]); a plain calibration is applied as is."""
+    ext = cal.metadata.get("extended") if cal.metadata else None
+    if not ext:
+        return cal.apply(raw)
+    par = extended_class(cal.model)(cal.sensitivity, cal.offset, t_ref_c=ext["t_ref_c"], t0_s=ext["t0_s"],
+                                    temp_column=ext.get("temp_column", 0))
+    params = cal.metadata["params"]
+    p = np.array([params[n] for n in par.names])
+    raw = np.asarray(raw, dtype=float).reshape(-1, 3)
+    n = raw.shape[0]
+    needs_t = any(x.endswith("drift") for x in par.terms)
+    needs_T = any(x.startswith("temperature") for x in par.terms)
+    if needs_T and temp is None:
+        raise ValueError(f"calibration {cal.model} needs the temperature of each sample")
+    if needs_t and t is None:
+        raise ValueError(f"calibration {cal.model} needs the time of each sample")
+    aux = np.zeros((n, par.temp_column + 1))
+    if temp is not None:
+        aux[:, par.temp_column] = np.broadcast_to(np.asarray(temp, dtype=float), (n,))
+    tt = np.zeros(n) if t is None else np.broadcast_to(np.asarray(t, dtype=float), (n,))
+    ws = WindowSet(raw, np.zeros((n, 3, 3)), np.ones(n), tt, aux, np.arange(n), np.arange(n) + 1)
+    a, _ = par.at_windows(ws).accel_and_jacobian(p, raw)
+    return a
+
+
+__all__ = ["EXTRA_TERMS", "ExtendedParameterization", "ExtendedFit", "extended_class", "model_name", "parameterization",
+           "fit_extended", "extended_residuals_g", "apply_extended", "T_REF_C"]

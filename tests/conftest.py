@@ -1,0 +1,26 @@
+"""Shared pytest fixtures.
+
+``measured_data_dir``: the folder of measured recordings (``$GRAVCAL_DATA``, default
+``../shared/data``). Tests using it skip with a visible reason when the folder is absent,
+and FAIL instead when ``GRAVCAL_REQUIRE_DATA=1`` (CI sets it, so CI always runs them).
+"""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def measured_data_dir():
+    from gravcal.daemon.datasets import RECORDINGS, data_dir
+
+    root = data_dir()
+    missing = [name for name in RECORDINGS if not (root / name / "SOURCE.txt").is_file()]
+    if missing:
+        reason = (f"measured data not found: {', '.join(missing)} missing under {root} "
+                  f"(set GRAVCAL_DATA to the folder holding them)")
+        if os.environ.get("GRAVCAL_REQUIRE_DATA") == "1":
+            pytest.fail(reason + "; GRAVCAL_REQUIRE_DATA=1 makes this a failure")
+        pytest.skip(reason)
+    return root
