@@ -45,7 +45,7 @@ class DeviceConfig:
 @dataclass
 class EstimatorConfig:
     model: str = field(default="6", metadata=_meta("model order", choices=("offsets", "6", "9", "12")))
-    min_windows: int = field(default=6, metadata=_meta("windows before a calibration may be accepted", min=0))
+    min_windows: int = field(default=6, metadata=_meta("windows before a calibration may be accepted (the first batch fit also waits for 2 per parameter)", min=0))
     process_noise: float = field(default=0.0, metadata=_meta("random-walk variance per window added to P (0: none)", min=0.0))
 
 

@@ -2,34 +2,41 @@
 
 Wiring (each arrow a hand-off that never blocks the side before it)::
 
-    driver.read() --[acquisition thread]--> RingBuffer --[processing thread]-->
-        quasi-static detector -> recursive estimator -> correction (K^-1 (raw - o)) ->
-        SocketServer.publish()  --[server thread]--> clients
-                                 \\-> RateLimitedSaver --[saver thread]--> state.json
+    driver.read() --[acquisition thread]--> correction a = K^-1 (raw - o) --> SocketServer.publish()
+         |                                                          --[server thread]--> clients
+         \\--> RingBuffer --[processing thread, every 50 ms of data]--> quasi-static detector
+                 -> recursive estimator -> accepted calibration (used by the correction)
+                 -> CALIB push, RateLimitedSaver --[saver thread]--> state.json
 
-The acquisition thread only reads the driver and pushes into the ring buffer (which
-overwrites the oldest samples, counted, if processing ever falls behind). Clients are
-served by the server thread; the state is written by the saver thread. The main thread
-handles signals (SIGTERM/SIGINT: clean stop with the state saved; SIGHUP: reload the
-configuration), feeds the systemd watchdog only while samples flow, and updates STATUS=.
+The acquisition thread reads the driver, corrects each block with the accepted calibration
+and publishes it at once (publish() never blocks), then pushes it into the ring buffer for
+the analysis (which overwrites the oldest samples, counted, if the analysis ever falls
+behind; clients have them already). The main thread handles signals (SIGTERM/SIGINT: clean
+stop with the state saved; SIGHUP: reload the configuration), feeds the systemd watchdog only
+while samples flow, and updates STATUS=. ``--emulate`` puts the logger emulator in place of
+the hardware (:class:`EmulatedBus`).
 
 Calibration life cycle: a saved state resumes the recursive estimator where it stopped
 (parameters and covariance). Without one, the start is the lab calibration (if configured)
-or the ADXL210 datasheet values; the first ``min_windows`` quasi-static windows are then
-fitted in batch (LottersBatch) before the recursion takes over, so a wrong start does not
-have to be within the linearisation's reach. A calibration is *accepted* -- used for the
-published samples and saved -- when it converged, is observable and rests on at least
-``min_windows`` windows.
+or the ADXL210 datasheet values; windows are pooled (:class:`SeedPool`) and fitted in batch
+(LottersBatch, eq. 11a) once there are two per parameter, until a fit is converged and
+observable; it seeds the recursion, so a wrong start does not have to be within the
+linearisation's reach. A calibration is *accepted* -- used for the published samples and
+saved -- when it converged, is observable and rests on at least ``min_windows`` windows.
+docs/daemon.md describes running it.
 
 Entry point: ``gravcal.daemon.gravcald:main`` (console script ``gravcald``).
 """
 from __future__ import annotations
 
 import argparse
+import collections
 import logging
+import math
 import os
 import signal
 import sys
+import tempfile
 import threading
 import time
 from typing import Any, Sequence
@@ -49,11 +56,18 @@ from .server import ServerConfig, SocketPathError, SocketServer, activated_socke
 
 log = logging.getLogger("gravcal.gravcald")
 
-# ADXL210 datasheet: 50 % duty cycle at 0 g, 12.5 % per g (the T1/T2 output, see core/samples.py).
+# ADXL210E datasheet: 50 % duty cycle at 0 g, 4 % per g (the T1/T2 output, see core/samples.py and core/model/defaults.py).
 NOMINAL_OFFSET = 0.5
-NOMINAL_SENSITIVITY = 0.125
+NOMINAL_SENSITIVITY = 0.04
 
-MAX_BOOTSTRAP_WINDOWS = 200  # windows kept for the initial batch fit (oldest dropped)
+MAX_SEED_WINDOWS = 300  # windows kept for the batch fit that seeds the recursion (see SeedPool)
+REOPEN_AFTER_READ_ERRORS = 3  # a driver whose read() keeps raising is closed and reopened
+ANALYSIS_BLOCK_S = 0.05  # samples collected before the detector and estimator run [s of data]
+SEED_RETRY_EVERY = 10  # windows between seed fits when no new orientation arrived
+# With as many windows as parameters a batch fit matches them exactly and can pass its own
+# observability check while 30 % off (seen with 6 windows of the six-position scenario, seed 0);
+# twice as many leave residual degrees of freedom to expose a wrong fit.
+SEED_WINDOWS_PER_PARAM = 2
 
 # Settings that only take effect at start (SIGHUP says so instead of half-applying them).
 RESTART_KEYS = {
@@ -74,6 +88,44 @@ def nominal_calibration(model: str = "6") -> Calibration:
 # -- processing (numerics only; runs in the processing thread) -------------------------
 
 
+class SeedPool:
+    """The windows kept for the batch fit that seeds (or re-seeds) the recursion.
+
+    At most ``capacity`` windows. When full, the oldest window of the most crowded direction
+    cell goes, so the rare orientations that make the parameters observable (a lie-down in a
+    day of sitting and standing) stay in the pool instead of ageing out. Directions are taken
+    under ``to_g`` (the start calibration: rough, but good enough to tell postures apart) and
+    binned in cells of about 20°.
+    """
+
+    def __init__(self, capacity: int, to_g: Calibration):
+        self.capacity = int(capacity)
+        self.to_g = to_g
+        self.windows: list[Window] = []
+        self.cells: list[tuple[int, int, int]] = []
+        self.new_cell = False  # the last add() opened a direction cell not seen before
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def add(self, w: Window) -> None:
+        a = self.to_g.apply(np.asarray(w.mean, dtype=float)[None, :])[0]
+        norm = float(np.linalg.norm(a))
+        cell = tuple(int(v) for v in np.round(3.0 * a / norm)) if norm > 0 and np.isfinite(norm) else (0, 0, 0)
+        self.new_cell = cell not in self.cells
+        self.windows.append(w)
+        self.cells.append(cell)
+        if len(self.windows) > self.capacity:
+            counts = collections.Counter(self.cells)
+            crowded = max(counts, key=counts.__getitem__)
+            i = self.cells.index(crowded)  # its oldest window
+            del self.windows[i], self.cells[i]
+
+    def window_set(self) -> WindowSet:
+        return WindowSet.from_windows(self.windows)
+
+
+
 class Processor:
     """Detector -> estimator -> correction for one stream of sample blocks.
 
@@ -86,8 +138,10 @@ class Processor:
         self.state = start
         self.start = start.calibration  # the batch fit's starting point
         self.applied = start.calibration  # what corrects the published samples until an update is accepted
+        self.static_now = False  # the detector's latest per-sample decision
         self.windows_base = int(start.calibration.n_windows) if resumed else 0
-        self._pending: list[Window] = []  # windows collected for the initial batch fit
+        self.pool = SeedPool(MAX_SEED_WINDOWS, start.calibration)  # for (re)seeding the recursion
+        self._since_try = 0
         self.estimator: Any = None
         if resumed:
             self.estimator = self._recursive(start.calibration)
@@ -123,29 +177,63 @@ class Processor:
             self.detector.to_g = self.applied
 
     # per block ------------------------------------------------------------------------
-    def process(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(acc [m/s²] (N, 3), gyro [rad/s] (N,), static (N,) bool) for a sample block;
-        sets ``self.changed`` when the calibration state changed."""
-        raw = raw_triad(block)
-        acc = self.applied.apply(raw) * STANDARD_GRAVITY  # corrected with the accepted calibration
+    @property
+    def applied(self) -> Calibration:
+        """The accepted calibration that corrects the published samples."""
+        return self._applied
+
+    @applied.setter
+    def applied(self, cal: Calibration) -> None:
+        self._applied = cal
+        # a = K^-1 (raw - o) as one matrix product per block: the inverse is taken once here.
+        # One tuple, swapped atomically: correct() runs in the acquisition thread.
+        self._correction = (np.asarray(cal.offset, dtype=float),
+                            np.linalg.inv(np.asarray(cal.sensitivity, dtype=float)).T * STANDARD_GRAVITY)
+
+    def correct(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The fast path, per block as it arrives: (acc [m/s²] (N, 3) corrected with the accepted
+        calibration, gyro [rad/s] (N,) NaN when not configured, static (N,) bool = the
+        detector's latest decision, at most ANALYSIS_BLOCK_S of data old)."""
+        offset, kinv_t = self._correction
+        acc = (raw_triad(block) - offset) @ kinv_t
         g = self.cfg.gyro
-        gyro = (block["gyro"].astype(float) - g.zero_counts) / g.counts_per_rad_s  # NaN when not configured
-        windows = self.detector.update(block["t"], raw, block["temp"].astype(float)[:, None])
+        gyro = (block["gyro"].astype(float) - g.zero_counts) / g.counts_per_rad_s
+        return acc, gyro, np.full(block.shape[0], self.static_now)
+
+    def analyse(self, block: np.ndarray) -> np.ndarray:
+        """Detector and estimator over a block (in arrival order, any split); returns the
+        per-sample static decisions (N,) bool; sets ``self.changed`` when the calibration
+        state changed."""
+        raw = raw_triad(block)
+        # The detector runs on device time (unwrapped seq / fs), not on the host's reception
+        # stamps: USB latency jitter (or an emulator's time-lapse) would read as time gaps and
+        # cut every window, while lost samples still show as seq jumps.
+        t_device = block["seq"].astype(np.float64) / self.cfg.device.fs_hz
+        windows = self.detector.update(t_device, raw, block["temp"].astype(float)[:, None])
         det = getattr(self.detector, "last_detection", None)
         if det is not None and det.shape[0] == block.shape[0]:
             static = det < self.detector.threshold_g
         else:
             static = np.zeros(block.shape[0], dtype=bool)
+        if static.shape[0]:
+            self.static_now = bool(static[-1])
         self.changed = False
         for w in windows:
             self._window(w)
-        return acc, gyro, static
+        return static
+
+    def process(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """correct() then analyse() on one block, with exact per-sample static flags."""
+        acc, gyro, _ = self.correct(block)
+        return acc, gyro, self.analyse(block)
 
     def _window(self, w: Window) -> None:
         self.windows_seen += 1
+        self.pool.add(w)
+        self._since_try += 1
         cfg = self.cfg.estimator
         if self.estimator is None:
-            cal = self._initial_fit(w)
+            cal = self._seed_fit()
             if cal is None:
                 return
         else:
@@ -153,8 +241,20 @@ class Processor:
             cal = self.estimator.update(w)
             if self.estimator.n_rejected > before:
                 self.windows_rejected += 1
-                return
-            cal.n_windows = self.windows_base + self.estimator.n_updates
+                if cal.converged:
+                    return
+                # The recursion gave up (LottersRecursive.max_consecutive_rejections windows in a row
+                # contradict it): the sensor changed, or a resumed state belongs to another sensor.
+                # Fit the recent windows afresh; keep the current values until that fit is usable.
+                log.warning("the recursive estimator rejected %d windows in a row; refitting from the last %d "
+                            "windows", self.estimator.consecutive_rejected, len(self.pool))
+                refit = self._seed_fit()
+                if refit is None or not (refit.converged and refit.observable):
+                    self.estimator.consecutive_rejected = 0  # try again after as many more
+                    return
+                cal = refit
+            else:
+                cal.n_windows = self.windows_base + self.estimator.n_updates
         accepted = bool(cal.converged and cal.observable and cal.n_windows >= cfg.min_windows)
         self.state = CalibrationState(cal, self.state.revision + 1, time.time(), accepted, dict(self.state.extra))
         if accepted:
@@ -162,26 +262,172 @@ class Processor:
             self.detector.to_g = cal
         self.changed = True
 
-    def _initial_fit(self, w: Window) -> Calibration | None:
-        """Batch fit (eq. 11a) over the windows so far; the recursion takes over once it is
+    def seed_windows_needed(self) -> int:
+        """Windows before the batch fit that seeds the recursion is tried: at least
+        SEED_WINDOWS_PER_PARAM per parameter, and at least ``min_windows``."""
+        from ..core.estimators.lotters import resolve_parameterization
+
+        n = resolve_parameterization(self.cfg.estimator.model, self.start).n_params
+        return max(self.cfg.estimator.min_windows, SEED_WINDOWS_PER_PARAM * n, 1)
+
+    def _seed_fit(self) -> Calibration | None:
+        """Batch fit (eq. 11a) over the recent windows; the recursion takes over once it is
         converged and observable. Until then the candidate is published, not applied."""
         from ..core.estimators.lotters import LottersBatch
 
-        need = max(self.cfg.estimator.min_windows, 1)
-        self._pending.append(w)
-        del self._pending[: -MAX_BOOTSTRAP_WINDOWS]
-        if len(self._pending) < need:
+        if len(self.pool) < self.seed_windows_needed():
             return None
-        try:
-            cal = LottersBatch(self.cfg.estimator.model).fit(WindowSet.from_windows(self._pending), start=self.start)
+        if not (self.pool.new_cell or self._since_try >= SEED_RETRY_EVERY or self.estimator is not None):
+            return None  # the same postures again: the fit would not change its verdict
+        self._since_try = 0
+        try:  # from the start values; LottersBatch retries from an ellipsoid fit when they are far off
+            cal = LottersBatch(self.cfg.estimator.model).fit(self.pool.window_set(), start=self.start)
         except ValueError as exc:  # e.g. too few distinct orientations yet
-            log.debug("initial batch fit not possible yet: %s", exc)
+            log.debug("seed batch fit not possible yet: %s", exc)
             return None
         if cal.converged and cal.observable:
             self.windows_base = cal.n_windows
-            self._pending = []
             self.estimator = self._recursive(cal)
         return cal
+
+
+# -- --emulate: the built-in emulator as the device ------------------------------------------
+
+
+def emulated_truth(scenario: str, seed: int) -> Calibration | None:
+    """The calibration an ideal estimator should find for the emulator's sensor (raw = K a + o,
+    duty cycle units): the emulator draws the sensor with ``default_model`` from the seed's
+    model stream, exactly as ``core.simulate.simulate_blocks`` does. None for the test pattern."""
+    if scenario == "pattern":
+        return None
+    from ..core.model.defaults import default_model, triad_truth
+    from ..core.simulate import _streams  # the seed -> (motion, model, sensor) split of the simulator
+
+    return triad_truth(default_model(_streams(seed)[1]))
+
+
+def _DetachedEmulator(args: Sequence[str], *, linger: float) -> Any:
+    """drivers.hil.EmulatorProcess started in its own session, so that a Ctrl-C at the terminal
+    reaches only the daemon, which then saves its state and stops the emulator itself."""
+    import queue
+    import subprocess
+    from ..drivers.hil import EmulatorProcess
+
+    class Detached(EmulatorProcess):
+        def __enter__(self) -> "Detached":
+            self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                         env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
+            threading.Thread(target=self._pump, daemon=True).start()
+            try:
+                line = self._lines.get(timeout=self.start_timeout)
+            except queue.Empty:
+                line = None
+            if not line:
+                raise RuntimeError(f"emulator did not start: {self._stop().strip()[-2000:]}")
+            self.spec = line.strip()
+            return self
+
+    return Detached(args, linger=linger)
+
+
+class EmulatedBus:
+    """``gravcald --emulate``: the logger emulator stands in for the hardware.
+
+    serial/can: the emulator runs in a child process (drivers/hil.py) on a real pty (serial
+    frames) or an slcan pty (python-can's slcan interface opens it); the daemon opens the device
+    path like a USB adapter. i2c: the fake I2C device runs in this process behind the real
+    I2CDriver (there is no kernel I2C to share). The sensor is drawn off-nominal from ``seed``;
+    the daemon starts from the datasheet values as usual, i.e. deliberately wrong.
+
+    With a time-lapse ``speed`` the device ticks run ``speed`` times faster than the host clock,
+    so the drivers' host time stamps (``tick_hz`` scaled by ``speed``) stay monotonic; the
+    estimator works on device time (seq / fs) and is unaffected.
+    """
+
+    def __init__(self, bus: str = "serial", *, scenario: str = "daily_living", seed: int = 0, speed: float = 1.0,
+                 fs: float = 200.0, duration: float = 86400.0, disconnects: Sequence[tuple[float, float]] = (),
+                 driver_options: str = ""):
+        if bus not in ("serial", "can", "i2c"):
+            raise ValueError(f"--bus must be serial, can or i2c, got {bus!r}")
+        if not speed > 0:
+            raise ValueError(f"--speed must be > 0, got {speed}")
+        self.bus, self.scenario, self.seed, self.speed, self.fs = bus, scenario, int(seed), float(speed), float(fs)
+        self.duration, self.disconnects = float(duration), tuple(disconnects)
+        self.driver_options = driver_options.strip("&?")
+        self.process: Any = None  # EmulatorProcess (serial/can)
+        self.device: Any = None  # FakeI2CDevice (i2c)
+        self.spec = ""
+        self.truth: Calibration | None = None  # set by open() (imports the simulator: not before the socket is bound)
+
+    def _tick_hz(self) -> float:
+        from ..drivers.codec import TICK_HZ
+
+        return TICK_HZ * self.speed if math.isfinite(self.speed) else 0.0  # 0: stamp blocks at reception
+
+    def open(self) -> Any:
+        """Start the emulator and return the opened driver."""
+        self.truth = emulated_truth(self.scenario, self.seed)
+        if self.bus == "i2c":
+            return self._open_i2c()
+        from ..drivers.base import open_driver
+
+        args = ["--bus", self.bus, "--scenario", self.scenario, "--seed", str(self.seed),
+                "--speed", "max" if math.isinf(self.speed) else repr(self.speed), "--fs", repr(self.fs),
+                "--duration", repr(self.duration)]
+        for start, dur in self.disconnects:
+            args += ["--disconnect-at", f"{start!r}:{dur!r}"]
+        proc = _DetachedEmulator(args, linger=-1.0)  # the device stays plugged in after the stream ends
+        try:
+            proc.__enter__()
+        except RuntimeError as exc:
+            raise ValueError(f"--emulate: {exc}") from None
+        self.process = proc
+        self.spec = proc.spec + ("&" if "?" in proc.spec else "?") + f"tick_hz={self._tick_hz():.0f}"
+        if self.driver_options:
+            self.spec += "&" + self.driver_options
+        return open_driver(self.spec)
+
+    def _open_i2c(self) -> Any:
+        from ..drivers.emulator import Faults
+        from ..drivers.fakes import FakeI2CDevice, FakeSMBus
+        from ..drivers.i2c import I2CDriver
+        from ..drivers.sources import scenario_source
+
+        speed = self.speed if math.isfinite(self.speed) else 100.0  # a FIFO fills at a finite pace
+        source = scenario_source(self.scenario, seed=self.seed, fs=self.fs, duration=self.duration)
+        depth = 255  # the deepest FIFO the register map allows: room for the host's scheduling jitter
+        self.device = device = FakeI2CDevice(source.blocks, source.fs, speed=speed, fifo_depth=depth,
+                                             faults=Faults(disconnects=self.disconnects, seed=self.seed))
+        poll_s = max(0.001, depth / (source.fs * speed) / 4)  # a quarter of the FIFO's fill time
+        driver = I2CDriver("fake", device.address, poll_s=poll_s, tick_hz=self._tick_hz(),
+                           smbus_factory=lambda bus: FakeSMBus(device, bus))
+        self.spec = (f"i2c://fake/0x{device.address:02X}?scenario={self.scenario}&seed={self.seed}"
+                     f"&fs={self.fs:g}&speed={speed:g}&fifo_depth={depth}")
+        return driver.open()
+
+    def describe(self) -> str:
+        where = {"serial": "a pty", "can": "an slcan pty", "i2c": "a fake I2C device (in process)"}[self.bus]
+        pid = f", emulator pid {self.process.proc.pid}" if self.process is not None else ""
+        return (f"emulated {self.bus} logger on {where}{pid}: scenario {self.scenario}, seed {self.seed}, "
+                f"{self.fs:g} Hz, speed {self.speed:g}x; device {self.spec}")
+
+    def status(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"bus": self.bus, "scenario": self.scenario, "seed": self.seed, "speed": self.speed,
+                               "fs_hz": self.fs, "spec": self.spec}
+        if self.process is not None:
+            out["events"] = list(self.process.events)
+            out["stream_done"] = self.process.done_line
+        if self.truth is not None:  # what the estimate should converge to (raw = K a + o)
+            out["truth"] = {"offset": self.truth.offset.tolist(), "sensitivity": self.truth.sensitivity.tolist()}
+        return out
+
+    def close(self) -> None:
+        if self.process is not None:
+            self.process.__exit__(None, None, None)
+            err = (getattr(self.process, "stderr", "") or "").strip()
+            if err:
+                log.debug("emulator stderr: %s", err[-2000:])
+            self.process = None
 
 
 # -- the service -------------------------------------------------------------------------
@@ -192,8 +438,9 @@ class Gravcald:
 
     def __init__(self, cfg: Config, *, driver: Any = None, notifier: Notifier | None = None,
                  environ: dict[str, str] | None = None, detector: Any = None, config_path: str | None = None,
-                 overrides: dict[str, Any] | None = None):
+                 overrides: dict[str, Any] | None = None, emulator: EmulatedBus | None = None):
         self.cfg = cfg
+        self.emulator = emulator
         self.config_path = config_path
         self.overrides = overrides or {}
         self.environ = os.environ if environ is None else environ
@@ -217,6 +464,10 @@ class Gravcald:
         self.exit_code = 0
         self._rate_hz = 0.0
         self._rate_mark = (time.monotonic(), 0)
+        self.reloads = 0  # successful SIGHUP reloads
+        self.process_errors = 0  # sample blocks lost to an exception in the processing chain
+        self.driver_reopens = 0  # reopened after REOPEN_AFTER_READ_ERRORS read exceptions in a row
+        self.reload_error: str | None = None  # why the last reload was refused (None: it worked)
 
     # -- start ---------------------------------------------------------------------------
     def _initial_state(self) -> tuple[CalibrationState, bool]:
@@ -256,6 +507,10 @@ class Gravcald:
     def _open_driver(self) -> Any:
         if self._driver is not None:
             return self._driver
+        if self.emulator is not None:
+            driver = self.emulator.open()
+            self.cfg.device.spec = self.overrides["device.spec"] = self.emulator.spec  # SIGHUP keeps it
+            return driver
         from ..drivers.base import open_driver  # lazy: the drivers are a separate layer
 
         return open_driver(self.cfg.device.spec)  # opened; DriverError names a missing device / group
@@ -283,45 +538,78 @@ class Gravcald:
 
     # -- threads -------------------------------------------------------------------------
     def _acquire(self) -> None:
-        """Read the driver into the ring buffer. Nothing else: no clients, no disk."""
+        """Read the driver; correct and publish each block at once (the latency path: the
+        server's publish() never blocks); hand it to the processing thread through the ring
+        buffer. Nothing here waits for clients, disk or the estimator."""
         d = self.cfg.device
-        backoff = 0.05
+        p = self.processor
+        analysis_n = max(1, round(d.fs_hz * ANALYSIS_BLOCK_S))
+        backoff, failures = 0.05, 0
         while not self._acq_stop.is_set():
             try:
                 block = self.driver.read(max_samples=d.read_block, timeout=d.read_timeout_s)
             except Exception as exc:  # the driver should absorb bus errors; survive anything else
                 self.read_errors += 1
+                failures += 1
                 log.error("driver read failed: %s", exc)
+                if failures % REOPEN_AFTER_READ_ERRORS == 0:  # e.g. a parser stuck on a garbled line
+                    self._reopen_driver()
                 self._acq_stop.wait(backoff)
                 backoff = min(backoff * 2, 2.0)
                 continue
-            backoff = 0.05
+            backoff, failures = 0.05, 0
             n = block.shape[0]
-            if n:
-                self.ring.push(block)
-                self.samples_in += n
-                self.watchdog.samples_arrived(n)
+            if not n:
+                continue
+            self.samples_in += n
+            self.watchdog.samples_arrived(n)
+            try:
+                acc, gyro, static = p.correct(block)
+            except Exception:  # a numerics bug must not stop acquisition
+                self.process_errors += 1
+                log.exception("correcting a block of %d samples failed", n)
+            else:
+                self.server.publish(block, acc, gyro, static)
+            self.ring.push(block)
+            if len(self.ring) >= analysis_n:
                 self._data.set()
 
+    def _reopen_driver(self) -> None:
+        log.warning("%d driver read errors in a row: closing and reopening %s", REOPEN_AFTER_READ_ERRORS,
+                    self.cfg.device.spec)
+        self.driver_reopens += 1
+        try:
+            self.driver.close()
+            self.driver.open()
+        except Exception as exc:
+            log.error("reopening the device failed: %s", exc)
+
     def _process(self) -> None:
-        p = self.processor
+        """The detector and the estimator, on every ANALYSIS_BLOCK_S of samples collected
+        (their per-call overhead, ~0.2 ms, would otherwise be paid per sample at low rates).
+        If this thread falls behind, the ring buffer drops the oldest samples from the
+        analysis (counted); clients have them already."""
         while True:
             self._data.wait(0.2)
             self._data.clear()
             block = self.ring.pop()
             if block.shape[0]:
-                try:
-                    acc, gyro, static = p.process(block)
-                except Exception:  # a numerics bug must not take the service down silently
-                    log.exception("processing a block of %d samples failed", block.shape[0])
-                    continue
-                self.server.publish(block, acc, gyro, static)
-                if p.changed:
-                    self.server.set_calibration(self._calib_message())
-                    if p.state.accepted:
-                        self.saver.offer(p.state)
+                self._analyse(block)
             elif self._stop.is_set() and not any(t.is_alive() for t in self._threads[:1]):
                 return
+
+    def _analyse(self, block: np.ndarray) -> None:
+        p = self.processor
+        try:
+            p.analyse(block)
+        except Exception:
+            self.process_errors += 1
+            log.exception("analysing a block of %d samples failed", block.shape[0])
+            return
+        if p.changed:
+            self.server.set_calibration(self._calib_message())
+            if p.state.accepted:
+                self.saver.offer(p.state)
 
     # -- status --------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -340,9 +628,11 @@ class Gravcald:
         st = p.state
         return {
             "device": {"spec": self.cfg.device.spec, "rate_hz": round(self._rate_hz, 2), "samples": self.samples_in,
-                       "read_errors": self.read_errors, **drv_stats},
+                       "read_errors": self.read_errors, "reopens": self.driver_reopens, **drv_stats},
             "ring": self.ring.stats(),
-            "detector": {"method": self.cfg.detector.method, "windows": p.windows_seen, **det_stats},
+            "processing": {"errors": self.process_errors},
+            "detector": {"method": self.cfg.detector.method, "threshold_g": self.cfg.detector.threshold_g,
+                         "windows": p.windows_seen, **det_stats},
             "calibration": {"model": st.model, "revision": st.revision, "accepted": st.accepted,
                             "n_windows": st.calibration.n_windows, "rejected_windows": p.windows_rejected,
                             "updated": st.updated},
@@ -351,7 +641,9 @@ class Gravcald:
                       "last_error": self.saver.last_error if self.saver else None},
             "watchdog": {"interval_s": self.watchdog.interval_s, "feeds": self.watchdog.feeds,
                          "withheld": self.watchdog.withheld},
+            "config": {"path": self.config_path, "reloads": self.reloads, "reload_error": self.reload_error},
             "notes": list(self.notes),
+            **({"emulator": self.emulator.status()} if self.emulator is not None else {}),
         }
 
     def _status_text(self) -> str:
@@ -400,6 +692,7 @@ class Gravcald:
             new = config_mod.load_config(self.config_path, self.overrides, required=False) if self.config_path \
                 else config_mod.load_config(None, self.overrides)
         except ConfigError as exc:
+            self.reload_error = str(exc)
             log.error("reload: %s; keeping the running configuration", exc)
             self.notifier.ready(f"reload failed: {exc}")
             return
@@ -418,6 +711,8 @@ class Gravcald:
         self.server.config.max_request_bytes = s.max_request_bytes
         self.processor.reconfigure(new)  # the processing thread reads it at the next block
         self.cfg = new
+        self.reloads += 1
+        self.reload_error = None
         log.info("configuration reloaded from %s", self.config_path or "(defaults and command line)")
         self.notifier.ready(self._status_text())
 
@@ -433,6 +728,8 @@ class Gravcald:
                 self.driver.close()
         except Exception as exc:
             log.warning("closing the driver: %s", exc)
+        if self.emulator is not None:
+            self.emulator.close()
         self._data.set()
         for t in self._threads[1:]:
             t.join(5.0)
@@ -461,7 +758,62 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lab-calibration", metavar="FILE", help="start from this calibration JSON when there is no saved state")
     p.add_argument("--log-level", choices=("debug", "info", "warning", "error"))
     p.add_argument("--print-config", action="store_true", help="print the effective configuration as TOML and exit")
+    e = p.add_argument_group(
+        "emulation", "--emulate runs the daemon against the built-in logger emulator instead of hardware: a sensor "
+        "drawn off-nominal, a daemon starting from the datasheet values. The socket and state directory default to "
+        "a fresh temporary directory (printed at start); /etc/gravcal/gravcald.toml is not read (use --config).")
+    e.add_argument("--emulate", action="store_true", help="use the emulator as the device")
+    e.add_argument("--bus", choices=("serial", "can", "i2c"), default="serial",
+                   help="emulated bus: serial (pty), can (slcan on a pty) or i2c (fake device) (default serial)")
+    e.add_argument("--speed", type=_speed, default=1.0, metavar="X",
+                   help="time-lapse factor of the emulated logger (1 = real time, default; 'max' = no pacing)")
+    e.add_argument("--seed", type=int, default=0, help="seed of the emulated sensor and wearer (default 0)")
+    e.add_argument("--scenario", default="daily_living",
+                   help="emulated motion: daily_living (default), loetters, six_position, static, or pattern")
+    e.add_argument("--duration", type=float, default=86400.0, metavar="S",
+                   help="emulated stream length [s of sensor time] (default 86400, a day; the motion is planned "
+                        "ahead, so longer takes longer to start); then the bus goes silent")
+    e.add_argument("--driver-options", default="", metavar="K=V&...",
+                   help="serial/can: extra options for the driver's spec, e.g. batch_frames=1 (serial: a wake-up per "
+                        "frame, lowest latency, more CPU; default 16 frames per wake-up)")
+    e.add_argument("--disconnect-at", type=_disconnect, action="append", default=[], metavar="T:DUR",
+                   help="unplug the emulated device at sensor time T for DUR seconds (repeatable)")
     return p
+
+
+def _speed(text: str) -> float:
+    if text.strip().lower() in ("max", "inf"):
+        return math.inf
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"speed must be a number or 'max', got {text!r}") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"speed must be > 0, got {text!r}")
+    return v
+
+
+def _disconnect(text: str) -> tuple[float, float]:
+    try:
+        start, dur = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected T:DUR in seconds (e.g. 30:5), got {text!r}") from None
+    if not (start >= 0 and dur > 0):
+        raise argparse.ArgumentTypeError(f"disconnect {text!r}: need T >= 0 and DUR > 0")
+    return start, dur
+
+
+def emulation_defaults(args: argparse.Namespace, overrides: dict[str, Any]) -> list[str]:
+    """--emulate without --socket/--state-dir: both in a fresh private temporary directory
+    (under $XDG_RUNTIME_DIR when set). Fills ``overrides``; returns what to print."""
+    if args.socket and args.state_dir:
+        return []
+    base = tempfile.mkdtemp(prefix="gravcald-emulate-", dir=os.environ.get("XDG_RUNTIME_DIR") or None)
+    if not args.socket:
+        overrides["socket.path"] = os.path.join(base, "gravcal.sock")
+    if not args.state_dir:
+        overrides["state.directory"] = os.path.join(base, "state")
+    return [base]
 
 
 def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
@@ -492,11 +844,29 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
     """``gravcald`` entry point. Exit status: 0 clean stop, 1 runtime failure, 2 bad
     configuration or arguments (one line on stderr)."""
     env = os.environ if environ is None else environ
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not args.emulate:
+        given = [opt for opt, dest in (("--bus", "bus"), ("--speed", "speed"), ("--seed", "seed"),
+                                       ("--scenario", "scenario"), ("--duration", "duration"),
+                                       ("--disconnect-at", "disconnect_at"), ("--driver-options", "driver_options"))
+                 if getattr(args, dest) != parser.get_default(dest)]
+        if given:
+            print(f"gravcald: error: {', '.join(given)} {'needs' if len(given) == 1 else 'need'} --emulate", file=sys.stderr)
+            return 2
+    elif args.device:
+        print("gravcald: error: --device and --emulate exclude each other (the emulator is the device)", file=sys.stderr)
+        return 2
+    elif not (args.duration > 0 and math.isfinite(args.duration)):
+        print(f"gravcald: error: --duration must be a positive number of seconds, got {args.duration}", file=sys.stderr)
+        return 2
     overrides = overrides_from_args(args)
     config_path = args.config
+    emulate_dirs = emulation_defaults(args, overrides) if args.emulate and not args.print_config else []
     try:
-        if config_path is None:
+        if args.emulate:  # the emulator is self-contained: read a config file only when asked to
+            cfg = config_mod.load_config(config_path, overrides)
+        elif config_path is None:
             candidate = default_config_path(env)
             cfg = config_mod.load_config(candidate if os.path.exists(candidate) else None, overrides)
             config_path = candidate if os.path.exists(candidate) else None
@@ -509,7 +879,17 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
         print(config_mod.example_toml(cfg))
         return 0
     _setup_logging(cfg.daemon.log_level, env)
-    daemon = Gravcald(cfg, driver=driver, environ=env, config_path=config_path, overrides=overrides)
+    emulator = None
+    if args.emulate and driver is None:
+        try:
+            emulator = EmulatedBus(args.bus, scenario=args.scenario, seed=args.seed, speed=args.speed,
+                                   fs=cfg.device.fs_hz, duration=args.duration, disconnects=args.disconnect_at,
+                                   driver_options=args.driver_options)
+        except ValueError as exc:
+            print(f"gravcald: error: {' '.join(str(exc).split())}", file=sys.stderr)
+            return 2
+    daemon = Gravcald(cfg, driver=driver, environ=env, config_path=config_path, overrides=overrides,
+                      emulator=emulator)
     signal.signal(signal.SIGTERM, daemon.request_stop)
     signal.signal(signal.SIGINT, daemon.request_stop)
     signal.signal(signal.SIGHUP, daemon.request_reload)
@@ -523,7 +903,24 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
         daemon.shutdown()
         print(f"gravcald: error: {type(exc).__name__}: {' '.join(str(exc).split())}", file=sys.stderr)
         return 1
+    if emulator is not None:
+        _announce_emulation(daemon, emulator, emulate_dirs)
     return daemon.run()
+
+
+def _announce_emulation(daemon: Gravcald, emulator: EmulatedBus, dirs: list[str]) -> None:
+    sock = daemon.server.address if isinstance(daemon.server.address, str) else daemon.cfg.socket.path
+    temporary_state = bool(dirs) and daemon.store.directory == os.path.join(dirs[0], "state")
+    lines = [f"gravcald --emulate: {emulator.describe()}",
+             f"  socket: {sock}   (try: gravcal watch --socket {sock})",
+             f"  state:  {daemon.store.directory}" + (f"   (new; --state-dir {daemon.store.directory} resumes it)"
+                                                     if temporary_state else ""),
+             "  start:  " + "; ".join(daemon.notes[-1:]) + "   (Ctrl-C stops and saves the state)"]
+    if emulator.truth is not None:
+        t = emulator.truth
+        lines.append(f"  truth:  offset {np.round(t.offset, 5).tolist()} sensitivity "
+                     f"{np.round(np.diag(t.sensitivity), 5).tolist()} [duty, duty/g] (what the estimate should reach)")
+    print("\n".join(lines), flush=True)
 
 
 if __name__ == "__main__":  # pragma: no cover

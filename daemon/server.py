@@ -161,11 +161,70 @@ def activated_socket(name: str = "gravcal", *, environ: dict[str, str] | None = 
 # -- clients -------------------------------------------------------------------------
 
 
+class OutputQueue:
+    """A client's bounded output queue, in messages; the oldest are dropped beyond ``limit``.
+
+    Entries are runs of encoded lines ``[lines, start, joined]``: a block's IMU lines are
+    encoded once and the same list (and, for full-rate clients, the same pre-joined bytes) is
+    queued for every client, so queueing and sending cost one C-level join per block and
+    client, never a Python step per line. Dropping a part of a run advances ``start``.
+    """
+
+    __slots__ = ("entries", "size", "limit")
+
+    def __init__(self, limit: int):
+        self.entries: collections.deque = collections.deque()
+        self.size = 0  # messages queued
+        self.limit = int(limit)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def put(self, lines: list[bytes], joined: bytes | None = None) -> int:
+        """Queue ``lines`` (``joined`` = b"".join(lines) if already at hand); returns how many
+        of the oldest queued messages were dropped to stay within the limit."""
+        n = len(lines)
+        if n == 0:
+            return 0
+        self.entries.append([lines, 0, joined])
+        self.size += n
+        lost = 0
+        while self.size > self.limit:
+            e = self.entries[0]
+            avail = len(e[0]) - e[1]
+            excess = self.size - self.limit
+            if avail <= excess:
+                self.entries.popleft()
+                self.size -= avail
+                lost += avail
+            else:
+                e[1] += excess
+                e[2] = None
+                self.size -= excess
+                lost += excess
+        return lost
+
+    def take(self, max_bytes: int) -> tuple[list[bytes], int]:
+        """Whole runs, oldest first, until about ``max_bytes``: (byte strings, messages)."""
+        out: list[bytes] = []
+        n = size = 0
+        entries = self.entries
+        while entries and size < max_bytes:
+            lines, start, joined = entries.popleft()
+            data = joined if joined is not None else b"".join(lines[start:] if start else lines)
+            out.append(data)
+            n += len(lines) - start
+            size += len(data)
+        self.size -= n
+        return out, n
+
+
+
 @dataclass
 class _Client:
     id: int
     sock: socket.socket
-    queue: collections.deque
+    queue: OutputQueue
     connected: float
     watch: WatchPolicy = field(default_factory=WatchPolicy)
     inbuf: bytearray = field(default_factory=bytearray)
@@ -331,6 +390,11 @@ class SocketServer:
 
     # -- introspection ---------------------------------------------------------------
     @property
+    def backlog(self) -> int:
+        """Items published but not yet taken by the server thread (a replay source may wait on it)."""
+        return len(self._inbox)
+
+    @property
     def n_clients(self) -> int:
         return len(self._clients)
 
@@ -413,7 +477,7 @@ class SocketServer:
             c = _Client(
                 id=self._next_id,
                 sock=conn,
-                queue=collections.deque(maxlen=self.config.queue_messages),
+                queue=OutputQueue(self.config.queue_messages),
                 connected=now,
                 last_progress=now,
             )
@@ -558,14 +622,12 @@ class SocketServer:
             self._flush(c)
 
     # -- output ----------------------------------------------------------------------
-    def _enqueue(self, c: _Client, lines: list[bytes]) -> None:
-        q = c.queue
-        lost = len(q) + len(lines) - q.maxlen
+    def _enqueue(self, c: _Client, lines: list[bytes], joined: bytes | None = None) -> None:
+        lost = c.queue.put(lines, joined)
         if lost > 0:
             c.dropped_total += lost
             c.dropped_unreported += lost
             self.dropped_total += lost
-        q.extend(lines)  # deque(maxlen) discards the oldest, in C
 
     def _drain_inbox(self) -> None:
         with self._inbox_lock:
@@ -587,13 +649,13 @@ class SocketServer:
                     continue
                 t = item.samples["t"]
                 for c in watchers:
-                    lines = item.lines(c.watch.raw)
                     if c.watch.rate > 0:
                         mask, c.last_bucket = protocol.decimation_mask(t, c.watch.rate, c.last_bucket)
-                        idx = np.flatnonzero(mask).tolist()
-                        if len(idx) != len(lines):
-                            lines = [lines[i] for i in idx]
-                    self._enqueue(c, lines)
+                        idx = np.flatnonzero(mask)
+                        if idx.size != mask.size:
+                            self._enqueue(c, item.lines_at(c.watch.raw, idx))
+                            continue
+                    self._enqueue(c, item.lines(c.watch.raw), item.joined(c.watch.raw))
             else:
                 _, msg = item
                 self._calib = msg
@@ -609,22 +671,17 @@ class SocketServer:
         now = time.monotonic()
         while True:
             if not c.out:
-                chunk = []
+                chunk, n = c.queue.take(self.config.send_chunk_bytes)
                 if c.dropped_unreported:
-                    chunk.append(protocol.encode(protocol.dropped_message(c.dropped_unreported, c.dropped_total)))
+                    chunk.insert(0, protocol.encode(protocol.dropped_message(c.dropped_unreported, c.dropped_total)))
                     c.dropped_unreported = 0
-                size = 0
-                q = c.queue
-                while q and size < self.config.send_chunk_bytes:
-                    line = q.popleft()
-                    chunk.append(line)
-                    size += len(line)
+                    n += 1
                 if not chunk:
                     c.out = None
                     c.last_progress = now
                     break
-                c.sent_messages += len(chunk)
-                c.out = memoryview(b"".join(chunk))
+                c.sent_messages += n
+                c.out = memoryview(chunk[0] if len(chunk) == 1 else b"".join(chunk))
             try:
                 n = c.sock.send(c.out)
             except (BlockingIOError, InterruptedError):

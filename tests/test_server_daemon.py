@@ -21,7 +21,7 @@ from gravcal.core.samples import empty
 from gravcal.daemon.client import Client
 
 TRUE_OFFSET = np.array([0.51, 0.49, 0.505])  # duty cycle
-TRUE_SENS = np.array([0.13, 0.12, 0.128])  # duty cycle per g (datasheet start: 0.5 and 0.125)
+TRUE_SENS = np.array([0.042, 0.038, 0.0415])  # duty cycle per g (datasheet start: 0.5 and 0.04)
 G = 9.80665
 
 

@@ -15,6 +15,9 @@ LottersRecursive applies the same linearised model one window at a time (an iter
 recursive MVU update). Both work with any Parameterization (offsets, 6, and what H-twelve
 registers in PARAMETERIZATIONS), in the recording's raw units.
 
+Parameters a parameterization holds (offsets-only: the sensitivities) at uncertain values get a consider
+(Schmidt) term in the reported covariance: see "consider covariance" below.
+
 C_mu (the paper: "the variance of the collection of quasi-static moments") is per window:
 the delta-method variance of h from the window's covariance of the mean (cov / n), plus a
 quasi-static floor sigma_floor_g^2 for residual body motion that the window mean still
@@ -160,6 +163,196 @@ def start_far_note(off: float) -> str:
     """Message for an estimate that ended ``off`` (fraction of 1 g) away from the given start."""
     return (f"the given start was too far off ({off * 100:.1f} % of 1 g from the estimate; the paper's "
             f"linearisation assumes < 5 %): converged by iteration")
+
+
+# --------------------------------------------------------------------------------------
+# consider covariance (Schmidt): the uncertainty of the parameters a parameterization holds
+# --------------------------------------------------------------------------------------
+# A parameterization estimates p and holds the rest of (K, o) at the start's values (offsets-only
+# holds the sensitivities). When those held values are themselves uncertain (a datasheet nominal
+# start, a previous fit), their error propagates into p: linearised, eq. 10 becomes
+#     xi = B_e q + B_h dtheta + mu       (B_h = dh/dtheta, theta the held parameters)
+# and the MVU estimate (eq. 11a) picks up  q_hat = ... + G dtheta,  G = (B_e^T W B_e)^-1 B_e^T W B_h,
+# W = C_mu^-1. The honest covariance is C_total = C_e + G C_h G^T (consider / uncertain-parameter
+# analysis), C_h the held parameters' covariance. The estimate itself is unchanged.
+#
+# Where C_h comes from (one mechanism: the start Calibration says how uncertain it is):
+#   1. the start's own covariance over its param_names (a previous fit: 6-param, lab, bootstrap);
+#   2. start.metadata[HELD_KEY] = {"names": [...], "cov": [[...]]} [raw units²] for names not in 1
+#      (set by with_held_uncertainty; every fit here carries its held parameters' entry forward);
+#   Neither: the held values are taken as exact (no consider term, the previous behaviour). A datasheet
+#   nominal start has no data behind it but a known spread: wherever one is made, state it with
+#   datasheet_held_uncertainty(start) (the ADXL210 spreads of core/model/defaults.py).
+# Parameter names map to directions in (K, o): "s_x" / "s_xx" -> K[0, 0], "s_xy" -> K[0, 1] + K[1, 0],
+# "o_x" -> o[0]; directions the parameterization estimates are projected out (its own offsets'
+# prior uncertainty is not held: the windows re-estimate them).
+HELD_KEY = "held_covariance"
+CONSIDER_KEY = "consider"
+
+
+def _datasheet_rel_spreads() -> tuple[float, float]:
+    """(sensitivity std as a fraction of it, zero-g offset std [g]) of an ADXL210 part, from the
+    datasheet min/max in core/model/defaults.py (min/max = +-3 sigma, the model's own convention)."""
+    from gravcal.core.model.defaults import D0_LIMITS, SENS_LIMITS, SENS_TYP  # noqa: PLC0415
+
+    return (SENS_LIMITS[1] - SENS_LIMITS[0]) / 6.0 / SENS_TYP, (D0_LIMITS[1] - D0_LIMITS[0]) / 6.0 / SENS_TYP
+
+
+DATASHEET_SENSITIVITY_REL_STD, DATASHEET_OFFSET_STD_G = _datasheet_rel_spreads()  # 6.7 %, 0.67 g
+
+
+def with_held_uncertainty(cal: Calibration, std: dict[str, float] | None = None, *,
+                          names: list[str] | None = None, cov: np.ndarray | None = None,
+                          source: str = "stated held uncertainty") -> Calibration:
+    """A copy of ``cal`` stating how uncertain its values are, for the parameters a later fit may hold:
+    ``std`` {name: std [raw units]} (independent) or ``names`` with a covariance ``cov`` [raw units²]."""
+    if std is not None:
+        names, cov = list(std), np.diag(np.asarray([float(v) for v in std.values()]) ** 2)
+    if names is None or cov is None:
+        raise ValueError("with_held_uncertainty needs std={name: std} or names= and cov=")
+    cov = np.asarray(cov, dtype=float)
+    if cov.shape != (len(names), len(names)) or not np.all(np.isfinite(cov)) or np.any(np.diag(cov) < 0):
+        raise ValueError(f"held covariance must be a finite ({len(names)}, {len(names)}) matrix with a "
+                         f"non-negative diagonal, got shape {cov.shape}")
+    unknown = [n for n in names if _name_direction(n) is None]
+    if unknown:
+        raise ValueError(f"unknown held parameter name(s) {unknown}: use s_x, s_y, s_z, s_xy, s_xz, s_yz, o_x, o_y, o_z")
+    meta = dict(cal.metadata)
+    meta[HELD_KEY] = {"names": list(names), "cov": cov.tolist(), "source": source}
+    return Calibration(cal.model, cal.offset, cal.sensitivity, covariance=cal.covariance.copy(),
+                       param_names=list(cal.param_names), n_windows=cal.n_windows, converged=cal.converged,
+                       observable=cal.observable, message=cal.message, metadata=meta)
+
+
+def datasheet_held_uncertainty(cal: Calibration, *, sensitivity_rel_std: float | None = None,
+                               offset_std_g: float | None = None) -> Calibration:
+    """``cal`` (a datasheet nominal calibration) stating the datasheet spread of the part: each
+    sensitivity +-``sensitivity_rel_std`` of itself, each offset +-``offset_std_g`` [g] (defaults: the
+    ADXL210 spreads of core/model/defaults.py, 6.7 % and 0.67 g)."""
+    rs = DATASHEET_SENSITIVITY_REL_STD if sensitivity_rel_std is None else float(sensitivity_rel_std)
+    og = DATASHEET_OFFSET_STD_G if offset_std_g is None else float(offset_std_g)
+    s = np.abs(np.diag(cal.sensitivity))
+    std = {f"s_{a}": rs * s[i] for i, a in enumerate("xyz")}
+    std.update({f"o_{a}": og * s[i] for i, a in enumerate("xyz")})
+    return with_held_uncertainty(cal, std, source="datasheet spread of a nominal start")
+
+
+_AXIS = {"x": 0, "y": 1, "z": 2}
+
+
+def _name_direction(name: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """(dK (3, 3), do (3,)) of a parameter name, or None when it is not a plain K or o entry."""
+    kind, _, ax = name.partition("_")
+    dK, do = np.zeros((3, 3)), np.zeros(3)
+    if kind == "o" and len(ax) == 1 and ax in _AXIS:
+        do[_AXIS[ax]] = 1.0
+    elif kind == "s" and len(ax) == 1 and ax in _AXIS:
+        dK[_AXIS[ax], _AXIS[ax]] = 1.0
+    elif kind == "s" and len(ax) == 2 and ax[0] in _AXIS and ax[1] in _AXIS:
+        i, j = _AXIS[ax[0]], _AXIS[ax[1]]
+        dK[i, j] = dK[j, i] = 1.0  # symmetric (in-use 9) entry; s_xx is the diagonal
+    else:
+        return None
+    return dK, do
+
+
+@dataclass
+class HeldUncertainty:
+    """Parameters a parameterization holds, with their covariance: names, cov (H, H) [raw units²],
+    their directions dK (H, 3, 3) and do (H, 3) with what the parameterization estimates projected
+    out, and where the covariance came from."""
+
+    names: list[str]
+    cov: np.ndarray
+    dK: np.ndarray
+    do: np.ndarray
+    source: str
+
+
+def _stated_uncertainty(start: Calibration) -> tuple[list[str], np.ndarray, list[str]]:
+    """Names, covariance and the source of each, as the start states them (see the section comment)."""
+    names: list[str] = []
+    cov = np.zeros((0, 0))
+    n = len(start.param_names)
+    if n and start.covariance.shape == (n, n) and np.all(np.isfinite(start.covariance)):
+        names, cov = list(start.param_names), np.asarray(start.covariance, dtype=float)
+    sources = ["the start's covariance"] * len(names)
+    held = start.metadata.get(HELD_KEY) if isinstance(start.metadata, dict) else None
+    if isinstance(held, dict) and held.get("names"):
+        hn = list(held["names"])
+        hc = np.asarray(held["cov"], dtype=float).reshape(len(hn), len(hn))
+        extra = [k for k, nm in enumerate(hn) if nm not in names]
+        if extra and np.all(np.isfinite(hc)):
+            C = np.zeros((len(names) + len(extra),) * 2)
+            C[:len(names), :len(names)] = cov
+            C[len(names):, len(names):] = hc[np.ix_(extra, extra)]
+            names, cov = names + [hn[k] for k in extra], C
+            sources += [str(held.get("source") or "stated held uncertainty")] * len(extra)
+    return names, cov, sources
+
+
+def held_uncertainty(start: Calibration, par: Parameterization) -> HeldUncertainty | None:
+    """The uncertain parameters ``par`` holds at ``start``'s values, or None when there are none
+    (nothing stated, or everything stated is estimated by ``par``)."""
+    names, cov, sources = _stated_uncertainty(start)
+    dirs = [(k, _name_direction(nm)) for k, nm in enumerate(names)]
+    dirs = [(k, d) for k, d in dirs if d is not None]
+    if not dirs:
+        return None
+    idx = np.array([k for k, _ in dirs])
+    D = np.stack([np.concatenate([d[0].ravel(), d[1]]) for _, d in dirs], axis=1)  # (12, H)
+    E = np.concatenate([par.dK.reshape(par.n_params, 9), par.do], axis=1).T  # (12, P): what par estimates
+    D_perp = D - E @ np.linalg.lstsq(E, D, rcond=None)[0]
+    keep = np.linalg.norm(D_perp, axis=0) > 1e-9 * np.linalg.norm(D, axis=0)
+    C = cov[np.ix_(idx, idx)][np.ix_(keep, keep)]
+    if not keep.any() or not np.any(np.diag(C) > 0):
+        return None
+    D_perp = D_perp[:, keep]
+    H = D_perp.shape[1]
+    kept = idx[keep]
+    source = " and ".join(dict.fromkeys(sources[k] for k in kept))
+    return HeldUncertainty([names[k] for k in kept], 0.5 * (C + C.T), D_perp[:9].T.reshape(H, 3, 3).copy(),
+                           D_perp[9:].T.copy(), source)
+
+
+def held_jacobian(par: Parameterization, p: np.ndarray, mean: np.ndarray, held: HeldUncertainty) -> np.ndarray:
+    """B_h = dh/dtheta (M, H) at p for window means (M, 3): -u^T K^-1 (dK_h a + do_h), as eq. 13a."""
+    a, _ = par.accel_and_jacobian(p, mean)  # per-window a (covariates included)
+    K, _ = par.unpack(p)
+    g = (a / np.linalg.norm(a, axis=1, keepdims=True)) @ np.linalg.inv(K)  # dh/dm (M, 3)
+    return -(np.einsum("mi,hij,mj->mh", g, held.dK, a) + g @ held.do.T)
+
+
+def consider_gain(cov_e: np.ndarray, B_e: np.ndarray, var: np.ndarray, B_h: np.ndarray) -> np.ndarray:
+    """G = (B_e^T W B_e)^-1 B_e^T W B_h (P, H), W = diag(1/var), with ``cov_e`` that inverse (eq. 11b):
+    q_hat moves by G dtheta when the held values are off by dtheta (so dp_hat/dtheta_0 = -G)."""
+    return cov_e @ ((B_e.T / var) @ B_h)
+
+
+def _consider_metadata(held: HeldUncertainty, sens: np.ndarray, cov_noise: np.ndarray, names: list[str],
+                       scale_ref: float) -> dict:
+    """metadata[CONSIDER_KEY]: what the reported covariance is made of."""
+    cons = sens @ held.cov @ sens.T
+    return {
+        "held": list(held.names),
+        "held_source": held.source,
+        "sensitivity": sens.tolist(),  # d p_hat / d theta_held (P, H)
+        "covariance_noise_only": cov_noise.tolist(),
+        "std_g_noise_only": {n: float(s) for n, s in zip(names, np.sqrt(np.clip(np.diag(cov_noise), 0, None)) / scale_ref)},
+        "std_g_held": {n: float(s) for n, s in zip(names, np.sqrt(np.clip(np.diag(cons), 0, None)) / scale_ref)},
+    }
+
+
+def _held_note(par_names: list[str], held: HeldUncertainty, cov_noise: np.ndarray, cons: np.ndarray,
+               scale_ref: float) -> str:
+    """A note when the held parameters' uncertainty dominates some estimated parameter's std."""
+    sn, sc = np.sqrt(np.clip(np.diag(cov_noise), 0, None)), np.sqrt(np.clip(np.diag(cons), 0, None))
+    k = int(np.argmax(sc - sn))
+    if sc[k] <= sn[k]:
+        return ""
+    return (f"std includes the uncertainty of the held {', '.join(held.names)} ({held.source}): "
+            f"{par_names[k]} std {math.hypot(sn[k], sc[k]) / scale_ref * 1e3:.3g} mg, of which the held "
+            f"parameters {sc[k] / scale_ref * 1e3:.3g} mg, the window noise {sn[k] / scale_ref * 1e3:.3g} mg")
 
 
 # --------------------------------------------------------------------------------------
@@ -359,16 +552,32 @@ class LottersBatch:
         if self.sigma_floor_g is not None and dof > 0 and chi2_red > 1.0:
             inflation = chi2_red  # Birge ratio: the given C_mu is too small by this factor
             notes.append(f"reduced chi² {chi2_red:.3g} > 1 with sigma_floor_g={self.sigma_floor_g}: C_e inflated by it")
-        cov = sol.cov * inflation
+        cov_noise = sol.cov * inflation
 
         K, o = par.unpack(sol.p)
         scale = np.abs(np.diag(K))
         scale_ref = float(np.mean(scale))
+        # consider term: the held parameters' uncertainty (see "consider covariance" above)
+        held = held_uncertainty(start, par)
+        cov, consider_meta, held_meta = cov_noise, None, {}
+        if held is not None:
+            G = consider_gain(sol.cov, sol.B, sol.var_g2, held_jacobian(par, sol.p, mean, held))
+            cons = G @ held.cov @ G.T
+            cov = cov_noise + cons
+            consider_meta = _consider_metadata(held, -G, cov_noise, list(par.names), scale_ref)
+            held_meta = {HELD_KEY: {"names": list(held.names), "cov": held.cov.tolist(), "source": held.source}}
+            note = _held_note(list(par.names), held, cov_noise, cons, scale_ref)
+            if note:
+                notes.append(note)
         std = np.sqrt(np.clip(np.diag(cov), 0, None))
         std_g = std / scale_ref  # fractions of 1 g (eq. 15-16)
         # window spread judged with the estimate when it converged (a far-off start distorts angles)
         view = Calibration(par.model, o, K) if sol.converged else start
-        observable, obs_msg = self._observability(par, sol, cov, std_g, ws, Calibration(par.model, o, K), view)
+        here = Calibration(par.model, o, K, metadata=dict(held_meta))  # the estimate, with its held uncertainty
+        # the offsets-only alternative ("use --model offsets") holds the start's K with the start's uncertainty
+        offsets_alt = Calibration(start.model, o, start.sensitivity, covariance=start.covariance,
+                                  param_names=list(start.param_names), metadata=dict(start.metadata))
+        observable, obs_msg = self._observability(par, sol, cov, std_g, ws, here, view, offsets_alt)
         converged = bool(sol.converged and np.all(np.isfinite(sol.p)))
         if not converged:
             notes.insert(0, f"did not converge in {sol.iterations} iterations (start {start_source}); "
@@ -393,18 +602,22 @@ class LottersBatch:
             "direction_std_g": (1.0 / np.sqrt(np.maximum(sol.fisher_eig, 1e-300))).tolist(),
             "spread_deg": window_directions_spread_deg(mean, view),
             "insample_rms_mg": float(np.sqrt(np.mean(sol.resid_g**2)) * 1e3),
+            **held_meta,
         }
+        if consider_meta is not None:
+            metadata[CONSIDER_KEY] = consider_meta
         return Calibration(
             model=par.model, offset=o, sensitivity=K, covariance=cov, param_names=list(par.names),
             n_windows=m, converged=converged, observable=observable, message="; ".join(notes), metadata=metadata,
         )
 
-    def _observability(self, par, sol: _Solve, cov, std_g, ws: WindowSet, cal, start) -> tuple[bool, str]:
+    def _observability(self, par, sol: _Solve, cov, std_g, ws: WindowSet, cal, start,
+                       offsets_alt: Calibration | None = None) -> tuple[bool, str]:
         """Is every requested parameter determined? gravcal's one rule (``order.is_observable``: predicted
         RMS acceleration error of this order <= ``tol_g``, the rule ``select_order`` uses, so an order auto
         would not choose is never flagged observable here), plus a numerically singular Fisher information
         B^T C_mu^-1 B and, as before, every parameter's std <= ``max_std_g`` (fractions of 1 g)."""
-        from gravcal.core.estimators.order import N_PARAMS, is_observable  # noqa: PLC0415 (order imports this module)
+        from gravcal.core.estimators.order import N_PARAMS, held_note, is_observable  # noqa: PLC0415 (order imports this module)
 
         mean = ws.mean
         eig = sol.fisher_eig  # information in (fraction of 1 g)^-2
@@ -423,7 +636,8 @@ class LottersBatch:
         offsets_ok = False  # worth saying "use --model offsets"? (only computed for a negative verdict)
         if par.model != "offsets" and math.isfinite(self.tol_g):
             try:
-                offsets_ok = is_observable(ws, cal, "offsets", tol_g=self.tol_g)[0]
+                offsets_ok = is_observable(ws, offsets_alt if offsets_alt is not None else cal, "offsets",
+                                           tol_g=self.tol_g)[0]
             except (ValueError, np.linalg.LinAlgError):
                 pass
         if (singular or not rule_ok) and not bad:
@@ -445,6 +659,9 @@ class LottersBatch:
         if obs is not None and not rule_ok:
             pred = "unbounded" if obs["predicted_mg"] is None else f"{obs['predicted_mg']:.3g} mg"
             msg += f"; predicted error {pred} > {self.tol_g * 1e3:.3g} mg)"
+            note = held_note(obs)
+            if note:
+                msg += f"; {note}"
         else:
             msg += f" > {self.max_std_g * 100:.3g} %)"
         if offsets_ok:
@@ -496,6 +713,13 @@ class LottersRecursive:
     With ``iterations`` > 1 the update is relinearised at the new estimate (IEKF):
         p_i+1 = p_prior + K_g,i (xi_i - B_i (p_prior - p_i)).
     Eq. 11a over all windows at once is the batch limit of this recursion (no prior, no Q).
+
+    Held parameters (consider covariance, Schmidt): when ``start`` states an uncertainty C_h for
+    parameters this parameterization holds (``held_uncertainty``: offsets-only from a datasheet start
+    holds uncertain sensitivities), the sensitivity ``S`` = dp/dtheta_held (P, H) is propagated with
+    the filter, S <- (I - K_g B) S - K_g B_h (B_h = dh/dtheta_held), from the start's (a batch fit's
+    metadata["consider"]["sensitivity"], else 0). The reported covariance is P + S C_h S^T; the state
+    update (gain, P) is the plain filter's, unchanged.
     """
 
     def __init__(
@@ -519,9 +743,17 @@ class LottersRecursive:
         self.names = list(par.names)
         self.p = par.pack(start.sensitivity, start.offset)
         self.scale_ref = float(np.mean(np.abs(np.diag(start.sensitivity))))
-        if start.covariance.shape == (n, n) and list(start.param_names) == self.names and np.all(np.isfinite(start.covariance)) \
-                and np.all(np.diag(start.covariance) > 0):
-            self.P = start.covariance.copy()
+        # held parameters' uncertainty (consider term of the reported covariance only)
+        self.held = held_uncertainty(start, par)
+        cons = start.metadata.get(CONSIDER_KEY) if isinstance(start.metadata, dict) else None
+        same = (self.held is not None and isinstance(cons, dict) and cons.get("held") == self.held.names
+                and list(start.param_names) == self.names)
+        h = 0 if self.held is None else len(self.held.names)
+        self.S = np.asarray(cons["sensitivity"], dtype=float).reshape(n, h) if same else np.zeros((n, h))
+        start_cov = np.asarray(cons["covariance_noise_only"], dtype=float) if same else start.covariance
+        if start_cov.shape == (n, n) and list(start.param_names) == self.names and np.all(np.isfinite(start_cov)) \
+                and np.all(np.diag(start_cov) > 0):
+            self.P = start_cov.copy()  # the filter's own covariance (noise only: the consider part is reported)
         else:
             # the paper's assumption: start within 5 % (of 1 g) of the truth
             self.P = np.eye(n) * (prior_std_rel * self.scale_ref) ** 2
@@ -542,6 +774,10 @@ class LottersRecursive:
         # dh/dp_k = -sum_ij g_i dK_k[i, j] a_j: contract dK_k with the outer product g a^T (row-major i, j)
         self._dKg = self._dK9
         self._do = np.ascontiguousarray(par.do)  # (P, 3)
+        if self.held is not None:
+            self._dKh9 = np.ascontiguousarray(self.held.dK.reshape(h, 9))
+            self._doh = np.ascontiguousarray(self.held.do)
+        self._ag = self._g = None  # the last linearisation's a g^T (9,) and g (3,) (for B_h)
         self._dK9_ref, self._do_ref = self._dK9, self._do  # at the reference covariates (what .calibration reports)
         self._has_Q = bool(np.any(self.Q != 0))
         self._n = n
@@ -580,8 +816,9 @@ class LottersRecursive:
         g1 = u0 * i01 + u1 * i11 + u2 * i21
         g2 = u0 * i02 + u1 * i12 + u2 * i22
         # dh/dp_k = -g (dK_k a + do_k)
-        B = -(self._dKg @ np.array((a0 * g0, a1 * g0, a2 * g0, a0 * g1, a1 * g1, a2 * g1, a0 * g2, a1 * g2, a2 * g2))
-              + self._do @ np.array((g0, g1, g2)))
+        self._ag = np.array((a0 * g0, a1 * g0, a2 * g0, a0 * g1, a1 * g1, a2 * g1, a0 * g2, a1 * g2, a2 * g2))
+        self._g = np.array((g0, g1, g2))
+        B = -(self._dKg @ self._ag + self._do @ self._g)
         R = (g0 * (Cm[0] * g0 + Cm[1] * g1 + Cm[2] * g2) + g1 * (Cm[3] * g0 + Cm[4] * g1 + Cm[5] * g2)
              + g2 * (Cm[6] * g0 + Cm[7] * g1 + Cm[8] * g2)) + self.R_floor
         return h, B, R
@@ -621,6 +858,9 @@ class LottersRecursive:
             else:
                 xi = 1.0 - h - float(B @ (p_prior - p))  # IEKF: relinearised at p, referred to the prior
             p = p_prior + PB * (xi / S)  # K_g = P B^T / S
+        if self.held is not None:  # consider sensitivity: S <- (I - K_g B) S - K_g B_h (K_g = PB / S)
+            B_h = -(self._dKh9 @ self._ag + self._doh @ self._g)
+            self.S = self.S - np.outer(PB * (1.0 / S), B @ self.S + B_h)
         # P - K_g S K_g^T = P - PB PB^T / S: equal to the Joseph form for the optimal gain, and exactly symmetric
         self.P = P - np.outer(PB, PB * (1.0 / S))
         self.p = p
@@ -649,8 +889,18 @@ class LottersRecursive:
         par = self.par
         K = (par.K_const.ravel() + self.p @ self._dK9_ref).reshape(3, 3)
         o = par.o_const + self.p @ self._do_ref
-        std_g = np.sqrt(np.maximum(np.diagonal(self.P), 0.0)) * (3.0 / (abs(K[0, 0]) + abs(K[1, 1]) + abs(K[2, 2])))
+        scale_ref = (abs(K[0, 0]) + abs(K[1, 1]) + abs(K[2, 2])) / 3.0
+        cov, extra = self.P, {}
         notes = []
+        if self.held is not None:
+            cons = self.S @ self.held.cov @ self.S.T
+            cov = self.P + cons
+            extra = {HELD_KEY: {"names": list(self.held.names), "cov": self.held.cov.tolist(), "source": self.held.source},
+                     CONSIDER_KEY: _consider_metadata(self.held, self.S, self.P, self.names, scale_ref)}
+            note = _held_note(self.names, self.held, self.P, cons, scale_ref)
+            if note:
+                notes.append(note)
+        std_g = np.sqrt(np.maximum(np.diagonal(cov), 0.0)) / scale_ref
         observable = bool((std_g <= self.max_std_g).all())
         if not observable:
             bad = [n for n, s in zip(self.names, std_g) if s > self.max_std_g]
@@ -660,14 +910,16 @@ class LottersRecursive:
             notes.append(f"last {self.consecutive_rejected} windows rejected by the {math.sqrt(self.gate2):.3g}σ gate: "
                          f"the estimate has probably diverged or the sensor changed; re-run a batch fit")
         return Calibration(
-            model=self.par.model, offset=o, sensitivity=K, covariance=self.P.copy(), param_names=list(self.names),
+            model=self.par.model, offset=o, sensitivity=K, covariance=cov.copy(), param_names=list(self.names),
             n_windows=self.n_updates, converged=converged, observable=observable, message="; ".join(notes),
             metadata={"estimator": "lotters_recursive", "n_rejected": self.n_rejected,
                       "mean_nis": self.nis_sum / self.n_updates if self.n_updates else float("nan"),
                       "std_g": dict(zip(self.names, std_g.tolist())),
-                      "params": dict(zip(self.names, self.p.tolist()))},
+                      "params": dict(zip(self.names, self.p.tolist())), **extra},
         )
 
 
 __all__ = ["LottersBatch", "LottersRecursive", "resolve_parameterization", "validate_windows",
-           "window_directions_spread_deg", "START_TOLERANCE"]
+           "window_directions_spread_deg", "START_TOLERANCE", "HeldUncertainty", "held_uncertainty",
+           "held_jacobian", "consider_gain", "with_held_uncertainty", "datasheet_held_uncertainty",
+           "HELD_KEY", "CONSIDER_KEY", "DATASHEET_SENSITIVITY_REL_STD", "DATASHEET_OFFSET_STD_G"]

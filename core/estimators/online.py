@@ -17,6 +17,12 @@ windows. Measured: efficiency tr(CRLB)/tr(MSE) 0.06 on daily living (bench/bench
    every parameter is relinearised at a good point. Window means with their covariances are
    sufficient statistics for eq. 11a: no samples are kept.
 
+Held parameters: the order rule counts the uncertainty the current calibration states for what an order
+holds (consider covariance, lotters.held_uncertainty). From a datasheet start (datasheet_held_uncertainty)
+upright windows determine the offsets only *given* the held sensitivities, whose 6.7 % spread dominates:
+the offsets are then fitted provisionally (a far better linearisation point than the start), reported with
+that std and observable=False (``provisional``), until other postures make order 6 observable.
+
 Memory is bounded: ``WindowStore`` keeps at most ``capacity`` window summaries; when full it drops
 the oldest window of the most populated posture cell (~10° cells on the sphere), so a night of lying
 survives a week of standing in the store and the order never falls back for lack of coverage.
@@ -34,7 +40,7 @@ from ..crlb import sphere_directions
 from ..windows import Window, WindowSet
 from .inuse12 import with_frame
 from .lotters import LottersBatch, LottersRecursive, validate_windows
-from .order import N_PARAMS, POSTURE_CELLS, SYSTEMATIC_G, TOL_G, OrderDecision, _reference_start, select_order
+from .order import N_PARAMS, POSTURE_CELLS, SYSTEMATIC_G, TOL_G, OrderDecision, _reference_start, held_note, select_order
 
 log = logging.getLogger(__name__)
 
@@ -135,6 +141,7 @@ class OnlineCalibrator:
         self.tol_g, self.systematic_g = float(tol_g), float(systematic_g)
         self.recursive: LottersRecursive | None = None
         self.model = "none"
+        self.provisional = False  # order "offsets" fitted although the held sensitivities' uncertainty dominates
         self.reason = "no quasi-static windows yet: nothing is determined, holding the start calibration"
         self.decision = OrderDecision("none", self.reason, {"n_windows": 0})
         self._cross_axis: bool | None = None  # verdict of the last 6-vs-full comparison
@@ -160,7 +167,10 @@ class OnlineCalibrator:
         else:
             cal = self.recursive.calibration
             cal.n_windows = self.n_windows
-        cal.metadata["order"] = {"model": self.model, "reason": self.reason}
+            if self.provisional:  # held values too uncertain for the order rule (see _check)
+                cal.observable = False
+                cal.message = "; ".join(m for m in (self.reason, cal.message) if m)
+        cal.metadata["order"] = {"model": self.model, "reason": self.reason, "provisional": self.provisional}
         cal.metadata["estimator"] = "online"
         return cal
 
@@ -190,6 +200,16 @@ class OnlineCalibrator:
         K = (r.par.K_const.ravel() + r.p @ r._dK9_ref).reshape(3, 3)
         return K, r.par.o_const + r.p @ r._do_ref
 
+    def _here(self) -> Calibration:
+        """The current estimate with the uncertainty it states (its covariance and that of the parameters
+        it holds: lotters.held_uncertainty), so the order rule and the re-seed fits see how uncertain the
+        held values are (a datasheet start's sensitivities while only the offsets are determined)."""
+        if self.recursive is None:
+            c = self.start
+            return Calibration(c.model, c.offset, c.sensitivity, covariance=c.covariance,
+                               param_names=list(c.param_names), metadata=dict(c.metadata))
+        return self.recursive.calibration
+
     def _one(self, mean: np.ndarray, cov: np.ndarray, n: float, t: float, aux: np.ndarray) -> None:
         if mean.shape != (3,) or not np.all(np.isfinite(mean)) or not np.all(np.isfinite(cov)):
             raise ValueError(f"window mean/cov must be finite (mean {mean!r})")
@@ -216,8 +236,7 @@ class OnlineCalibrator:
         # since the last comparison (a verdict from few windows is weak), at least every ``compare_every``
         compare = (self._cross_axis is None or
                    self._since_compare >= min(self.compare_every, max(self.every, self._compare_size)))
-        K, o = self._current()
-        here = Calibration(self.model, o, K)
+        here = self._here()
         d = select_order(ws, start=here, lab=self.lab, candidates=self.candidates, compare=compare, tol_g=self.tol_g,
                          systematic_g=self.systematic_g)
         if "comparison" in d.evidence:
@@ -229,7 +248,23 @@ class OnlineCalibrator:
             d = OrderDecision("6", d.reason + "; cross-axis terms held back (the last comparison preferred 6)",
                               d.evidence)
         rank = {m: k for k, m in enumerate(("none", "offsets", "6", "9", "12"))}
-        target = d.model
+        target, provisional = d.model, False
+        if target == "none" and "offsets" in self.candidates:
+            # the offsets are determined *given* the held sensitivities, but those are too uncertain (a
+            # datasheet start): fit them anyway (a far better linearisation point than the start, and
+            # calibrated output), with the honest (consider) std and observable=False
+            o = d.evidence.get("orders", {}).get("offsets", {})
+            given = o.get("predicted_given_held_mg")
+            if o.get("held") and given is not None and given <= self.tol_g * 1e3 and len(ws) >= N_PARAMS["offsets"]:
+                target, provisional = "offsets", True
+                cov = d.evidence.get("coverage", {})
+                note = held_note(o)
+                d = OrderDecision("offsets", (
+                    f"{cov.get('n_windows', len(ws))} windows, {cov.get('distinct_postures', '?')} distinct postures, "
+                    f"spread {cov.get('spread_deg', float('nan')):.0f}°: offsets fitted provisionally, NOT observable: "
+                    f"determined given the held sensitivities (predicted error {given:.3g} mg), but with their "
+                    f"uncertainty the predicted error is {o.get('predicted_mg')} mg > {self.tol_g * 1e3:.3g} mg"
+                    + (f"; {note}" if note else "") + "; the reported std includes it"), d.evidence)
         # orders only grow (the store keeps the coverage), except the evidence's verdict full -> 6
         if rank[target] < rank[self.model] and not (self.model in ("9", "12") and target == "6"):
             self.decision = d
@@ -242,6 +277,7 @@ class OnlineCalibrator:
             return
         if target != self.model or self._since_seed >= max(self._seed_size, 1):
             self._reseed(target, ws, here, d)
+        self.provisional = provisional and self.model == target
 
     def _reseed(self, model: str, ws: WindowSet, here: Calibration, d: OrderDecision) -> None:
         """Batch fit of the stored windows (eq. 11a), then the recursion continues from it."""

@@ -14,7 +14,14 @@ Two questions, answered in this order (docs/twelve-parameters.md, "Model order")
      the sphere, not on the number of windows: it is why orientation 1 with theta = 30° never
      gives sensitivities however long one records (amp ~ 1600 for 6 parameters, ~ 4 for offsets).
 
-   An order is observable when sqrt(stat^2 + (amp * systematic)^2) <= ``tol_g``.
+   * consider: the parameters the order holds (offsets-only holds the sensitivities) carry the
+     uncertainty the current calibration states for them (lotters.held_uncertainty: its covariance,
+     its stated held covariance, or the datasheet spread for a nominal start); through these
+     windows it biases the estimated ones by Gc dtheta (Schmidt consider gain), RMS over all
+     orientations sqrt(tr(G Gc C_h Gc^T)). Upright windows cannot tell a sensitivity error from
+     an offset: from a datasheet start the offsets are then not determined.
+
+   An order is observable when sqrt(stat^2 + (amp * systematic)^2 + consider^2) <= ``tol_g``.
 
 2. Evidence (what *should* be updated), only between the 6-parameter model and the full set
    (cross-axis terms): both are fitted (H-estimate's LottersBatch) and compared by BIC (and
@@ -30,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from ..calibration import Calibration
-from ..crlb import bound_from_fisher, fisher_inuse, sphere_directions, sphere_metric
+from ..crlb import RANK_RTOL, bound_from_fisher, fisher_inuse, norm_noise_var, on_ellipsoid, sphere_directions, sphere_metric
 from ..windows import Window, WindowSet
 
 ORDERS = ("offsets", "6", "9", "12")
@@ -92,12 +99,19 @@ def observability(ws: WindowSet, cal: Calibration, model: str, *, sigma_floor_g:
         L = np.linalg.cholesky(G)
         amp = float(np.sqrt(np.linalg.eigvalsh(L.T @ np.linalg.solve(Fbar, L)).max()))
     stat = bound.accel_rms_g
-    total = math.hypot(stat, amp * systematic_g) if math.isfinite(stat) and math.isfinite(amp) else math.inf
+    consider, held = _consider_g(ws, cal, param, F, G, sigma_floor_g) if math.isfinite(stat) else (0.0, None)
+    total = (math.sqrt(stat**2 + (amp * systematic_g) ** 2 + consider**2)
+             if math.isfinite(stat) and math.isfinite(amp) and math.isfinite(consider) else math.inf)
     return {
         "n_params": param.n_params,
         "stat_mg": _mg(stat),
         "amplification": round(amp, 2) if math.isfinite(amp) else None,
+        "consider_mg": _mg(consider),
+        "held": None if held is None else {"names": held.names, "source": held.source},
         "predicted_mg": _mg(total),
+        # the same without the held parameters' uncertainty: determined *given* the held values
+        "predicted_given_held_mg": _mg(math.hypot(stat, amp * systematic_g) if math.isfinite(stat) and math.isfinite(amp)
+                                       else math.inf),
         "fisher_eig_per_window": np.round(w * float(np.mean(np.abs(np.diag(cal.sensitivity)))) ** 2, 8).tolist()
         if len(ws) else [],
         "undetermined": bound.undetermined,
@@ -105,13 +119,46 @@ def observability(ws: WindowSet, cal: Calibration, model: str, *, sigma_floor_g:
     }
 
 
+def _consider_g(ws: WindowSet, cal: Calibration, param, F: np.ndarray, G: np.ndarray,
+                sigma_floor_g: float) -> tuple[float, Any]:
+    """RMS calibrated-acceleration error [g] over all orientations that the uncertainty of the parameters
+    ``param`` holds (``cal``'s stated uncertainty, lotters.held_uncertainty) puts into the estimated ones
+    through these windows: sqrt(tr(G_sphere Gc C_h Gc^T)), Gc the consider gain (Schmidt) at ``cal``."""
+    from .lotters import consider_gain, held_jacobian, held_uncertainty  # noqa: PLC0415 (lotters imports this module lazily)
+
+    held = held_uncertainty(cal, param)
+    if held is None or len(ws) == 0:
+        return 0.0, held
+    _, r_star = on_ellipsoid(ws, cal)
+    p = param.pack(cal.sensitivity, cal.offset)
+    _, B, _ = param.norm_and_jacobian(p, r_star)
+    var = norm_noise_var(ws, cal, sigma_floor_g=sigma_floor_g)
+    w, V = np.linalg.eigh(0.5 * (F + F.T))
+    if w.min() <= RANK_RTOL * max(w.max(), 1e-300):
+        return math.inf, held
+    Gc = consider_gain((V / w) @ V.T, B, var, held_jacobian(param, p, r_star, held))
+    return float(np.sqrt(max(np.trace(G @ Gc @ held.cov @ Gc.T), 0.0))), held
+
+
+def held_note(obs: dict[str, Any]) -> str:
+    """What to say when the held parameters' uncertainty dominates an order's predicted error ('' if not)."""
+    c, stat, held = obs.get("consider_mg"), obs.get("stat_mg"), obs.get("held")
+    if held is None or c is None or stat is None or c <= stat:
+        return ""
+    what = "sensitivities" if all(n.startswith("s_") and len(n) == 3 for n in held["names"]) else ", ".join(held["names"])
+    return (f"the uncertainty of the held {what} ({held['source']}) dominates: {c:.3g} mg of the predicted error "
+            f"(window noise {stat:.3g} mg); windows in other postures (lying, bending: the sensor's axes "
+            f"along and against gravity) determine the sensitivities (order 6), or start from a calibration "
+            f"with a small covariance")
+
+
 def is_observable(ws: WindowSet, cal: Calibration, model, *, tol_g: float = TOL_G,
                   sigma_floor_g: float = SIGMA_FLOOR_G, systematic_g: float = SYSTEMATIC_G) -> tuple[bool, dict[str, Any]]:
     """THE observability rule of gravcal (one place; select_order, check_observable and LottersBatch's
     ``observable`` flag all use it): order ``model`` (a name or a Parameterization, evaluated at ``cal``)
     is observable from ``ws`` when there are at least as many windows as parameters and the predicted
-    RMS calibrated-acceleration error sqrt(stat² + (amp·systematic)²) [g] over all orientations is
-    <= ``tol_g``. Returns (verdict, the numbers of ``observability``)."""
+    RMS calibrated-acceleration error sqrt(stat² + (amp·systematic)² + consider²) [g] over all orientations
+    is <= ``tol_g`` (consider: the held parameters' stated uncertainty, see the module docstring). Returns (verdict, the numbers of ``observability``)."""
     obs = observability(ws, cal, model, sigma_floor_g=sigma_floor_g, systematic_g=systematic_g)
     return bool(len(ws) >= obs["n_params"] and obs["_total_g"] <= tol_g), obs
 
@@ -144,8 +191,9 @@ def check_observable(ws: WindowSet, model: str, start: Calibration, *, tol_g: fl
         raise ValueError(
             f"model {model}: the {m} windows do not determine the {what}: they cover {cov['distinct_postures']} "
             f"distinct posture(s) within {cov['spread_deg']:.0f}° of one direction (scatter eigenvalues "
-            f"{', '.join(f'{e:.3g}' for e in cov['scatter_eig'])}); predicted error {pred} > {tol_g * 1e3:.3g} mg. "
-            f"Record more varied postures (lying, bending), or use --model auto")
+            f"{', '.join(f'{e:.3g}' for e in cov['scatter_eig'])}); predicted error {pred} > {tol_g * 1e3:.3g} mg"
+            + (f" ({note})" if (note := held_note(obs)) else "") +
+            ". Record more varied postures (lying, bending), or use --model auto")
     return obs
 
 
@@ -268,8 +316,10 @@ def select_order(ws: WindowSet, *, start: Calibration | None = None, lab: Calibr
     if not observable:
         o = evidence["orders"][cands[0]]
         pred = "unbounded" if o["predicted_mg"] is None else f"{o['predicted_mg']:.3g} mg"
+        note = held_note(o)
         return OrderDecision("none", f"{where}: not even the offsets are determined (predicted error {pred} > "
-                                     f"{tol_g * 1e3:.3g} mg); holding the current calibration", evidence)
+                                     f"{tol_g * 1e3:.3g} mg{'; ' + note if note else ''}); holding the current "
+                                     f"calibration", evidence)
     best = observable[-1]
     rejected = [c for c in cands if c not in observable]
 

@@ -1,0 +1,410 @@
+"""End to end, hardware-in-the-loop style: `gravcald --emulate` as a subprocess (which runs the
+logger emulator as its own child process on a real pty / slcan pty, or the fake I2C device),
+socket clients talking the protocol, signals and sd_notify as systemd would use them.
+
+The emulated sensor is drawn off-nominal from the seed; the daemon starts from the ADXL210
+datasheet values (offsets off by up to ~0.9 g for seed 0, sensitivities by ~7 %). The scenario
+is six_position (the board turned through its faces): the estimate is accepted after ~130 s of
+sensor time and sits within a few mg by ~240 s (measured: median |norm error| 0-3 mg at
+240-300 s, `gravcal daemon-demo`). The bound asserted, 10 mg over the static samples of
+sensor time 240-300 s, is ~5x the sample noise (ADXL210E 200 µg/√Hz over its ~10 Hz bandwidth
+plus timer quantisation: ~1-2 mg) and far below the start's error (> 100 mg, also asserted).
+
+Wall time: the emulator runs 10-50x faster than real time; every wait polls a condition with a
+generous deadline (a loaded 2-core machine), none sleeps for a fixed outcome.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gravcal.core.samples import FLAG_GAP_BEFORE, FLAG_RECONNECT
+from gravcal.daemon.client import Client, ClientError
+
+G = 9.80665
+SEED = 0
+FS = 100.0
+BOUND_MG = 10.0  # calibrated static norm error (median |.|), see the module docstring
+SETTLED_S = (240.0, 300.0)  # sensor time over which the bound must hold
+START_WRONG_MG = 100.0  # the datasheet start's static norm error exceeds this (median |.|)
+
+
+# -- helpers ----------------------------------------------------------------------------
+
+
+class Daemon:
+    """`python -m gravcal.daemon.gravcald --emulate ...` with its log in a file."""
+
+    def __init__(self, tmp: Path, *args: str, env: dict | None = None, config: str | None = None,
+                 state: Path | None = None, sock: Path | None = None):
+        self.tmp = tmp
+        self.sock = str(sock or tmp / "g.sock")
+        self.state = state or tmp / "state"
+        self.config = tmp / "gravcald.toml"
+        if config is not None:
+            self.config.write_text(config)
+        cmd = [sys.executable, "-m", "gravcal.daemon.gravcald", "--emulate", "--seed", str(SEED), "--fs", str(FS),
+               "--socket", self.sock, "--state-dir", str(self.state), "--log-level", "info", *args]
+        if config is not None:
+            cmd += ["--config", str(self.config)]
+        self.log_path = tmp / f"gravcald-{time.monotonic_ns()}.log"
+        environ = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+        for k in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID", "LISTEN_FDS", "LISTEN_PID"):
+            if not env or k not in env:
+                environ.pop(k, None)
+        with open(self.log_path, "w") as log:
+            self.proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=environ)
+
+    def log(self) -> str:
+        return self.log_path.read_text()
+
+    def wait_serving(self, timeout: float = 90.0) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            assert self.proc.poll() is None, f"gravcald exited ({self.proc.returncode}):\n{self.log()[-3000:]}"
+            if os.path.exists(self.sock):
+                try:
+                    with Client(self.sock, timeout=5) as c:
+                        if c.status()["device"].get("connected"):
+                            return
+                except (ClientError, OSError):
+                    pass
+            time.sleep(0.1)
+        raise AssertionError(f"gravcald not serving within {timeout} s:\n{self.log()[-3000:]}")
+
+    def client(self, timeout: float = 30.0) -> Client:
+        return Client(self.sock, timeout=timeout)
+
+    def status(self) -> dict:
+        with self.client() as c:
+            return c.status()
+
+    def stop(self, timeout: float = 60.0) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            return self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+            raise AssertionError(f"gravcald did not stop within {timeout} s after SIGTERM:\n{self.log()[-3000:]}")
+
+
+def poll(condition, timeout: float, what: str, interval: float = 0.1):
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        last = condition()
+        if last:
+            return last
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what} (last: {last!r})")
+
+
+class Stream:
+    """A watching client's record: static norm errors [mg] by sensor time, CALIB pushes, drops."""
+
+    def __init__(self):
+        self.t, self.err_mg, self.static, self.seq, self.flags = [], [], [], [], []
+        self.calibs, self.dropped = [], 0
+
+    def take(self, msg: dict) -> None:
+        cls = msg["class"]
+        if cls == "IMU":
+            self.seq.append(msg["seq"])
+            self.t.append(msg["seq"] / FS)
+            self.static.append(bool(msg["static"]))
+            acc = msg["acc"]
+            self.err_mg.append((math.sqrt(sum(v * v for v in acc)) / G - 1.0) * 1e3 if None not in acc else np.nan)
+            if "flags" in msg:
+                self.flags.append(msg["flags"])
+        elif cls == "CALIB":
+            self.calibs.append(msg)
+        elif cls == "DROPPED":
+            self.dropped += msg["count"]
+
+    def static_median_abs_mg(self, t0: float, t1: float) -> tuple[float, int]:
+        t, e, s = np.array(self.t), np.array(self.err_mg), np.array(self.static)
+        sel = s & (t >= t0) & (t < t1) & np.isfinite(e)
+        return (float(np.median(np.abs(e[sel]))) if sel.any() else math.nan), int(sel.sum())
+
+
+def watch_until(client: Client, stream: Stream, done, timeout: float, raw: bool = False) -> None:
+    client.set_watch(enable=True, rate=0, raw=raw)
+    deadline = time.monotonic() + timeout
+    while not done():
+        assert time.monotonic() < deadline, f"stream condition not reached in {timeout} s (sensor time " \
+                                            f"{stream.t[-1] if stream.t else None})"
+        stream.take(client.read_message(timeout=30))
+
+
+def config_text(tmp: Path, **sections) -> str:
+    lines = []
+    for section, keys in sections.items():
+        lines.append(f"[{section}]")
+        lines += [f"{k} = {json.dumps(v)}" for k, v in keys.items()]
+    return "\n".join(lines) + "\n"
+
+
+def assert_converges(stream: Stream, bus: str) -> None:
+    start_err, n0 = stream.static_median_abs_mg(0.0, 100.0)
+    late_err, n1 = stream.static_median_abs_mg(*SETTLED_S)
+    assert n0 > 200 and n1 > 200, (n0, n1)
+    assert start_err > START_WRONG_MG, f"{bus}: the datasheet start should be visibly wrong, got {start_err:.1f} mg"
+    assert late_err < BOUND_MG, (f"{bus}: static norm error {late_err:.2f} mg over sensor time {SETTLED_S} "
+                                 f"(bound {BOUND_MG} mg); CALIBs: {[(c['revision'], c['accepted']) for c in stream.calibs]}")
+    accepted = [c for c in stream.calibs if c["accepted"]]
+    assert accepted and accepted[-1]["n_windows"] >= 12
+
+
+# -- the serial daemon: convergence, protocol, clients, reload, stop, restart ---------------
+
+SERIAL_SPEED = 50.0
+
+
+@pytest.fixture(scope="module")
+def serial_daemon(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("e2e-serial")
+    cfg = config_text(tmp, socket={"queue_messages": 20000, "stall_timeout_s": 30.0},
+                      state={"save_interval_s": 3600.0}, detector={"threshold_g": 0.02})
+    d = Daemon(tmp, "--bus", "serial", "--scenario", "six_position", "--speed", str(SERIAL_SPEED),
+               "--duration", "1500", config=cfg)
+    try:
+        d.wait_serving()
+        yield d
+    finally:
+        if d.proc.poll() is None:
+            d.proc.kill()
+            d.proc.wait()
+
+
+def test_serial_calibration_converges_from_the_datasheet_start(serial_daemon):
+    d = serial_daemon
+    stream = Stream()
+    with d.client() as c:
+        first = c.calib()
+        assert first["revision"] == 0 and not first["accepted"]
+        assert first["offset"] == [0.5, 0.5, 0.5]  # the datasheet start
+        watch_until(c, stream, lambda: stream.t and stream.t[-1] >= SETTLED_S[1], timeout=120)
+    assert_converges(stream, "serial")
+    # the first sample came from the start of the emulated stream: nothing was skipped at start-up
+    assert stream.seq[0] < FS * 10
+    st = d.status()
+    assert st["device"]["crc_errors"] == 0 and st["ring"]["overwritten"] == 0
+    assert st["emulator"]["bus"] == "serial" and st["emulator"]["spec"].startswith("serial://")
+
+
+def test_bad_requests_get_error_and_the_connection_survives(serial_daemon):
+    with serial_daemon.client() as c:
+        for line, expected in [
+            ("hello", "requests start with '?'"),
+            ("?FOO;", "unknown command '?FOO'"),
+            ('?WATCH={"enable":true,"speed":3};', "unknown field 'speed'"),
+            ('?WATCH={"rate":-1};', "'rate' must be a number of Hz >= 0"),
+            ("?WATCH={nope;", "argument is not valid JSON"),
+            ("?POLL=1;", "?POLL takes no arguments"),
+            ("?" + "X" * 5000, "request longer than 1024 bytes"),
+        ]:
+            c.send(line)
+            msg = c.read_message(timeout=30)
+            assert msg["class"] == "ERROR", (line, msg)
+            assert expected in msg["message"], (line, msg)
+        poll_reply = c.poll()  # still connected and served
+        assert poll_reply["imu"] and poll_reply["imu"][0]["class"] == "IMU"
+        assert len(poll_reply["imu"][0]["acc"]) == 3
+
+
+def test_a_slow_client_does_not_reduce_what_a_fast_client_receives(serial_daemon):
+    d = serial_daemon
+    fast, slow = d.client(), d.client()
+    try:
+        slow.set_watch(enable=True, rate=0)  # ... and then reads nothing for a while
+        fast_stream = Stream()
+        t_end = time.monotonic() + 8.0  # 8 s of 5000 samples/s: more than the slow one's queue (20000) holds
+        fast.set_watch(enable=True, rate=0)
+        while time.monotonic() < t_end:
+            fast_stream.take(fast.read_message(timeout=30))
+        slow_stream = Stream()
+        for _ in range(50000):  # the slow client drains its backlog: DROPPED comes first
+            slow_stream.take(slow.read_message(timeout=30))
+            if slow_stream.dropped:
+                break
+        st = d.status()
+    finally:
+        fast.close()
+        slow.close()
+    seq = np.array(fast_stream.seq)
+    assert seq.size > 8.0 * SERIAL_SPEED * FS * 0.5  # the stream really ran at ~5000 samples/s
+    assert np.all(np.diff(seq) == 1), "the fast client missed samples"
+    assert fast_stream.dropped == 0
+    assert slow_stream.dropped > 1000, slow_stream.dropped
+    # the daemon's counters agree: drops only for the slow client, acquisition untouched
+    assert st["ring"]["overwritten"] == 0 and st["server"]["inbox_overruns"] == 0
+    assert st["device"]["gaps"] == 0
+
+
+def test_sighup_reloads_the_config_and_keeps_it_when_broken(serial_daemon):
+    d = serial_daemon
+    base = dict(socket={"queue_messages": 20000, "stall_timeout_s": 30.0}, state={"save_interval_s": 3600.0})
+    d.config.write_text(config_text(d.tmp, detector={"threshold_g": 0.03}, **base))
+    d.proc.send_signal(signal.SIGHUP)
+    st = poll(lambda: (s := d.status())["config"]["reloads"] >= 1 and s, 30, "the reload")
+    assert st["detector"]["threshold_g"] == 0.03 and st["config"]["reload_error"] is None
+    d.config.write_text(config_text(d.tmp, detector={"threshold_g": "abc"}, **base))
+    d.proc.send_signal(signal.SIGHUP)
+    st = poll(lambda: (s := d.status())["config"]["reload_error"] and s, 30, "the refused reload")
+    assert f"{d.config}: [detector] threshold_g: expected a number, got 'abc'" == st["config"]["reload_error"]
+    assert st["detector"]["threshold_g"] == 0.03  # the running configuration is kept
+    assert "keeping the running configuration" in d.log()
+
+
+def test_a_second_daemon_on_the_same_socket_is_refused(serial_daemon, tmp_path):
+    d = Daemon(tmp_path, "--bus", "serial", sock=Path(serial_daemon.sock))
+    assert d.proc.wait(60) == 2
+    assert f"gravcald: error: another gravcald is running on {serial_daemon.sock}" in d.log()
+    assert os.path.exists(serial_daemon.sock)  # the running daemon's socket is untouched
+
+
+def test_sigterm_saves_the_state_and_a_restart_resumes_it(serial_daemon):
+    d = serial_daemon
+    with d.client() as c:
+        before = c.calib()
+        assert before["accepted"]
+        # save_interval_s = 3600: after the first accepted revision, only the stop saves
+        saved_first = json.loads((d.state / "state.json").read_text())["revision"]
+        poll(lambda: c.calib()["revision"] > saved_first, 60, "a revision newer than the first saved one")
+    assert d.stop() == 0
+    saved = json.loads((d.state / "state.json").read_text())
+    assert saved["revision"] > saved_first and saved["accepted"]
+    assert "gravcald stopped" in d.log()
+    assert not os.path.exists(d.sock)  # it removed its socket
+
+    # A stale socket (a crashed daemon's) is at the path: the restart replaces it.
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    stale.bind(d.sock)
+    stale.close()
+    again = Daemon(d.tmp, "--bus", "serial", "--scenario", "six_position", "--speed", "20", "--duration", "600",
+                   state=d.state, sock=Path(d.sock))
+    try:
+        again.wait_serving()
+        with again.client() as c:
+            resumed = c.calib()
+            assert resumed["revision"] == saved["revision"] and resumed["accepted"]
+            assert resumed["n_windows"] == saved["calibration"]["n_windows"]
+            np.testing.assert_allclose(resumed["offset"], saved["calibration"]["offset"], rtol=0, atol=1e-12)
+            stream = Stream()
+            # no re-learning: the first static samples of the new stream are already calibrated
+            watch_until(c, stream, lambda: stream.t and stream.t[-1] >= 40.0, timeout=60)
+            err, n = stream.static_median_abs_mg(0.0, 40.0)
+            assert n > 200 and err < BOUND_MG, (err, n)
+            # and the estimator goes on from there: revisions continue, windows accumulate
+            later = poll(lambda: (m := c.calib())["revision"] > saved["revision"] and m, 60, "a new revision")
+            assert later["n_windows"] > saved["calibration"]["n_windows"] and later["accepted"]
+        assert "removing stale socket" in again.log()
+        assert f"resumed calibration revision {saved['revision']}" in again.log()
+    finally:
+        assert again.stop() == 0
+
+
+# -- the other buses ---------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("bus,speed", [("i2c", 50.0), ("can", 15.0)])
+def test_calibration_converges_over_can_and_i2c(tmp_path, bus, speed):
+    # CAN: 4 frames per sample in slcan ASCII through a pty and python-can is the slowest link,
+    # hence the lower time-lapse (1500 samples/s = 6000 CAN frames/s at 15x).
+    d = Daemon(tmp_path, "--bus", bus, "--scenario", "six_position", "--speed", str(speed), "--duration", "400")
+    try:
+        d.wait_serving()
+        stream = Stream()
+        with d.client() as c:
+            watch_until(c, stream, lambda: stream.t and stream.t[-1] >= SETTLED_S[1], timeout=120)
+        assert_converges(stream, bus)
+        st = d.status()
+        assert st["emulator"]["bus"] == bus and st["device"]["bus"] == bus
+        assert st["device"]["crc_errors" if bus == "i2c" else "bad_frames"] == 0
+    finally:
+        assert d.stop() == 0
+
+
+# -- a silent bus: watchdog withheld; a disconnect survived with the gap flagged ------------
+
+
+class Notifications:
+    """sd_notify datagrams received by a background thread, with their arrival times."""
+
+    def __init__(self, path: str):
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self.sock.bind(path)
+        self.sock.settimeout(0.1)
+        self.log: list[tuple[float, str]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.log.append((time.monotonic(), self.sock.recv(4096).decode()))
+            except socket.timeout:
+                continue
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.sock.close()
+
+    def times(self, prefix: str) -> np.ndarray:
+        return np.array([t for t, m in list(self.log) if m.startswith(prefix)])
+
+
+def test_disconnect_withholds_the_watchdog_and_is_survived_with_the_gap_flagged(tmp_path):
+    notify = Notifications(str(tmp_path / "notify"))
+    speed, gone_at, gone_for = 10.0, 20.0, 30.0  # sensor seconds: 3 s of wall-clock silence
+    d = Daemon(tmp_path, "--bus", "serial", "--scenario", "six_position", "--speed", str(speed),
+               "--duration", "70", "--disconnect-at", f"{gone_at}:{gone_for}",
+               env={"NOTIFY_SOCKET": str(tmp_path / "notify"), "WATCHDOG_USEC": "1000000"})
+    try:
+        d.wait_serving()
+        stream = Stream()
+        with d.client() as c:
+            watch_until(c, stream, lambda: stream.t and stream.t[-1] >= 60.0, timeout=120, raw=True)
+            st = c.status()
+    finally:
+        code = d.stop()
+        time.sleep(0.3)  # the STOPPING=1 datagram is in flight
+        notify.close()
+    assert code == 0
+    # the gap: the first sample after the reconnect is flagged, its seq jumps over the outage
+    seq, flags = np.array(stream.seq), np.array(stream.flags)
+    jumps = np.flatnonzero(np.diff(seq) > 1) + 1
+    assert jumps.size == 1, f"expected one gap, got seq jumps at {seq[jumps]}"
+    k = jumps[0]
+    assert flags[k] & FLAG_RECONNECT and flags[k] & FLAG_GAP_BEFORE, flags[k]
+    lost_s = (seq[k] - seq[k - 1]) / FS
+    # the outage in sensor time, plus what the emulator streamed before the driver's reconnect
+    # backoff (at most 1 s of wall time = `speed` sensor seconds, + scheduling) reopened the device
+    assert gone_for - 1.0 <= lost_s <= gone_for + 1.5 * speed, lost_s
+    assert abs(seq[k - 1] / FS - gone_at) < 1.0
+    assert st["device"]["reconnects"] >= 1 and any("disconnected" in e for e in st["emulator"]["events"])
+    # the watchdog: fed every ~0.5 s while samples flow, withheld during the silence, fed again after
+    feeds = notify.times("WATCHDOG=1")
+    ready = notify.times("READY=1")
+    assert ready.size >= 1 and notify.times("STOPPING=1").size == 1
+    gaps = np.diff(feeds)
+    assert feeds.size >= 6
+    assert np.median(gaps) < 0.8, gaps  # normally every WATCHDOG_USEC/2
+    assert gaps.max() > 2.0, f"the watchdog was fed through the silence: gaps {np.round(gaps, 2)}"
+    assert st["watchdog"]["withheld"] >= 3
+    assert feeds[-1] > feeds[np.argmax(gaps)], "feeding did not resume after the reconnect"
