@@ -162,6 +162,13 @@ def _bootstrap(t: np.ndarray, cols: _Columns, fs: float) -> Calibration:
     return bootstrap(tt, raw, fs)
 
 
+def data_start(t: np.ndarray, raw: Any, fs: float | None = None) -> Calibration:
+    """The start calibrate_recording derives from the data when none is given (scale-free bootstrap
+    on at most BOOTSTRAP_MAX_SAMPLES, in evenly spaced pieces for long recordings)."""
+    t = np.asarray(t, dtype=float)
+    return _bootstrap(t, _Columns(raw), float(fs) if fs else _estimate_fs(t))
+
+
 def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calibration, temp: Any,
             detector_kw: dict[str, Any]) -> WindowSet:
     from gravcal.core.detectors import DETECTORS

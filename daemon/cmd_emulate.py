@@ -26,7 +26,7 @@ from typing import Sequence
 import numpy as np
 
 
-def _speed(text: str) -> float:
+def speed_arg(text: str) -> float:
     if text.strip().lower() in ("max", "inf"):
         return math.inf
     try:
@@ -48,7 +48,7 @@ def _probability(text: str) -> float:
     return v
 
 
-def _disconnect(text: str) -> tuple[float, float]:
+def disconnect_arg(text: str) -> tuple[float, float]:
     try:
         start, dur = (float(x) for x in text.split(":"))
     except ValueError:
@@ -74,14 +74,14 @@ def configure_parser(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     src.add_argument("--scenario", default="daily_living",
                      help="sensor-model scenario (gravcal.core.scenarios), or 'pattern' for a test pattern")
     src.add_argument("--replay", metavar="FILE", help="replay a recording with timer counts (.csv/.npy)")
-    p.add_argument("--speed", type=_speed, default=1.0, help="time-lapse factor (1 = real time; 'max' = no pacing)")
+    p.add_argument("--speed", type=speed_arg, default=1.0, help="time-lapse factor (1 = real time; 'max' = no pacing)")
     p.add_argument("--seed", type=int, default=0, help="seed of the scenario and of the injected faults")
     p.add_argument("--duration", type=_positive, default=60.0, help="stream seconds to emulate (default 60)")
     p.add_argument("--fs", type=_positive, default=100.0, help="sample rate [Hz] (default 100)")
     p.add_argument("--link", metavar="PATH", help="serial/can: stable path of the pty (default in a temp dir)")
     p.add_argument("--ber", type=_probability, default=0.0, help="bit-error rate (serial bytes, I2C bursts; CAN: frame loss)")
     p.add_argument("--drop", type=_probability, default=0.0, help="probability that a frame is not sent")
-    p.add_argument("--disconnect-at", type=_disconnect, action="append", default=[], metavar="T:DUR",
+    p.add_argument("--disconnect-at", type=disconnect_arg, action="append", default=[], metavar="T:DUR",
                    help="unplug the device at stream time T for DUR seconds (repeatable)")
     p.add_argument("--fifo-depth", type=int, default=32, help="i2c: FIFO depth in frames (small values provoke overflows)")
     p.add_argument("--record", metavar="FILE.npz", help="write every sample sent and its fate")

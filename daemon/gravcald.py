@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import logging
 import math
 import os
@@ -48,6 +49,7 @@ from ..core.ringbuffer import RingBuffer
 from ..core.samples import SAMPLE_DTYPE, raw_triad
 from ..core.windows import Window, WindowSet
 from . import config as config_mod
+from .cmd_emulate import disconnect_arg, speed_arg
 from .config import Config, ConfigError
 from .persistence import CalibrationState, RateLimitedSaver, StateStore, load_lab_calibration
 from .protocol import STANDARD_GRAVITY, calib_message
@@ -68,6 +70,15 @@ SEED_RETRY_EVERY = 10  # windows between seed fits when no new orientation arriv
 # observability check while 30 % off (seen with 6 windows of the six-position scenario, seed 0);
 # twice as many leave residual degrees of freedom to expose a wrong fit.
 SEED_WINDOWS_PER_PARAM = 2
+
+# The emulated/reference board's gyro path (docs/gyro.md, core/model/enc03j.py): ENC-03J on the
+# board's y axis, 0.3 Hz high-pass conditioning, ±300 °/s, 12-bit ADC. The start sensitivity is
+# the datasheet chain (0.67 mV/°/s x 7.5 gain on 12 bits at 3.3 V) when [gyro] gives none.
+GYRO_AXIS = (0.0, 1.0, 0.0)
+GYRO_HP_HZ = 0.3
+GYRO_RANGE_RAD_S = math.radians(300.0)
+GYRO_RAILS = (0, 4095)
+GYRO_NOMINAL_COUNTS_PER_RAD_S = 357.36
 
 # Settings that only take effect at start (SIGHUP says so instead of half-applying them).
 RESTART_KEYS = {
@@ -150,6 +161,7 @@ class Processor:
         self.windows_seen = 0
         self.windows_rejected = 0
         self.changed = False
+        self._init_gyro(start.extra.get("gyro") if resumed else None)
 
     # construction -------------------------------------------------------------------
     def _make_detector(self) -> Any:
@@ -168,6 +180,62 @@ class Processor:
         q = self.cfg.estimator.process_noise
         return LottersRecursive(start, model=self.cfg.estimator.model, process_noise=q if q > 0 else None)
 
+    def _init_gyro(self, saved: Any) -> None:
+        """The online gyro calibration (core.gyro, docs/gyro.md §6). Start values (bias [ADC
+        counts], sensitivity [counts per rad/s]) are, in order: a resumed state's ``extra.gyro``,
+        the [gyro] configuration, none (the published rate is null until the estimator has both)."""
+        from ..core.gyro import OnlineGyroCalibrator
+
+        g = self.cfg.gyro
+        bias, sens = g.zero_counts, g.counts_per_rad_s
+        if isinstance(saved, dict):
+            try:
+                sb, ss = float(saved["bias"][0]), float(saved["sensitivity"][0][0])
+            except (KeyError, IndexError, TypeError, ValueError):
+                sb, ss = math.nan, math.nan  # no determined value saved
+            bias = sb if math.isfinite(sb) else bias
+            sens = ss if math.isfinite(ss) and ss != 0 else sens
+        self.gyro_start = (float(bias), float(sens))
+        self.gyro_cal = OnlineGyroCalibrator(
+            self.cfg.device.fs_hz, k=1, axis=GYRO_AXIS, hp_hz=GYRO_HP_HZ,
+            start_sensitivity=sens if math.isfinite(sens) and sens != 0 else GYRO_NOMINAL_COUNTS_PER_RAD_S,
+            range_rad_s=GYRO_RANGE_RAD_S, rails=GYRO_RAILS)
+        self.gyro_json: dict[str, Any] = self._gyro_json(self.gyro_cal.calibration)
+        # (bias [counts], sensitivity [counts per rad/s]) used by correct(): one tuple, swapped atomically
+        self._gyro_correction = self.gyro_start
+
+    def _gyro_json(self, cal: Any) -> dict[str, Any]:
+        """The ``gyro`` object of CALIB: the estimator's result plus what the published rate uses."""
+        out = cal.to_json_dict()
+        b, s = getattr(self, "_gyro_correction", self.gyro_start)
+        out["applied"] = {"bias": b if math.isfinite(b) else None, "sensitivity": s if math.isfinite(s) else None}
+        return out
+
+    def _gyro_window(self, w: Window) -> bool:
+        """Fold a quasi-static window into the gyro calibration; True when it changed. Only with
+        an accepted accelerometer calibration: the pose-to-pose sensitivity compares gravity
+        directions, which the datasheet start gets wrong by up to ~0.9 g of offset."""
+        est = self.gyro_cal
+        if not self.applied.converged:
+            return False
+        before = (est.n_windows, est.n_windows_rejected, est.pose.n_pairs)
+        est.window(w, self.applied)
+        if (est.n_windows, est.n_windows_rejected, est.pose.n_pairs) == before:
+            return False
+        self._gyro_apply(est.calibration)
+        return True
+
+    def _gyro_apply(self, cal: Any) -> None:
+        """The estimator's bias once it has a window, its sensitivity once determined; the start
+        values until then."""
+        bias, sens = self.gyro_start
+        if cal.n_windows > 0 and np.all(np.isfinite(cal.bias)):
+            bias = float(cal.bias[0])
+        if cal.sensitivity is not None:
+            sens = float(cal.sensitivity[0, 0])
+        self._gyro_correction = (bias, sens)
+        self.gyro_json = self._gyro_json(cal)
+
     def reconfigure(self, cfg: Config) -> None:
         """Live changes (SIGHUP): detector settings rebuild the detector."""
         old = self.cfg
@@ -175,6 +243,10 @@ class Processor:
         if cfg.detector != old.detector:
             self.detector = self._make_detector()
             self.detector.to_g = self.applied
+        if cfg.gyro != old.gyro:  # new start values; estimated ones keep precedence
+            g = cfg.gyro
+            self.gyro_start = (float(g.zero_counts), float(g.counts_per_rad_s))
+            self._gyro_apply(self.gyro_cal.calibration)
 
     # per block ------------------------------------------------------------------------
     @property
@@ -196,8 +268,8 @@ class Processor:
         detector's latest decision, at most ANALYSIS_BLOCK_S of data old)."""
         offset, kinv_t = self._correction
         acc = (raw_triad(block) - offset) @ kinv_t
-        g = self.cfg.gyro
-        gyro = (block["gyro"].astype(float) - g.zero_counts) / g.counts_per_rad_s
+        bias, sens = self._gyro_correction
+        gyro = (block["gyro"].astype(float) - bias) / sens  # NaN while either is unknown
         return acc, gyro, np.full(block.shape[0], self.static_now)
 
     def analyse(self, block: np.ndarray) -> np.ndarray:
@@ -205,6 +277,7 @@ class Processor:
         per-sample static decisions (N,) bool; sets ``self.changed`` when the calibration
         state changed."""
         raw = raw_triad(block)
+        self.gyro_cal.push(block["gyro"])  # the same samples as the detector: window indices match
         # The detector runs on device time (unwrapped seq / fs), not on the host's reception
         # stamps: USB latency jitter (or an emulator's time-lapse) would read as time gaps and
         # cut every window, while lost samples still show as seq jumps.
@@ -220,6 +293,10 @@ class Processor:
         self.changed = False
         for w in windows:
             self._window(w)
+            if self._gyro_window(w):
+                extra = {**self.state.extra, "gyro": self.gyro_json}
+                self.state = dataclasses.replace(self.state, extra=extra)
+                self.changed = True
         return static
 
     def process(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -534,7 +611,8 @@ class Gravcald:
     def _calib_message(self) -> dict[str, Any]:
         st = self.processor.state
         return calib_message(st.calibration, revision=st.revision, updated=st.updated, accepted=st.accepted,
-                             extra={"applied_revision": st.revision if st.accepted else None})
+                             extra={"applied_revision": st.revision if st.accepted else None,
+                                    "gyro": self.processor.gyro_json})
 
     # -- threads -------------------------------------------------------------------------
     def _acquire(self) -> None:
@@ -765,7 +843,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--emulate", action="store_true", help="use the emulator as the device")
     e.add_argument("--bus", choices=("serial", "can", "i2c"), default="serial",
                    help="emulated bus: serial (pty), can (slcan on a pty) or i2c (fake device) (default serial)")
-    e.add_argument("--speed", type=_speed, default=1.0, metavar="X",
+    e.add_argument("--speed", type=speed_arg, default=1.0, metavar="X",
                    help="time-lapse factor of the emulated logger (1 = real time, default; 'max' = no pacing)")
     e.add_argument("--seed", type=int, default=0, help="seed of the emulated sensor and wearer (default 0)")
     e.add_argument("--scenario", default="daily_living",
@@ -776,31 +854,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--driver-options", default="", metavar="K=V&...",
                    help="serial/can: extra options for the driver's spec, e.g. batch_frames=1 (serial: a wake-up per "
                         "frame, lowest latency, more CPU; default 16 frames per wake-up)")
-    e.add_argument("--disconnect-at", type=_disconnect, action="append", default=[], metavar="T:DUR",
+    e.add_argument("--disconnect-at", type=disconnect_arg, action="append", default=[], metavar="T:DUR",
                    help="unplug the emulated device at sensor time T for DUR seconds (repeatable)")
     return p
-
-
-def _speed(text: str) -> float:
-    if text.strip().lower() in ("max", "inf"):
-        return math.inf
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"speed must be a number or 'max', got {text!r}") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"speed must be > 0, got {text!r}")
-    return v
-
-
-def _disconnect(text: str) -> tuple[float, float]:
-    try:
-        start, dur = (float(x) for x in text.split(":"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected T:DUR in seconds (e.g. 30:5), got {text!r}") from None
-    if not (start >= 0 and dur > 0):
-        raise argparse.ArgumentTypeError(f"disconnect {text!r}: need T >= 0 and DUR > 0")
-    return start, dur
 
 
 def emulation_defaults(args: argparse.Namespace, overrides: dict[str, Any]) -> list[str]:

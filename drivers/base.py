@@ -263,6 +263,22 @@ class Driver(ABC):
         self._rate.update(block, t_recv)
 
 
+class FramedStreamDriver(Driver):
+    """A driver whose bytes go through the shared serial frame codec (``self.decoder``, a
+    codec.FrameDecoder): the serial port, and the I2C FIFO, which carries the same frames."""
+
+    decoder: Any
+
+    def _after_reconnect(self) -> None:
+        self.decoder.discard_partial()
+
+    def _unwrapper(self):
+        return self.decoder.unwrapper
+
+    def _codec_stats(self) -> dict[str, Any]:
+        return self.decoder.stats()
+
+
 class _RateEstimate:
     """Sample rate [Hz] from unwrapped seq vs host time, for resolving long outages."""
 

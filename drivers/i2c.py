@@ -29,7 +29,7 @@ import numpy as np
 from smbus2 import SMBus, i2c_msg
 
 from ..core.samples import FLAG_FIFO_OVERFLOW, FLAG_GAP_BEFORE, SAMPLE_DTYPE
-from .base import PERMISSION_ERRNOS, Backoff, Driver, DriverError, DriverSpec, permission_hint, take_options
+from .base import PERMISSION_ERRNOS, Backoff, DriverError, DriverSpec, FramedStreamDriver, permission_hint, take_options
 from .codec import FRAME_LEN, TICK_HZ, FrameDecoder
 
 DEFAULT_ADDRESS = 0x42
@@ -66,7 +66,7 @@ def odr_code(rate_hz: float) -> int:
 _NACK_ERRNOS = (errno.ENXIO, errno.EREMOTEIO, errno.EIO, errno.ETIMEDOUT, errno.EAGAIN)
 
 
-class I2CDriver(Driver):
+class I2CDriver(FramedStreamDriver):
     """Samples from the logger's FIFO over I2C.
 
     ``smbus_factory(bus)`` makes the SMBus object (default ``smbus2.SMBus``); tests and the
@@ -179,14 +179,6 @@ class I2CDriver(Driver):
         if sm is not None:
             sm.close()
 
-    def _after_reconnect(self) -> None:
-        self.decoder.discard_partial()
-
-    def _unwrapper(self):
-        return self.decoder.unwrapper
-
-    def _codec_stats(self):
-        return self.decoder.stats()
 
     # -- reading --------------------------------------------------------------------
     def _status(self) -> tuple[int, int]:

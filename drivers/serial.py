@@ -16,13 +16,13 @@ import numpy as np
 import serial
 
 from ..core.samples import SAMPLE_DTYPE
-from .base import PERMISSION_ERRNOS, Backoff, Driver, DriverError, DriverSpec, permission_hint, take_options
+from .base import PERMISSION_ERRNOS, Backoff, DriverError, DriverSpec, FramedStreamDriver, permission_hint, take_options
 from .codec import FRAME_LEN, TICK_HZ, FrameDecoder
 
 DEFAULT_BAUDRATE = 460800
 
 
-class SerialDriver(Driver):
+class SerialDriver(FramedStreamDriver):
     """Frames from a serial port. ``port`` is a device path or a pyserial URL."""
 
     bus = "serial"
@@ -84,14 +84,6 @@ class SerialDriver(Driver):
         if ser is not None:
             ser.close()
 
-    def _after_reconnect(self) -> None:
-        self.decoder.discard_partial()
-
-    def _unwrapper(self):
-        return self.decoder.unwrapper
-
-    def _codec_stats(self):
-        return self.decoder.stats()
 
     def _read_block(self, deadline: float) -> np.ndarray:
         ser = self._ser

@@ -163,21 +163,24 @@ def test_demo_converges_from_the_nominal_start(capsys):
 
 def test_demo_upright_only_determines_the_offsets_and_says_so(capsys):
     """2 h from 08:00 (seed 1): upright and sitting only -> order offsets; the sensitivities stay at the
-    start's values (reported as such, with their error), and the offsets' bias from them is flagged."""
+    start's values (reported as such, with their error). The start is the datasheet's nominal part with
+    its spread, so the offsets' std includes the held sensitivities' uncertainty (consider covariance):
+    the offsets are fitted but flagged NOT observable (exit 3), and their std covers their real error."""
     code, out = demo(capsys, "--duration", "7200", "--start-hour", "8", "--seed", "1")
-    assert code == 0, out[-3000:]
+    assert code == 3, out[-3000:]
     eo0, es0 = start_errors(out)
     assert "order: offsets — " in out and "order: 6" not in out
+    assert "offsets fitted provisionally, NOT observable" in out
+    assert "uncertainty of the held sensitivities" in out
     m = re.search(r"determined: offsets\. error vs truth: offsets ([0-9.]+) mg \(reported std: ([0-9.]+) mg\); "
                   r"sensitivities held at start \(not observable from these postures\), ([0-9.]+) % off", out)
     assert m, out[-3000:]
     eo, so, es = map(float, m.groups())
     assert es == pytest.approx(es0, abs=0.06)  # held: exactly the start's sensitivity error
     assert eo < eo0 / 5  # the offsets did move from the 1 g start towards the truth
-    # the demo flags the bias when an offset is more than 4 reported std off (per axis; when even the largest
-    # error exceeds 4 x the largest std, some axis does, so the flag must be there)
-    if eo > 4 * so:
-        assert "the offsets absorb that error" in out and "the std covers the noise only" in out
+    # honest: the largest offset error is within K_STD of the largest reported std (the held sensitivities'
+    # datasheet spread is in it), and that std is far above the window noise (it is not a noise-only std)
+    assert eo < K_STD * so and so > 10, (eo, so)
     # held-out at order offsets: mostly upright windows, the held sensitivities' error is absorbed there
     n, rms, truth_rms = heldout(out, "offsets")
     assert n >= 20 and truth_rms < rms < eo0 / 10

@@ -162,3 +162,71 @@ def test_bootstrap_refuses_data_without_information():
     f = np.array([0.0, 0.0, 1.0]) + rng.normal(0, NOISE_G, (1000, 3)) + moving[:, None] * shake
     with pytest.raises(ValueError, match="no still segment of at least 2.0 s"):
         bootstrap(t, f)
+
+
+def _nees_stats(full, seeds=150):
+    """NEES of the held covariance the ellipsoid fit attaches, over seeds of M = 40 / 60 window means."""
+    m = 60 if full else 40
+    nees = []
+    for seed in range(seeds):
+        rng = np.random.default_rng(1000 + seed)
+        cal = ellipsoid_fit(WindowSet.from_points(_points(rng, m, 1e-3), 1e-8), full=full)
+        held = cal.metadata["held_covariance"]
+        idx = {"x": 0, "y": 1, "z": 2}
+        est = [cal.sensitivity[idx[n[2]], idx[n[-1]]] if n[0] == "s" else cal.offset[idx[n[2]]] for n in held["names"]]
+        tru = [np.diag(K_DIAG)[idx[n[2]], idx[n[-1]]] if n[0] == "s" else OFFSET[idx[n[2]]] for n in held["names"]]
+        e = np.subtract(est, tru)
+        nees.append(e @ np.linalg.solve(np.asarray(held["cov"]), e))
+    return held["names"], np.asarray(nees), m
+
+
+@pytest.mark.parametrize("full", [False, True])
+def test_ellipsoid_fit_held_covariance_matches_its_error(full):
+    names, nees, m = _nees_stats(full)
+    p = len(names)
+    assert names[:3] == ["s_x", "s_y", "s_z"] and names[-3:] == ["o_x", "o_y", "o_z"] and p == (9 if full else 6)
+    # With the residual variance estimated on nu = M - P dof the NEES is Hotelling-like, mean
+    # P nu / (nu - 2) (6.4 / 9.4), not P. Tolerance: 4 standard errors of the mean over the seeds,
+    # the SE from the sample NEES spread itself (heavier-tailed than chi²: random designs, robust weights).
+    nu = m - p
+    expected = p * nu / (nu - 2)
+    se = nees.std(ddof=1) / np.sqrt(nees.size)
+    assert abs(nees.mean() - expected) < 4 * se, (nees.mean(), expected, se)
+    # and the spread is not a bare chi² with half the variance: >= 85 % inside the chi²_P 95 % point
+    from scipy.stats import chi2
+    assert np.mean(nees < chi2.ppf(0.95, p)) > 0.85
+
+
+def test_bootstrap_isotropic_fallback_states_held_sensitivity_uncertainty_for_offsets_only():
+    from gravcal.core.estimators.lotters import LottersBatch, HELD_KEY, CONSIDER_KEY
+    rng = np.random.default_rng(31)
+    up = _unit(np.array([0.1, -0.05, 1.0]))
+    t, f = _still_and_moving(rng, _unit(up + 0.03 * rng.normal(size=(8, 3))))
+    start = bootstrap(t, 9.80665 * f)
+    assert not start.observable and "only assumed equal" in start.message
+    held = start.metadata[HELD_KEY]
+    assert held["names"] == ["s_x", "s_y", "s_z"]
+    scale = start.sensitivity[0, 0]
+    np.testing.assert_allclose(np.sqrt(np.diag(held["cov"])) / scale, 0.20, rtol=1e-12)
+
+    # Offsets-only fits from that start: upright-only windows (within ~5°), true per-axis gains unequal
+    # by 3 % (1 sigma), true offsets 20 mg. The held 20 % is a conservative bound, not the truth's
+    # spread, so the NEES (3 dof) must not exceed chi² (mean <= 3 + 4 SE, SE = sqrt(6 / N)); without
+    # the consider term (window noise only) the offset error (z: confounded with s_z) is far outside.
+    with_c, without = [], []
+    n_seeds = 100
+    for seed in range(n_seeds):
+        r = np.random.default_rng(2000 + seed)
+        s_true = scale * (1 + 0.03 * r.normal(size=3))
+        o_true = scale * 0.02 * r.normal(size=3)
+        a = _unit(np.array([0.0, 0.0, 1.0]) + 0.05 * r.normal(size=(30, 3)))
+        raw = (a + r.normal(0, 2e-4, (30, 3))) * s_true + o_true
+        cal = LottersBatch("offsets").fit(WindowSet.from_points(raw, (2e-4 * scale) ** 2), start=start)
+        e = cal.offset - o_true
+        with_c.append(e @ np.linalg.solve(cal.covariance, e))
+        c_noise = np.asarray(cal.metadata[CONSIDER_KEY]["covariance_noise_only"])
+        without.append(e @ np.linalg.solve(c_noise, e))
+    with_c, without = np.asarray(with_c), np.asarray(without)
+    assert with_c.mean() < 3 + 4 * np.sqrt(6 / n_seeds), with_c.mean()
+    assert np.mean(with_c < 11.34) > 0.97  # chi²_3 99 % point
+    assert np.median(without) > 100, np.median(without)

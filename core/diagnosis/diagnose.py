@@ -12,6 +12,8 @@
 """
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import math
 from dataclasses import dataclass, field
@@ -21,7 +23,7 @@ import numpy as np
 
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.extended import EXTRA_TERMS, ExtendedParameterization, extended_residuals_g
-from gravcal.core.estimators.lotters import LottersBatch
+from gravcal.core.estimators.lotters import HELD_KEY, LottersBatch
 from gravcal.core.estimators.order import coverage, select_order
 from gravcal.core.windows import WindowSet
 
@@ -126,12 +128,29 @@ def _static_stretches(ws: WindowSet, max_gap: int) -> list[tuple[int, int]]:
     return [(a, b) for a, b in out]
 
 
+GIVEN_HELD_NOTE = ("terms judged given the start's sensitivities; the absolute offsets also carry the "
+                   "sensitivities' uncertainty (see gravcal calibrate)")
+
+
+def given_held(start: Calibration) -> Calibration:
+    """``start`` without its held-parameter uncertainty.
+
+    Diagnosis asks whether a baseline's residuals follow a term (temperature, time, ...): a question
+    relative to the baseline. The held sensitivities' absolute uncertainty (the consider term of the
+    calibration's own std) is common to every model compared, so order and terms are judged given
+    them, as Lötters' offsets-only mode takes the sensitivities as known."""
+    return dataclasses.replace(start, metadata={k: v for k, v in start.metadata.items() if k != HELD_KEY})
+
+
 def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candidates: tuple[str, ...] = CATALOGUE,
                      replicas: int = 40, folds: int = 5, seed: int = 0, base: str | None = None,
                      simulate: bool = True) -> Diagnosis:
     """Steps a-e on quasi-static windows alone (no sample-level noise tests: colored_noise and
     quantization are reported untestable)."""
     notes: list[str] = []
+    if HELD_KEY in start.metadata:
+        start = given_held(start)
+        notes.append(GIVEN_HELD_NOTE)
     if len(ws) < MIN_WINDOWS:
         raise ValueError(f"only {len(ws)} quasi-static window(s): need at least {MIN_WINDOWS} to fit a baseline and "
                          f"test any term (record longer, with still moments)")
@@ -201,7 +220,7 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
              candidates: tuple[str, ...] = CATALOGUE, replicas: int = 40, folds: int = 5, seed: int = 0,
              simulate: bool = True) -> Diagnosis:
     """Diagnose a recording: t (N,) [s], raw (N, 3) [raw units], temp (N,) [°C] or None."""
-    from gravcal.core.pipeline import calibrate_recording  # noqa: PLC0415
+    from gravcal.core.pipeline import calibrate_recording, data_start  # noqa: PLC0415
 
     t = np.asarray(t, dtype=float)
     raw = np.asarray(raw, dtype=float)
@@ -230,7 +249,11 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
             keep[a + 1:b] = False  # the first sample of a run is a real one
         t, raw = t[keep], raw[keep]
         temp = None if temp is None else temp[keep]
-    rep = calibrate_recording(t, raw, temp=temp, model="offsets", fs=fs)
+    start0 = data_start(t, raw, fs)
+    if HELD_KEY in start0.metadata:
+        start0 = given_held(start0)
+        notes.append(GIVEN_HELD_NOTE)
+    rep = calibrate_recording(t, raw, temp=temp, model="offsets", fs=fs, start=start0)
     ws = rep.windows
     has_temp = temp is not None and np.ptp(temp) > 0
     d = diagnose_windows(ws, rep.start or rep.calibration, has_temp=has_temp, candidates=candidates,

@@ -20,7 +20,9 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..detectors import MovingVarianceDetector, estimate_fs
+from ..model.defaults import SENS_LIMITS, SENS_TYP
 from ..windows import WindowSet
+from .lotters import with_held_uncertainty
 
 MIN_WINDOWS = {False: 6, True: 9}  # unknowns of the axis-aligned / general quadric
 MIN_CAP_DEG = 20.0  # refuse when every window is within this angle of one direction (Lötters θ)
@@ -30,6 +32,12 @@ TUKEY_C = 4.685  # bisquare tuning constant (95 % efficiency under Gaussian resi
 SIGMA_FLOOR_G = 1e-4  # robust-scale floor [g]: never reject on residuals below ~0.5 mg
 MAX_OFFSET_STD_G = 0.05  # refuse when an offset is this uncertain [g] ...
 MAX_SENS_REL_STD = 0.05  # ... or a sensitivity entry this uncertain (relative): not observable
+# The isotropic fallback assumes equal per-axis gains. ADXL210 sensitivity is specified 0.032-0.048
+# duty/g around 0.040 (core/model/defaults.py): a part's gain may sit anywhere within +-20 % of the
+# typical value, and the triad's x/y (chip A) and z (chip B) are different parts. Stating the full
+# half-range (3 sigma of the datasheet spread, 6.7 %) as one std keeps a fit that holds these gains
+# honest even for a worst-case pair of chips and for the median norm's own bias (offset assumed 0).
+ISOTROPIC_SENS_REL_STD = (SENS_LIMITS[1] - SENS_LIMITS[0]) / 2.0 / SENS_TYP  # 0.20
 
 
 def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
@@ -49,6 +57,8 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
     the fit is not an ellipsoid.
     Robustness: Huber weights for 3 iterations, then Tukey bisquare, on the norm residual
     [g] scaled by the MAD of all residuals (floored at 0.1 mg).
+    The result states its own uncertainty for fits that hold it (lotters.with_held_uncertainty,
+    metadata["held_covariance"], raw units²): see _raw_parameter_covariance.
     """
     mean = np.asarray(ws.mean, dtype=float).reshape(-1, 3)
     mean = mean[np.isfinite(mean).all(axis=1)]
@@ -118,7 +128,8 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
         raise ValueError("orientation coverage insufficient: parameters not observable from these windows ("
                          + ", ".join(bad) + "); add postures that load those axes")
     resid_g = np.linalg.norm(a, axis=1) - 1.0
-    return Calibration(
+    names, cov_raw = _raw_parameter_covariance(coef, design, w, full, c0, r0)
+    cal = Calibration(
         model="start",
         offset=offset,
         sensitivity=K,
@@ -139,6 +150,54 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
             "sensitivity_rel_std": k_std_rel,
         },
     )
+    return with_held_uncertainty(cal, names=names, cov=cov_raw,
+                                 source=f"ellipsoid fit ({'general' if full else 'axis-aligned'}) linearised LS covariance")
+
+
+def _raw_parameter_covariance(coef, design, w, full, c0, r0) -> tuple[list[str], np.ndarray]:
+    """Names and covariance [raw units²] of the fitted (K, o), for a later fit that holds them.
+
+    The quadric coefficients are a Tukey M-estimate (IRLS with the final robust weights w); their
+    covariance is Huber's (Robust Statistics, 1981, eq. 7.6.5-7.6.7):
+    cov(coef) = K² [sum (w e)² / (n - P)] / mean(psi')² (D^T D)^-1 over the windows kept, with
+    e = D coef - 1 the algebraic residual (its scale from the data, not the floored robust sigma)
+    and K = 1 + P/n var(psi')/mean(psi')²; all weights 1 gives the plain LS s² (D^T D)^-1. The
+    fixed-weight sandwich was measured too small (NEES 9 vs 6 over 300 seeds): it ignores that the
+    weights themselves follow the residuals. Propagated to
+    raw units (offset = c0 + r0 o_u, K = r0 K_u) through the central-difference Jacobian of the
+    quadric -> ellipsoid map. Axis-aligned: s_x, s_y, s_z, o_x, o_y, o_z. General (full=True):
+    the whole symmetric K as well, s_x, s_y, s_z (diagonal), s_xy, s_xz, s_yz (K[i, j] = K[j, i]),
+    then o_x, o_y, o_z: the names lotters.with_held_uncertainty understands.
+    """
+    used = w > 0
+    D, ww = design[used], w[used]
+    n, n_p = D.shape
+    e = D @ coef - 1.0  # algebraic residual, ~2 (|a| - 1) in these normalised units
+    # final weights are Tukey's (1 - z²)², z = r / (TUKEY_C sigma): psi(z) ∝ w e, psi'(z) = sqrt(w) (5 sqrt(w) - 4)
+    sq = np.sqrt(ww)
+    dpsi = sq * (5.0 * sq - 4.0)
+    mean_dpsi = float(np.mean(dpsi))
+    if not mean_dpsi > 0.1:  # cannot happen with most windows near the ellipsoid; stay finite and conservative
+        mean_dpsi = 0.1
+    corr = 1.0 + n_p / n * float(np.var(dpsi)) / mean_dpsi ** 2  # Huber's small-sample factor
+    s2 = float(np.sum((ww * e) ** 2) / max(n - n_p, 1)) * corr ** 2 / mean_dpsi ** 2
+    cov_coef = s2 * np.linalg.pinv(D.T @ D)
+    pairs = [(0, 0), (1, 1), (2, 2)] + ([(0, 1), (0, 2), (1, 2)] if full else [])
+    names = ["s_" + ("xyz"[i] if i == j else "xyz"[i] + "xyz"[j]) for i, j in pairs] + [f"o_{a}" for a in "xyz"]
+
+    def raw_params(c):
+        o_u, K_u = _quadric_to_ellipsoid(c, full)
+        return np.concatenate([[r0 * K_u[i, j] for i, j in pairs], c0 + r0 * o_u])
+
+    jac = np.empty((len(names), n_p))
+    for j in range(n_p):
+        h = 1e-6 * max(abs(coef[j]), 1e-3)
+        cp, cm = coef.copy(), coef.copy()
+        cp[j] += h
+        cm[j] -= h
+        jac[:, j] = (raw_params(cp) - raw_params(cm)) / (2 * h)
+    cov = jac @ cov_coef @ jac.T
+    return names, 0.5 * (cov + cov.T)
 
 
 def _parameter_std(coef, design, w, sigma_g, full) -> tuple[np.ndarray, dict[str, float]]:
@@ -223,7 +282,9 @@ def bootstrap(t, raw, fs: float | None = None, *, noise_factor: float = 4.0, per
     any scale-free rule: such data give one "still" window and the fallback below. Their means go to
     ellipsoid_fit (axis-aligned). If orientation coverage is too poor for per-axis
     sensitivities, the result has an isotropic sensitivity equal to the median norm of
-    the still means, zero offset, observable=False and a message saying so.
+    the still means, zero offset, observable=False and a message saying so; it states a held
+    uncertainty of ISOTROPIC_SENS_REL_STD (20 %) of that scale on each of s_x, s_y, s_z, so an
+    offsets-only fit from it reports how much the assumed-equal gains can bias its offsets.
     Raises ValueError if the data have no still segment at all.
     """
     raw = np.asarray(raw, dtype=float)
@@ -250,12 +311,17 @@ def bootstrap(t, raw, fs: float | None = None, *, noise_factor: float = 4.0, per
             raise ValueError(f"bootstrap: no scale can be determined: the still means (median norm {scale:.3g}) "
                              f"do not stand out of the noise floor ({floor:.3g}); is this accelerometer data? "
                              f"({exc})") from exc
-        return Calibration(
+        iso = Calibration(
             model="start", offset=np.zeros(3), sensitivity=scale * np.eye(3), n_windows=len(ws), converged=False,
             observable=False,
-            message=f"only an isotropic scale could be determined (offset assumed 0): {exc}",
+            message=(f"only an isotropic scale could be determined (sensitivities only assumed equal, "
+                     f"±{100 * ISOTROPIC_SENS_REL_STD:.0f} % each; offset assumed 0): {exc}"),
             metadata={**meta, "fallback": "isotropic_median_norm", "reason": str(exc)},
         )
+        sd = ISOTROPIC_SENS_REL_STD * scale
+        return with_held_uncertainty(iso, {f"s_{a}": sd for a in "xyz"},
+                                     source=f"isotropic fallback: per-axis sensitivities assumed equal "
+                                            f"(±{100 * ISOTROPIC_SENS_REL_STD:.0f} %, ADXL210 gain spread)")
     cal.metadata = {**meta, **cal.metadata, "method": "bootstrap+ellipsoid_fit"}
     cal.message = f"bootstrap from {len(ws)} still segments; " + cal.message
     return cal

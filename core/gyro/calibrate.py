@@ -391,7 +391,10 @@ class OnlineGyroCalibrator:
         self.start_scale = float(np.linalg.norm(np.atleast_2d(m0)) / np.sqrt(np.atleast_2d(m0).shape[0]))
         self.gate = GyroStillnessGate(fs, 1.0 / self.start_scale, hp_hz, gate_threshold_rad_s)
         self.bias_est = GyroBiasEstimator(k=self.k, walk_counts_per_sqrt_s=bias_walk_counts_per_sqrt_s)
-        self.pose = PoseToPose("scalar" if k == 1 else "matrix", np.asarray(m0), axis=self.axis, range_rad_s=range_rad_s)
+        # gate from the first pair: online there is no second pass to re-linearise around, and an
+        # ungated first pair that the gyro cannot explain set the scale (even its sign) for good
+        self.pose = PoseToPose("scalar" if k == 1 else "matrix", np.asarray(m0), axis=self.axis, range_rad_s=range_rad_s,
+                               gate_after=0)
         self.max_gap_n = int(max_gap_s * fs)
         self._buf = np.zeros((0, self.k))
         self._buf_start = 0  # global index of _buf[0]

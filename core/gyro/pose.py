@@ -23,11 +23,19 @@ rejected, with its reason counted, when
 - the part of the rotation perpendicular to gravity is below ``min_angle_rad``: "rotation about
   the gravity axis only (unobservable from gravity)" (e.g. a turn on a turntable);
 - any sample reaches the gyro's range or the ADC rails: "saturated";
+- single-axis gyro: gravity's component along the sensitive axis changed by more than 4 sigma:
+  "rotation not about the gyro's sensitive axis" (a rotation about the axis keeps it; the gyro
+  cannot see the rest of the rotation, so the pair would pull the scale anywhere, even past 0);
+  this test uses the accelerometer only, so it holds from the first pair, whatever the start;
 - the normalised innovation exceeds the gate: "inconsistent with the gyro model" (translation
-  during the windows, rotation the single-axis gyro cannot see).
+  during the windows, a turn out of the axis and back).
 Observability at the end: the information from the data, whitened by the prior, must exceed
 ``MIN_INFORMATION_RATIO`` in every direction of the parameter space, otherwise no sensitivity
-is claimed (``observable`` False and a message saying which directions are missing).
+is claimed (``observable`` False and a message saying which directions are missing); nor with
+fewer than ``min_pairs`` accepted pairs, less than ``min_total_angle_rad`` of rotation across
+gravity in them, or a reduced chi2 of their residuals above ``max_reduced_chi2`` (the pairs
+disagree with each other beyond their noise: model error). Below that limit the covariance is
+inflated by the reduced chi2 when it exceeds 1.
 """
 from __future__ import annotations
 
@@ -43,6 +51,11 @@ ABOUT_GRAVITY = "rotation about the gravity axis only (unobservable from gravity
 SATURATED = "saturated (rate beyond the gyro's range or ADC at its rails)"
 INCONSISTENT = "inconsistent with the gyro model (innovation beyond the gate)"
 TOO_LONG = "too long between windows"
+OFF_AXIS = "rotation not about the gyro's sensitive axis (gravity's component along it changed)"
+OFF_AXIS_CHI2 = 16.0  # 1 degree of freedom: a 4-sigma change of gravity along the sensitive axis
+MIN_PAIRS = 4  # no sensitivity claimed from fewer accepted pairs (one pair cannot show its own model error)
+MIN_TOTAL_ANGLE_RAD = np.deg2rad(90.0)  # summed rotation (across gravity) of the accepted pairs
+MAX_REDUCED_CHI2 = 4.0  # pairs' residuals beyond 2x their modelled std: model error, no claim
 MIN_INFORMATION_RATIO = 9.0  # data information >= 9x the prior's in every direction: posterior std <= prior/3
 GATE_CHI2 = 25.0  # 2 degrees of freedom: P(chi2 > 25) = 4e-6 for a consistent pair
 
@@ -112,6 +125,10 @@ class PoseToPose:
     floor_rad: float = np.deg2rad(0.5)
     gate_chi2: float = GATE_CHI2
     iterations: int = 3
+    gate_after: int = 3  # pairs accepted before the innovation gate applies (0: from the first)
+    min_pairs: int = MIN_PAIRS
+    min_total_angle_rad: float = MIN_TOTAL_ANGLE_RAD
+    max_reduced_chi2: float = MAX_REDUCED_CHI2
     x: np.ndarray = field(init=False)
     P: np.ndarray = field(init=False)
 
@@ -134,6 +151,7 @@ class PoseToPose:
         self.P = self.P0.copy()
         self.rejected: Counter[str] = Counter()
         self.n_pairs = 0
+        self.total_angle_rad = 0.0  # summed rotation across gravity of the accepted pairs [rad]
         self.chi2 = 0.0  # sum of post-update NIS over accepted pairs (consistency of the noise model)
 
     # -- model -------------------------------------------------------------------------
@@ -190,6 +208,12 @@ class PoseToPose:
         """Fold one pair in (or reject it, counting the reason)."""
         if pair.saturated:
             return self._reject(SATURATED)
+        if self.kind == "scalar":
+            a = self.axis
+            d = float(a @ (pair.g_j - pair.g_i))
+            var = float(a @ (pair.cov_i + pair.cov_j) @ a) + 2 * self.floor_rad**2
+            if d * d > OFF_AXIS_CHI2 * var:
+                return self._reject(OFF_AXIS)
         g_pred, J, C, omega = self._predict(self.x, pair)
         path, perp = self._angles(C, omega, pair.g_i, pair.dt)
         if np.any(np.abs(omega) >= 0.98 * self.range_rad_s):
@@ -204,7 +228,7 @@ class PoseToPose:
         r = E.T @ (pair.g_j - g_pred)
         S = H @ self.P @ H.T + R
         nis = float(r @ np.linalg.solve(S, r))
-        if nis > self.gate_chi2 and self.n_pairs >= 3:  # the first pairs may be far from a weak start
+        if nis > self.gate_chi2 and self.n_pairs >= self.gate_after:  # the first pairs may be far from a weak start
             return self._reject(INCONSISTENT, path, perp, nis)
         xi = self.x.copy()
         for _ in range(self.iterations):  # iterated EKF: re-linearise at the updated state
@@ -221,6 +245,7 @@ class PoseToPose:
         post = float(r @ np.linalg.solve(R, r))
         self.chi2 += post
         self.n_pairs += 1
+        self.total_angle_rad += perp
         return PairOutcome(True, "", path, perp, float(np.linalg.norm(pair.g_j - g_pred)), nis)
 
     def _reject(self, reason: str, path: float = 0.0, perp: float = 0.0, nis: float = float("nan")) -> PairOutcome:
@@ -235,22 +260,37 @@ class PoseToPose:
         w = np.linalg.cholesky(self.P0)
         return np.linalg.eigvalsh(w.T @ info @ w)
 
-    @property
-    def observable(self) -> bool:
-        return self.n_pairs > 0 and float(self.information_ratio()[0]) >= MIN_INFORMATION_RATIO
-
-    def message(self) -> str:
-        rej = "; ".join(f"{n} x {why}" for why, n in sorted(self.rejected.items(), key=lambda kv: -kv[1]))
+    def why_not_determined(self) -> str:
+        """Empty when the pairs determine the sensitivity; otherwise the reason."""
         if self.n_pairs == 0:
-            return "no sensitivity: no usable rotation between quasi-static windows" + (f" (rejected: {rej})" if rej else "")
-        if not self.observable:
-            lam = self.information_ratio()
+            return "no usable rotation between quasi-static windows"
+        if self.n_pairs < self.min_pairs:
+            return f"{self.n_pairs} pair(s) accepted, need {self.min_pairs} (a single pair cannot show its own model error)"
+        if self.total_angle_rad < self.min_total_angle_rad:
+            return (f"the accepted pairs turned {np.degrees(self.total_angle_rad):.0f}° in all across gravity, "
+                    f"need {np.degrees(self.min_total_angle_rad):.0f}°")
+        c = self.reduced_chi2()
+        if np.isfinite(c) and c > self.max_reduced_chi2:
+            return (f"the pairs disagree beyond their noise (reduced chi2 {c:.3g} > {self.max_reduced_chi2:g}: "
+                    f"model error, e.g. rotations the gyro does not see)")
+        lam = self.information_ratio()
+        if float(lam[0]) < MIN_INFORMATION_RATIO:
             weak = int(np.sum(lam < MIN_INFORMATION_RATIO))
             what = ("the scale" if self.kind == "scalar" else
                     f"{weak} of the 9 matrix directions (rotations about too few axes across gravity)")
-            return (f"no sensitivity: {self.n_pairs} pair(s) do not determine {what} "
-                    f"(information {lam[0]:.2g}x the prior's, need {MIN_INFORMATION_RATIO:g}x)"
-                    + (f"; rejected: {rej}" if rej else ""))
+            return (f"{self.n_pairs} pair(s) do not determine {what} "
+                    f"(information {lam[0]:.2g}x the prior's, need {MIN_INFORMATION_RATIO:g}x)")
+        return ""
+
+    @property
+    def observable(self) -> bool:
+        return self.n_pairs > 0 and not self.why_not_determined()
+
+    def message(self) -> str:
+        rej = "; ".join(f"{n} x {why}" for why, n in sorted(self.rejected.items(), key=lambda kv: -kv[1]))
+        why = self.why_not_determined()
+        if why:
+            return f"no sensitivity: {why}" + (f"; rejected: {rej}" if rej else "")
         return f"{self.n_pairs} pair(s) used" + (f"; rejected: {rej}" if rej else "")
 
     def reduced_chi2(self) -> float:
