@@ -126,7 +126,7 @@ def test_calibrate_lab_from_time_series_finds_faces_without_markers():
 
 
 def test_simulated_six_position_session_from_the_sensor_model():
-    simulate = pytest.importorskip("gravcal.core.simulate").simulate
+    from gravcal.core.simulate import simulate
     from gravcal.core.model.defaults import default_model
     from gravcal.core.samples import raw_triad
 

@@ -122,7 +122,7 @@ def test_emulator_paces_in_time_lapse():
 
 
 def test_replay_of_a_recording_written_by_gravcal_simulate(tmp_path):
-    recordings = pytest.importorskip("gravcal.daemon.recordings")
+    from gravcal.daemon import recordings
     s = np.concatenate(list(pattern_blocks(seed=6, fs=100, duration=1.0)))
     path = tmp_path / "rec.csv"
     recordings.write_recording(path, s)

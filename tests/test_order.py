@@ -114,7 +114,7 @@ def test_online_selector_upgrades_as_postures_accumulate():
 
 
 def test_loetters_orientation1_theta30_from_the_simulator():
-    simulate = pytest.importorskip("gravcal.core.simulate").simulate
+    from gravcal.core.simulate import simulate
     from gravcal.core.detectors import detect
     from gravcal.core.model.defaults import default_model, triad_truth
     from gravcal.core.samples import raw_triad
