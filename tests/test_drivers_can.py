@@ -94,14 +94,18 @@ def test_assembler_pairs_frames_and_documents_missing_ones():
     assert np.isnan(got["temp"][4]) and got["t2"][3, 1] == 0
 
 
-def test_virtual_bus_in_process_with_drops():
+def run_virtual(*, seed, duration, faults=None, patch_driver=None):
+    """The emulator on an in-process virtual bus, read to the end by the driver: (samples, stats, sent log).
+    ``patch_driver(drv)`` may wrap the driver's bus before the first frame."""
     channel = f"gravcal-{uuid.uuid4().hex[:8]}"
     log = SentLog()
     link = PythonCanLink("virtual", channel)
-    emu = Emulator(pattern_blocks(seed=5, fs=200, duration=2.0), 200.0, link, speed=float("inf"),
-                   faults=Faults(drop=0.02, seed=5), log=log)
+    emu = Emulator(pattern_blocks(seed=seed, fs=200, duration=duration), 200.0, link, speed=float("inf"),
+                   faults=faults or Faults(), log=log)
     got = []
     with open_driver(f"can://virtual/{channel}") as drv:  # listening before the first frame
+        if patch_driver is not None:
+            patch_driver(drv)
         th = threading.Thread(target=emu.run)
         th.start()
         th.join(timeout=30)
@@ -112,8 +116,11 @@ def test_virtual_bus_in_process_with_drops():
             got.append(b)
         st = drv.stats()
     link.close()
-    got = np.concatenate(got)
-    arrays = log.arrays()
+    return np.concatenate(got), st, log.arrays()
+
+
+def test_virtual_bus_in_process_with_drops():
+    got, st, arrays = run_virtual(seed=5, duration=2.0, faults=Faults(drop=0.02, seed=5))
     seq = check_received(got, arrays)
     status = arrays["status"]
     np.testing.assert_array_equal(np.flatnonzero(status != DROPPED), seq)  # nothing else missing
@@ -210,34 +217,20 @@ def test_garbled_interface_lines_are_counted_and_skipped():
     """python-can's slcan raises ValueError on a garbled ASCII line (after consuming it): the driver counts
     it and reads on. Injected here on every 7th recv of a virtual bus that carries a clean stream: every
     sample still arrives (the garbled "line" carries no frame), read() never raises, and the count is exact."""
-    channel = f"gravcal-{uuid.uuid4().hex[:8]}"
-    log = SentLog()
-    link = PythonCanLink("virtual", channel)
-    emu = Emulator(pattern_blocks(seed=8, fs=200, duration=1.0), 200.0, link, speed=float("inf"), log=log)
-    got, injected = [], 0
-    with open_driver(f"can://virtual/{channel}") as drv:
+    injected = [0]
+
+    def make_flaky(drv):
         real_recv, calls = drv._bus.recv, [0]
 
         def flaky_recv(timeout=None):
-            nonlocal injected
             calls[0] += 1
             if calls[0] % 7 == 0:
-                injected += 1
+                injected[0] += 1
                 raise ValueError("invalid literal for int() with base 16: 'G'")
             return real_recv(timeout=timeout)
 
         drv._bus.recv = flaky_recv
-        th = threading.Thread(target=emu.run)
-        th.start()
-        th.join(timeout=30)
-        while True:
-            b = drv.read(max_samples=1000, timeout=0.3)
-            if b.shape[0] == 0:
-                break
-            got.append(b)
-        st = drv.stats()
-    link.close()
-    got = np.concatenate(got)
-    arrays = log.arrays()
-    assert got.shape[0] == arrays["status"].shape[0] and injected > 10
-    assert st["garbled_lines"] == injected and st["reconnects"] == 0
+
+    got, st, arrays = run_virtual(seed=8, duration=1.0, patch_driver=make_flaky)
+    assert got.shape[0] == arrays["status"].shape[0] and injected[0] > 10
+    assert st["garbled_lines"] == injected[0] and st["reconnects"] == 0

@@ -143,11 +143,23 @@ def test_missing_state_is_not_an_error(tmp_path):
     assert res.state is None and res.moved_to is None and "no saved state" in res.notes[0]
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root reads any file; unreadable state cannot be simulated")
-def test_unreadable_state_is_moved_aside(tmp_path):
+def test_unreadable_state_is_moved_aside(tmp_path, monkeypatch):
     p = tmp_path / "state.json"
     write_state(p, CalibrationState(make_cal()))
     p.chmod(0)
+    if os.geteuid() == 0:
+        # root reads a mode-0 file anyway (CI runs as root): refuse it at the module's open() instead,
+        # as the kernel would for the service's own user
+        import builtins
+
+        import gravcal.daemon.persistence as persistence
+
+        def refusing_open(file, *args, **kwargs):
+            if os.fspath(file) == os.fspath(p):
+                raise PermissionError(13, "Permission denied", os.fspath(file))
+            return builtins.open(file, *args, **kwargs)
+
+        monkeypatch.setattr(persistence, "open", refusing_open, raising=False)
     res = StateStore(tmp_path).load()
     assert res.state is None and "Permission denied" in res.notes[0]
 
