@@ -50,8 +50,12 @@ class SocketPathError(OSError):
 # -- socket path and activation ------------------------------------------------------
 
 
-def bind_unix_socket(path: str, *, mode: int | None = 0o660, backlog: int = 64) -> socket.socket:
+def bind_unix_socket(path: str, *, mode: int | None = 0o660, backlog: int = socket.SOMAXCONN) -> socket.socket:
     """A listening, non-blocking AF_UNIX stream socket bound at ``path``.
+
+    The backlog is the system maximum, far above ServerConfig.max_clients: a burst of clients
+    beyond the limit is accepted and told "too many clients" (an ERROR line) by the server,
+    instead of failing in connect() with EAGAIN before the server ever sees it.
 
     An existing path that is a live socket -> SocketPathError("another gravcald is running
     on PATH"); a socket nobody listens on (stale, left by a crash) is removed and rebound;

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import struct
 import time
 from typing import Any
@@ -248,7 +249,11 @@ class CanDriver(Driver):
             raise _open_error(self.interface, self.channel, exc) from None
         port = getattr(bus, "serialPortOrig", None)
         if port is not None:  # slcan: python-can reads its port one byte per call
-            bus.serialPortOrig = _BufferedPort(port)
+            bus.serialPortOrig = buffered = _BufferedPort(port)
+            if callable(getattr(bus, "_read", None)):
+                # ... and assembles each line in a Python loop per byte: most of the daemon's CPU
+                # at 200 Hz, and the lag that loses what the adapter still holds at an unplug.
+                bus._read = buffered.read_line
         try:
             bus.set_filters([{"can_id": self.base_id, "can_mask": 0x7FC, "extended": False}])
         except (can.CanError, NotImplementedError):
@@ -276,7 +281,7 @@ class CanDriver(Driver):
     def _codec_stats(self):
         out = dict(self.assembler.counters)
         out.update(frames=out["can_frames"], gaps=self.unwrapper.gaps, missing=self.unwrapper.missing,
-                   duplicates=self.unwrapper.duplicates)
+                   duplicates=self.unwrapper.duplicates, strays=self.unwrapper.strays)
         return out
 
     def _recv(self, timeout: float) -> can.Message | None:
@@ -312,10 +317,14 @@ class CanDriver(Driver):
         return records_to_samples(rec, self.unwrapper)
 
 
+_SLCAN_LINE_END = re.compile(b"[\r\a]")  # CR ends a line, BELL is an error reply
+
+
 class _BufferedPort:
     """Wraps the pyserial port of python-can's slcan bus so its byte-at-a-time ``read(1)``
     is served from memory: one system call per burst instead of one per byte (the slcan
-    driver's CPU drops several-fold at 200 Hz). Everything else is delegated."""
+    driver's CPU drops several-fold at 200 Hz), and ``read_line`` stands in for the bus's
+    per-byte line assembly. Everything else is delegated."""
 
     def __init__(self, port):
         self._port = port
@@ -324,6 +333,22 @@ class _BufferedPort:
     @property
     def in_waiting(self) -> int:
         return len(self._buf) + self._port.in_waiting
+
+    def read_line(self, timeout: float | None) -> str | None:
+        """python-can ``slcanBus._read``: the next line including its CR (or BELL), or None once
+        ``timeout`` [s] (None: forever) passed. Non-ASCII bytes raise UnicodeDecodeError (a
+        ValueError) after the line is consumed, like python-can's own reader."""
+        end = None if timeout is None else time.monotonic() + timeout
+        while True:
+            m = _SLCAN_LINE_END.search(self._buf)
+            if m is not None:
+                line = bytes(self._buf[: m.end()])
+                del self._buf[: m.end()]
+                return line.decode("ascii")
+            # blocks at most the port's read timeout when nothing is waiting
+            self._buf += self._port.read(max(1, self._port.in_waiting))
+            if end is not None and time.monotonic() >= end and _SLCAN_LINE_END.search(self._buf) is None:
+                return None
 
     def read(self, size: int = 1) -> bytes:
         if not self._buf:
