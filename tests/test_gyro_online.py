@@ -16,7 +16,7 @@ from gravcal.core.calibration import Calibration
 from gravcal.core.detectors import QuasiStaticDetector
 from gravcal.core.gyro import OnlineGyroCalibrator
 from gravcal.core.gyro.footmotion import foot_poses, simulate_foot
-from gravcal.core.gyro.pose import OFF_AXIS, Pair, PoseToPose
+from gravcal.core.gyro.pose import MIN_PAIRS, OFF_AXIS, Pair, PoseToPose
 from gravcal.core.model.enc03j import gyro_truth
 from gravcal.core.samples import raw_triad
 from gravcal.core.simulate import simulate
@@ -99,19 +99,41 @@ def test_a_turn_about_another_axis_is_rejected_and_one_pair_claims_nothing():
     assert out.accepted
     assert abs(1 / est.x[0] - 320.0) < 0.01 * 320.0  # noise-free pair: the scale is recovered
     assert est.sensitivity()[0] is not None and not est.observable  # but one pair claims nothing
-    assert "1 pair(s) accepted, need 4" in est.message()
-    for ang in (70, -90, 100):  # three more turns about y: now determined
+    assert f"1 pair(s) accepted, need {MIN_PAIRS}" in est.message()
+    for ang in (70, -90, 100, -80, 60, 110, -100)[:MIN_PAIRS - 1]:  # more turns about y: now determined
         est.update(_pure_rotation_pair(np.array([0, 1.0, 0]), np.radians(ang), m_true, g1))
-    assert est.n_pairs == 4 and est.observable, est.message()
+    assert est.n_pairs == MIN_PAIRS and est.observable, est.message()
     assert abs(est.sensitivity()[0][0, 0] - 320.0) < 0.01 * 320.0
 
 
 def test_inconsistent_pairs_withhold_the_sensitivity():
-    """Four turns about y whose angles disagree with one scale by +-30 % (as rotations the gyro
+    """Turns about y whose angles disagree with one scale by +-30 % (as rotations the gyro
     only partly sees would): the reduced chi2 is far above MAX_REDUCED_CHI2, so no claim."""
     g1 = np.array([1.0, 0.0, 0.0])
     est = PoseToPose("scalar", np.array([1 / NOMINAL]), axis=np.array([0.0, 1.0, 0.0]), gate_after=0, gate_chi2=np.inf)
-    for ang, scale in ((80, 1.0), (90, 1.3), (70, 0.7), (100, 1.0)):
+    turns = ((80, 1.0), (90, 1.3), (70, 0.7), (100, 1.0)) * 2
+    for ang, scale in turns[:max(MIN_PAIRS, 4)]:
         assert est.update(_pure_rotation_pair(np.array([0, 1.0, 0]), np.radians(ang), scale / 320.0, g1)).accepted
-    assert est.n_pairs == 4 and est.reduced_chi2() > 4.0
+    assert est.n_pairs == max(MIN_PAIRS, 4) and est.reduced_chi2() > 4.0
     assert not est.observable and "reduced chi2" in est.message()
+
+
+def test_the_online_buffer_stays_bounded_through_hours_without_a_still_moment():
+    """The daemon pushes every block; with no new window for hours (a long walk) the buffer must
+    not grow with it (it did: memory and a concatenation per block growing without bound)."""
+    sim = simulate("static", seed=4, duration=130.0)
+    s = sim.samples
+    acc = Calibration.from_dict(sim.truth["calibration"])
+    online = OnlineGyroCalibrator(FS, k=1, axis=(0.0, 1.0, 0.0), hp_hz=0.3, start_sensitivity=NOMINAL,
+                                  range_rad_s=np.radians(300.0), rails=(0, 4095))
+    det = QuasiStaticDetector(FS, to_g=acc)
+    raw, gyro = raw_triad(s), s["gyro"].astype(float)
+    for i in range(0, gyro.size, 500):
+        online.push(gyro[i:i + 500])
+        for w in det.update(s["t"][i:i + 500], raw[i:i + 500]):
+            online.window(w, acc)
+    assert online.n_windows >= 1
+    block = np.full(1000, 2047.0)
+    for _ in range(1800):  # 5 hours at 100 Hz
+        online.push(block)
+    assert online._buf.shape[0] <= online.horizon_n + block.size

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from gravcal.core.scenarios import (
-    DAILY_POSTURES, MOVING, SCENARIOS, SIX_FACES, WALK, make_motion, plan_motion,
+    DAILY_POSTURES, MOVING, SAGITTAL_POSTURES, SCENARIOS, SIX_FACES, STILL, TURN, WALK, make_motion, plan_motion,
 )
 
 
@@ -88,7 +88,7 @@ def test_wrist_placement_varies_orientation_more_than_waist():
     assert spreads["wrist"] > spreads["waist"]
 
 
-@pytest.mark.parametrize("name", ["loetters", "daily_living", "six_position"])
+@pytest.mark.parametrize("name", ["loetters", "daily_living", "six_position", "sagittal_postures"])
 def test_omega_is_the_rate_of_the_orientation(name):
     """With linear acceleration removed, f = R^T e_up obeys df/dt = -omega x f exactly; central
     differences at 200 Hz are accurate to ~|omega|^2 |f| dt^2 / 6 << 1e-3."""
@@ -144,3 +144,48 @@ def test_bad_scenario_requests_raise_clear_errors():
         make_motion("static", duration=-1)
     with pytest.raises(ValueError, match="placement"):
         make_motion("daily_living", placement="ankle")
+    with pytest.raises(ValueError, match="mount_pitch_deg"):
+        make_motion("sagittal_postures", mount_pitch_deg=90)
+    with pytest.raises(ValueError, match="p_lie"):
+        make_motion("sagittal_postures", p_lie=1.5)
+
+
+ENC03J_RANGE = np.deg2rad(300.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sagittal_postures_pitch_about_board_y_between_still_postures(seed):
+    """The gyro scenario: the board's y axis (the ENC-03J's) stays medio-lateral, many posture
+    changes turn about it alone, all rates inside the gyro's ±300 °/s, and the postures give the
+    accelerometer gravity along ±x, ±y and beyond 105° from standing (Lötters' condition)."""
+    plan = plan_motion("sagittal_postures", duration=900, fs=100, rng=seed)
+    m = plan.render()
+    assert m.posture_names == SAGITTAL_POSTURES
+    assert np.linalg.norm(m.omega, axis=1).max() < 0.7 * ENC03J_RANGE  # peak ~180 °/s
+    visited = {SAGITTAL_POSTURES[i] for i in np.unique(m.posture[m.still])}
+    assert {"stand", "sit", "bend", "lie_back"} <= visited and visited & {"lie_left", "lie_right"}
+    # each transition between two still segments: the rotation integrated from omega, its axis
+    about_y = other = 0
+    still_idx = np.flatnonzero(plan.kind == STILL)
+    for a, b in zip(still_idx[:-1], still_idx[1:]):
+        if not np.all(plan.kind[a + 1:b] == TURN) or b == a + 1:
+            continue
+        i0, i1 = plan.start[a + 1], plan.start[b]
+        angle = m.omega[i0:i1].sum(axis=0) / 100.0  # single-axis segments: exact sum of angles
+        if np.linalg.norm(angle) < np.deg2rad(10):
+            continue
+        if abs(angle[1]) / np.linalg.norm(angle) > np.cos(np.deg2rad(3)):
+            about_y += 1
+            f0 = m.specific_force[plan.start[a]:i0].mean(axis=0)
+            f1 = m.specific_force[i1:plan.start[b] + 100].mean(axis=0)
+            assert abs(f1[1] - f0[1]) < 0.05  # gravity's y component kept (sway, sideways lean)
+        else:
+            other += 1
+    assert about_y >= 20 and other >= 2, (about_y, other)  # mostly about y; rolls and turns too
+    f = m.specific_force[m.still]
+    f = f / np.linalg.norm(f, axis=1, keepdims=True)
+    up_standing = f[m.posture[m.still] == SAGITTAL_POSTURES.index("stand")].mean(axis=0)
+    up_standing /= np.linalg.norm(up_standing)
+    assert np.degrees(np.arccos(np.clip(f @ up_standing, -1, 1))).max() > 105.0
+    assert f[:, 0].max() > 0.9 and f[:, 0].min() < -0.9  # lying on the back, bending to the floor
+    assert max(f[:, 1].max(), -f[:, 1].min()) > 0.9  # lying on a side

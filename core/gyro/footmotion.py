@@ -138,9 +138,13 @@ def stair_climb(rng: np.random.Generator, *, n_steps: int = 10, step_height_m: f
 
 def foot_poses(rng: np.random.Generator, *, n_poses: int = 30, fs: float = 100.0, hold_s: tuple[float, float] = (3.0, 8.0),
                move_s: tuple[float, float] = (0.8, 2.0), pitch_range_deg: tuple[float, float] = (-45.0, 35.0),
-               temp_c: float = 30.0, vsupply: float = 3.3) -> Motion:
-    """Everyday sagittal foot poses (pitch drawn in pitch_range_deg) joined by pitch changes,
-    with a small lift of the foot during each change and standing sway in the holds."""
+               min_change_deg: float = 15.0, temp_c: float = 30.0, vsupply: float = 3.3) -> Motion:
+    """Everyday sagittal foot poses (pitch drawn in pitch_range_deg) joined by pitch changes of at
+    least min_change_deg, with a small lift of the foot during each change and standing sway in
+    the holds."""
+    lo, hi = pitch_range_deg
+    if not 0.0 <= min_change_deg < hi - lo:
+        raise ValueError(f"min_change_deg must be within 0 and the pitch range ({hi - lo:g}°), got {min_change_deg!r}")
     segs: list[Segment] = []
     t = 0.0
     th = np.deg2rad(rng.uniform(*pitch_range_deg))
@@ -151,7 +155,7 @@ def foot_poses(rng: np.random.Generator, *, n_poses: int = 30, fs: float = 100.0
         if k == n_poses - 1:
             break
         new = np.deg2rad(rng.uniform(*pitch_range_deg))
-        while abs(new - th) < np.deg2rad(15):  # a pose change worth the name
+        while abs(new - th) < np.deg2rad(min_change_deg):  # a pose change worth the name
             new = np.deg2rad(rng.uniform(*pitch_range_deg))
         d = float(rng.uniform(*move_s))
         segs.append(Segment(t, d, 0.0, 0.0, th, dtheta=new - th, clearance=float(rng.uniform(0.0, 0.05)), still=False))

@@ -22,7 +22,10 @@ rejected, with its reason counted, when
 - the gyro path angle sum |omega| dt is below ``min_angle_rad``: "no rotation between windows";
 - the part of the rotation perpendicular to gravity is below ``min_angle_rad``: "rotation about
   the gravity axis only (unobservable from gravity)" (e.g. a turn on a turntable);
-- any sample reaches the gyro's range or the ADC rails: "saturated";
+- any sample reaches the gyro's range or the ADC rails: "saturated". The range is compared with
+  the rate at the current scale, lowered by the scale's uncertainty (3 sigma, at most
+  SCALE_SPREAD): the ENC-03J clips at 300 °/s, which a board 20 % below the start scale reads
+  as 240 °/s, and a clipped rotation that slipped in would pull the scale up;
 - single-axis gyro: gravity's component along the sensitive axis changed by more than 4 sigma:
   "rotation not about the gyro's sensitive axis" (a rotation about the axis keeps it; the gyro
   cannot see the rest of the rotation, so the pair would pull the scale anywhere, even past 0);
@@ -53,11 +56,16 @@ INCONSISTENT = "inconsistent with the gyro model (innovation beyond the gate)"
 TOO_LONG = "too long between windows"
 OFF_AXIS = "rotation not about the gyro's sensitive axis (gravity's component along it changed)"
 OFF_AXIS_CHI2 = 16.0  # 1 degree of freedom: a 4-sigma change of gravity along the sensitive axis
-MIN_PAIRS = 4  # no sensitivity claimed from fewer accepted pairs (one pair cannot show its own model error)
+# No sensitivity claimed from fewer accepted pairs: one pair cannot show its own model error, and 4-5
+# pairs could not expose a rotation the gyro only partly sees (a six-position session's hand turns: a
+# turn about the vertical combined with 90 deg about y; 2 of 10 seeds claimed 1.4 % low at z ~ 3.7
+# with 4; none with 8: bench/bench_gyro.py, docs/gyro.md).
+MIN_PAIRS = 8
 MIN_TOTAL_ANGLE_RAD = np.deg2rad(90.0)  # summed rotation (across gravity) of the accepted pairs
 MAX_REDUCED_CHI2 = 4.0  # pairs' residuals beyond 2x their modelled std: model error, no claim
 MIN_INFORMATION_RATIO = 9.0  # data information >= 9x the prior's in every direction: posterior std <= prior/3
 GATE_CHI2 = 25.0  # 2 degrees of freedom: P(chi2 > 25) = 4e-6 for a consistent pair
+SCALE_SPREAD = 0.25  # largest scale error assumed by the saturation test (ENC-03J: +-20 % from nominal)
 
 
 @dataclass
@@ -216,7 +224,7 @@ class PoseToPose:
                 return self._reject(OFF_AXIS)
         g_pred, J, C, omega = self._predict(self.x, pair)
         path, perp = self._angles(C, omega, pair.g_i, pair.dt)
-        if np.any(np.abs(omega) >= 0.98 * self.range_rad_s):
+        if np.any(np.abs(omega) >= self.saturation_rad_s()):
             return self._reject(SATURATED, path, perp)
         if path < self.min_angle_rad:
             return self._reject(NO_ROTATION, path, perp)
@@ -247,6 +255,18 @@ class PoseToPose:
         self.n_pairs += 1
         self.total_angle_rad += perp
         return PairOutcome(True, "", path, perp, float(np.linalg.norm(pair.g_j - g_pred)), nis)
+
+    def scale_rel_std(self) -> float:
+        """Relative standard deviation of the rate scale (largest direction for a matrix)."""
+        if self.kind == "scalar":
+            return float(np.sqrt(self.P[0, 0]) / abs(self.x[0]))
+        scale = float(np.linalg.norm(self.x) / np.sqrt(3.0))
+        return float(np.sqrt(np.linalg.eigvalsh(self.P).max()) / scale)
+
+    def saturation_rad_s(self) -> float:
+        """|rate| [rad/s] at the current scale from which a pair counts as saturated: 98 % of the
+        range, divided by 1 + the scale's uncertainty (3 sigma, at most SCALE_SPREAD)."""
+        return 0.98 * self.range_rad_s / (1.0 + min(SCALE_SPREAD, 3.0 * self.scale_rel_std()))
 
     def _reject(self, reason: str, path: float = 0.0, perp: float = 0.0, nis: float = float("nan")) -> PairOutcome:
         self.rejected[reason] += 1
