@@ -1,15 +1,21 @@
 """Offline calibration of a recording (what `gravcal calibrate` runs), numerics only.
 
     bootstrap start (start.bootstrap: raw data in unknown units)
-      -> quasi-static windows (streaming detector, detection signal in g via the start)
-      -> re-detection with the fitted calibration if it moved the start a lot
+      -> block statistics: ONE pass over the samples (core.fastdetect.block_stats: 0.1 s
+         block means and within-block scatters)
+      -> quasi-static windows (detector on the block means, detection signal in g via the start)
+      -> re-detection with the fitted calibration if it moved the start a lot (blocks only)
       -> LottersBatch fit (eq. 11a iterated; C_e eq. 11b)
       -> held-out error on 5 contiguous folds of windows (core.heldout)
 
-Scales to a week at 100 Hz (60 M samples): the samples are read in chunks (arrays or
-np.memmap columns are never copied whole; each chunk is converted to float64 on its own), the
-detector streams, and only window statistics are kept. The bootstrap sees at most
+Scales to a week at 100 Hz (60 M samples): the samples are read once, in chunks (arrays or
+np.memmap columns are never copied whole, mapped pages are released after each chunk), and
+only block and window statistics are kept. The bootstrap sees at most
 ``BOOTSTRAP_MAX_SAMPLES`` samples, taken as evenly spaced contiguous segments.
+``detection="stream"`` runs the streaming detectors of core.detectors over every sample
+instead (the daemon's detector; ~10x slower offline, same windows within a block or two at
+the edges: tests/test_fastdetect.py); the default "auto" uses blocks for recordings of
+BLOCKS_MIN_SAMPLES samples or more.
 """
 from __future__ import annotations
 
@@ -28,7 +34,9 @@ from gravcal.core.windows import WindowSet
 
 log = logging.getLogger(__name__)
 
-CHUNK = 1 << 16  # samples per detector block (the detector's 5 x 0.5 MB workspace stays in the CPU cache)
+CHUNK = 1 << 16  # samples per detector block, detection="stream" (the detector's 5 x 0.5 MB workspace stays in the CPU cache)
+DETECTIONS = ("auto", "blocks", "stream")  # core.fastdetect on block statistics, or core.detectors sample by sample
+BLOCKS_MIN_SAMPLES = 2_000_000  # detection "auto": blocks from here (5.5 h at 100 Hz; streaming costs ~0.3 s below)
 DETECTOR_THREADS = min(2, os.cpu_count() or 1)  # the Lötters detector filters half its channels in a 2nd thread
 BOOTSTRAP_MAX_SAMPLES = 300_000  # 50 min at 100 Hz, in BOOTSTRAP_SEGMENTS pieces spread over the recording
 BOOTSTRAP_SEGMENTS = 30  # 100 s each at 100 Hz
@@ -169,12 +177,38 @@ def data_start(t: np.ndarray, raw: Any, fs: float | None = None) -> Calibration:
     return _bootstrap(t, _Columns(raw), float(fs) if fs else _estimate_fs(t))
 
 
+def _block_stats(t: np.ndarray, cols: _Columns, fs: float, temp: Any) -> Any:
+    """One pass over the samples: core.fastdetect.BlockStats (mapped pages released as it goes)."""
+    from gravcal.core.fastdetect import block_stats
+
+    if cols.arr is not None:
+        arr = cols.arr
+
+        def channel(c: int, i: int, j: int) -> np.ndarray:
+            return arr[i:j, c]
+    else:
+        columns = cols.cols
+
+        def channel(c: int, i: int, j: int) -> np.ndarray:
+            return columns[c][i:j]
+    release = [a for a in ([t, cols.arr] if cols.arr is not None else [t, *cols.cols]) if isinstance(a, np.ndarray)]
+    aux = None if temp is None else (temp if isinstance(temp, np.ndarray) else np.asarray(temp, dtype=float))
+    return block_stats(t, channel, cols.n, fs, aux=aux, release=release)
+
+
 def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calibration, temp: Any,
-            detector_kw: dict[str, Any]) -> WindowSet:
+            detector_kw: dict[str, Any], blocks: Any = None, detection: str = "blocks") -> WindowSet:
+    """Quasi-static windows: on block statistics (``blocks``, computed when None) or, with
+    detection="stream", by the streaming detector over every sample."""
     from gravcal.core.detectors import DETECTORS
 
     if detector not in DETECTORS:
         raise ValueError(f"unknown detector {detector!r}; choose one of {sorted(DETECTORS)}")
+    if detection == "blocks":
+        from gravcal.core.fastdetect import detect_blocks
+
+        bs = blocks if blocks is not None else _block_stats(t, cols, fs, temp)
+        return detect_blocks(bs, t, detector, to_g, **detector_kw)
     kw = dict(detector_kw)
     if detector == "lotters" and "threads" not in kw:
         kw["threads"] = DETECTOR_THREADS
@@ -224,6 +258,7 @@ def calibrate_recording(
     detector_kw: dict[str, Any] | None = None,
     max_window_std_g: float = MAX_WINDOW_STD_G,
     lab: Calibration | None = None,
+    detection: str = "auto",
 ) -> CalibrationReport:
     """Calibrate a recording: t (N,) [s], raw (N, 3) or three (N,) columns [raw units: ax, ay, az],
     optional temp (N,) [°C] (kept as the windows' aux mean). Raises ValueError with a precise
@@ -234,7 +269,11 @@ def calibrate_recording(
     nothing is determined), or an order name ("offsets", "6", "9", "12", an extended name). Explicit
     offsets/6/9/12 are refused (ValueError saying what is missing) when the windows cannot determine
     them to Lötters' 3 %. ``lab``: a lab calibration (Bragge, ``gravcal calibrate --lab``) whose frame
-    model "12" holds; it is also the start when ``start`` is not given."""
+    model "12" holds; it is also the start when ``start`` is not given. ``detection``: "blocks"
+    (one pass over the samples, detection on 0.1 s block statistics, core.fastdetect), "stream"
+    (the streaming detector over every sample, core.detectors), or "auto" (default: blocks from
+    BLOCKS_MIN_SAMPLES samples on, where the streaming detector's cost matters; stream below, where
+    its sample-exact edges are cheap)."""
     cols = _Columns(raw)
     t = t if isinstance(t, np.ndarray) else np.asarray(t)
     if t.ndim != 1 or t.shape[0] != cols.n:
@@ -245,6 +284,10 @@ def calibrate_recording(
         raise ValueError(f"recording too short: {cols.n} sample(s)")
     if folds < 2:
         raise ValueError(f"folds must be >= 2, got {folds}")
+    if detection not in DETECTIONS:
+        raise ValueError(f"unknown detection {detection!r}; choose one of {', '.join(DETECTIONS)}")
+    if detection == "auto":
+        detection = "blocks" if cols.n >= BLOCKS_MIN_SAMPLES else "stream"
     detector_kw = dict(detector_kw or {})
     fs = _estimate_fs(t) if fs is None else float(fs)
     notes: list[str] = []
@@ -258,12 +301,17 @@ def calibrate_recording(
     if start is None:
         start = _bootstrap(t, cols, fs)
         notes.append(f"start: {start.message or 'bootstrap'}")
-    ws, dropped = screen_windows(_detect(t, cols, fs, detector, start, temp, detector_kw), start, max_window_std_g)
+    blocks = _block_stats(t, cols, fs, temp) if detection == "blocks" else None
+
+    def detect(name: str, to_g: Calibration, kw: dict[str, Any]) -> WindowSet:
+        return _detect(t, cols, fs, name, to_g, temp, kw, blocks, detection)
+
+    ws, dropped = screen_windows(detect(detector, start, detector_kw), start, max_window_std_g)
     if dropped:
         notes.append(f"dropped {dropped} window(s) moving more than {max_window_std_g * 1e3:.0f} mg on an axis")
     if dropped > len(ws) and detector != FALLBACK_DETECTOR:
         # most "still" periods spanned posture changes: the |a| detector cannot see rotations at 1 g
-        ws2, dropped2 = screen_windows(_detect(t, cols, fs, FALLBACK_DETECTOR, start, temp, {}), start, max_window_std_g)
+        ws2, dropped2 = screen_windows(detect(FALLBACK_DETECTOR, start, {}), start, max_window_std_g)
         if len(ws2) > len(ws):
             notes.append(f"detector {detector!r} mostly found periods spanning posture changes; used "
                          f"{FALLBACK_DETECTOR!r} instead ({len(ws2)} windows)")
@@ -276,7 +324,7 @@ def calibrate_recording(
     change = _relative_difference(cal, start)
     if change > REDETECT_CHANGE and cal.converged:
         # the detection signal |a| used the start: with a better calibration the still/moving split changes
-        ws2, _ = screen_windows(_detect(t, cols, fs, detector, cal, temp, detector_kw), cal, max_window_std_g)
+        ws2, _ = screen_windows(detect(detector, cal, detector_kw), cal, max_window_std_g)
         if len(ws2) >= fitted.n_params:
             notes.append(f"re-detected windows with the fitted calibration (it moved the start by {change * 100:.1f} % "
                          f"of 1 g): {len(ws)} -> {len(ws2)} windows")

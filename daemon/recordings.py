@@ -30,6 +30,7 @@ import numpy as np
 
 from gravcal.core.calibration import jsonable  # noqa: F401  (re-exported for the cmd_* modules)
 from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_triad
+from gravcal.core.fastdetect import release_mapped
 
 from .errors import InputError
 
@@ -327,6 +328,11 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
                 sc.hi[c] = cmax
         if flags is not None:
             sc.n_flagged += int(np.count_nonzero(np.asarray(flags[s]).astype(np.int64) & FLAG_SATURATED))
+        # a memory-mapped input stays in the page cache but leaves this process's resident set:
+        # the scan must not hold the whole file before calibration reads it again
+        for col in (t, raw, *extra, flags):
+            if col is not None:
+                release_mapped(col, s.start, s.stop)
     return sc
 
 

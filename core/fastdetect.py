@@ -1,0 +1,457 @@
+"""Offline quasi-static detection from block statistics: one memory pass over a recording.
+
+The streaming detectors (core.detectors) decide sample by sample at the full rate, which for a
+week at 100 Hz means 60 M samples through two IIR filters on four channels (~5 s). Offline,
+the same decisions can be made on short blocks (default 0.1 s) without losing anything the
+estimators use:
+
+1. :func:`block_stats` reads the samples ONCE, in chunks, and keeps per block of ``block_n``
+   samples its mean (float64) and its within-block scatter Σ (x - mean)(x - mean)ᵀ (float32,
+   6 entries), plus whether every sample is finite and follows its predecessor by a step in
+   (0, 1.5/fs]. The sums are matrix-vector products (BLAS), so a chunk costs a few passes over
+   its own bytes; two threads share the chunks. Pages of a memory-mapped input are released
+   after each chunk (:func:`release_mapped`), so memory stays at the statistics (~0.24x the
+   input of a week of 20-byte samples) instead of growing with the mapped file.
+2. :func:`detect_blocks` runs the detector on the block means at fs / block_n:
+   "lotters" is Lötters 1998 eq. 1-2 (|a|, 0.5 Hz high-pass, rectifier, 0.5 Hz low-pass, and
+   the per-axis chains of QuasiStaticDetector), which at 10 Hz still resolves the 0.5 Hz
+   corners; "variance" is the per-axis moving std over the trailing window_s, exact at block
+   boundaries (from the block means and scatters). A block is still when its detection
+   signal is below ``threshold_g``, it is usable (finite, no time gap), the filters have
+   settled, and — what the block means cannot see — the per-axis std of its own samples is
+   below ``threshold_g`` too (vibration above the block rate's Nyquist frequency).
+3. The windowing rules are those of the streaming detectors (core.detectors) in blocks: the
+   still mask is eroded by ``guard_s``, runs are cut into pieces of ``max_duration_s`` from
+   their first block, pieces shorter than ``min_duration_s`` are dropped. Window means and
+   covariances are exact functions of the samples (block means and the within-block scatter
+   recombined: Σ_w = Σ_b W_b + n_b Σ_b (m_b - m)(m_b - m)ᵀ), not approximations.
+
+Equivalence with the streaming detector (tests/test_fastdetect.py): window boundaries agree to
+within about one guard plus one block (the detection signal is the same filter chain, sampled
+coarser), the calibrations fitted on the two window sets agree within their reported standard
+deviations, and the held-out error is not worse. A recording's last ``n mod block_n`` samples
+(under 0.1 s) are not used; the streaming detector trims the last guard (0.5 s) anyway.
+"""
+from __future__ import annotations
+
+import math
+import mmap
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import numpy as np
+from scipy import signal
+
+from .calibration import Calibration
+from .detectors import _filter_rows
+from .windows import WindowSet
+
+BLOCK_S = 0.1  # block length [s]: 10 Hz detection, boundaries to 0.1 s
+CHUNK_BLOCKS = 4096  # blocks per chunk of the reducing pass (a few 100 kB per channel: stays in the CPU cache)
+DETECT_CHUNK = 1 << 15  # blocks per chunk of the detection filters (reused buffers)
+THREADS = 2  # chunks of the reducing pass are shared between this many threads
+
+_I6 = np.array([0, 1, 2, 0, 0, 1])
+_J6 = np.array([0, 1, 2, 1, 2, 2])
+
+
+def release_mapped(a: np.ndarray, lo: int, hi: int) -> None:
+    """Drop rows [lo, hi) of a read-only memory-mapped array from this process's resident set.
+
+    The data stays in the page cache (reading them again is a minor fault, no I/O); only the
+    process stops holding them, so one pass over a mapped 1.2 GB file does not leave 1.2 GB in
+    its RSS. A no-op for anything but a read-only np.memmap (or a view of one): for private
+    memory, MADV_DONTNEED would zero the data.
+    """
+    base: Any = a
+    while base is not None and not isinstance(base, np.memmap):
+        base = getattr(base, "base", None)
+    mm = getattr(base, "_mmap", None)
+    if mm is None or getattr(base, "mode", None) != "r" or not hasattr(mm, "madvise") or hi <= lo:
+        return
+    page = mmap.PAGESIZE
+    start_addr = np.frombuffer(mm, dtype=np.uint8).ctypes.data
+    stride = a.strides[0] if a.ndim else 0
+    first = a.ctypes.data + lo * stride - start_addr
+    last = a.ctypes.data + hi * stride - start_addr
+    first = (first // page) * page
+    last = min((last // page) * page, len(mm))
+    if last > first >= 0:
+        mm.madvise(mmap.MADV_DONTNEED, first, last - first)
+
+
+@dataclass
+class BlockStats:
+    """Per-block sufficient statistics of a recording (blocks of ``block_n`` samples)."""
+
+    fs: float  # sample rate [Hz]
+    block_n: int  # samples per block
+    mean: np.ndarray  # (3, nb) float64: block means [raw units] (channel-major: rows contiguous)
+    scatter: np.ndarray  # (6, nb) float32: Σ (x - mean)_i (x - mean)_j over the block, entries _I6/_J6
+    aux: np.ndarray  # (k, nb) float64: block means of the auxiliary channels
+    usable: np.ndarray  # (nb,) bool: every sample finite, every time step in (0, 1.5/fs]
+
+    def __len__(self) -> int:
+        return int(self.mean.shape[1])
+
+    @property
+    def n_samples(self) -> int:
+        return len(self) * self.block_n
+
+
+def block_length(fs: float, block_s: float = BLOCK_S) -> int:
+    return max(1, int(round(block_s * fs)))
+
+
+def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n: int, fs: float, *,
+                aux: np.ndarray | None = None, block_n: int | None = None, threads: int = THREADS,
+                release: Sequence[np.ndarray] = ()) -> BlockStats:
+    """One pass over a recording: ``channel(c, i, j)`` gives raw channel c (0..2) rows [i, j) as
+    a 1-D array (any float dtype, any stride, e.g. a field of a memory-mapped .npy); t (n,) [s];
+    aux (n,) or (n, k) optional. ``release``: arrays whose mapped pages are dropped per chunk."""
+    if not (fs > 0 and math.isfinite(fs)):
+        raise ValueError(f"sample rate fs must be a positive number of Hz, got {fs!r}")
+    B = block_n or block_length(fs)
+    nb = n // B
+    if aux is not None and np.ndim(aux) == 1:
+        aux = aux[:, None]
+    k = 0 if aux is None else aux.shape[1]
+    mean = np.empty((3, nb))
+    scatter = np.empty((6, nb), dtype=np.float32)
+    aux_mean = np.empty((k, nb))
+    usable = np.empty(nb, dtype=bool)
+    step = 1.5 / fs
+    chunk = CHUNK_BLOCKS * B
+    ones = np.ones(B, dtype=np.float32)
+    starts = list(range(0, nb * B, chunk))
+
+    def work(i: int, ws: dict[str, np.ndarray]) -> None:
+        j = min(i + chunk, nb * B)
+        m, b0 = (j - i) // B, i // B
+        D = ws["D"][:, :m * B]  # (3, m*B) float32: samples minus their block's first sample
+        P = ws["P"][:, :m * B]
+        ref = np.empty((3, m))
+        for c in range(3):
+            x = channel(c, i, j)
+            r = x[::B]
+            ref[c] = r
+            np.subtract(x.reshape(m, B), r[:, None], out=D[c].reshape(m, B), casting="unsafe")
+        s1 = (D.reshape(3 * m, B) @ ones).reshape(3, m).astype(np.float64)
+        for q in range(6):
+            np.multiply(D[_I6[q]], D[_J6[q]], out=P[q])
+        s2 = (P.reshape(6 * m, B) @ ones).reshape(6, m).astype(np.float64)
+        mean[:, b0:b0 + m] = ref + s1 / B
+        scatter[:, b0:b0 + m] = s2 - s1[_I6] * s1[_J6] / B
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(s1).all(axis=0) & np.isfinite(s2).all(axis=0)
+        # time: the step into every sample of the block (the first one's from the previous sample)
+        lo = max(i - 1, 0)
+        tc = np.asarray(t[lo:j], dtype=np.float64)
+        dt = np.diff(tc)
+        if i == 0:
+            dt = np.concatenate([[1.0 / fs], dt])
+        with np.errstate(invalid="ignore"):
+            if not (dt.min() > 0 and dt.max() <= step):  # NaN fails this too
+                bad = ~((dt > 0) & (dt <= step))
+                ok &= ~bad.reshape(m, B).any(axis=1)
+        if k:
+            a = np.asarray(aux[i:j], dtype=np.float64)
+            am = a.reshape(m, B, k).mean(axis=1).T
+            aux_mean[:, b0:b0 + m] = am
+            ok &= np.isfinite(am).all(axis=0)
+        usable[b0:b0 + m] = ok
+        for arr in release:
+            release_mapped(arr, i, j)
+
+    def workspace() -> dict[str, np.ndarray]:
+        return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32)}
+
+    if threads > 1 and len(starts) > 1:
+        spaces = [workspace() for _ in range(threads)]
+
+        def lane(r: int) -> None:
+            for i in starts[r::threads]:
+                work(i, spaces[r])
+
+        with ThreadPoolExecutor(threads - 1, thread_name_prefix="gravcal-blocks") as pool:
+            jobs = [pool.submit(lane, r) for r in range(1, threads)]
+            lane(0)
+            for job in jobs:
+                job.result()
+    else:
+        ws = workspace()
+        for i in starts:
+            work(i, ws)
+    with np.errstate(invalid="ignore"):
+        usable &= np.isfinite(mean).all(axis=0)
+    return BlockStats(float(fs), B, mean, scatter, aux_mean, usable)
+
+
+def _to_g_affine(to_g: Calibration | None) -> tuple[np.ndarray, np.ndarray]:
+    """(offset, K^-1): a [g] = K^-1 (raw - offset); identity when to_g is None (thresholds in raw units)."""
+    if to_g is None:
+        return np.zeros(3), np.eye(3)
+    if not isinstance(to_g, Calibration):
+        raise TypeError(f"block detection needs to_g as a Calibration or None (got {type(to_g).__name__}); "
+                        f"use core.detectors for an arbitrary callable")
+    return np.asarray(to_g.offset, dtype=float), np.linalg.inv(to_g.sensitivity)
+
+
+def _in_g(mean: np.ndarray, o: np.ndarray, kinv: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+    """K^-1 (mean - o) for channel-major rows (3, m): column combinations, because BLAS is slow
+    for a (m, 3) x (3, 3) product (and elementwise keeps every block's value independent of m)."""
+    out = np.zeros(mean.shape) if out is None else out
+    out[...] = 0.0
+    d = np.empty(mean.shape[1])
+    for j in range(3):
+        np.subtract(mean[j], o[j], out=d)
+        for i in range(3):
+            if kinv[i, j] != 0.0:
+                out[i] += kinv[i, j] * d
+    return out
+
+
+def _axis_var_g(bs: BlockStats, kinv: np.ndarray, lo: int = 0, hi: int | None = None) -> np.ndarray:
+    """(3, hi - lo) within-block per-axis scatter in g² of blocks [lo, hi): Σ_q c_iq W_q
+    (divide by block_n for the variance, ddof=0)."""
+    hi = len(bs) if hi is None else hi
+    out = np.zeros((3, hi - lo))
+    for i in range(3):
+        for q in range(6):
+            c = kinv[i, _I6[q]] * kinv[i, _J6[q]] * (1.0 if _I6[q] == _J6[q] else 2.0)
+            if c != 0.0:
+                out[i] += c * bs.scatter[q, lo:hi]
+    return out
+
+
+def _settle_blocks(sos: np.ndarray, final: float, corner_hz: float, fs_b: float, tol: float = 0.01) -> int:
+    n = int(round(20.0 / corner_hz * fs_b))
+    y = signal.sosfilt(sos, np.ones(n))
+    bad = np.flatnonzero(np.abs(y - final) > tol)
+    return int(bad[-1] + 1) if bad.shape[0] else 0
+
+
+def lotters_still(bs: BlockStats, to_g: Calibration | None = None, *, hp_hz: float = 0.5, lp_hz: float = 0.5,
+                  threshold_g: float = 0.02, settle_s: float | None = None, order: int = 2,
+                  per_axis: bool = True) -> np.ndarray:
+    """Still blocks by Lötters' detector (eq. 1-2, and QuasiStaticDetector's per-axis chains)."""
+    fs_b = bs.fs / bs.block_n
+    nyq = 0.5 * fs_b
+    if not (0 < hp_hz < nyq and 0 < lp_hz < nyq):
+        raise ValueError(f"filter corners must lie below the block rate's Nyquist frequency {nyq} Hz "
+                         f"(hp={hp_hz}, lp={lp_hz}): use shorter blocks")
+    if not threshold_g > 0:
+        raise ValueError(f"threshold_g must be > 0, got {threshold_g}")
+    o, kinv = _to_g_affine(to_g)
+    nb = len(bs)
+    still = np.zeros(nb, dtype=bool)
+    if not bs.usable.any():
+        return still
+    b0 = int(np.argmax(bs.usable))  # the first usable block
+    chans = 4 if per_axis else 1
+    sos_hp = np.ascontiguousarray(signal.butter(order, hp_hz, "highpass", fs=fs_b, output="sos"))
+    sos_lp = np.ascontiguousarray(signal.butter(order, lp_hz, "lowpass", fs=fs_b, output="sos"))
+    settle = (int(round(settle_s * fs_b)) if settle_s is not None
+              else _settle_blocks(sos_hp, 0.0, hp_hz, fs_b) + _settle_blocks(sos_lp, 1.0, lp_hz, fs_b))
+    zi_hp = zi_lp = None
+    last = None  # the last usable block in g, (3,): unusable blocks are held at it
+    thr2 = threshold_g ** 2
+    # chunks of blocks with reused buffers: filter states carried across (the streaming
+    # detector's sosfilt zi), so the result does not depend on the chunk length
+    u_buf = np.empty(4 * DETECT_CHUNK)
+    pool = ThreadPoolExecutor(1, thread_name_prefix="gravcal-filter") if chans > 1 else None
+    try:
+        for i in range(b0, nb, DETECT_CHUNK):
+            j = min(i + DETECT_CHUNK, nb)
+            u = u_buf[:4 * (j - i)].reshape(4, j - i)  # C-contiguous rows for the in-place filter kernel
+            ok = bs.usable[i:j]
+            _in_g(bs.mean[:, i:j], o, kinv, out=u[1:])
+            if last is None:
+                last = u[1:, 0].copy()
+            if not ok.all():  # held at the last usable block (core.detectors: the last finite sample)
+                idx = np.where(ok, np.arange(1, j - i + 1), 0)
+                np.maximum.accumulate(idx, out=idx)
+                u[1:] = np.concatenate([last[:, None], u[1:]], axis=1)[:, idx]
+            last = u[1:, -1].copy()
+            np.multiply(u[1], u[1], out=u[0])
+            u[0] += u[2] * u[2]
+            u[0] += u[3] * u[3]
+            np.sqrt(u[0], out=u[0])  # eq. 1
+            v = u[:chans]
+            if zi_hp is None:  # high-pass at rest for the first block (core.detectors: the first finite sample)
+                zi_hp = signal.sosfilt_zi(sos_hp)[None] * v[:, 0, None, None]  # (chans, sections, 2)
+                zi_lp = np.zeros((chans, sos_lp.shape[0], 2))
+            if pool is not None:  # two channels each in two threads (the SciPy kernel releases the GIL)
+                job = pool.submit(_filter_rows, sos_hp, sos_lp, v[2:], zi_hp[2:], zi_lp[2:])
+                _filter_rows(sos_hp, sos_lp, v[:2], zi_hp[:2], zi_lp[:2])
+                job.result()
+            else:
+                _filter_rows(sos_hp, sos_lp, v, zi_hp, zi_lp)
+            s = v.max(axis=0) < threshold_g  # eq. 2 (and the per-axis chains)
+            s &= ok
+            s &= _axis_var_g(bs, kinv, i, j).max(axis=0) < thr2 * bs.block_n
+            still[i:j] = s
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    still[b0:b0 + settle] = False
+    return still
+
+
+def variance_still(bs: BlockStats, to_g: Calibration | None = None, *, window_s: float = 1.0,
+                   threshold_g: float = 0.02) -> np.ndarray:
+    """Still blocks by the per-axis moving std (MovingVarianceDetector) over the trailing
+    ``window_s`` (a whole number of blocks), exact from the block statistics."""
+    wb = max(1, int(round(window_s * bs.fs / bs.block_n)))
+    if wb * bs.block_n < 2:
+        raise ValueError(f"window_s = {window_s} s holds fewer than 2 samples at fs = {bs.fs} Hz")
+    if not threshold_g > 0:
+        raise ValueError(f"threshold_g must be > 0, got {threshold_g}")
+    o, kinv = _to_g_affine(to_g)
+    nb = len(bs)
+    if nb < wb:
+        return np.zeros(nb, dtype=bool)
+    ok = bs.usable
+    if not ok.any():
+        return np.zeros(nb, dtype=bool)
+    # relative to the first usable block (precision of the moving sums); unusable blocks are
+    # zeroed (they only make their windows not still)
+    a = np.where(ok, _in_g(bs.mean, bs.mean[:, int(np.argmax(ok))], kinv), 0.0)
+    within = np.where(ok, _axis_var_g(bs, kinv), 0.0)  # per-axis scatter [g²]
+    B = bs.block_n
+
+    def moving(x: np.ndarray) -> np.ndarray:  # sums over the trailing wb blocks, (3, nb - wb + 1)
+        c = np.cumsum(np.concatenate([np.zeros((x.shape[0], 1)), x], axis=1), axis=1)
+        return c[:, wb:] - c[:, :-wb]
+
+    s_a, s_aa, s_w = moving(a), moving(a * a), moving(within)
+    n = wb * B
+    # scatter of the n samples = Σ within + B Σ (m_b - m̄)²  (per axis)
+    scat = s_w + B * (s_aa - s_a * s_a / wb)
+    var = np.clip(scat / (n - 1), 0.0, None)
+    bad = np.convolve((~ok).astype(np.int64), np.ones(wb, dtype=np.int64))[wb - 1:nb]  # unusable blocks in the window
+    still = np.zeros(nb, dtype=bool)
+    still[wb - 1:] = (var.max(axis=0) < threshold_g ** 2) & (bad == 0)
+    return still
+
+
+def windows_from_still(bs: BlockStats, still: np.ndarray, t: np.ndarray, *, min_duration_s: float = 1.0,
+                       max_duration_s: float | None = 60.0, guard_s: float = 0.5) -> WindowSet:
+    """Windows from still blocks (the rules of core.detectors, in blocks); statistics exact."""
+    if min_duration_s < 0 or guard_s < 0:
+        raise ValueError("min_duration_s and guard_s must be >= 0")
+    B, fs = bs.block_n, bs.fs
+    g = int(round(guard_s * fs / B))
+    min_b = max(1, int(math.ceil(min_duration_s * fs / B - 1e-9)), int(math.ceil(2 / B)))
+    if max_duration_s is None or math.isinf(max_duration_s):
+        max_b = len(bs) + 1
+    else:
+        max_b = max(1, int(round(max_duration_s * fs / B)))
+        if max_b < min_b:
+            raise ValueError(f"max_duration_s ({max_duration_s} s) is shorter than min_duration_s ({min_duration_s} s)")
+    k = bs.aux.shape[0]
+    # still runs [lo, hi), eroded by g blocks each side (the recording's ends count as not still)
+    e = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(np.int8), [0]])))
+    lo, hi = e[0::2] + g, e[1::2] - g
+    keep = hi - lo >= min_b
+    lo, hi = lo[keep], hi[keep]
+    # pieces of max_b blocks from each run's first block; a short remainder is dropped
+    pieces = np.maximum(0, (hi - lo + max_b - 1) // max_b)
+    run = np.repeat(np.arange(lo.shape[0]), pieces)
+    within = np.arange(run.shape[0]) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    ps = lo[run] + within * max_b
+    pe = np.minimum(ps + max_b, hi[run])
+    keep = pe - ps >= min_b
+    ps, pe = ps[keep], pe[keep]
+    m = ps.shape[0]
+    if m == 0:
+        return WindowSet(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0), np.zeros((0, k)),
+                         np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    mean, scat, aux = _window_sums(bs, ps, pe)
+    n = (pe - ps).astype(np.int64) * B
+    cov = np.empty((m, 3, 3))
+    cov[:, _I6, _J6] = scat.T / (n - 1)[:, None]
+    cov[:, _J6, _I6] = scat.T / (n - 1)[:, None]
+    start, end = ps * B, pe * B
+    t_mid = 0.5 * (np.asarray(t[start], dtype=float) + np.asarray(t[end - 1], dtype=float))
+    return WindowSet(mean.T.copy(), cov, n.astype(float), t_mid, aux.T.copy(), start.astype(np.int64),
+                     end.astype(np.int64))
+
+
+_SPAN_BLOCKS = 1 << 18  # blocks summed at once by _window_sums (bounded temporaries)
+
+
+def _window_sums(bs: BlockStats, ps: np.ndarray, pe: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean (3, m), scatter (6, m) and aux mean (k, m) of the samples of block ranges [ps, pe).
+
+    Per batch of windows spanning at most _SPAN_BLOCKS blocks: sums of the block means minus
+    one reference r (the batch's first block mean) and of their products, cut at [ps, pe) by
+    np.add.reduceat. Σ (m_b - m)(m_b - m)ᵀ = Σ d dᵀ - (Σ d)(Σ d)ᵀ / n_b holds for d = m_b - r with
+    any r; a nearby r (posture differences, not raw offsets) keeps the cancellation harmless."""
+    m, B, k = ps.shape[0], bs.block_n, bs.aux.shape[0]
+    mean, scat, aux = np.empty((3, m)), np.empty((6, m)), np.empty((k, m))
+    lo = 0
+    while lo < m:
+        hi = lo + 1 + int(np.searchsorted(pe[lo + 1:], ps[lo] + _SPAN_BLOCKS, side="right"))
+        base, top = int(ps[lo]), int(pe[hi - 1])
+        span = top - base
+        rows = np.zeros((15 + k, span + 1))
+        d = rows[:3, :span]
+        np.subtract(bs.mean[:, base:top], bs.mean[:, base, None], out=d)
+        for q in range(6):
+            np.multiply(d[_I6[q]], d[_J6[q]], out=rows[3 + q, :span])
+        rows[9:15, :span] = bs.scatter[:, base:top]
+        if k:
+            rows[15:, :span] = bs.aux[:, base:top]
+        cuts = np.empty(2 * (hi - lo), dtype=np.int64)
+        cuts[0::2], cuts[1::2] = ps[lo:hi] - base, pe[lo:hi] - base
+        sums = np.add.reduceat(rows, cuts, axis=1)[:, 0::2]
+        nb_w = (pe[lo:hi] - ps[lo:hi]).astype(float)
+        s1, s2 = sums[:3], sums[3:9]
+        # Σ_b (m_b - m)(m_b - m)ᵀ = Σ d dᵀ - (Σ d)(Σ d)ᵀ / n_b  (d = m_b - r for any r)
+        between = s2 - s1[_I6] * s1[_J6] / nb_w
+        mean[:, lo:hi] = bs.mean[:, base, None] + s1 / nb_w
+        scat[:, lo:hi] = sums[9:15] + B * between
+        aux[:, lo:hi] = sums[15:] / nb_w
+        lo = hi
+    return mean, scat, aux
+
+
+METHODS = ("lotters", "variance")
+_WINDOW_KW = ("min_duration_s", "max_duration_s", "guard_s")
+
+
+def detect_blocks(bs: BlockStats, t: np.ndarray, method: str = "lotters", to_g: Calibration | None = None,
+                  **kw: Any) -> WindowSet:
+    """Quasi-static windows from block statistics. ``kw``: the streaming detector's keywords
+    (threshold_g, guard_s, min/max_duration_s, hp_hz/lp_hz/per_axis/settle_s/order for
+    "lotters", window_s for "variance"); ``threads`` is accepted and ignored. Defaults are the
+    streaming detectors' (guard_s 0.5 s for lotters, 0.25 s for variance)."""
+    if method not in METHODS:
+        raise ValueError(f"unknown detector method {method!r}; choose one of {sorted(METHODS)}")
+    kw = dict(kw)
+    kw.pop("threads", None)
+    win = {key: kw.pop(key) for key in _WINDOW_KW if key in kw}
+    win.setdefault("guard_s", 0.5 if method == "lotters" else 0.25)
+    if method == "lotters":
+        still = lotters_still(bs, to_g, **kw)
+    else:
+        still = variance_still(bs, to_g, **kw)
+    return windows_from_still(bs, still, t, **win)
+
+
+def detect(t: np.ndarray, raw: np.ndarray, *, method: str = "lotters", fs: float | None = None,
+           to_g: Calibration | None = None, aux: np.ndarray | None = None, block_s: float = BLOCK_S,
+           **kw: Any) -> WindowSet:
+    """All quasi-static windows of an in-memory (or memory-mapped) recording t (N,), raw (N, 3):
+    the offline counterpart of core.detectors.detect."""
+    from .detectors import estimate_fs
+
+    t = np.asarray(t) if not isinstance(t, np.ndarray) else t
+    raw = np.asarray(raw) if not isinstance(raw, np.ndarray) else raw
+    if raw.ndim != 2 or raw.shape[1] != 3 or t.shape != (raw.shape[0],):
+        raise ValueError(f"t (N,) and raw (N, 3) expected, got t {t.shape} and raw {raw.shape}")
+    fs = estimate_fs(t) if fs is None else float(fs)
+    bs = block_stats(t, lambda c, i, j: raw[i:j, c], raw.shape[0], fs, aux=aux, block_n=block_length(fs, block_s))
+    return detect_blocks(bs, t, method, to_g, **kw)

@@ -1,0 +1,157 @@
+"""core.fastdetect: offline detection on block statistics against the streaming detectors."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import gravcal.core.fastdetect as fastdetect
+from gravcal.core import detectors
+from gravcal.core.calibration import Calibration
+from gravcal.core.pipeline import calibrate_recording
+from gravcal.core.samples import raw_triad
+from gravcal.core.simulate import simulate
+
+FS = 100.0
+# Boundary tolerance: the block detector decides per 0.1 s block on the same filter chain
+# sampled at 10 Hz; nearly all its edges land within one block of the streaming detector's,
+# and where the detection signal hovers at the threshold an edge may move by a few blocks.
+EDGE_TYPICAL_S = 0.15  # 95 % of the edges: one block, plus the variance detector's 0.25 s guard rounded to blocks
+EDGE_MAX_S = 1.0
+
+
+@pytest.fixture(scope="module", params=["six_position", "loetters"])
+def session(request):
+    sim = simulate(request.param, seed=1, duration=600.0)
+    return (sim.samples["t"], raw_triad(sim.samples), sim.samples["temp"],
+            Calibration.from_dict(sim.truth["calibration"]))
+
+
+def _match(a, b):
+    """For each window of a, the window of b overlapping it most (index, overlap in samples)."""
+    idx, ov = [], []
+    for s, e in zip(a.start, a.end):
+        o = np.minimum(e, b.end) - np.maximum(s, b.start)
+        j = int(np.argmax(o))
+        idx.append(j)
+        ov.append(int(o[j]))
+    return np.array(idx), np.array(ov)
+
+
+@pytest.mark.parametrize("method", ["lotters", "variance"])
+def test_same_windows_as_the_streaming_detector(session, method):
+    t, raw, _, truth = session
+    ref = detectors.detect(t, raw, method=method, to_g=truth)
+    got = fastdetect.detect(t, raw, method=method, to_g=truth)
+    assert len(ref) >= 20
+    assert abs(len(got) - len(ref)) <= max(1, len(ref) // 50)
+    j, ov = _match(ref, got)
+    assert np.all(ov > 0), "a streaming window has no block window overlapping it"
+    edges = np.abs(np.r_[got.start[j] - ref.start, got.end[j] - ref.end]) / FS
+    assert np.quantile(edges, 0.95) <= EDGE_TYPICAL_S, np.sort(edges)[-10:]
+    assert edges.max() <= EDGE_MAX_S, np.sort(edges)[-10:]
+    # windows are still in both: their means agree within a few noise std of the mean
+    sd_mean = np.sqrt(np.diagonal(ref.cov_of_mean, axis1=1, axis2=2))
+    assert np.all(np.abs(got.mean[j] - ref.mean) < 10 * sd_mean + 1e-5)
+
+
+def test_window_statistics_are_those_of_the_samples(session):
+    t, raw, temp, truth = session
+    ws = fastdetect.detect(t, raw, to_g=truth, aux=temp)
+    assert len(ws) > 10
+    for w in range(len(ws)):
+        x = raw[ws.start[w]:ws.end[w]]
+        assert ws.n[w] == x.shape[0]
+        # float32 sums of deviations from each block's first sample: ~1e-12 here, 1e-9 of a
+        # duty cycle is 10 ng; the noise of a window mean is ~1e-5
+        np.testing.assert_allclose(ws.mean[w], x.mean(axis=0), rtol=0, atol=1e-9)
+        np.testing.assert_allclose(ws.cov[w], np.cov(x.T), rtol=1e-4, atol=1e-12 * np.abs(ws.cov[w]).max())
+        np.testing.assert_allclose(ws.aux[w, 0], temp[ws.start[w]:ws.end[w]].astype(float).mean(), rtol=1e-12)
+        assert ws.t[w] == pytest.approx(0.5 * (t[ws.start[w]] + t[ws.end[w] - 1]))
+
+
+def test_block_statistics_do_not_depend_on_chunks_or_threads(session, monkeypatch):
+    t, raw, _, _ = session
+    n = raw.shape[0]
+    a = fastdetect.block_stats(t, lambda c, i, j: raw[i:j, c], n, FS, threads=1)
+    monkeypatch.setattr(fastdetect, "CHUNK_BLOCKS", 37)
+    b = fastdetect.block_stats(t, lambda c, i, j: raw[i:j, c], n, FS, threads=2)
+    np.testing.assert_array_equal(a.usable, b.usable)
+    np.testing.assert_allclose(a.mean, b.mean, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(a.scatter, b.scatter, rtol=1e-5, atol=1e-12)
+    monkeypatch.setattr(fastdetect, "DETECT_CHUNK", 53)  # detection filters carry their state across chunks
+    wa = fastdetect.detect_blocks(a, t)
+    wb = fastdetect.detect_blocks(b, t)
+    np.testing.assert_array_equal(wa.start, wb.start)
+    np.testing.assert_array_equal(wa.end, wb.end)
+
+
+def test_nonfinite_samples_and_time_gaps_break_windows():
+    sim = simulate("six_position", seed=2, duration=300.0)
+    t, raw = sim.samples["t"].copy(), raw_triad(sim.samples).copy()
+    truth = Calibration.from_dict(sim.truth["calibration"])
+    clean = fastdetect.detect(t, raw, to_g=truth)
+    w = int(np.argmax(clean.n))  # the longest window: poison its middle
+    mid = int((clean.start[w] + clean.end[w]) // 2)
+    raw[mid, 1] = np.nan
+    gap_at = int(clean.start[w] + (clean.end[w] - clean.start[w]) // 4)
+    t[gap_at:] += 5.0  # a 5 s dropout
+    ws = fastdetect.detect(t, raw, to_g=truth)
+    for s, e in zip(ws.start, ws.end):
+        assert not (s <= mid < e), "a window holds a NaN sample"
+        assert not (s < gap_at < e), "a window spans a time gap"
+    assert np.all(np.isfinite(ws.mean)) and np.all(np.isfinite(ws.cov))
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_calibration_agrees_with_the_streaming_path(seed):
+    sim = simulate("six_position", seed=seed, duration=600.0)
+    t, raw = sim.samples["t"], raw_triad(sim.samples)
+    stream = calibrate_recording(t, raw, detection="stream")
+    blocks = calibrate_recording(t, raw, detection="blocks")
+    a, b = stream.calibration, blocks.calibration
+    assert b.model == a.model and b.converged and b.observable
+    std = np.sqrt(np.diag(a.covariance))
+    diff = np.r_[np.diag(b.sensitivity) - np.diag(a.sensitivity), b.offset - a.offset]
+    # the two window sets share most samples: their fits differ by well under one std
+    assert np.all(np.abs(diff) < std), diff / std
+    # held-out error not worse (a 10 % margin: the folds hold slightly different windows)
+    assert blocks.heldout_rms_mg <= 1.1 * stream.heldout_rms_mg + 0.05
+
+
+def test_release_mapped_keeps_the_data(tmp_path):
+    x = np.arange(1 << 20, dtype=np.float64)
+    path = tmp_path / "x.npy"
+    np.save(path, x)
+    mm = np.load(path, mmap_mode="r")
+    fastdetect.release_mapped(mm, 0, mm.shape[0])
+    np.testing.assert_array_equal(mm, x)  # faulted back in from the page cache
+    y = x.copy()
+    fastdetect.release_mapped(y, 0, y.shape[0])  # private memory: must be a no-op
+    np.testing.assert_array_equal(y, x)
+
+
+def test_bad_arguments_are_named():
+    t = np.arange(1000) / FS
+    raw = np.ones((1000, 3))
+    with pytest.raises(ValueError, match="method"):
+        fastdetect.detect(t, raw, method="nope")
+    with pytest.raises(ValueError, match="raw"):
+        fastdetect.detect(t, raw[:, :2])
+    with pytest.raises(TypeError, match="Calibration"):
+        fastdetect.detect(t, raw, to_g=lambda r: r)
+    with pytest.raises(ValueError, match="detection"):
+        calibrate_recording(t, raw, detection="nope")
+
+
+def test_auto_detection_uses_blocks_for_long_recordings(monkeypatch):
+    import gravcal.core.pipeline as pipeline
+
+    sim = simulate("six_position", seed=3, duration=600.0)
+    t, raw = sim.samples["t"], raw_triad(sim.samples)
+    blocks = calibrate_recording(t, raw, detection="blocks")
+    stream = calibrate_recording(t, raw, detection="stream")
+    assert not np.array_equal(blocks.windows.start, stream.windows.start)  # the two paths are distinguishable
+    monkeypatch.setattr(pipeline, "BLOCKS_MIN_SAMPLES", raw.shape[0])
+    np.testing.assert_array_equal(calibrate_recording(t, raw).windows.start, blocks.windows.start)
+    monkeypatch.setattr(pipeline, "BLOCKS_MIN_SAMPLES", raw.shape[0] + 1)
+    np.testing.assert_array_equal(calibrate_recording(t, raw).windows.start, stream.windows.start)
