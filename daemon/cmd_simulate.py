@@ -49,8 +49,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     "`gravcal calibrate` reads and the true parameters beside them as FILE.truth.json.",
     )
     p.add_argument("--scenario", default="daily_living", metavar="NAME",
-                   help="motion scenario: daily_living (default), loetters, six_position, static "
-                        "(gravcal.core.scenarios.SCENARIOS)")
+                   help="motion scenario: daily_living (default), loetters, six_position, sagittal_postures, "
+                        "static (gravcal.core.scenarios.SCENARIOS)")
     p.add_argument("--seed", type=int, default=0, help="seed of the sensor draw and the session (default 0)")
     p.add_argument("--duration", type=float, default=3600.0, metavar="SECONDS", help="length [s] (default 3600)")
     p.add_argument("--fs", type=float, default=100.0, metavar="HZ", help="sample rate [Hz] (default 100)")

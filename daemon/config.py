@@ -46,7 +46,11 @@ class DeviceConfig:
 class EstimatorConfig:
     model: str = field(default="6", metadata=_meta("model order", choices=("offsets", "6", "9", "12")))
     min_windows: int = field(default=6, metadata=_meta("windows before a calibration may be accepted (the first batch fit also waits for 2 per parameter)", min=0))
-    process_noise: float = field(default=0.0, metadata=_meta("random-walk variance per window added to P (0: none)", min=0.0))
+    process_noise: float = field(default=0.0, metadata=_meta("random-walk variance of every parameter per second of sensor time added to P [raw²/s] (0: none; drifting sensors: e.g. 1e-12 tracks ~1 mg/h)", min=0.0))
+    extended_terms: str = field(default="temperature_offset", metadata=_meta(
+        "extended terms the online estimator may add to orders >= 6, comma-separated (temperature_offset, "
+        "temperature_sensitivity, offset_drift, sensitivity_drift; \"\" for none); each is used only when the "
+        "windows can test it (a temperature channel with a spread), determine it and the evidence warrants it"))
 
 
 @dataclass
@@ -161,7 +165,15 @@ def _apply(cfg: Config, source: str, section: str, key: str, value: Any) -> None
     setattr(getattr(cfg, section), key, value)
 
 
+ONLINE_TERMS = ("temperature_offset", "temperature_sensitivity", "offset_drift", "sensitivity_drift")
+
+
 def _validate_whole(cfg: Config, source: str) -> None:
+    terms = [t.strip() for t in cfg.estimator.extended_terms.split(",") if t.strip()]
+    bad = [t for t in terms if t not in ONLINE_TERMS]
+    if bad:
+        raise ConfigError(f"{source}: [estimator] extended_terms: unknown term(s) {', '.join(map(repr, bad))}; "
+                          f"expected a comma-separated list of {', '.join(ONLINE_TERMS)} (or \"\" for none)")
     d = cfg.detector
     if d.max_duration_s < d.min_duration_s:
         raise ConfigError(

@@ -16,14 +16,20 @@ stop with the state saved; SIGHUP: reload the configuration), feeds the systemd 
 while samples flow, and updates STATUS=. ``--emulate`` puts the logger emulator in place of
 the hardware (:class:`EmulatedBus`).
 
-Calibration life cycle: a saved state resumes the recursive estimator where it stopped
-(parameters and covariance). Without one, the start is the lab calibration (if configured)
-or the ADXL210 datasheet values; windows are pooled (:class:`SeedPool`) and fitted in batch
-(LottersBatch, eq. 11a) once there are two per parameter, until a fit is converged and
-observable; it seeds the recursion, so a wrong start does not have to be within the
-linearisation's reach. A calibration is *accepted* -- used for the published samples and
-saved -- when it converged, is observable and rests on at least ``min_windows`` windows.
-docs/daemon.md describes running it.
+Calibration life cycle: the estimator is core.estimators.online.OnlineCalibrator (order and
+extended terms -- e.g. a temperature offset -- by observability and evidence; bounded window
+store; re-seeded recursion). A saved state resumes it where it stopped (parameters, covariance,
+extended parameters). Without one, the start is the lab calibration (if configured) or the
+ADXL210 datasheet values; until the online estimator has an order of its own, windows are also
+pooled (:class:`SeedPool`) and fitted in batch (LottersBatch, eq. 11a) once there are two per
+parameter; the first converged and observable fit seeds the recursion, so a wrong start does not
+have to be within the linearisation's reach. Rejections by the recursion withdraw acceptance (3 of
+the last 10) and, when it gives up (20 in a row or 10 of the last 20: a changed sensor), the
+windows from then on are fitted afresh. A calibration is *accepted* -- used for the published
+samples (at their temperature when it has a temperature term) and saved -- when it converged, is
+observable, is not in doubt and rests on at least ``min_windows`` windows. A re-mount of the
+sensor on the body (core/estimators/remount.py) is reported (CALIB/STATUS ``remount``), not
+corrected: the calibration stays valid. docs/daemon.md describes running it.
 
 Entry point: ``gravcal.daemon.gravcald:main`` (console script ``gravcald``).
 """
@@ -62,6 +68,14 @@ log = logging.getLogger("gravcal.gravcald")
 NOMINAL_OFFSET = 0.5
 NOMINAL_SENSITIVITY = 0.04
 
+SUSPECT_REJECTIONS = 3  # rejected windows among the last SUSPECT_OF that withdraw acceptance until they agree again
+SUSPECT_OF = 10
+# The recursion "gives up" (a changed sensor: re-fit the windows from then on) after LottersRecursive's 20
+# consecutive rejections, or when GIVE_UP_REJECTIONS of the last GIVE_UP_OF windows were rejected: a jump
+# of one offset is invisible to windows with that axis horizontal, so rejections alternate with acceptances
+# (and the accepted ones drag the other parameters along); a working recursion rejects ~none with a 5σ gate.
+GIVE_UP_REJECTIONS, GIVE_UP_OF = 10, 20
+SIGMA_FLOOR_G = 0.002  # quasi-static floor on each window's norm noise [g] (order.SIGMA_FLOOR_G)
 MAX_SEED_WINDOWS = 300  # windows kept for the batch fit that seeds the recursion (see SeedPool)
 REOPEN_AFTER_READ_ERRORS = 3  # a driver whose read() keeps raising is closed and reopened
 ANALYSIS_BLOCK_S = 0.05  # samples collected before the detector and estimator run [s of data]
@@ -83,7 +97,7 @@ GYRO_NOMINAL_COUNTS_PER_RAD_S = 357.36
 # Settings that only take effect at start (SIGHUP says so instead of half-applying them).
 RESTART_KEYS = {
     "device": ("spec", "fs_hz", "ring_capacity"),
-    "estimator": ("model",),
+    "estimator": ("model", "extended_terms"),
     "socket": ("path", "mode", "activation_name"),
     "state": ("directory", "lab_calibration"),
 }
@@ -140,27 +154,41 @@ class SeedPool:
 class Processor:
     """Detector -> estimator -> correction for one stream of sample blocks.
 
-    ``detector`` and the estimators are built from gravcal.core lazily (they are separate
-    modules); tests may pass their own ``detector``.
+    The estimator is core.estimators.online.OnlineCalibrator (model order and extended terms by
+    observability and evidence, re-seeded recursion); ``start`` is its start calibration, ``lab``
+    the lab calibration when configured (its frame makes the full order "12"), ``resumed`` a saved
+    state it continues from. From a far-off start (the datasheet values) the recursion is
+    bootstrapped by a batch fit of the pooled windows (:class:`SeedPool`, LottersBatch with its
+    ellipsoid retry) once that is converged and observable; the same fit re-seeds it after the
+    recursion gives up (a changed sensor). ``detector`` and the estimators are built from
+    gravcal.core lazily; tests may pass their own ``detector``.
     """
 
-    def __init__(self, cfg: Config, start: CalibrationState, *, resumed: bool, detector: Any = None):
+    def __init__(self, cfg: Config, start: CalibrationState, *, resumed: bool, detector: Any = None,
+                 lab: Calibration | None = None):
+        from ..core.estimators.remount import RemountDetector
+
         self.cfg = cfg
         self.state = start
+        self.lab = lab
         self.start = start.calibration  # the batch fit's starting point
         self.applied = start.calibration  # what corrects the published samples until an update is accepted
         self.static_now = False  # the detector's latest per-sample decision
         self.windows_base = int(start.calibration.n_windows) if resumed else 0
         self.pool = SeedPool(MAX_SEED_WINDOWS, start.calibration)  # for (re)seeding the recursion
         self._since_try = 0
-        self.estimator: Any = None
-        if resumed:
-            self.estimator = self._recursive(start.calibration)
+        self.online = self._online(start.calibration, resumed)
+        self.seeded = resumed  # the recursion runs from a batch fit (or a resumed state), not the raw start
+        self.refitting = False  # the recursion gave up: a new pool of post-change windows is being fitted
+        self.recent_rejections: collections.deque[bool] = collections.deque(maxlen=GIVE_UP_OF)
         self.detector = detector if detector is not None else self._make_detector()
         self.detector.to_g = self.applied
         self.windows_seen = 0
         self.windows_rejected = 0
         self.changed = False
+        saved_remount = start.extra.get("remount") if resumed else None
+        self.remount = RemountDetector()
+        self.remount_events: list[dict[str, Any]] = list(saved_remount) if isinstance(saved_remount, list) else []
         self._init_gyro(start.extra.get("gyro") if resumed else None)
 
     # construction -------------------------------------------------------------------
@@ -174,11 +202,33 @@ class Processor:
         return QuasiStaticDetector(fs, hp_hz=d.hp_hz, lp_hz=d.lp_hz, threshold_g=d.threshold_g,
                                    min_duration_s=d.min_duration_s, max_duration_s=d.max_duration_s)
 
-    def _recursive(self, start: Calibration) -> Any:
-        from ..core.estimators.lotters import LottersRecursive
+    def candidates(self) -> tuple[str, ...]:
+        """Orders the online estimator may choose: up to the configured one, plus the configured
+        extended terms on every order >= 6 (config [estimator] extended_terms)."""
+        return online_candidates(self.cfg.estimator.model, self.cfg.estimator.extended_terms)
 
-        q = self.cfg.estimator.process_noise
-        return LottersRecursive(start, model=self.cfg.estimator.model, process_noise=q if q > 0 else None)
+    def _online(self, start: Calibration, resumed: bool) -> Any:
+        from ..core.estimators.lotters import datasheet_held_uncertainty
+        from ..core.estimators.online import OnlineCalibrator
+
+        e = self.cfg.estimator
+        lab = self.lab
+        if lab is None and e.model == "12":
+            lab = start  # a resumed or given 12-parameter calibration carries its frame
+        if not resumed and start.covariance.size == 0 and self.lab is None:
+            # a start without a stated uncertainty (the datasheet values): the order rule must see how
+            # uncertain its held sensitivities are (lotters.datasheet_held_uncertainty)
+            start = datasheet_held_uncertainty(start)
+        q = e.process_noise
+        # the quasi-static floor of the old fixed recursion (LottersRecursive's 2 mg): the emulated sensor's
+        # windows are cleaner than its model errors, and a data-derived floor from a few windows undercuts them
+        return OnlineCalibrator(start, lab=lab, resume=resumed, candidates=self.candidates(),
+                                process_noise=q if q > 0 else None, sigma_floor_g=SIGMA_FLOOR_G)
+
+    @property
+    def estimator(self) -> Any:
+        """The running recursion (LottersRecursive) or None before the first seed."""
+        return self.online.recursive if self.seeded or self.online.model != "none" else None
 
     def _init_gyro(self, saved: Any) -> None:
         """The online gyro calibration (core.gyro, docs/gyro.md §6). Start values (bias [ADC
@@ -258,16 +308,37 @@ class Processor:
     def applied(self, cal: Calibration) -> None:
         self._applied = cal
         # a = K^-1 (raw - o) as one matrix product per block: the inverse is taken once here.
-        # One tuple, swapped atomically: correct() runs in the acquisition thread.
+        # One tuple, swapped atomically: correct() runs in the acquisition thread. An extended calibration
+        # (core/estimators/extended.py) adds its terms: temperature_offset alone is o + c_T (T - T_ref) per
+        # sample (the fast path, equal to apply_extended); any other term goes through apply_extended.
+        ext = cal.metadata.get("extended") if isinstance(cal.metadata, dict) else None
+        temp_coef, general = None, None
+        if ext:
+            params = cal.metadata.get("params") or {}
+            if list(ext.get("terms", [])) == ["temperature_offset"]:
+                temp_coef = (np.array([params[f"oT_{a}"] for a in "xyz"], dtype=float), float(ext["t_ref_c"]))
+            else:
+                general = cal
         self._correction = (np.asarray(cal.offset, dtype=float),
-                            np.linalg.inv(np.asarray(cal.sensitivity, dtype=float)).T * STANDARD_GRAVITY)
+                            np.linalg.inv(np.asarray(cal.sensitivity, dtype=float)).T * STANDARD_GRAVITY,
+                            temp_coef, general)
 
     def correct(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The fast path, per block as it arrives: (acc [m/s²] (N, 3) corrected with the accepted
         calibration, gyro [rad/s] (N,) NaN when not configured, static (N,) bool = the
         detector's latest decision, at most ANALYSIS_BLOCK_S of data old)."""
-        offset, kinv_t = self._correction
-        acc = (raw_triad(block) - offset) @ kinv_t
+        offset, kinv_t, temp_coef, general = self._correction
+        if general is not None:
+            from ..core.estimators.extended import apply_extended
+
+            acc = apply_extended(general, raw_triad(block), temp=block["temp"].astype(float),
+                                 t=block["seq"].astype(float) / self.cfg.device.fs_hz) * STANDARD_GRAVITY
+        elif temp_coef is not None:  # o(T) = o + c_T (T - T_ref); a sample without temperature gets NaN
+            coef, t_ref = temp_coef
+            o_t = offset + (block["temp"].astype(float) - t_ref)[:, None] * coef
+            acc = (raw_triad(block) - o_t) @ kinv_t
+        else:
+            acc = (raw_triad(block) - offset) @ kinv_t
         bias, sens = self._gyro_correction
         gyro = (block["gyro"].astype(float) - bias) / sens  # NaN while either is unknown
         return acc, gyro, np.full(block.shape[0], self.static_now)
@@ -308,36 +379,121 @@ class Processor:
         self.windows_seen += 1
         self.pool.add(w)
         self._since_try += 1
-        cfg = self.cfg.estimator
-        if self.estimator is None:
-            cal = self._seed_fit()
-            if cal is None:
+        self._remount_window(w)
+        online = self.online
+        rec = online.recursive
+        before = rec.n_rejected if rec is not None else 0
+        try:
+            cal = online.update(w)
+        except ValueError as exc:  # a window the estimator cannot use (non-finite): skip it, never crash
+            log.warning("window skipped by the estimator: %s", exc)
+            return
+        rejected = online.recursive is not None and online.recursive is rec and rec.n_rejected > before
+        if online.recursive is not rec:
+            self.recent_rejections.clear()  # a new recursion (re-seed): its own record
+        self.recent_rejections.append(rejected)
+        if rejected:
+            self.windows_rejected += 1
+        if not self.seeded and not (online.model != "none" and not online.provisional):
+            # bootstrap: the online order rule evaluated at a far-off start (datasheet offsets are up to ~1 g
+            # off) cannot be trusted; a batch fit with the ellipsoid retry seeds the recursion instead
+            seed = self._seed_fit()
+            if seed is None:
+                if online.model != "none":  # provisional offsets: published (not accepted), as information
+                    self._publish(cal)
                 return
-        else:
-            before = self.estimator.n_rejected
-            cal = self.estimator.update(w)
-            if self.estimator.n_rejected > before:
-                self.windows_rejected += 1
-                if cal.converged:
-                    return
-                # The recursion gave up (LottersRecursive.max_consecutive_rejections windows in a row
-                # contradict it): the sensor changed, or a resumed state belongs to another sensor.
-                # Fit the recent windows afresh; keep the current values until that fit is usable.
-                log.warning("the recursive estimator rejected %d windows in a row; refitting from the last %d "
-                            "windows", self.estimator.consecutive_rejected, len(self.pool))
-                refit = self._seed_fit()
-                if refit is None or not (refit.converged and refit.observable):
-                    self.estimator.consecutive_rejected = 0  # try again after as many more
-                    return
-                cal = refit
-            else:
-                cal.n_windows = self.windows_base + self.estimator.n_updates
-        accepted = bool(cal.converged and cal.observable and cal.n_windows >= cfg.min_windows)
-        self.state = CalibrationState(cal, self.state.revision + 1, time.time(), accepted, dict(self.state.extra))
+            self.seeded = True
+            self.windows_base = 0
+            online.adopt(seed, windows=self.pool.window_set())
+            cal = online.calibration
+        elif self.refitting or (rejected and (not cal.converged or sum(self.recent_rejections) >= GIVE_UP_REJECTIONS)):
+            # The recursion gave up (LottersRecursive.max_consecutive_rejections windows in a row contradict
+            # it): the sensor changed, or a resumed state belongs to another sensor. Pool the windows from now
+            # on and fit them afresh; keep the current values (not accepted) until that fit is usable.
+            if not self.refitting:
+                log.warning("the recursive estimator rejected %d of the last %d windows (%d in a row); fitting the "
+                            "windows from now on afresh", sum(self.recent_rejections), len(self.recent_rejections),
+                            online.recursive.consecutive_rejected)
+                self.refitting = True
+                self.pool = SeedPool(MAX_SEED_WINDOWS, self.applied)
+                self.pool.add(w)
+            refit = self._seed_fit()
+            if refit is None or not (refit.converged and refit.observable):
+                self._publish(cal, suspect=True)
+                return
+            log.warning("re-fitted after the recursion gave up: %d windows, order %s", refit.n_windows, refit.model)
+            online.adopt(refit, clear_store=True, windows=self.pool.window_set())
+            self.refitting = False
+            self.recent_rejections.clear()
+            cal = online.calibration
+        elif rejected:
+            if self._suspect() and self.state.accepted:
+                self._publish(cal)  # several recent rejections: the calibration is in doubt, withdraw acceptance
+            return  # an isolated outlier window: nothing changed
+        self._publish(cal)
+
+    def _suspect(self) -> bool:
+        return sum(list(self.recent_rejections)[-SUSPECT_OF:]) >= SUSPECT_REJECTIONS
+
+    def _publish(self, cal: Calibration, *, suspect: bool = False) -> None:
+        cal.n_windows = self.windows_base + self.online.n_windows
+        suspect = suspect or self._suspect()
+        if suspect and cal.converged:
+            n = sum(list(self.recent_rejections)[-SUSPECT_OF:])
+            cal.message = "; ".join(m for m in (cal.message, f"{n} of the last {SUSPECT_OF} windows contradict "
+                                                "this calibration (sensor changed?): not accepted until they agree "
+                                                "again or a re-fit replaces it") if m)
+        accepted = bool(cal.converged and cal.observable and not self.online.provisional and not suspect
+                        and cal.n_windows >= self.cfg.estimator.min_windows and (self.seeded or self.online.model != "none"))
+        extra = dict(self.state.extra)
+        if self.remount_events:
+            extra["remount"] = list(self.remount_events)
+        self.state = CalibrationState(cal, self.state.revision + 1, time.time(), accepted, extra)
         if accepted:
             self.applied = cal
             self.detector.to_g = cal
         self.changed = True
+
+    def _remount_window(self, w: Window) -> None:
+        """Posture statistics for the re-mount detector (core/estimators/remount.py): the gravity direction of
+        the window under the accepted calibration. A re-mount leaves the calibration valid (the norm does
+        not see the housing's rotation on the body); it is reported, not corrected."""
+        if not self.applied.converged:
+            return
+        a = self.applied.apply(np.asarray(w.mean, dtype=float)[None, :])[0]
+        dur = float(w.t_end - w.t_start) if w.t_end > w.t_start else max(w.n, 1) / self.cfg.device.fs_hz
+        ev = self.remount.update(float(w.t_mid), a, dur)
+        if ev is not None:
+            d = ev.to_json_dict()
+            self.remount_events = (self.remount_events + [d])[-20:]
+            log.warning("sensor re-mount detected at sensor time %.0f s: the upright gravity direction turned by "
+                        "%.0f° (%s rule); the calibration stays valid, posture/body-frame interpretations do not",
+                        ev.t, ev.angle_deg, ev.rule)
+            self.changed = True
+
+    def calib_extra(self) -> dict[str, Any]:
+        """CALIB fields beyond the calibration: the extended parameters (model name, names, values, per-term
+        magnitudes with std) when the calibration has extended terms, every extended candidate's status
+        (chosen / not warranted / not observable / untestable, with the reason), and the re-mount events."""
+        cal = self.state.calibration
+        out: dict[str, Any] = {"remount": list(self.remount_events)}
+        ext = cal.metadata.get("extended") if isinstance(cal.metadata, dict) else None
+        if ext:
+            params = cal.metadata.get("params") or {}
+            out["extended"] = {"model": cal.model, "terms": list(ext.get("terms", [])),
+                               "param_names": list(cal.param_names),
+                               "values": [params.get(n) for n in cal.param_names],
+                               "t_ref_c": ext.get("t_ref_c"), "t0_s": ext.get("t0_s"),
+                               "magnitudes": ext.get("magnitudes")}
+        terms = cal.metadata.get("extended_terms") if isinstance(cal.metadata, dict) else None
+        if terms:
+            out["extended_terms"] = {k: {"status": v.get("status"), "reason": v.get("reason")} for k, v in terms.items()}
+        return out
+
+    def online_status(self) -> dict[str, Any]:
+        st = self.online.stats()
+        return {"model": st["model"], "reason": st["reason"], "seeded": self.seeded, "refitting": self.refitting,
+                "stored_windows": st["stored"], "reseeds": st["n_reseeds"], "extended_terms": st["extended_terms"]}
 
     def seed_windows_needed(self) -> int:
         """Windows before the batch fit that seeds the recursion is tried: at least
@@ -348,24 +504,37 @@ class Processor:
         return max(self.cfg.estimator.min_windows, SEED_WINDOWS_PER_PARAM * n, 1)
 
     def _seed_fit(self) -> Calibration | None:
-        """Batch fit (eq. 11a) over the recent windows; the recursion takes over once it is
-        converged and observable. Until then the candidate is published, not applied."""
+        """Batch fit (eq. 11a) over the pooled windows; the recursion takes over once it is
+        converged and observable (returned then, None otherwise)."""
         from ..core.estimators.lotters import LottersBatch
 
         if len(self.pool) < self.seed_windows_needed():
             return None
-        if not (self.pool.new_cell or self._since_try >= SEED_RETRY_EVERY or self.estimator is not None):
+        if not (self.pool.new_cell or self._since_try >= SEED_RETRY_EVERY or self.refitting):
             return None  # the same postures again: the fit would not change its verdict
         self._since_try = 0
+        model = self.cfg.estimator.model
+        start = self.start
+        if model == "12" and self.lab is None and start.model != "12":
+            model = "9"  # no frame to hold: the online estimator's full order is 9
         try:  # from the start values; LottersBatch retries from an ellipsoid fit when they are far off
-            cal = LottersBatch(self.cfg.estimator.model).fit(self.pool.window_set(), start=self.start)
+            cal = LottersBatch(model).fit(self.pool.window_set(), start=start)
         except ValueError as exc:  # e.g. too few distinct orientations yet
             log.debug("seed batch fit not possible yet: %s", exc)
             return None
-        if cal.converged and cal.observable:
-            self.windows_base = cal.n_windows
-            self.estimator = self._recursive(cal)
+        if not (cal.converged and cal.observable):
+            return None
+        if cal.model not in self.online.candidates:
+            return None
         return cal
+
+
+def online_candidates(model: str, extended_terms: str) -> tuple[str, ...]:
+    """The OnlineCalibrator candidates for a configured order and the [estimator] extended_terms list."""
+    ladder = {"offsets": ("offsets",), "6": ("offsets", "6"), "9": ("offsets", "6", "9"), "12": ("offsets", "6", "12")}
+    base = ladder[model]
+    terms = [t.strip() for t in extended_terms.split(",") if t.strip()]
+    return base + tuple(f"{b}+{t}" for t in terms for b in base if b != "offsets")
 
 
 # -- --emulate: the built-in emulator as the device ------------------------------------------
@@ -525,6 +694,7 @@ class Gravcald:
         self.watchdog = WatchdogPolicy(self.notifier, watchdog_interval(self.environ))
         self._driver = driver
         self._detector = detector
+        self._lab: Calibration | None = None  # the lab calibration, when the start is one
         self.ring = RingBuffer(cfg.device.ring_capacity, SAMPLE_DTYPE)
         self.store = StateStore(cfg.state.directory)
         self.saver: RateLimitedSaver | None = None
@@ -555,15 +725,18 @@ class Gravcald:
             log.info("%s", note)
         model = self.cfg.estimator.model
         if loaded.state is not None:
-            if loaded.state.model == model:
+            # an order up to the configured one, with or without the allowed extended terms, resumes
+            allowed = online_candidates(model, self.cfg.estimator.extended_terms)
+            if loaded.state.model == model or (loaded.state.model in allowed and loaded.state.accepted):
                 return loaded.state, True
-            note = (f"saved calibration has model {loaded.state.model!r}, configuration asks for {model!r}: "
-                    f"using its values as the start, estimation restarts")
+            note = (f"saved calibration has model {loaded.state.model!r}, configuration asks for {model!r} "
+                    f"(allowed online: {', '.join(allowed)}): using its values as the start, estimation restarts")
             log.warning("%s", note)
             self.notes.append(note)
             return CalibrationState(loaded.state.calibration, loaded.state.revision, loaded.state.updated, False), False
         if self.cfg.state.lab_calibration:
             cal = load_lab_calibration(self.cfg.state.lab_calibration)
+            self._lab = cal
             note = f"starting from lab calibration {self.cfg.state.lab_calibration} (model {cal.model})"
             log.info("%s", note)
             self.notes.append(note)
@@ -595,7 +768,7 @@ class Gravcald:
     def start(self) -> None:
         self.server = self._open_server()  # first: a socket in use fails fast, before any numerics load
         state, resumed = self._initial_state()
-        self.processor = Processor(self.cfg, state, resumed=resumed, detector=self._detector)
+        self.processor = Processor(self.cfg, state, resumed=resumed, detector=self._detector, lab=self._lab)
         self.saver = RateLimitedSaver(self.store, self.cfg.state.save_interval_s)
         self.server.start()
         self.server.set_calibration(self._calib_message())
@@ -612,7 +785,7 @@ class Gravcald:
         st = self.processor.state
         return calib_message(st.calibration, revision=st.revision, updated=st.updated, accepted=st.accepted,
                              extra={"applied_revision": st.revision if st.accepted else None,
-                                    "gyro": self.processor.gyro_json})
+                                    "gyro": self.processor.gyro_json, **self.processor.calib_extra()})
 
     # -- threads -------------------------------------------------------------------------
     def _acquire(self) -> None:
@@ -714,6 +887,8 @@ class Gravcald:
             "calibration": {"model": st.model, "revision": st.revision, "accepted": st.accepted,
                             "n_windows": st.calibration.n_windows, "rejected_windows": p.windows_rejected,
                             "updated": st.updated},
+            "estimator": p.online_status(),
+            "remount": {**p.remount.status(), "events": list(p.remount_events)},
             "state": {"path": self.store.path, "saves": self.saver.saves if self.saver else 0,
                       "save_failures": self.saver.failures if self.saver else 0,
                       "last_error": self.saver.last_error if self.saver else None},

@@ -23,6 +23,15 @@ upright windows determine the offsets only *given* the held sensitivities, whose
 the offsets are then fitted provisionally (a far better linearisation point than the start), reported with
 that std and observable=False (``provisional``), until other postures make order 6 observable.
 
+Extended terms (issue 6 item 4): candidates may name extended models ("6+temperature_offset",
+core/estimators/extended.py). Once the base order is chosen, each extended candidate on that base is
+judged by the same rule -- testable (a temperature channel with a spread, order.term_testability),
+observable (order.is_observable_extended: predicted error over orientations and the session's
+temperatures <= tol) -- and by the same evidence as the cross-axis terms (BIC *and* held-out error
+better than the base, order.compare_extended), re-examined on the comparison schedule. The chosen one
+is re-seeded by a batch fit (order.fit_extended_floor) and the recursion (LottersRecursive, per-window
+covariates) carries its extra parameters; ``extended_status`` says per candidate why it is or is not used.
+
 Memory is bounded: ``WindowStore`` keeps at most ``capacity`` window summaries; when full it drops
 the oldest window of the most populated posture cell (~10° cells on the sphere), so a night of lying
 survives a week of standing in the store and the order never falls back for lack of coverage.
@@ -40,7 +49,9 @@ from ..crlb import sphere_directions
 from ..windows import Window, WindowSet
 from .inuse12 import with_frame
 from .lotters import LottersBatch, LottersRecursive, validate_windows
-from .order import N_PARAMS, POSTURE_CELLS, SYSTEMATIC_G, TOL_G, OrderDecision, _reference_start, held_note, select_order
+from .order import (N_PARAMS, POSTURE_CELLS, SIGMA_FLOOR_G, SYSTEMATIC_G, TOL_G, OrderDecision, _reference_start,
+                    compare_extended, extended_base, extended_terms, fit_extended_floor, held_note,
+                    is_observable_extended, select_order)
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +126,9 @@ class OnlineCalibrator:
     trusted: recurse on it from the first window (a saved daemon state) instead of waiting for the
     windows to determine an order. ``sigma_floor_g``: quasi-static floor [g] (None: each re-seed's
     data-derived floor, also used by the recursion). ``process_noise``: LottersRecursive's random walk.
-    ``candidates``: orders allowed (default offsets, 6 and the full one). ``tol_g``, ``systematic_g``: the
+    ``candidates``: orders allowed (default offsets, 6 and the full one), extended ones included
+    ("6+temperature_offset"); ``terms``: extended terms allowed on every candidate order >= 6 (adds
+    "<order>+<term>" candidates). ``tol_g``, ``systematic_g``: the
     observability rule's tolerance and per-window model error [g] (order.is_observable); systematic_g=0
     for data without model error (window-level simulations).
 
@@ -128,7 +141,7 @@ class OnlineCalibrator:
                  capacity: int = STORE_CAPACITY, every: int = CHECK_EVERY, compare_every: int = COMPARE_EVERY,
                  sigma_floor_g: float | None = None, process_noise: float | np.ndarray | None = None,
                  gate_sigma: float = 5.0, candidates: tuple[str, ...] | None = None, tol_g: float = TOL_G,
-                 systematic_g: float = SYSTEMATIC_G):
+                 systematic_g: float = SYSTEMATIC_G, terms: tuple[str, ...] = ()):
         if not isinstance(start, Calibration):
             raise ValueError("OnlineCalibrator needs a start Calibration (datasheet nominal, saved state, or a fit)")
         self.lab = lab
@@ -137,7 +150,20 @@ class OnlineCalibrator:
         self.every, self.compare_every = max(1, int(every)), max(1, int(compare_every))
         self.sigma_floor_g, self.process_noise, self.gate_sigma = sigma_floor_g, process_noise, float(gate_sigma)
         full = "12" if lab is not None else "9"
-        self.candidates = tuple(candidates) if candidates is not None else ("offsets", "6", full)
+        cands = tuple(candidates) if candidates is not None else ("offsets", "6", full)
+        self.candidates = tuple(c for c in cands if "+" not in c)  # the orders select_order chooses among
+        ext = [c for c in cands if "+" in c]
+        ext += [f"{b}+{t}" for t in terms for b in self.candidates if b != "offsets"]
+        from .extended import extended_class  # noqa: PLC0415 (registers the names; raises on unknown terms)
+
+        self.extended_candidates = tuple(dict.fromkeys(extended_class(c).model for c in ext))
+        bad = [c for c in self.extended_candidates if extended_base(c) not in self.candidates]
+        if bad:
+            raise ValueError(f"extended candidate(s) {bad} need their base order among the candidates {self.candidates}")
+        # per extended candidate: {"status": chosen|not warranted|not observable|untestable|base not chosen, "reason"}
+        self.extended_status: dict[str, dict[str, Any]] = {
+            c: {"status": "pending", "reason": "no windows yet"} for c in self.extended_candidates}
+        self._ext_verdict: dict[str, bool] = {}  # last evidence verdict per extended candidate
         self.tol_g, self.systematic_g = float(tol_g), float(systematic_g)
         self.recursive: LottersRecursive | None = None
         self.model = "none"
@@ -149,7 +175,7 @@ class OnlineCalibrator:
         self._since_check = self._since_compare = self._since_seed = 0
         self._seed_size = self._compare_size = 0
         self.n_windows = self.n_rejected = self.n_reseeds = self.n_checks = self.n_compares = 0
-        if resume and start.model in N_PARAMS and start.model in self.candidates:
+        if resume and (start.model in self.candidates or start.model in self.extended_candidates):
             self.model = start.model
             self.reason = f"resumed order {start.model} from the start calibration"
             self.recursive = self._recursion(self.start, start.model)
@@ -167,11 +193,19 @@ class OnlineCalibrator:
         else:
             cal = self.recursive.calibration
             cal.n_windows = self.n_windows
+            if "+" in self.model:  # what apply_extended needs to correct samples at their temperature/time
+                par = self.recursive.par
+                std = np.sqrt(np.maximum(np.diag(cal.covariance), 0.0))
+                cal.metadata["extended"] = {"terms": list(par.terms), "t_ref_c": par.t_ref_c, "t0_s": par.t0_s,
+                                            "temp_column": par.temp_column,
+                                            "magnitudes": par.magnitudes(self.recursive.p, std)}
             if self.provisional:  # held values too uncertain for the order rule (see _check)
                 cal.observable = False
                 cal.message = "; ".join(m for m in (self.reason, cal.message) if m)
         cal.metadata["order"] = {"model": self.model, "reason": self.reason, "provisional": self.provisional}
         cal.metadata["estimator"] = "online"
+        if self.extended_candidates:
+            cal.metadata["extended_terms"] = {k: dict(v) for k, v in self.extended_status.items()}
         return cal
 
     @property
@@ -191,6 +225,28 @@ class OnlineCalibrator:
         else:
             raise ValueError(f"expected a Window or WindowSet, got {type(window).__name__}")
         return self.calibration
+
+    def adopt(self, cal: Calibration, *, clear_store: bool = False, windows: WindowSet | None = None) -> None:
+        """Continue the recursion from ``cal`` (a converged, observable batch fit at one of the candidate
+        orders: the daemon's bootstrap seed from a far-off datasheet start, or its re-fit after the
+        recursion gave up). ``clear_store``: the stored windows belong to another sensor state (a sensor
+        swap or an offset jump), keep none of them. ``windows``: those the fit used (with ``process_noise``
+        its covariance grows by the drift since their mean time, as after a re-seed)."""
+        model = cal.model
+        if model not in self.candidates and model not in self.extended_candidates:
+            raise ValueError(f"cannot adopt a calibration of order {model!r}; candidates {self.candidates}")
+        if clear_store:
+            self.store = WindowStore(self.store.capacity)
+            self._cross_axis, self._ext_verdict = None, {}
+        self.start = cal
+        self.model = model
+        self.provisional = False
+        self.reason = f"adopted a batch fit of order {model} ({cal.n_windows} windows)"
+        self.recursive = self._recursion(cal, model)
+        if windows is not None:
+            self._drift_inflation(windows)
+        self._seed_size, self._since_seed = max(len(self.store), int(cal.n_windows), 1), 0
+        self.n_reseeds += 1
 
     # -- per window ------------------------------------------------------------------------------
     def _current(self) -> tuple[np.ndarray, np.ndarray]:
@@ -217,7 +273,8 @@ class OnlineCalibrator:
         a = np.linalg.solve(K, mean - o)
         self.store.add(mean, cov, n, t, aux, a / max(float(np.linalg.norm(a)), 1e-12))
         self.n_windows += 1
-        if self.recursive is not None:
+        needs_aux = "+" in self.model and any(x.startswith("temperature") for x in extended_terms(self.model))
+        if self.recursive is not None and not (needs_aux and not np.all(np.isfinite(aux))):
             if not self.recursive.step(mean, cov / n, t, aux):
                 self.n_rejected += 1
         self._since_check += 1
@@ -265,8 +322,17 @@ class OnlineCalibrator:
                     f"determined given the held sensitivities (predicted error {given:.3g} mg), but with their "
                     f"uncertainty the predicted error is {o.get('predicted_mg')} mg > {self.tol_g * 1e3:.3g} mg"
                     + (f"; {note}" if note else "") + "; the reported std includes it"), d.evidence)
-        # orders only grow (the store keeps the coverage), except the evidence's verdict full -> 6
-        if rank[target] < rank[self.model] and not (self.model in ("9", "12") and target == "6"):
+        if target != "none":
+            target = self._extended_choice(target, ws, here, compare)
+            if target != d.model:
+                d = OrderDecision(target, f"{d.reason}; {'+'.join(extended_terms(target))} chosen "
+                                          f"({self.extended_status[target]['reason']})", d.evidence)
+        else:
+            self._extended_not(target, "no order is determined yet")
+        # orders only grow (the store keeps the coverage), except the evidence's verdicts full -> 6 and
+        # extended -> its base
+        cur = extended_base(self.model)
+        if rank[extended_base(target)] < rank[cur] and not (cur in ("9", "12") and extended_base(target) == "6"):
             self.decision = d
             self.reason = (f"holding order {self.model}; the stored windows now give {target} "
                            f"({d.reason})")
@@ -279,8 +345,61 @@ class OnlineCalibrator:
             self._reseed(target, ws, here, d)
         self.provisional = provisional and self.model == target
 
+    # -- extended terms ------------------------------------------------------------------------
+    def _extended_not(self, base: str, why: str) -> None:
+        for c in self.extended_candidates:
+            if extended_base(c) != base:
+                self.extended_status[c] = {"status": "base not chosen", "reason": why}
+
+    def _extended_choice(self, base: str, ws: WindowSet, here: Calibration, compare: bool) -> str:
+        """``base`` or the extended candidate on it that is testable, observable and warranted by the
+        evidence (BIC and held-out, as the cross-axis terms); updates ``extended_status``."""
+        self._extended_not(base, f"order {base} chosen")
+        chosen = base
+        for c in (c for c in self.extended_candidates if extended_base(c) == base):
+            at = here if extended_base(here.model) == base else _reference_start(base, here, self.lab)
+            try:
+                ok, obs = is_observable_extended(ws, at, c, tol_g=self.tol_g, systematic_g=self.systematic_g)
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                ok, obs = False, {"reason": f"observability not computable ({exc})", "predicted_mg": None}
+            if not ok:
+                status = "untestable" if "untestable" in obs else "not observable"
+                self.extended_status[c] = {"status": status, "reason": obs["reason"],
+                                           "predicted_mg": obs.get("predicted_mg")}
+                self._ext_verdict.pop(c, None)
+                continue
+            if compare or c not in self._ext_verdict:
+                try:
+                    sc = compare_extended(ws, base, c, at, lab=self.lab,
+                                          sigma_floor_g=self.sigma_floor_g if self.sigma_floor_g is not None
+                                          else SIGMA_FLOOR_G)
+                except (ValueError, np.linalg.LinAlgError) as exc:
+                    self.extended_status[c] = {"status": "not warranted", "reason": f"comparison failed ({exc})"}
+                    self._ext_verdict[c] = False
+                    continue
+                sb, se = sc[base], sc[c]
+                hb, he = sb["heldout_rms_mg"], se["heldout_rms_mg"]
+                better = se["bic"] < sb["bic"] and (hb is None or he is None or he < hb)
+                cmp = (f"BIC {c} {se['bic']:.1f} vs {base} {sb['bic']:.1f}" +
+                       ("" if hb is None or he is None else f", held-out {he:.4g} vs {hb:.4g} mg"))
+                self._ext_verdict[c] = better
+                self.extended_status[c] = {"status": "chosen" if better else "not warranted",
+                                           "reason": cmp, "predicted_mg": obs.get("predicted_mg"), "comparison": sc}
+            elif self.extended_status.get(c, {}).get("status") not in ("chosen", "not warranted"):
+                self.extended_status[c] = {"status": "chosen" if self._ext_verdict[c] else "not warranted",
+                                           "reason": "last comparison's verdict", "predicted_mg": obs.get("predicted_mg")}
+            if self._ext_verdict.get(c) and chosen == base:
+                chosen = c
+            elif chosen != base and self._ext_verdict.get(c):
+                self.extended_status[c] = {**self.extended_status[c], "status": "not warranted",
+                                           "reason": self.extended_status[c]["reason"] + f"; {chosen} chosen first"}
+        return chosen
+
     def _reseed(self, model: str, ws: WindowSet, here: Calibration, d: OrderDecision) -> None:
         """Batch fit of the stored windows (eq. 11a), then the recursion continues from it."""
+        if "+" in model:
+            self._reseed_extended(model, ws, here, d)
+            return
         if model == "offsets":
             fit_start = here
         else:
@@ -298,19 +417,69 @@ class OnlineCalibrator:
             log.info("online order %s -> %s after %d windows: %s", self.model, model, self.n_windows, d.reason)
         self.model = model
         self.recursive = self._recursion(cal, model)
+        self._drift_inflation(ws)
         self._seed_size, self._since_seed = len(ws), 0
         self.n_reseeds += 1
+
+    def _reseed_extended(self, model: str, ws: WindowSet, here: Calibration, d: OrderDecision) -> None:
+        base = extended_base(model)
+        start = here if here.model == model else _reference_start(base, here, self.lab)
+        try:
+            fit, floor = fit_extended_floor(model, ws, start, sigma_floor_g=self.sigma_floor_g)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            self.reason += f"; re-seed with {model} failed ({exc}), order {self.model} kept"
+            return
+        if not fit.converged:
+            self.reason += f"; re-seed with {model} did not converge, order {self.model} kept"
+            return
+        cal = fit.calibration(len(ws))
+        cal.metadata["sigma_floor_g"] = floor
+        if model != self.model:
+            log.info("online order %s -> %s after %d windows: %s", self.model, model, self.n_windows, d.reason)
+        self.model = model
+        self.recursive = self._recursion(cal, model)
+        self._drift_inflation(ws)
+        self._seed_size, self._since_seed = len(ws), 0
+        self.n_reseeds += 1
+
+    def _drift_inflation(self, ws: WindowSet) -> None:
+        """With a random walk (``process_noise`` Q per second) a batch fit of windows spread over time estimates
+        the parameters at their (weighted) mean time, not now: the recursion starts with P + Q (t_last - t_mean),
+        the walk's variance since then, so a re-seed never states drifting parameters more precisely than the
+        drift allows (the recursion then tracks them from there)."""
+        rec = self.recursive
+        if rec is None or not rec._has_Q or not len(ws):
+            return
+        w = ws.n / max(float(np.sum(ws.n)), 1e-300)
+        lag = max(float(np.max(ws.t)) - float(w @ ws.t), 0.0)
+        rec.P = rec.P + rec.Q * lag
+        rec.t_last = float(np.max(ws.t))
 
     def _recursion(self, cal: Calibration, model: str) -> LottersRecursive:
         floor = self.sigma_floor_g
         if floor is None:
             floor = float(cal.metadata.get("sigma_floor_g") or 0.0)
-        return LottersRecursive(cal, model, sigma_floor_g=floor, process_noise=self.process_noise,
-                                gate_sigma=self.gate_sigma)
+        if "+" not in model:
+            return LottersRecursive(cal, model, sigma_floor_g=floor, process_noise=self.process_noise,
+                                    gate_sigma=self.gate_sigma)
+        # an extended model: the parameterization carries the fit's reference (T_ref, t0); its extra
+        # parameters are not in (K, o), so the recursion starts from the stated params
+        from .extended import parameterization  # noqa: PLC0415
+
+        ext = cal.metadata.get("extended") or {}
+        par = parameterization(model, cal.sensitivity, cal.offset, t_ref_c=ext.get("t_ref_c", 25.0),
+                               t0_s=ext.get("t0_s", 0.0), temp_column=ext.get("temp_column", 0))
+        rec = LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=self.process_noise,
+                               gate_sigma=self.gate_sigma)
+        params = cal.metadata.get("params") or {}
+        if all(n in params for n in par.names):
+            rec.p = np.array([float(params[n]) for n in par.names])
+        return rec
 
     def stats(self) -> dict[str, Any]:
         """Counters for logs and the socket's status."""
         return {"model": self.model, "reason": self.reason, "n_windows": self.n_windows, "n_rejected": self.n_rejected,
+                "extended_terms": {k: {"status": v["status"], "reason": v["reason"]} for k, v in self.extended_status.items()},
                 "n_reseeds": self.n_reseeds, "n_checks": self.n_checks, "n_compares": self.n_compares,
                 "stored": len(self.store), "evicted": self.store.evicted}
 

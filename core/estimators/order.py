@@ -399,3 +399,186 @@ class OnlineOrderSelector:
                               d.evidence)
         self.decision = d
         return d
+
+
+# -- extended terms (temperature, drift) online: testability, observability, evidence ----------------
+MIN_TEMP_SPREAD_C = 2.0  # a temperature term is testable only when the windows span this much (5-95 %) [°C]
+MIN_DRIFT_SPAN_H = 2.0  # a drift term is testable only when the windows span this long [h]
+
+
+def extended_base(model: str) -> str:
+    """"6+temperature_offset" -> "6"; a plain order is its own base."""
+    return model.split("+", 1)[0]
+
+
+def extended_terms(model: str) -> tuple[str, ...]:
+    return tuple(model.split("+")[1:])
+
+
+def term_testability(ws: WindowSet, term: str, *, temp_column: int = 0) -> tuple[bool, str]:
+    """Can the windows test catalogue term ``term`` at all? A temperature term needs a temperature
+    channel (finite aux column ``temp_column``) with a spread of at least MIN_TEMP_SPREAD_C (else
+    c_T (T - T_ref) is a constant, indistinguishable from the offsets); a drift term needs
+    MIN_DRIFT_SPAN_H of windows. Returns (testable, the reason when not)."""
+    if term.startswith("temperature"):
+        if ws.aux.ndim != 2 or ws.aux.shape[1] <= temp_column:
+            return False, "the windows carry no temperature (no temperature channel)"
+        T = ws.aux[:, temp_column]
+        if not np.all(np.isfinite(T)):
+            return False, (f"{int(np.sum(~np.isfinite(T)))} of {len(T)} windows carry no temperature (the "
+                           f"temperature channel reads no value)")
+        lo, hi = np.percentile(T, [5, 95])
+        if hi - lo < MIN_TEMP_SPREAD_C:
+            return False, (f"no temperature spread: the windows span {hi - lo:.2g} °C (5-95 %) < "
+                           f"{MIN_TEMP_SPREAD_C:g} °C, so a temperature term cannot be told from the offsets")
+        return True, ""
+    if term.endswith("drift"):
+        span_h = (float(np.max(ws.t)) - float(np.min(ws.t))) / 3600.0 if len(ws) else 0.0
+        if span_h < MIN_DRIFT_SPAN_H:
+            return False, f"the windows span {span_h:.2g} h < {MIN_DRIFT_SPAN_H:g} h: a drift cannot be told from the offsets"
+        return True, ""
+    if term in ("misalignment", "nonlinearity"):
+        return True, ""
+    raise ValueError(f"unknown extended term {term!r}")
+
+
+def _extended_params(par: Any, cal: Calibration) -> np.ndarray:
+    """The parameter vector of ``cal`` in ``par``: its stated extended params when it has them."""
+    params = cal.metadata.get("params") if isinstance(cal.metadata, dict) else None
+    if isinstance(params, dict) and all(n in params for n in par.names) and cal.model == par.model:
+        return np.array([float(params[n]) for n in par.names])
+    return par.pack(cal.sensitivity, cal.offset)
+
+
+def extended_observability(ws: WindowSet, cal: Calibration, model: str, *, sigma_floor_g: float = SIGMA_FLOOR_G,
+                           systematic_g: float = SYSTEMATIC_G) -> dict[str, Any]:
+    """The observability numbers of ``observability`` for an extended model (``"<base>+<term>..."``):
+    the Fisher information with each window's covariates (temperature, time), and the error metric G
+    averaged over all orientations *and* the windows' covariates (the RMS calibrated-acceleration
+    error over the session's conditions). No consider term (the extended orders hold no parameter
+    with a stated uncertainty beyond the base order's cross-axis part)."""
+    from .extended import ExtendedParameterization, parameterization  # noqa: PLC0415
+
+    par = parameterization(model, cal.sensitivity, cal.offset)
+    if not isinstance(par, ExtendedParameterization):
+        raise ValueError(f"{model!r} is not an extended model")
+    p = _extended_params(par, cal)
+    P = par.n_params
+    bound = par.at_windows(ws)
+    var0 = norm_noise_var(ws, cal)
+    a, J = bound.accel_and_jacobian(p, ws.mean)
+    h = np.linalg.norm(a, axis=1)
+    B = np.einsum("mi,mip->mp", a / h[:, None], J)
+    F = (B / (var0 + sigma_floor_g**2)[:, None]).T @ B
+    Fbar = (B / (var0 + 1.0)[:, None]).T @ B / max(len(ws), 1)
+    # metric: sphere directions x the windows' covariate quantiles
+    u = sphere_directions(64)
+    q = np.linspace(0.05, 0.95, 7)
+    rows = np.repeat(np.arange(len(q)), len(u))
+    idx = np.clip((q * (len(ws) - 1)).round().astype(int), 0, max(len(ws) - 1, 0))
+    aux = np.sort(ws.aux, axis=0)[idx][rows] if ws.aux.size else np.zeros((len(rows), 0))
+    tt = np.sort(ws.t)[idx][rows]
+    K, o = par.unpack(p)
+    raw = np.tile(u, (len(q), 1)) @ K.T + o
+    synth = WindowSet(raw, np.zeros((len(raw), 3, 3)), np.ones(len(raw)), tt, aux, np.arange(len(raw)),
+                      np.arange(len(raw)) + 1)
+    _, Jg = par.at_windows(synth).accel_and_jacobian(p, raw)
+    G = np.einsum("mip,miq->pq", Jg, Jg) / len(raw)
+    d = np.sqrt(np.maximum(np.diag(F), 1e-300))
+    w, V = np.linalg.eigh(F / np.outer(d, d))
+    singular = len(ws) < P or w.min() <= RANK_RTOL * max(w.max(), 1e-300)
+    if singular:
+        stat = amp = math.inf
+    else:
+        Finv = ((V / w) @ V.T) / np.outer(d, d)
+        stat = float(np.sqrt(max(np.trace(G @ Finv), 0.0)))
+        db = np.sqrt(np.maximum(np.diag(Fbar), 1e-300))
+        wb, Vb = np.linalg.eigh(Fbar / np.outer(db, db))
+        Fbinv = ((Vb / np.maximum(wb, 1e-300)) @ Vb.T) / np.outer(db, db)
+        wg, Vg = np.linalg.eigh(0.5 * (G + G.T))
+        Gh = (Vg * np.sqrt(np.maximum(wg, 0.0))) @ Vg.T  # G^1/2
+        amp = float(np.sqrt(max(np.linalg.eigvalsh(Gh @ Fbinv @ Gh).max(), 0.0)))
+    total = math.sqrt(stat**2 + (amp * systematic_g) ** 2) if math.isfinite(stat) and math.isfinite(amp) else math.inf
+    std = np.sqrt(np.maximum(np.diag(((V / np.maximum(w, 1e-300)) @ V.T) / np.outer(d, d)), 0.0)) \
+        if not singular else np.full(P, math.inf)
+    return {"n_params": P, "stat_mg": _mg(stat), "amplification": round(amp, 2) if math.isfinite(amp) else None,
+            "predicted_mg": _mg(total), "extra_std": dict(zip(par.extra_names, std[len(par.base.names):].tolist())),
+            "_total_g": total}
+
+
+def is_observable_extended(ws: WindowSet, cal: Calibration, model: str, *, tol_g: float = TOL_G,
+                           sigma_floor_g: float = SIGMA_FLOOR_G, systematic_g: float = SYSTEMATIC_G
+                           ) -> tuple[bool, dict[str, Any]]:
+    """The observability rule (``is_observable``) for an extended model: every extra term testable
+    (``term_testability``), and the predicted RMS error over orientations and the session's conditions
+    <= ``tol_g`` (extended_observability). The base order is judged by ``is_observable`` separately."""
+    for term in extended_terms(model):
+        ok, why = term_testability(ws, term)
+        if not ok:
+            return False, {"untestable": term, "reason": why, "predicted_mg": None}
+    obs = extended_observability(ws, cal, model, sigma_floor_g=sigma_floor_g, systematic_g=systematic_g)
+    obs["reason"] = "" if obs["_total_g"] <= tol_g else (
+        f"predicted error {obs['predicted_mg']} mg > {tol_g * 1e3:.3g} mg" if obs["predicted_mg"] is not None
+        else "the terms are not determined (singular Fisher information)")
+    return bool(obs["_total_g"] <= tol_g), obs
+
+
+def fit_extended_floor(model: str, ws: WindowSet, start: Calibration, *, sigma_floor_g: float | None = None,
+                       p0: np.ndarray | None = None):
+    """fit_extended (iterated eq. 11a) of ``model`` held at ``start``, with the quasi-static floor derived
+    from the data as LottersBatch does (None: the floor that brings the reduced chi² to 1, if > 1).
+    Returns (ExtendedFit, floor [g])."""
+    from scipy.optimize import brentq  # noqa: PLC0415
+
+    from .extended import fit_extended, parameterization  # noqa: PLC0415
+
+    par = parameterization(model, start.sensitivity, start.offset)
+    p0 = _extended_params(par, start) if p0 is None else p0
+    var0 = norm_noise_var(ws, start)
+    floor2 = 0.0 if sigma_floor_g is None else float(sigma_floor_g) ** 2
+    fit = fit_extended(par, ws, p0, var0 + floor2)
+    dof = len(ws) - par.n_params
+    if sigma_floor_g is None and dof > 0 and fit.chi2 / dof > 1.0:
+        r2 = fit.resid_g ** 2
+
+        def excess(f2: float) -> float:
+            return float(np.sum(r2 / np.maximum(var0 + f2, 1e-14)) - dof)
+
+        hi = max(float(np.max(r2)), 1e-12) * 10
+        floor2 = brentq(excess, 0.0, hi, xtol=1e-18, rtol=1e-10) if excess(hi) < 0 else hi
+        fit = fit_extended(par, ws, fit.p, var0 + floor2)
+    return fit, math.sqrt(floor2)
+
+
+def compare_extended(ws: WindowSet, base: str, model: str, start: Calibration, *, lab: Calibration | None = None,
+                     sigma_floor_g: float = SIGMA_FLOOR_G, folds: int = 5) -> dict[str, dict[str, Any]]:
+    """The evidence for an extended model against its base, as compare_orders does for 6 vs the full set:
+    both fitted (iterated eq. 11a) with the same fixed per-window weights, BIC on the chi² (scaled by the
+    larger model's reduced chi² when > 1), and k-fold held-out RMS norm error [mg] (time-contiguous folds:
+    with a temperature ramp a fold is a temperature range the fit has not seen)."""
+    from .extended import extended_residuals_g, fit_extended, parameterization  # noqa: PLC0415
+
+    ref = _reference_start(base, start, lab)
+    m = len(ws)
+    var = norm_noise_var(ws, start, sigma_floor_g=sigma_floor_g)
+    pars = {k: parameterization(k, ref.sensitivity, ref.offset) for k in (base, model)}
+    fits = {k: fit_extended(par, ws, par.pack(start.sensitivity, start.offset), var) for k, par in pars.items()}
+    Pm = pars[model].n_params
+    scale = max(1.0, fits[model].chi2 / max(m - Pm, 1))
+    order = np.argsort(ws.t, kind="stable")
+    k_folds = min(folds, m // max(2 * Pm, 1))
+    out: dict[str, dict[str, Any]] = {}
+    for k, fit in fits.items():
+        P = pars[k].n_params
+        entry: dict[str, Any] = {"n_params": P, "insample_rms_mg": round(float(np.sqrt(np.mean(fit.resid_g ** 2))) * 1e3, 4),
+                                 "bic": round(fit.chi2 / scale + P * math.log(m), 3), "heldout_rms_mg": None}
+        if k_folds >= 2:
+            held = np.empty(m)
+            for idx in np.array_split(order, k_folds):
+                train = np.setdiff1d(order, idx)
+                f = fit_extended(pars[k], ws.subset(train), fit.p, var[train])
+                held[idx] = extended_residuals_g(pars[k], f.p, ws.subset(idx))
+            if np.all(np.isfinite(held)):
+                entry["heldout_rms_mg"] = round(float(np.sqrt(np.mean(held * held))) * 1e3, 4)
+        out[k] = entry
+    return out
