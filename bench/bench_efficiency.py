@@ -1,6 +1,6 @@
 """Estimator efficiency against the Cramér–Rao bound, misaligned sensor (docs/twelve-parameters.md).
 
-    python bench/bench_efficiency.py [--seeds 300]
+    python bench/bench_efficiency.py [--seeds 300] [--json PATH]
 
 Window level (points on the ellipsoid raw = K a + o with per-window noise of N samples of
 5 mg rms): for each scenario, N seeds, the in-use full identifiable model ("9"), the batch
@@ -13,6 +13,7 @@ model, detector and model-order selection (H-model's simulate, when present).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import time
 
@@ -91,7 +92,7 @@ def recursive_with_order(ws, start: Calibration, systematic_g: float = 0.0) -> C
 FINAL_ORDERS: list[str] = []
 
 
-def timing() -> None:
+def timing() -> dict:
     """Cost per window: plain LottersRecursive.step (6 and 9), and the OnlineCalibrator amortised over a
     long daily-living stream (order checks, 6-vs-9 comparisons, re-seeding batch fits included)."""
     from gravcal.core.estimators.online import OnlineCalibrator  # noqa: PLC0415
@@ -100,11 +101,13 @@ def timing() -> None:
     m = 6000
     ws = windows_on_ellipsoid(TRUTH, daily_living_directions(m, rng, MOUNT2), noise_g=NOISE_G, n=N_SAMPLES, rng=rng)
     cm = ws.cov_of_mean
+    out: dict = {}
     for model in ("6", "9"):
         r = LottersRecursive(TRUTH, model, sigma_floor_g=0.0)
         t0 = time.perf_counter()
         for i in range(m):
             r.step(ws.mean[i], cm[i], float(ws.t[i]))
+        out[f"recursive_step_model{model}_us"] = (time.perf_counter() - t0) / m * 1e6
         print(f"  LottersRecursive.step model {model}: {(time.perf_counter() - t0) / m * 1e6:6.1f} µs/window")
     rows = [ws.subset(np.arange(i, i + 1)) for i in range(m)]
     oc = OnlineCalibrator(Calibration("s", O + 0.001, K_MIS * 1.01), capacity=4000)
@@ -120,8 +123,12 @@ def timing() -> None:
     t0 = time.perf_counter()
     for i in range(m):
         r.step(ws.mean[i], cm[i], float(ws.t[i]))
+    out["online_update_amortised_us"] = dt / m * 1e6
+    out["online_final_order"] = st["model"]
+    out["online_plain_step_us"] = (time.perf_counter() - t0) / m * 1e6
     print(f"  its plain per-window update (LottersRecursive.step, order {st['model']}): "
-          f"{(time.perf_counter() - t0) / m * 1e6:6.1f} µs/window")
+          f"{out['online_plain_step_us']:6.1f} µs/window")
+    return out
 
 
 def crlb_accel(F: np.ndarray) -> float:
@@ -131,12 +138,12 @@ def crlb_accel(F: np.ndarray) -> float:
     return float(np.trace(G @ np.linalg.inv(F)))
 
 
-def time_series_run(seed: int = 3) -> None:
+def time_series_run(seed: int = 3) -> dict:
     try:
         from gravcal.core.simulate import simulate  # noqa: PLC0415
     except ImportError:
         print("time series: gravcal.core.simulate not available, skipped")
-        return
+        return {}
     from gravcal.core.detectors import detect  # noqa: PLC0415
     from gravcal.core.estimators.order import select_order  # noqa: PLC0415
     from gravcal.core.model.defaults import default_model, triad_truth  # noqa: PLC0415
@@ -151,11 +158,13 @@ def time_series_run(seed: int = 3) -> None:
     dec = select_order(ws, start=start)
     print(f"time series: daily_living 2 h, misaligned default_model(seed={seed}): {len(ws)} windows, "
           f"order chosen {dec.model!r} ({time.perf_counter() - t0:.1f} s)\n  reason: {dec.reason}")
+    out: dict = {"windows": len(ws), "order_chosen": dec.model, "reason": dec.reason, "models": {}}
     for m in ("6", "9"):
         try:
             cal = LottersBatch(m).fit(ws, dec.calibration or start)
         except ValueError as exc:
             print(f"  model {m}: {exc}")
+            out["models"][m] = {"error": str(exc)}
             continue
         par = PARAMETERIZATIONS[m](truth.sensitivity, truth.offset)
         e = par.pack(cal.sensitivity, cal.offset) - par.pack(truth.sensitivity, truth.offset)
@@ -163,20 +172,28 @@ def time_series_run(seed: int = 3) -> None:
         sphere = np.random.default_rng(0).normal(size=(2000, 3))
         sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
         err = np.linalg.norm(cal.apply(sphere @ truth.sensitivity.T + truth.offset) - sphere, axis=1)
+        out["models"][m] = {"observable": bool(cal.observable), "whitened": float(e @ b.fisher @ e / len(e)),
+                            "crlb_accel_mg": float(b.accel_rms_g * 1e3),
+                            "sphere_error_rms_mg": float(math.sqrt(np.mean(err ** 2)) * 1e3)}
         print(f"  model {m} (observable={cal.observable}): e^T F e / P = {e @ b.fisher @ e / len(e):.2f}, CRLB accel {b.accel_rms_g * 1e3:.3f} mg, "
               f"true calibrated-acceleration error over the sphere: rms {math.sqrt(np.mean(err ** 2)) * 1e3:.2f} mg "
               f"(the 6 model's includes the misalignment it cannot represent and the frame)")
+    return out
 
 
-def main() -> None:
+def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=300)
     ap.add_argument("--no-time-series", action="store_true")
     ap.add_argument("--timing-only", action="store_true")
-    args = ap.parse_args()
+    ap.add_argument("--json", metavar="PATH", help="write the figures here")
+    args = ap.parse_args(argv)
+    res: dict = {"seeds": args.seeds, "windows": M_WINDOWS, "samples_per_window": N_SAMPLES, "noise_g": NOISE_G,
+                 "model": "9", "scenarios": {}, "drift": {}}
     print("cost per window:")
-    timing()
+    res["timing"] = timing()
     if args.timing_only:
+        _dump(args.json, res)
         return
     print(f"window level: {M_WINDOWS} windows x {N_SAMPLES} samples, {NOISE_G * 1e3:g} mg/sample, model 9, "
           f"{args.seeds} seeds; recursive start = truth after 1 % drift")
@@ -192,6 +209,9 @@ def main() -> None:
         print(f"{name:26s} {r['crlb_accel_rms_mg']:7.3f} {cols}   ({time.perf_counter() - t0:.1f} s; online reached "
               f"9 after {np.median(SWITCH_FRACTION) * 100:.0f} % of the windows, median; final orders "
               f"{dict(zip(*np.unique(FINAL_ORDERS, return_counts=True)))})")
+        res["scenarios"][name] = {**r, "online_reached_9_fraction_median": float(np.median(SWITCH_FRACTION)),
+                                  "final_orders": {str(k): int(v) for k, v in
+                                                   zip(*np.unique(FINAL_ORDERS, return_counts=True))}}
         SWITCH_FRACTION.clear()
         FINAL_ORDERS.clear()
     print("recursive efficiency vs the drift since the start calibration (daily_living):")
@@ -199,8 +219,18 @@ def main() -> None:
         r = run(SCENARIOS["daily_living (or2 mount)"], max(100, args.seeds // 3), start_err=err)
         print(f"  start error {err * 100:4.1f} % of 1 g: recursive {r['recursive_eff']:.3f}±{r['recursive_eff_se']:.3f}, "
               f"online {r['ordered_eff']:.3f}±{r['ordered_eff_se']:.3f}, batch {r['batch_eff']:.3f}")
+        res["drift"][f"{err:g}"] = r
+    SWITCH_FRACTION.clear()
+    FINAL_ORDERS.clear()
     if not args.no_time_series:
-        time_series_run()
+        res["time_series"] = time_series_run()
+    _dump(args.json, res)
+
+
+def _dump(path: str | None, res: dict) -> None:
+    if path:
+        with open(path, "w", encoding="utf-8") as fh:
+            json.dump(res, fh, indent=1)
 
 
 if __name__ == "__main__":

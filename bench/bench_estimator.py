@@ -1,10 +1,12 @@
-"""Speed of the Lötters estimators (python bench/bench_estimator.py).
+"""Speed of the Lötters estimators (python bench/bench_estimator.py [--json PATH]).
 
 Target: LottersRecursive.step <= 50 µs per quasi-static window (6 parameters).
 Also times .update(Window) (which builds a Calibration object each call) and a batch fit.
 """
 from __future__ import annotations
 
+import argparse
+import json
 import time
 
 import numpy as np
@@ -36,7 +38,11 @@ def best_of(fn, repeat=5):
     return best
 
 
-def main() -> None:
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json", metavar="PATH", help="write the figures here")
+    args = ap.parse_args(argv)
+    res: dict = {}
     m = 5000
     ws = synthetic_windows(m)
     start = Calibration("start", np.array([0.505, 0.475, 0.525]), np.diag([0.127, 0.118, 0.131]))
@@ -49,6 +55,7 @@ def main() -> None:
                     r.step(ws.mean[i], cm[i], float(ws.t[i]))
             dt = best_of(run_steps)
             print(f"LottersRecursive.step   model={model:7s} iterations={iters}: {dt / m * 1e6:6.1f} µs/window")
+            res[f"recursive_step_{model}_iter{iters}_us"] = dt / m * 1e6
     wins = [Window(int(ws.start[i]), int(ws.end[i]) + 199, ws.t[i], ws.t[i], ws.mean[i], ws.cov[i]) for i in range(1000)]
 
     def run_updates():
@@ -57,10 +64,15 @@ def main() -> None:
             r.update(w)
     dt = best_of(run_updates, 3)
     print(f"LottersRecursive.update model=6       (Window in, Calibration out): {dt / len(wins) * 1e6:6.1f} µs/window")
+    res["recursive_update_6_us"] = dt / len(wins) * 1e6
     for mm in (100, 1000, 5000):
         sub = ws.subset(np.arange(mm))
         dt = best_of(lambda: LottersBatch("6").fit(sub, start), 3)
         print(f"LottersBatch.fit        model=6       {mm:5d} windows: {dt * 1e3:7.1f} ms")
+        res[f"batch_fit_6_{mm}_windows_ms"] = dt * 1e3
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump(res, fh, indent=1)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Replay throughput of the daemon, end to end, with watching clients (not a test).
 
-    python bench/bench_server.py [--samples 2000000] [--clients 20] [--rate 0] [--profile]
+    python bench/bench_server.py [--samples 2000000] [--clients 20] [--rate 0] [--profile] [--json PATH]
 
 The daemon (gravcald's Gravcald: acquisition thread -> ring buffer -> processing thread:
 detector, recursive estimator, correction -> socket server thread -> clients) runs in this
@@ -17,6 +17,7 @@ server threads and prints the top functions.
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing as mp
 import os
 import socket
@@ -123,6 +124,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=float, default=0.0, help="clients' ?WATCH rate [Hz] (0: every sample)")
     ap.add_argument("--read-block", type=int, default=READ_BLOCK, help="samples per driver read (default 2048)")
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--json", metavar="PATH", help="write the figures here")
     args = ap.parse_args(argv)
 
     tmp = tempfile.mkdtemp(prefix="bench-server-")
@@ -196,6 +198,17 @@ def main(argv=None) -> int:
           f"(+1 VERSION +1 WATCH +CALIB pushes each); server dropped {st['dropped_messages']:,} for slow clients, "
           f"inbox overruns {st['inbox_overruns']:,}; ring overwritten {d.ring.stats()['overwritten']:,}")
     print(f"  client traffic  {sum(g[1] for g in got) / wall_clients / 1e6:,.1f} MB/s in total")
+    if args.json:
+        res = {"samples": n, "clients": args.clients, "watch_rate_hz": args.rate, "read_block": args.read_block,
+               "daemon_samples_per_s": n / wall, "daemon_wall_s": wall,
+               "end_to_end_samples_per_s": n / wall_clients if args.rate == 0 else None,
+               "end_to_end_wall_s": wall_clients, "cpu_s": cpu_clients, "cpu_s_per_1e5_samples": cpu_clients / n * 1e5,
+               "samples_per_cpu_s": n / cpu_clients, "client_lines_min": min(lines), "client_lines_max": max(lines),
+               "dropped_messages": st["dropped_messages"], "inbox_overruns": st["inbox_overruns"],
+               "ring_overwritten": d.ring.stats()["overwritten"],
+               "client_traffic_mb_per_s": sum(g[1] for g in got) / wall_clients / 1e6}
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump(res, fh, indent=1)
     return 0
 
 

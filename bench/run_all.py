@@ -1,0 +1,609 @@
+"""Every benchmark in one command: writes docs/benchmarks.md (a table per part) and docs/benchmarks.json.
+
+    python bench/run_all.py [--quick] [--skip PART ...] [--only PART ...] [--out DIR] [--timeout S] [--merge]
+    python bench/run_all.py --render [--out DIR]      (re-write benchmarks.md from benchmarks.json, nothing run)
+
+Parts (each a script of its own, run as a child process with --json, so one failing part is reported
+in the page with its error and the others still run):
+
+    accuracy    bench_accuracy.py     held-out static-window error, gravcal vs the peers, measured + simulated
+    speed       bench_calibrate.py    `gravcal calibrate` on 1..7 simulated days at 100 Hz vs the peers
+    daemon      bench_daemon.py       latency frame-in -> socket-out and CPU at 200 Hz (1 and 32 clients),
+                                      RSS over >= 2e7 samples extrapolated to 1e8;
+                bench_server.py       replay throughput (1 and 32 clients)
+    efficiency  bench_efficiency.py   estimator efficiency against the Cramér–Rao bound
+    codec       bench_codec.py        frame decoding, driver CPU at 200 Hz
+    estimator   bench_estimator.py    cost per window / per batch fit
+    detector    bench_detector.py     detector throughput (text output)
+    faults      bench_faults.py       fault campaign (--long)
+    soak        bench_soak.py         accelerated week-long soak
+    gyro        bench_gyro.py         gyro calibration
+
+--quick shrinks every part (seconds instead of tens of minutes); the page says which mode ran.
+Peers (scikit-digital-health, actipy, imucal) are optional: the page and the console say which
+are missing and how to install them (pip install -e .[bench]); the rest still runs.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import os
+import platform
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+BENCH = Path(__file__).resolve().parent
+REPO = BENCH.parent
+sys.path.insert(0, str(BENCH))
+
+
+# -- the parts: name -> list of (label, argv builder(quick, json_path) -> argv after the script) ----------
+def _script_accepts(script: Path, flag: str) -> bool:
+    """Does the script's --help mention ``flag`` (other helpers' scripts grow options over time)?"""
+    try:
+        out = subprocess.run([sys.executable, str(script), "--help"], capture_output=True, text=True, timeout=120)
+    except (OSError, subprocess.TimeoutExpired):
+        return False
+    return flag in out.stdout
+
+
+Step = tuple[str, str, Callable[[bool, str], list[str]]]  # (label, script, argv builder)
+
+PARTS: dict[str, list[Step]] = {
+    "accuracy": [("accuracy", "bench_accuracy.py", lambda q, j: (["--quick"] if q else []) + ["--json", j])],
+    "speed": [("speed", "bench_calibrate.py", lambda q, j: (["--days", "1"] if q else []) + ["--json", j])],
+    "daemon": [
+        ("latency, 1 client", "bench_daemon.py",
+         lambda q, j: ["latency", "--clients", "1", "--seconds", "5" if q else "30", "--json", j]),
+        ("latency, 32 clients", "bench_daemon.py",
+         lambda q, j: ["latency", "--clients", "32", "--seconds", "5" if q else "30", "--json", j]),
+        ("CPU, 1 client at 10 Hz", "bench_daemon.py",
+         lambda q, j: ["latency", "--clients", "1", "--watch-rate", "10", "--seconds", "5" if q else "30", "--json", j]),
+        ("CPU, 32 clients at 10 Hz", "bench_daemon.py",
+         lambda q, j: ["latency", "--clients", "32", "--watch-rate", "10", "--seconds", "5" if q else "30", "--json", j]),
+        ("replay throughput, 1 client", "bench_server.py",
+         lambda q, j: ["--clients", "1", "--samples", "200000" if q else "2000000", "--json", j]),
+        ("replay throughput, 32 clients", "bench_server.py",
+         lambda q, j: ["--clients", "32", "--samples", "200000" if q else "2000000", "--json", j]),
+        ("memory", "bench_daemon.py", lambda q, j: ["memory", "--samples", "2000000" if q else "100000000", "--json", j]),
+    ],
+    "efficiency": [("efficiency", "bench_efficiency.py",
+                    lambda q, j: (["--seeds", "30", "--no-time-series"] if q else ["--seeds", "300"]) + ["--json", j])],
+    "codec": [("codec", "bench_codec.py", lambda q, j: (["--skip-drivers"] if q else ["--seconds", "10"]) + ["--json", j])],
+    "estimator": [("estimator", "bench_estimator.py", lambda q, j: ["--json", j])],
+    "detector": [("detector", "bench_detector.py", lambda q, j: ["--samples", "1000000" if q else "10000000"])],
+    "faults": [("faults", "bench_faults.py", lambda q, j: ([] if q else ["--long"]) + ["--json", j])],
+    "soak": [("soak", "bench_soak.py", lambda q, j: ["--json", j])],
+    "gyro": [("gyro", "bench_gyro.py", lambda q, j: ["--json", j])],
+}
+QUICK_FLAG_PARTS = ("soak", "gyro", "faults")  # other helpers' scripts: pass --quick when they accept it
+
+
+def run_step(label: str, script: str, argv: list[str], timeout: float, log: Callable[[str], None]) -> dict[str, Any]:
+    path = BENCH / script
+    cmd = [sys.executable, str(path), *argv]
+    shown = "python " + " ".join(shlex.quote(str(Path("bench") / script) if a == str(path) else a)
+                                 for a in cmd[1:])
+    res: dict[str, Any] = {"label": label, "script": script, "command": shown}
+    if not path.is_file():
+        res.update(status="missing", error=f"bench/{script} does not exist (yet)")
+        log(f"  {label}: MISSING bench/{script}")
+        return res
+    log(f"  {label}: {shown}")
+    t0 = time.perf_counter()
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=REPO)
+    except subprocess.TimeoutExpired as exc:
+        res.update(status="failed", seconds=time.perf_counter() - t0, error=f"timed out after {timeout:.0f} s",
+                   stdout_tail=_tail(exc.stdout), stderr_tail=_tail(exc.stderr))
+        log(f"    timed out after {timeout:.0f} s")
+        return res
+    res["seconds"] = time.perf_counter() - t0
+    res["stdout"] = p.stdout[-20000:]
+    res["stderr_tail"] = _tail(p.stderr)
+    if p.returncode != 0:
+        err = _last_error(p.stderr) or f"exit status {p.returncode}"
+        res.update(status="failed", error=err)
+        log(f"    FAILED ({err})")
+        return res
+    res["status"] = "ok"
+    log(f"    ok ({res['seconds']:.0f} s)")
+    return res
+
+
+def _tail(text: Any, n: int = 3000) -> str:
+    if text is None:
+        return ""
+    if isinstance(text, bytes):
+        text = text.decode("utf-8", "replace")
+    return text[-n:]
+
+
+def _last_error(stderr: str) -> str:
+    lines = [ln for ln in stderr.strip().splitlines() if ln.strip()]
+    if not lines:
+        return ""
+    if "--json" in stderr and "unrecognized arguments" in stderr:
+        return "the script does not accept --json yet: " + lines[-1]
+    return lines[-1][:500]
+
+
+def run_part(name: str, quick: bool, timeout: float, log: Callable[[str], None]) -> dict[str, Any]:
+    steps = []
+    for label, script, build in PARTS[name]:
+        with tempfile.NamedTemporaryFile(suffix=".json", delete=False) as fh:
+            jpath = fh.name
+        argv = build(quick, jpath)
+        if quick and name in QUICK_FLAG_PARTS and (BENCH / script).is_file() and _script_accepts(BENCH / script, "--quick"):
+            argv = ["--quick", *argv]
+        r = run_step(label, script, argv, timeout, log)
+        r["command"] = r["command"].replace(jpath, "OUT.json")
+        if r.get("status") == "ok" and "--json" in argv:
+            try:
+                r["json"] = json.loads(Path(jpath).read_text(encoding="utf-8"))
+            except (OSError, ValueError) as exc:
+                r.update(status="failed", error=f"ran, but wrote no readable JSON ({exc})")
+        try:
+            os.unlink(jpath)
+        except OSError:
+            pass
+        steps.append(r)
+    status = "ok" if all(s["status"] == "ok" for s in steps) else (
+        "missing" if all(s["status"] == "missing" for s in steps) else "failed" if all(
+            s["status"] != "ok" for s in steps) else "partial")
+    return {"status": status, "steps": steps}
+
+
+# -- environment ----------------------------------------------------------------------------------------
+def machine() -> dict[str, Any]:
+    cpu = platform.processor() or ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    ram_gb = None
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                ram_gb = int(line.split()[1]) / 1024 / 1024
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "ram_gb": ram_gb, "os": platform.platform(),
+            "python": sys.version.split()[0], "load_avg_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None}
+
+
+def package_versions() -> dict[str, str | None]:
+    from importlib.metadata import PackageNotFoundError, version
+
+    out: dict[str, str | None] = {}
+    for name in ("gravcal", "numpy", "scipy", "pyserial", "python-can", "smbus2", "pandas", "matplotlib",
+                 "scikit-digital-health", "actipy", "imucal"):
+        try:
+            out[name] = version(name)
+        except PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def java_version() -> str | None:
+    try:
+        p = subprocess.run(["java", "-version"], capture_output=True, text=True, timeout=30)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return (p.stderr or p.stdout).strip().splitlines()[0] if (p.stderr or p.stdout).strip() else None
+
+
+# -- the page -----------------------------------------------------------------------------------------
+def _n(x: Any, fmt: str = "{:.2f}") -> str:
+    if x is None:
+        return "—"
+    if isinstance(x, (bool, int)):
+        return str(x)
+    if isinstance(x, float):
+        return fmt.format(x)
+    return str(x)
+
+
+def _table(header: list[str], rows: list[list[Any]]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    for r in rows:
+        out.append("| " + " | ".join(str(c).replace("|", "/").replace("\n", " ") for c in r) + " |")
+    return out
+
+
+def _cell(m: dict[str, Any]) -> str:
+    from bench_accuracy import method_cell
+
+    return method_cell(m)
+
+
+def render_accuracy(d: dict[str, Any]) -> list[str]:
+    out: list[str] = []
+    recs = d.get("recordings", {})
+    out.append("Held-out RMS of | |a| − 1 g | [mg] over the SAME quasi-static windows (gravcal's detector, defined once "
+               "per recording). *blocks*: 5 contiguous time blocks, each the test part once; *halves*: fit first half / "
+               "test second and the reverse; *insample*: fit and score on everything (not held out). A method that "
+               "declines a fold (its own criteria) is marked; *as used* scores it with the data it hands back "
+               "(uncalibrated). Lower is better.")
+    for name, e in recs.items():
+        out.append("")
+        if "error" in e and "heldout" not in e:
+            out.append(f"**{name}**: {e['error']}")
+            continue
+        out.append(f"**{name}** — {e['hours']:.2f} h at {e['fs']:g} Hz, {e['windows']} evaluation windows; {e['note']}"
+                   + ("; with temperature" if e.get("temperature") else ""))
+        out.append("")
+        schemes = list(e["heldout"])
+        methods = list(e["heldout"][schemes[0]]["methods"])
+        rows = [[m] + [_cell(e["heldout"][s]["methods"][m]) for s in schemes] for m in methods]
+        out += _table(["method"] + schemes, rows)
+        reasons = []
+        for m in methods:
+            dec = [x for s in schemes for x in e["heldout"][s]["methods"][m]["declined"]]
+            if dec:
+                reasons.append(f"- {m} declined {len(dec)} fold(s), e.g.: {dec[0].split(': ', 1)[-1][:220]}")
+        if reasons:
+            out.append("")
+            out += reasons
+        if "parameters" in e:
+            out.append("")
+            out.append("Against the truth (full-recording fit, at the median still temperature): offsets [mg], "
+                       "sensitivities [%], norm error over the whole sphere [mg].")
+            out.append("")
+            rows = []
+            for m, p in e["parameters"].items():
+                if p["ok"]:
+                    rows.append([m, _n(p["max_offset_err_mg"]), _n(p["max_sens_err_pct"], "{:.3f}"),
+                                 _n(p["sphere_norm_rms_mg"]),
+                                 ", ".join(f"{x:+.2f}" for x in p["offset_err_mg"]),
+                                 ", ".join(f"{x:+.3f}" for x in p["sens_err_pct"])])
+                else:
+                    rows.append([m, "declined", "", "", p["message"][:160], ""])
+            out += _table(["method", "max offset err mg", "max sens err %", "sphere norm RMS mg", "offset err x,y,z mg",
+                           "sens err x,y,z %"], rows)
+    verdict = accuracy_verdict(d)
+    if verdict:
+        out += ["", "**Goal (gravcal lower than every peer on every recording)**:", ""] + verdict
+    return out
+
+
+def accuracy_verdict(d: dict[str, Any]) -> list[str]:
+    """Per recording and held-out scheme: best gravcal vs best peer that calibrated."""
+    lines = []
+    for name, e in d.get("recordings", {}).items():
+        if "heldout" not in e:
+            continue
+        for s in ("blocks", "halves", "insample"):
+            ms = e["heldout"].get(s, {}).get("methods", {})
+            g = {m: r["heldout_rms_mg"] for m, r in ms.items() if m.startswith("gravcal") and r["folds_fitted"] == r["folds"]
+                 and r["heldout_rms_mg"] is not None}
+            p = {m: r["heldout_rms_mg"] for m, r in ms.items() if not m.startswith(("gravcal", "nominal"))
+                 and r["folds_fitted"] > 0 and r["heldout_rms_mg"] is not None}
+            if not p:
+                if s == "insample":
+                    continue
+                part = {m: r for m, r in ms.items() if m.startswith("gravcal") and r["folds_fitted"] > 0}
+                if g:
+                    who = f"gravcal {min(g.values()):.2f} mg ({min(g, key=g.get)}, every fold)"
+                elif part:
+                    b = min(part, key=lambda m: part[m]["heldout_rms_mg"])
+                    who = (f"gravcal calibrated {part[b]['folds_fitted']}/{part[b]['folds']} folds ({b} "
+                           f"{part[b]['heldout_rms_mg']:.2f} mg) and declined the others")
+                else:
+                    who = "gravcal declined every fold too"
+                lines.append(f"- {name} / {s}: no peer calibrated (all declined every fold); {who}")
+                continue
+            bp = min(p, key=p.get)
+            if not g:
+                lines.append(f"- {name} / {s}: **not met** — gravcal declined a fold in every variant; "
+                             f"{bp} {p[bp]:.2f} mg on {ms[bp]['folds_fitted']}/{ms[bp]['folds']} folds")
+                continue
+            bg = min(g, key=g.get)
+            ok = g[bg] < p[bp]
+            tag = " (in-sample, not held out)" if s == "insample" else ""
+            lines.append(f"- {name} / {s}{tag}: {'met' if ok else '**not met**'} — {bg} {g[bg]:.2f} mg vs {bp} {p[bp]:.2f} mg"
+                         + ("" if ms[bp]["folds_fitted"] == ms[bp]["folds"] else
+                            f" (the peer on {ms[bp]['folds_fitted']}/{ms[bp]['folds']} folds only)"))
+    return lines
+
+
+def render_daemon(steps: list[dict[str, Any]]) -> list[str]:
+    out: list[str] = []
+    lat = [s for s in steps if s.get("status") == "ok" and s.get("json", {}).get("what") == "latency"]
+    if lat:
+        rows = []
+        for s in lat:
+            j = s["json"]
+            every = j["watch_rate_hz"] == 0  # decimated watching: the latency of a kept sample is not frame-in -> out
+            lat = [_n(j["read_to_client_ms"]["p50"]), _n(j["read_to_client_ms"]["p99"]), _n(j["wire_to_client_ms"]["p50"]),
+                   _n(j["wire_to_client_ms"]["p99"])] if every else ["—"] * 4
+            rows.append([s["label"], j["clients"], _n(j["samples_per_s"], "{:.0f}"), *lat, _n(j["cpu_percent_one_core"]),
+                         "every sample" if every else f"{j['watch_rate_hz']:g} Hz"])
+        out.append("Live: `gravcald --emulate --bus serial --fs 200 --speed 1` (emulator on a pty), clients watching with raw "
+                   "fields. *read→client*: driver read returned → line received by the client (acquisition, processing, "
+                   "socket); *wire→client* adds the serial driver's batching (16 frames per read = 80 ms at 200 Hz). CPU: "
+                   "the gravcald process, % of one core.")
+        out.append("")
+        out += _table(["run", "clients", "lines/s to the measuring client", "read→client p50 ms", "p99 ms", "wire→client p50 ms", "p99 ms",
+                       "CPU % of a core", "watch rate"], rows)
+    thr = [s for s in steps if s.get("status") == "ok" and s["script"] == "bench_server.py"]
+    if thr:
+        rows = []
+        for s in thr:
+            j = s["json"]
+            rows.append([j["clients"], f"{j['samples']:,}", _n(j["daemon_samples_per_s"], "{:,.0f}"),
+                         _n(j["end_to_end_samples_per_s"], "{:,.0f}"), _n(j["cpu_s_per_1e5_samples"], "{:.3f}"),
+                         j["dropped_messages"], j["ring_overwritten"]])
+        out.append("")
+        out.append("Replay (as fast as processing takes it; every client watches every sample):")
+        out.append("")
+        out += _table(["clients", "samples", "daemon samples/s", "end-to-end samples/s", "CPU-s per 1e5 samples",
+                       "dropped", "ring overwritten"], rows)
+    mem = [s for s in steps if s.get("status") == "ok" and s.get("json", {}).get("what") == "memory"]
+    for s in mem:
+        j = s["json"]
+        out.append("")
+        steps_mb = j.get("rss_steps_mb") or []
+        out.append(f"Memory: RSS over {j['samples']:,} samples ({j['sensor_hours_at_200hz']:.1f} h at 200 Hz, replay at "
+                   f"{j['samples_per_s']:,.0f} samples/s, one watcher at 10 Hz): {j['rss_mb_series'][0][1]:.1f} → "
+                   f"{j['rss_mb_end']:.1f} MB (max {j.get('rss_mb_max', j['rss_mb_end']):.1f}); least-squares slope after "
+                   f"warm-up {j['slope_mb_per_1e6'] * 1e3:+.2f} kB per 1e6 samples"
+                   + (f" → {j['extrapolated_growth_mb_per_1e8']:+.2f} MB over 1e8 samples (extrapolated)" if j["extrapolated"]
+                      else f" ({j['extrapolated_growth_mb_per_1e8']:+.2f} MB per 1e8)")
+                   + (f"; second half slope {j['slope_second_half_mb_per_1e6'] * 1e3:+.2f} kB per 1e6" if
+                      j.get("slope_second_half_mb_per_1e6") is not None else "")
+                   + ("; steps > 2 MB at " + ", ".join(f"{a / 1e6:.0f} M samples (+{b:.1f} MB)" for a, b in steps_mb)
+                      if steps_mb else "; no step > 2 MB")
+                   + ". RSS sampled every 1e6 samples.")
+        out.append("")
+        out += _table(["samples (M)", "RSS MB"], [[f"{a / 1e6:.0f}", f"{b:.1f}"] for a, b in
+                                                  j["rss_mb_series"][:: max(1, len(j["rss_mb_series"]) // 12)]])
+    return out
+
+
+def render_efficiency(j: dict[str, Any]) -> list[str]:
+    out = [f"Window level: {j['windows']} windows × {j['samples_per_window']} samples, {j['noise_g'] * 1e3:g} mg/sample, "
+           f"model {j['model']}, {j['seeds']} seeds. Efficiency = tr(CRLB)/tr(MSE) (1 = efficient; goal batch ≥ 0.9, "
+           "recursive ≥ 0.8); in brackets P/mean(eᵀFe)."]
+    out.append("")
+    rows = []
+    for name, r in j.get("scenarios", {}).items():
+        rows.append([name, _n(r["crlb_accel_rms_mg"], "{:.3f}")] + [
+            f"{r[k + '_eff']:.3f} ± {r[k + '_eff_se']:.3f} ({1 / r[k + '_whitened']:.3f})" for k in ("batch", "recursive", "ordered")])
+    out += _table(["scenario", "CRLB accel mg", "batch", "recursive (IEKF, one pass)", "online (OnlineCalibrator)"], rows)
+    if j.get("drift"):
+        out.append("")
+        out += _table(["start error (% of 1 g)", "recursive", "online", "batch"],
+                      [[f"{float(k) * 100:.1f}", f"{r['recursive_eff']:.3f} ± {r['recursive_eff_se']:.3f}",
+                        f"{r['ordered_eff']:.3f} ± {r['ordered_eff_se']:.3f}", f"{r['batch_eff']:.3f}"]
+                       for k, r in j["drift"].items()])
+    if j.get("timing"):
+        out.append("")
+        out += _table(["cost per window", "µs"], [[k, _n(v, "{:.1f}")] for k, v in j["timing"].items()])
+    ts = j.get("time_series")
+    if ts:
+        out.append("")
+        out.append(f"Time series (daily_living 2 h, misaligned sensor): {ts['windows']} windows, order chosen "
+                   f"{ts['order_chosen']!r}.")
+        out.append("")
+        out.append("(Models forced beyond the order chosen are not determined by these windows: their figures show "
+                   "why the order rule refuses them.)")
+        out.append("")
+        out += _table(["model forced", "observable", "eᵀFe/P", "CRLB accel mg", "true error over the sphere mg"],
+                      [[m, r.get("observable"), _n(r.get("whitened")), _n(r.get("crlb_accel_mg"), "{:.3f}"),
+                        _n(r.get("sphere_error_rms_mg"))]
+                       if "error" not in r else [m, r["error"], "", "", ""] for m, r in ts["models"].items()])
+    return out
+
+
+def render_tables(j: Any) -> list[str]:
+    """Other helpers' JSON: each list of flat records (dicts) as a table of its own, the rest as figure/value rows."""
+    out: list[str] = []
+    rest = dict(j) if isinstance(j, dict) else {"value": j}
+    for k, v in list(rest.items()):
+        if isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            cols: list[str] = []
+            for x in v:
+                cols += [c for c in x if c not in cols and not isinstance(x[c], (dict, list))]
+            if cols:
+                out += [f"*{k}* ({len(v)} rows)", ""]
+                out += _table(cols, [[_n(x.get(c), "{:.4g}") if isinstance(x.get(c), float) else _n(x.get(c))
+                                      for c in cols] for x in v])
+                out.append("")
+                nested = [{c: x[c] for c in x if isinstance(x[c], (dict, list))} for x in v]
+                if any(nested):
+                    rest[k] = nested
+                else:
+                    del rest[k]
+    for k, v in list(rest.items()):  # a group of campaigns / sub-benches: one table each
+        if isinstance(v, dict) and sum(isinstance(x, dict) for x in v.values()) >= 2:
+            for sub, x in v.items():
+                out += [f"*{k}: {sub}*", ""] + render_tables(x if isinstance(x, dict) else {sub: x}) + [""]
+            del rest[k]
+    rows = render_generic(rest)
+    if rows:
+        out += _table(["figure", "value"], rows[:200])
+        if len(rows) > 200:
+            out.append(f"({len(rows) - 200} more figures in benchmarks.json)")
+    return out
+
+
+def render_generic(j: Any, prefix: str = "") -> list[list[str]]:
+    """Flatten any JSON into (key, value) rows (other helpers' parts: schema not known here)."""
+    rows: list[list[str]] = []
+    if isinstance(j, dict):
+        for k, v in j.items():
+            rows += render_generic(v, f"{prefix}.{k}" if prefix else str(k))
+    elif isinstance(j, list) and j and all(isinstance(x, (int, float)) for x in j) and len(j) <= 8:
+        rows.append([prefix, ", ".join(_n(x, "{:.4g}") for x in j)])
+    elif isinstance(j, list):
+        if len(j) > 20:
+            rows.append([prefix, f"[{len(j)} items]"])
+        else:
+            for i, v in enumerate(j):
+                rows += render_generic(v, f"{prefix}[{i}]")
+    else:
+        rows.append([prefix, _n(j, "{:.4g}") if isinstance(j, float) else str(j)])
+    return rows
+
+
+def render_part(name: str, part: dict[str, Any]) -> list[str]:
+    out = [f"## {name}", ""]
+    for s in part["steps"]:
+        if s["status"] != "ok":
+            out.append(f"- **{s['label']}: {s['status'].upper()}** — {s.get('error', '')}  ")
+            out.append(f"  command: `{s['command']}`")
+    failed = any(s["status"] != "ok" for s in part["steps"])
+    if failed:
+        out.append("")
+    ok = [s for s in part["steps"] if s["status"] == "ok"]
+    if not ok:
+        return out
+    out.append("Command(s): " + "; ".join(f"`{s['command']}` ({s['seconds']:.0f} s)" for s in ok))
+    out.append("")
+    try:
+        if name == "accuracy":
+            out += render_accuracy(ok[0]["json"])
+        elif name == "daemon":
+            out += render_daemon(ok)
+        elif name == "efficiency":
+            out += render_efficiency(ok[0]["json"])
+        else:
+            for s in ok:
+                if "json" in s:
+                    if len(ok) > 1:
+                        out.append(f"*{s['label']}*")
+                        out.append("")
+                    out += render_tables(s["json"])
+                else:
+                    out += ["```", s.get("stdout", "").strip()[-6000:], "```"]
+    except Exception as exc:  # a schema this page does not know: raw output rather than nothing
+        out += [f"(could not render the table: {type(exc).__name__}: {exc}; raw output below)", "", "```",
+                "\n".join(s.get("stdout", "").strip()[-4000:] for s in ok), "```"]
+    return out
+
+
+def render_page(report: dict[str, Any]) -> str:
+    m, v = report["machine"], report["versions"]
+    lines = ["# Benchmarks", "",
+             f"Generated by `{report['command']}` on {report['date']} ({'quick' if report['quick'] else 'full'} mode, "
+             f"{report['seconds'] / 60:.1f} min)" + (f"; parts not re-run kept from `{report['merged_from'][0]}` of "
+                                                    f"{report['merged_from'][1]}" if report.get("merged_from") else "")
+             + ". Raw figures: `benchmarks.json` next to this page.", "",
+             "## Machine and versions", ""]
+    load = m.get("load_avg_at_start")
+    lines += _table(["", ""], [["CPU", m["cpu"]], ["cores", m["cores"]], ["RAM", _n(m["ram_gb"], "{:.1f} GB")],
+                               ["OS", m["os"]], ["Python", m["python"]], ["Java", report.get("java") or "not found"],
+                               ["load average at start", ", ".join(f"{x:.2f}" for x in load) if load else "—"]]
+                        + [[k, x or "not installed"] for k, x in v.items()])
+    lines += ["", "Peers: " + "; ".join(f"{k}: {'available' if why is None else why}" for k, why in report["peers"].items()),
+              ""]
+    summary = [[name, p["status"], ", ".join(f"{s['seconds']:.0f} s" for s in p["steps"] if "seconds" in s) or "—"]
+               for name, p in report["parts"].items()]
+    lines += ["## Parts", ""] + _table(["part", "status", "time"], summary) + [""]
+    for name, p in report["parts"].items():
+        if p["status"] == "skipped":
+            continue
+        lines += render_part(name, p) + [""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="every part in seconds-to-minutes size")
+    ap.add_argument("--skip", action="append", default=[], metavar="PART",
+                    help=f"skip a part (repeatable, or comma-separated): {', '.join(PARTS)}")
+    ap.add_argument("--only", action="append", default=[], metavar="PART", help="run only these parts")
+    ap.add_argument("--out", default=str(REPO / "docs"), help="folder for benchmarks.md and benchmarks.json (default docs/)")
+    ap.add_argument("--timeout", type=float, default=7200.0, help="per script [s] (default 7200)")
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the parts not run now from the existing OUT/benchmarks.json (re-run a few parts)")
+    ap.add_argument("--render", action="store_true", help="only re-write benchmarks.md from OUT/benchmarks.json")
+    args = ap.parse_args(argv)
+    if args.render:
+        src = Path(args.out) / "benchmarks.json"
+        try:
+            report = json.loads(src.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            ap.error(f"--render needs a readable {src}: {exc}")
+        (Path(args.out) / "benchmarks.md").write_text(render_page(report), encoding="utf-8")
+        print(f"re-rendered {Path(args.out) / 'benchmarks.md'} from {src}")
+        return 0
+    skip = {x for s in args.skip for x in s.split(",") if x}
+    only = {x for s in args.only for x in s.split(",") if x}
+    unknown = sorted((skip | only) - set(PARTS))
+    if unknown:
+        ap.error(f"unknown part(s) {', '.join(unknown)}; parts: {', '.join(PARTS)}")
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    def log(msg: str) -> None:
+        print(msg, flush=True)
+
+    import peers
+
+    avail = peers.available()
+    missing = {k: why for k, why in avail.items() if why is not None}
+    if missing:
+        log("peers missing (their rows are left out; everything else runs):")
+        for k, why in missing.items():
+            log(f"  {k}: {why}")
+    cmdline = "python bench/run_all.py" + "".join(" " + shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    report: dict[str, Any] = {"command": cmdline, "date": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+                              "quick": args.quick, "machine": machine(), "versions": package_versions(),
+                              "java": java_version(), "peers": avail, "parts": {}}
+    previous: dict[str, Any] = {}
+    if args.merge and (out_dir / "benchmarks.json").is_file():
+        try:
+            old = json.loads((out_dir / "benchmarks.json").read_text(encoding="utf-8"))
+            previous = old.get("parts", {})
+            report["merged_from"] = old.get("command"), old.get("date")
+        except ValueError:
+            log(f"--merge: {out_dir / 'benchmarks.json'} is not readable JSON; starting afresh")
+    t0 = time.perf_counter()
+    for name in PARTS:
+        if name in skip or (only and name not in only):
+            report["parts"][name] = previous.get(name, {"status": "skipped", "steps": []})
+            continue
+        log(f"[{name}]")
+        try:
+            report["parts"][name] = run_part(name, args.quick, args.timeout, log)
+        except Exception as exc:  # the runner itself must not die on one part
+            report["parts"][name] = {"status": "failed", "steps": [{"label": name, "script": "", "command": "",
+                                                                    "status": "failed", "error": f"{type(exc).__name__}: {exc}"}]}
+        report["seconds"] = time.perf_counter() - t0
+        _write(out_dir, report)  # after every part: a long run leaves a page even if interrupted
+    report["seconds"] = time.perf_counter() - t0
+    md = _write(out_dir, report)
+    log(f"wrote {md} and {out_dir / 'benchmarks.json'}")
+    bad = [n for n, p in report["parts"].items() if p["status"] not in ("ok", "skipped")]
+    if bad:
+        log(f"parts not fully ok: {', '.join(bad)} (see the page)")
+    return 0
+
+
+def _write(out_dir: Path, report: dict[str, Any]) -> Path:
+    from gravcal.core.calibration import jsonable
+
+    data = jsonable(report)
+    for p in data["parts"].values():  # stdout is in the page when needed; keep the JSON to the figures
+        for s in p["steps"]:
+            if "json" in s:
+                s.pop("stdout", None)
+    (out_dir / "benchmarks.json").write_text(json.dumps(data, indent=1), encoding="utf-8")
+    md = out_dir / "benchmarks.md"
+    md.write_text(render_page(report), encoding="utf-8")
+    return md
+
+
+if __name__ == "__main__":
+    sys.exit(main())
