@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from gravcal.core.calibration import Calibration
+from gravcal.core.estimators.extended import apply_windows
 from gravcal.core.estimators.lotters import LottersBatch
 from gravcal.core.windows import WindowSet
 
@@ -23,8 +24,9 @@ SCHEMES = ("contiguous", "halves", "oddeven")
 
 
 def norm_error_mg(cal: Calibration, ws: WindowSet) -> np.ndarray:
-    """|a| - 1 g [mg] of each window mean under ``cal``."""
-    a = cal.apply(ws.mean)
+    """|a| - 1 g [mg] of each window mean under ``cal``; an extended calibration (temperature, drift
+    terms) is applied at each window's temperature (``ws.aux``) and mid time."""
+    a = apply_windows(cal, ws)
     return (np.linalg.norm(a, axis=1) - 1.0) * 1e3
 
 

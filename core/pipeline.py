@@ -87,9 +87,27 @@ class CalibrationReport:
             "notes": list(self.notes),
             "order": _jsonable(self.order if self.order is not None else
                                {"model": cal.model, "reason": "", "evidence": {}}),
+            "extended": extended_summary(cal),
             "calibration": cal.to_dict(),
         }
         return d
+
+
+def extended_summary(cal: Calibration) -> dict[str, Any] | None:
+    """The extended terms of ``cal`` (None for a plain calibration): their parameters in raw units with
+    std (e.g. oT_x [raw/°C]), the reference (t_ref_c [°C], t0_s [s]) and per-term magnitudes in physical
+    units with std (mg/°C, %/°C, mg/h, ...). ``offset``/``sensitivity`` hold at that reference; the
+    held-out error applies the terms at each window's temperature and time."""
+    ext = cal.metadata.get("extended") if isinstance(cal.metadata, dict) else None
+    if not ext:
+        return None
+    from gravcal.core.estimators.extended import extended_class
+
+    params, std = cal.metadata.get("params") or {}, cal.std
+    names = extended_class(cal.model)(cal.sensitivity, cal.offset).extra_names
+    return _jsonable({"terms": list(ext.get("terms", [])), "t_ref_c": ext.get("t_ref_c"), "t0_s": ext.get("t0_s"),
+                      "params": {n: params[n] for n in names}, "std": {n: std.get(n) for n in names},
+                      "magnitudes": ext.get("magnitudes")})
 
 
 def _jsonable(x: Any) -> Any:
@@ -294,6 +312,9 @@ def calibrate_recording(
 
     if not (model == "auto" or isinstance(model, str)):
         raise ValueError(f"model must be 'auto' or a model name, not {type(model).__name__}")
+    if temp is None and "+" in model and "+temperature" in model:
+        raise ValueError(f"model {model!r} has temperature terms: the recording needs a temperature column "
+                         f"(temp [°C]) and has none")
     user_start = start
     if start is None and lab is not None:
         start = lab

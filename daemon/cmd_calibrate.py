@@ -197,6 +197,13 @@ def _fmt(v: Any, spec: str = ".6g") -> str:
     return format(float(v), spec)
 
 
+def _unit(name: str) -> str:
+    """An extended term's unit name (core/estimators/extended.py magnitudes) as printed: mg_per_C -> mg/°C."""
+    num, _, den = name.partition("_per_")
+    num = {"pct": "%", "c2": "c2"}.get(num, num)
+    return f"{num}/{'°C' if den == 'C' else den}" if den else num
+
+
 def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     """A readable account of the result (the --json object holds the same numbers)."""
     inp = out["input"]
@@ -225,6 +232,13 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
         else:
             s = "  ".join(f"{v: .6g}" for v in cal.sensitivity[i])
         lines.append(f"  {ax}         {o:<24}{s}")
+    ext = out.get("extended") or {}
+    for term, mag in (ext.get("magnitudes") or {}).items():
+        sd = mag.get("std") or {}
+        vals = ", ".join(f"{k} {_fmt(v, '.3g')}" + (f" ± {_fmt(sd[k], '.2g')}" if sd.get(k) is not None else "")
+                         for k, v in mag["value"].items())
+        lines.append(f"{term:<11} {vals} [{_unit(mag['unit'])}] "
+                     f"(offset and sensitivity above hold at {_fmt(ext.get('t_ref_c'), '.3g')} °C)")
     if out.get("heldout_scheme") == "leave-one-face-out":
         lines.append(f"|a - known| held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg (leave one face out), "
                      f"in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg")

@@ -17,7 +17,10 @@ Every extra parameter enters linearly, with derivatives that depend on the windo
 whose ``at_windows(ws)`` returns the same thing bound to those windows' covariates (per-row
 dK, do); at the reference (T = T_ref, t = t0) it reduces to its base ("offsets", "6", "9"),
 which is what ``unpack`` returns. ``LottersRecursive`` uses it window by window (it passes
-each window's aux and time; see the hook there), ``fit_extended`` below in batch.
+each window's aux and time; see the hook there), ``LottersBatch`` and ``fit_extended`` below in batch.
+Every estimator stores :func:`extended_metadata` with its Calibration (``params``, ``extended``): its K, o
+hold at the reference only, and :func:`apply_extended` / :func:`apply_windows` (the held-out error) need
+the terms to correct at each sample's or window's temperature and time.
 
 Names are ``"<base>+<term>+<term>..."`` (e.g. ``"6+temperature_offset"``); :func:`extended_class`
 builds and registers the class in PARAMETERIZATIONS on first use; common ones are registered at
@@ -247,6 +250,21 @@ for _n in ("offsets+temperature_offset", "6+temperature_offset", "6+temperature_
     extended_class(_n)
 
 
+# -- what a calibration must carry -----------------------------------------------------------------
+def extended_metadata(par: Parameterization, p: np.ndarray, std: np.ndarray | None = None) -> dict[str, Any]:
+    """Calibration metadata every estimator stores with its result: ``params`` (the parameter vector by
+    name) and, for an extended parameterization, ``extended`` (terms, reference T_ref / t0, temperature
+    column, per-term magnitudes with ``std``), which :func:`apply_extended` needs to correct at each
+    sample's temperature and time. ``par`` may be bound to windows (``at_windows``)."""
+    par = getattr(par, "parent", par)  # unbind
+    p = np.asarray(p, dtype=float)
+    meta: dict[str, Any] = {"params": dict(zip(par.names, p.tolist()))}
+    if isinstance(par, ExtendedParameterization):
+        meta["extended"] = {"terms": list(par.terms), "t_ref_c": par.t_ref_c, "t0_s": par.t0_s,
+                            "temp_column": par.temp_column, "magnitudes": par.magnitudes(p, std)}
+    return meta
+
+
 # -- batch fit with fixed weights ------------------------------------------------------------------
 @dataclass
 class ExtendedFit:
@@ -267,11 +285,7 @@ class ExtendedFit:
     def calibration(self, n_windows: int) -> Calibration:
         K, o = self.par.unpack(self.p)
         par = getattr(self.par, "parent", self.par)
-        meta: dict[str, Any] = {"estimator": "fit_extended", "params": dict(zip(par.names, self.p.tolist()))}
-        if isinstance(par, ExtendedParameterization):
-            meta["extended"] = {"terms": list(par.terms), "t_ref_c": par.t_ref_c, "t0_s": par.t0_s,
-                                "temp_column": par.temp_column,
-                                "magnitudes": par.magnitudes(self.p, self.std)}
+        meta: dict[str, Any] = {"estimator": "fit_extended", **extended_metadata(par, self.p, self.std)}
         return Calibration(model=par.model, offset=o, sensitivity=K, covariance=self.cov, param_names=list(par.names),
                            n_windows=n_windows, converged=self.converged, observable=True, metadata=meta)
 
@@ -341,17 +355,33 @@ def extended_residuals_g(par: Parameterization, p: np.ndarray, ws: WindowSet) ->
     return 1.0 - np.linalg.norm(a, axis=1)
 
 
+def _extended_parameters(cal: Calibration) -> tuple[ExtendedParameterization, np.ndarray] | None:
+    """The parameterization and parameter vector of an extended calibration; None for a plain one.
+    Raises ValueError for a calibration named after an extended model that lacks what apply needs
+    (applying its reference K, o alone would silently drop the terms)."""
+    ext = cal.metadata.get("extended") if isinstance(cal.metadata, dict) else None
+    params = cal.metadata.get("params") if isinstance(cal.metadata, dict) else None
+    if not ext:
+        if "+" in str(cal.model):
+            raise ValueError(f"calibration of extended model {cal.model!r} carries no metadata['extended'] (its "
+                             f"temperature/drift terms are unknown; written by an older gravcal?): re-fit it")
+        return None
+    par = extended_class(cal.model)(cal.sensitivity, cal.offset, t_ref_c=ext["t_ref_c"], t0_s=ext["t0_s"],
+                                    temp_column=ext.get("temp_column", 0))
+    missing = [n for n in par.names if not isinstance(params, dict) or n not in params]
+    if missing:
+        raise ValueError(f"calibration {cal.model!r}: metadata['params'] lacks {missing}: cannot apply its terms")
+    return par, np.array([float(params[n]) for n in par.names])
+
+
 def apply_extended(cal: Calibration, raw: np.ndarray, *, temp: np.ndarray | None = None,
                    t: np.ndarray | None = None) -> np.ndarray:
     """Calibrated acceleration [g] of raw samples (N, 3) under an extended calibration (at each
     sample's temperature [°C] and time [s]); a plain calibration is applied as is."""
-    ext = cal.metadata.get("extended") if cal.metadata else None
-    if not ext:
+    found = _extended_parameters(cal)
+    if found is None:
         return cal.apply(raw)
-    par = extended_class(cal.model)(cal.sensitivity, cal.offset, t_ref_c=ext["t_ref_c"], t0_s=ext["t0_s"],
-                                    temp_column=ext.get("temp_column", 0))
-    params = cal.metadata["params"]
-    p = np.array([params[n] for n in par.names])
+    par, p = found
     raw = np.asarray(raw, dtype=float).reshape(-1, 3)
     n = raw.shape[0]
     needs_t = any(x.endswith("drift") for x in par.terms)
@@ -369,5 +399,17 @@ def apply_extended(cal: Calibration, raw: np.ndarray, *, temp: np.ndarray | None
     return a
 
 
+def apply_windows(cal: Calibration, ws: WindowSet) -> np.ndarray:
+    """Calibrated acceleration [g] of the window means of ``ws`` at the windows' own temperature
+    (``aux``) and mid time; a plain calibration is applied as is."""
+    found = _extended_parameters(cal)
+    if found is None:
+        return cal.apply(ws.mean)
+    par, p = found
+    a, _ = par.at_windows(ws).accel_and_jacobian(p, ws.mean)
+    return a
+
+
 __all__ = ["EXTRA_TERMS", "ExtendedParameterization", "ExtendedFit", "extended_class", "model_name", "parameterization",
-           "fit_extended", "extended_residuals_g", "apply_extended", "T_REF_C"]
+           "fit_extended", "extended_residuals_g", "extended_metadata", "apply_extended", "apply_windows",
+           "T_REF_C"]

@@ -32,6 +32,7 @@ import numpy as np
 from scipy.optimize import brentq
 
 from gravcal.core.calibration import Calibration
+from gravcal.core.estimators.extended import extended_class, extended_metadata
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, Parameterization
 from gravcal.core.windows import Window, WindowSet
 
@@ -54,8 +55,6 @@ def resolve_parameterization(model: str | type[Parameterization] | Parameterizat
         return model(start.sensitivity, start.offset)
     if isinstance(model, str):
         if "+" in model and model not in PARAMETERIZATIONS:  # "<base>+<term>...": registered on first use
-            from gravcal.core.estimators.extended import extended_class  # noqa: PLC0415
-
             extended_class(model)
         try:
             cls = PARAMETERIZATIONS[model]
@@ -603,6 +602,8 @@ class LottersBatch:
             "spread_deg": window_directions_spread_deg(mean, view),
             "insample_rms_mg": float(np.sqrt(np.mean(sol.resid_g**2)) * 1e3),
             **held_meta,
+            # params (+ extended terms): K, o above hold at T_ref / t0 only; apply_extended needs these
+            **extended_metadata(par, sol.p, std),
         }
         if consider_meta is not None:
             metadata[CONSIDER_KEY] = consider_meta
@@ -742,6 +743,10 @@ class LottersRecursive:
         n = par.n_params
         self.names = list(par.names)
         self.p = par.pack(start.sensitivity, start.offset)
+        stated = start.metadata.get("params") if isinstance(start.metadata, dict) else None
+        if start.model == par.model and "+" in par.model and isinstance(stated, dict) and all(n in stated for n in self.names):
+            # an extended start (a batch fit): its extra terms are not in (K, o); resume from its parameters
+            self.p = np.array([float(stated[n]) for n in self.names])
         self.scale_ref = float(np.mean(np.abs(np.diag(start.sensitivity))))
         # held parameters' uncertainty (consider term of the reported covariance only)
         self.held = held_uncertainty(start, par)
@@ -915,7 +920,7 @@ class LottersRecursive:
             metadata={"estimator": "lotters_recursive", "n_rejected": self.n_rejected,
                       "mean_nis": self.nis_sum / self.n_updates if self.n_updates else float("nan"),
                       "std_g": dict(zip(self.names, std_g.tolist())),
-                      "params": dict(zip(self.names, self.p.tolist())), **extra},
+                      **extended_metadata(par, self.p, np.sqrt(np.maximum(np.diagonal(cov), 0.0))), **extra},
         )
 
 

@@ -193,12 +193,7 @@ class OnlineCalibrator:
         else:
             cal = self.recursive.calibration
             cal.n_windows = self.n_windows
-            if "+" in self.model:  # what apply_extended needs to correct samples at their temperature/time
-                par = self.recursive.par
-                std = np.sqrt(np.maximum(np.diag(cal.covariance), 0.0))
-                cal.metadata["extended"] = {"terms": list(par.terms), "t_ref_c": par.t_ref_c, "t0_s": par.t0_s,
-                                            "temp_column": par.temp_column,
-                                            "magnitudes": par.magnitudes(self.recursive.p, std)}
+            # an extended model's terms (metadata params/extended) come from LottersRecursive.calibration
             if self.provisional:  # held values too uncertain for the order rule (see _check)
                 cal.observable = False
                 cal.message = "; ".join(m for m in (self.reason, cal.message) if m)
@@ -462,19 +457,15 @@ class OnlineCalibrator:
         if "+" not in model:
             return LottersRecursive(cal, model, sigma_floor_g=floor, process_noise=self.process_noise,
                                     gate_sigma=self.gate_sigma)
-        # an extended model: the parameterization carries the fit's reference (T_ref, t0); its extra
-        # parameters are not in (K, o), so the recursion starts from the stated params
+        # an extended model: the parameterization carries the fit's reference (T_ref, t0)
         from .extended import parameterization  # noqa: PLC0415
 
         ext = cal.metadata.get("extended") or {}
         par = parameterization(model, cal.sensitivity, cal.offset, t_ref_c=ext.get("t_ref_c", 25.0),
                                t0_s=ext.get("t0_s", 0.0), temp_column=ext.get("temp_column", 0))
-        rec = LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=self.process_noise,
-                               gate_sigma=self.gate_sigma)
-        params = cal.metadata.get("params") or {}
-        if all(n in params for n in par.names):
-            rec.p = np.array([float(params[n]) for n in par.names])
-        return rec
+        # LottersRecursive starts the extra parameters from the fit's metadata["params"]
+        return LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=self.process_noise,
+                                gate_sigma=self.gate_sigma)
 
     def stats(self) -> dict[str, Any]:
         """Counters for logs and the socket's status."""
