@@ -1,6 +1,7 @@
 """Benchmark: `gravcal calibrate` on a week at 100 Hz (60 M samples, structured .npy).
 
     python bench/bench_calibrate.py [--days 1 2 4 7] [--repeat 1] [--cache DIR] [--json PATH] [--csv]
+                                    [--peers | --no-peers] [--peer-forms nominal factory] [--peer-timeout 1800]
 
 Targets (issue 8, item 3): calibration (not counting reading the file) <= 1 s for 7 days, peak
 memory <= 1.2x the input array; issue 2's 7 days in <= 5 s wall is reported too. ``--json
@@ -23,6 +24,23 @@ waited for with os.wait4 to get that child's own peak RSS (ru_maxrss, KiB on Lin
 includes the memory-mapped input pages the child touched, so the ratio is honest about
 memory-mapping. Wall time is split into read+validate and calibrate as reported by the command
 (timing_s in its JSON); the rest is interpreter start-up and imports.
+
+Peers, side by side (issue 8, item 3; on by default when installed, ``--no-peers`` to skip; a
+missing peer is listed with its install hint). For each size, right after gravcal, each peer that
+calibrates from free-living data runs in its own child (bench/peer_child.py) on the same file:
+skdh (CalibrateAccelerometer on numpy arrays) and actipy (calibrate_gravity on a DataFrame with a
+DatetimeIndex). The child reads the file block by block into exactly what the peer's users hand
+it, timed apart from the peer's call; the parent takes the child's peak RSS with os.wait4 and
+kills it after ``--peer-timeout`` seconds (reported). imucal is "n/a": a Ferraris calibration needs
+an annotated lab session (six faces and three turns), not free-living data. Two forms of the input:
+    nominal  the duty cycles through the ADXL210 datasheet scale, (duty - 0.5) / 0.04 g: zero-g
+             offsets up to 1 g (this sensor's x reads -1.0 g at 0 g), beyond what the peers accept;
+    factory  the same sensor after an imperfect factory calibration (the truth, off by N(0, 30 mg)
+             offsets and N(0, 2 %) sensitivities, seed 1000, as bench_accuracy's "factory_g"):
+             what the peers are built for, so their full fit runs and is timed.
+Error: against the simulation's truth (the .truth.json next to the week), the RMS over gravity
+directions on the whole sphere of |a_estimated - a_true| [mg], for gravcal and every peer that
+calibrated (cheap, needs no second fit; a held-out error would need one more run per peer).
 """
 from __future__ import annotations
 
@@ -116,6 +134,161 @@ def run_calibrate(path: Path) -> dict:
             "exit": p.returncode}
 
 
+PEER_CHILD = Path(__file__).resolve().parent / "peer_child.py"
+FREE_LIVING_PEERS = ("skdh", "actipy")  # imucal: Ferraris lab session only
+IMUCAL_NA = "n/a: imucal's Ferraris calibration needs an annotated lab session (6 static faces + 3 turns, with the gyro), " \
+            "not free-living data"
+ADXL_ZERO, ADXL_PER_G = 0.5, 0.04  # ADXL210 datasheet: 50 % duty at 0 g, 4 %/g
+
+
+def sphere(n: int = 2000) -> np.ndarray:
+    """n near-uniform unit vectors (Fibonacci sphere): the gravity directions the error is averaged over."""
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    phi = np.pi * (1 + 5 ** 0.5) * k
+    r = np.sqrt(1 - z * z)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def load_truth(cache: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(offset (3,), sensitivity (3, 3)) in duty cycles of the simulated week: duty = offset + S a."""
+    p = week_path(cache, 7).with_suffix(".truth.json")
+    if not p.exists():
+        return None
+    c = json.loads(p.read_text())["calibration"]
+    return np.asarray(c["offset"], float), np.asarray(c["sensitivity"], float)
+
+
+def gravcal_truth_error_mg(d: dict, truth) -> float | None:
+    """RMS over the sphere of |S_est^-1 (o + S u - o_est) - u| [mg] (gravcal works in duty cycles)."""
+    if truth is None or not d.get("offset") or not d.get("sensitivity"):
+        return None
+    o, S = truth
+    u = sphere()
+    duty = o + u @ S.T
+    a = np.linalg.solve(np.asarray(d["sensitivity"], float), (duty - np.asarray(d["offset"], float)).T).T
+    return float(np.sqrt(np.mean(np.sum((a - u) ** 2, axis=1))) * 1e3)
+
+
+def peer_truth_error_mg(d: dict, zero: np.ndarray, per_g: np.ndarray, truth) -> float | None:
+    """The same error for a peer's a = M (y - offset_g), y = (duty - zero) / per_g."""
+    if truth is None or not d.get("ok"):
+        return None
+    o, S = truth
+    u = sphere()
+    y = (o + u @ S.T - zero) / per_g
+    a = (y - np.asarray(d["offset_g"], float)) @ np.asarray(d["matrix"], float).T
+    return float(np.sqrt(np.mean(np.sum((a - u) ** 2, axis=1))) * 1e3)
+
+
+def peer_forms(truth) -> dict[str, tuple[np.ndarray, np.ndarray, str]]:
+    """name -> (zero duty, duty per g, description) of each input form the peers are given."""
+    forms = {"nominal": (np.full(3, ADXL_ZERO), np.full(3, ADXL_PER_G), "(duty - 0.5) / 0.04: datasheet scale")}
+    if truth is not None:
+        o, S = truth
+        rng = np.random.default_rng(SEED + 1000)
+        k = np.diag(S) * (1 + rng.normal(0, 0.02, 3))
+        z = o + np.diag(S) * rng.normal(0, 0.030, 3)
+        forms["factory"] = (z, k, "imperfect factory calibration: truth off by N(0, 30 mg), N(0, 2 %)")
+    return forms
+
+
+def run_peer(name: str, path: Path, zero: np.ndarray, per_g: np.ndarray, timeout_s: float) -> dict:
+    """One peer child: its JSON, wall time, own peak RSS; killed (and reported) past timeout_s."""
+    cmd = [sys.executable, str(PEER_CHILD), name, str(path), "--fs", str(FS), "--zero", *map(repr, zero.tolist()),
+           "--per-g", *map(repr, per_g.tolist())]
+    with tempfile.TemporaryFile(mode="w+") as out, tempfile.TemporaryFile(mode="w+") as err:
+        t0 = time.perf_counter()
+        p = subprocess.Popen(cmd, stdout=out, stderr=err)
+        timed_out = False
+        while True:
+            pid, status, usage = os.wait4(p.pid, os.WNOHANG)
+            if pid:
+                break
+            if time.perf_counter() - t0 > timeout_s:
+                p.kill()  # our own child, by its pid
+                _, status, usage = os.wait4(p.pid, 0)
+                timed_out = True
+                break
+            time.sleep(0.05)
+        wall = time.perf_counter() - t0
+        p.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        text, errors = out.read(), err.read()
+    r = {"peer": name, "wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_bytes": usage.ru_maxrss * 1024,
+         "exit": p.returncode, "timed_out": timed_out}
+    if timed_out:
+        r.update(ok=False, message=f"timeout: killed after {timeout_s:g} s")
+    elif p.returncode != 0 or not text.strip():
+        tail = errors.strip().splitlines()[-1] if errors.strip() else "no output"
+        r.update(ok=False, message=f"child failed (exit {p.returncode}): {tail}")
+    else:
+        r.update(json.loads(text.strip().splitlines()[-1]))
+    return r
+
+
+def _x(a: float | None, b: float | None) -> float | None:
+    return a / b if a is not None and b else None
+
+
+def _cell(v: float | None, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def side_by_side(npy: list[dict], peer_rows: list[dict], run_peers: list[str], missing: dict, forms: dict,
+                 versions: dict, timeout_s: float) -> dict:
+    """Print gravcal vs each peer per size (ratios peer/gravcal) and the growth; return the JSON section."""
+    by_days = {r["days"]: r for r in npy}
+    for p in peer_rows:
+        g = by_days[p["days"]]
+        p["calibrate_x_gravcal"] = _x(p["calibrate_s"], g["calibrate_s"])
+        p["wall_x_gravcal"] = _x(p["wall_s"], g["wall_s"])
+        p["peak_rss_x_gravcal"] = _x(p["peak_rss_bytes"], g["peak_rss_bytes"])
+    print()
+    print("side by side (ratios are peer / gravcal; RSS/input against the same 20 B/sample .npy; "
+          "err = RMS over the sphere vs the simulated truth, mg)")
+    print(f"{'days':>4} {'method':<16} {'read s':>7} {'calib s':>8} {'wall s':>7} {'calib x':>7} {'wall x':>6} "
+          f"{'peak RSS MB':>11} {'RSS/input':>9} {'RSS x':>6} {'err mg':>8} {'load':>9}  result")
+    for days in sorted(by_days):
+        g = by_days[days]
+        print(f"{days:4d} {'gravcal':<16} {g['read_s']:7.2f} {g['calibrate_s']:8.2f} {g['wall_s']:7.2f} {'1':>7} {'1':>6} "
+              f"{g['peak_rss_bytes'] / 1e6:11.0f} {g['rss_ratio']:9.2f} {'1':>6} {_cell(g['truth_err_mg'], '8.2f'):>8} "
+              f"{g['load_avg_1min']:9.1f}  model {g['model']}, {g['windows']} windows, held-out {g['heldout_rms_mg']:.2f} mg")
+        for p in (q for q in peer_rows if q["days"] == days):
+            res = ("calibrated" if p["ok"] else "DECLINED") + f": {p['message']}"
+            print(f"{days:4d} {p['peer'] + ' (' + p['form'] + ')':<16} {_cell(p['read_s'], '7.2f'):>7} "
+                  f"{_cell(p['calibrate_s'], '8.2f'):>8} {p['wall_s']:7.2f} {_cell(p['calibrate_x_gravcal'], '7.1f'):>7} "
+                  f"{_cell(p['wall_x_gravcal'], '6.1f'):>6} {p['peak_rss_bytes'] / 1e6:11.0f} {p['rss_ratio']:9.2f} "
+                  f"{_cell(p['peak_rss_x_gravcal'], '6.1f'):>6} {_cell(p['truth_err_mg'], '8.2f'):>8} "
+                  f"{p['load_avg_1min'][0]:4.1f}-{p['load_avg_1min'][1]:<4.1f}  {res[:110]}")
+        print(f"{days:4d} {'imucal':<16} {IMUCAL_NA}")
+    for k, v in missing.items():
+        print(f"missing peer {k}: {v}")
+    growth: dict = {}
+    if len(npy) >= 2:
+        a, b = npy[0]["days"], npy[-1]["days"]
+        print(f"growth {a} -> {b} days (samples x{b / a:.1f}):")
+
+        def grow(label: str, ra: dict | None, rb: dict | None) -> None:
+            if not ra or not rb:
+                return
+            g = {k: _x(rb[k], ra[k]) for k in ("calibrate_s", "read_s", "wall_s", "peak_rss_bytes")}
+            growth[label] = g
+            print(f"  {label:<18} calibrate x{_cell(g['calibrate_s'], '.1f')}, read x{_cell(g['read_s'], '.1f')}, "
+                  f"wall x{_cell(g['wall_s'], '.1f')}, peak RSS x{_cell(g['peak_rss_bytes'], '.1f')}")
+
+        grow("gravcal", npy[0], npy[-1])
+        for name in run_peers:
+            for form in forms:
+                pick = {q["days"]: q for q in peer_rows if q["peer"] == name and q["form"] == form}
+                grow(f"{name} ({form})", pick.get(a), pick.get(b))
+    return {"run": run_peers, "missing": missing, "not_applicable": {"imucal": IMUCAL_NA}, "versions": versions,
+            "forms": {k: {"zero_duty": v[0].tolist(), "duty_per_g": v[1].tolist(), "what": v[2]} for k, v in forms.items()},
+            "timeout_s": timeout_s, "error": "RMS over the sphere of |a_est - a_true| [mg] against the simulated truth",
+            "rows": peer_rows, "growth": growth}
+
+
 def csv_path(cache: Path) -> Path:
     return cache / f"bench_daily_living_1d_{int(FS)}hz_seed{SEED}.csv"
 
@@ -144,6 +317,11 @@ def main() -> int:
     ap.add_argument("--cache", default=None, help="cache directory (default $GRAVCAL_CACHE or ~/.cache/gravcal)")
     ap.add_argument("--json", type=Path, default=None, metavar="PATH", help="also write the figures as JSON here")
     ap.add_argument("--csv", action="store_true", help="also time a 1-day CSV recording")
+    ap.add_argument("--peers", action=argparse.BooleanOptionalAction, default=None,
+                    help="run the peer calibrators side by side (default: those installed)")
+    ap.add_argument("--peer-forms", nargs="+", choices=["nominal", "factory"], default=["nominal", "factory"],
+                    help="input forms given to the peers (default both; see the module doc)")
+    ap.add_argument("--peer-timeout", type=float, default=1800.0, help="seconds per peer run before it is killed")
     ap.add_argument("--make", type=int, default=None, help=argparse.SUPPRESS)  # internal: build one input file
     args = ap.parse_args()
     cache = cache_dir(args.cache)
@@ -169,6 +347,22 @@ def main() -> int:
         if not week_path(cache, 1).exists():
             subprocess.run([sys.executable, __file__, "--make", "1", "--cache", str(cache)], check=True)
         inputs.append((1, "csv", make_csv(cache)))
+    truth = load_truth(cache)
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import peers as peer_lib
+
+    why_missing = peer_lib.available() if args.peers is not False else {}
+    missing = {k: v for k, v in why_missing.items() if v is not None}
+    run_peers = [k for k in FREE_LIVING_PEERS if k in why_missing and why_missing[k] is None]
+    for k, v in missing.items():
+        print(f"peer {k} unavailable: {v}", file=sys.stderr)
+    if args.peers and not run_peers:
+        print(f"--peers: no free-living peer is usable ({peer_lib.INSTALL_HINT})", file=sys.stderr)
+    forms = {k: v for k, v in peer_forms(truth).items() if k in args.peer_forms}
+    for f in args.peer_forms:
+        if f not in forms:
+            print(f"peer form {f}: needs the truth file next to the week; skipped", file=sys.stderr)
+    peer_rows: list[dict] = []
     for days, fmt, path in inputs:
         n = int(round(days * 86400 * FS))
         nbytes = np.load(path, mmap_mode="r").nbytes if fmt == "npy" else path.stat().st_size
@@ -186,7 +380,26 @@ def main() -> int:
                      "startup_s": best["wall"] - d["timing_s"]["read"] - d["timing_s"]["calibrate"],
                      "peak_rss_bytes": peak, "rss_ratio": peak / nbytes, "windows": d["n_windows"],
                      "heldout_rms_mg": d["heldout_rms_mg"], "model": d["model"], "exit": best["exit"],
-                     "runs": len(runs)})
+                     "runs": len(runs), "truth_err_mg": gravcal_truth_error_mg(d, truth)})
+        if fmt != "npy":
+            continue
+        # the peers right after gravcal on the same file, so the ratios hold on a loaded machine
+        for name in run_peers:
+            for form, (zero, per_g, _) in forms.items():
+                load0 = os.getloadavg()[0]
+                print(f"  {days} d: {name} ({form}) ...", file=sys.stderr)
+                r = run_peer(name, path, zero, per_g, args.peer_timeout)
+                ts = r.get("timing_s", {})
+                peer_rows.append({"days": days, "peer": name, "form": form, "samples": n, "input_bytes": nbytes,
+                                  "ok": r["ok"], "message": r["message"], "timed_out": r["timed_out"],
+                                  "wall_s": r["wall_s"], "read_s": ts.get("read"), "calibrate_s": ts.get("calibrate"),
+                                  "startup_s": ts.get("startup"), "read_cpu_s": ts.get("read_cpu"),
+                                  "calibrate_cpu_s": ts.get("calibrate_cpu"), "cpu_s": r["cpu_s"],
+                                  "peak_rss_bytes": r["peak_rss_bytes"], "rss_ratio": r["peak_rss_bytes"] / nbytes,
+                                  "rss_after_read_bytes": r.get("rss_after_read_bytes"),
+                                  "truth_err_mg": peer_truth_error_mg(r, zero, per_g, truth),
+                                  "offset_g": r.get("offset_g"), "matrix": r.get("matrix"),
+                                  "load_avg_1min": [load0, os.getloadavg()[0]]})
 
     print(f"gravcal calibrate on simulated daily living, {FS:g} Hz, fields t f8 + ax/ay/az f4 "
           f"({DTYPE.itemsize} bytes/sample); cache {cache}")
@@ -213,6 +426,8 @@ def main() -> int:
         g = out["growth"]
         print(f"growth {a['days']} -> {b['days']} days: samples x{g['samples_x']:.1f}, calibrate x{g['calibrate_s_x']:.1f}, "
               f"read x{g['read_s_x']:.1f}, peak RSS x{g['peak_rss_x']:.1f}")
+    if args.peers is not False:
+        out["peers"] = side_by_side(npy, peer_rows, run_peers, missing, forms, peer_lib.versions(), args.peer_timeout)
     last = npy[-1] if npy else None
     if last is not None and last["days"] == 7:
         met = {"calibrate_s": last["calibrate_s"] <= TARGET_CALIBRATE_S, "rss_ratio": last["rss_ratio"] <= TARGET_RATIO,
