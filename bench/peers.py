@@ -81,10 +81,11 @@ def _import(name: str):
     return importlib.import_module(MODULES[name])
 
 
-def available() -> dict[str, str | None]:
-    """Peer name -> None if usable, else why not and how to fix it."""
+def available(only: str | None = None) -> dict[str, str | None]:
+    """Peer name -> None if usable, else why not and how to fix it. ``only``: check (import) just
+    that peer, so a measured child does not pay for importing the others."""
     out: dict[str, str | None] = {}
-    for name in PEERS:
+    for name in PEERS if only is None else (only,):
         try:
             _import(name)
         except ImportError as exc:
@@ -150,26 +151,38 @@ def _skdh(t_s, acc_g, fs_hz, temp_c, **_) -> PeerResult:
                                             "temperature_mean": t_ref})
 
 
-def _actipy(t_s, acc_g, fs_hz, temp_c, **_) -> PeerResult:
+def actipy_frame(t_s: np.ndarray, acc_g: np.ndarray, temp_c: np.ndarray | None = None):
+    """What actipy's readers hand their users: x, y, z [g] (and temperature) on a DatetimeIndex."""
     import pandas as pd
+
+    # integer nanoseconds (a float product rounds a week's stamps), and one (N, 3) block not copied:
+    # a 7-day recording would otherwise be held twice (+1.4 GB)
+    idx = pd.DatetimeIndex(np.rint(np.asarray(t_s, dtype=float) * 1e9).astype("int64").view("datetime64[ns]"),
+                           name="time")
+    df = pd.DataFrame(acc_g, columns=["x", "y", "z"], index=idx, copy=False)
+    if temp_c is not None:
+        df["temperature"] = np.asarray(temp_c, dtype=float)
+    return df
+
+
+def run_actipy(df, calib_cube: float | None = None) -> PeerResult:
+    """calibrate_gravity(df, return_coeffs=True) as its users call it, its coefficients read back.
+    ``calib_cube``: its still-point gate [g] (None: actipy's default 0.3; a diagnostic only)."""
     from actipy.processing import calibrate_gravity
 
-    idx = pd.to_datetime(np.asarray(t_s, dtype=float) * 1e9, unit="ns")
-    cols = {"x": acc_g[:, 0], "y": acc_g[:, 1], "z": acc_g[:, 2]}
-    if temp_c is not None:
-        cols["temperature"] = np.asarray(temp_c, dtype=float)
-    df = pd.DataFrame(cols, index=idx)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         t0 = time.perf_counter()
-        _, info = calibrate_gravity(df, return_coeffs=True)
+        kw = {} if calib_cube is None else {"calib_cube": calib_cube}
+        _, info = calibrate_gravity(df, return_coeffs=True, **kw)
         dt = time.perf_counter() - t0
     info = {k: (float(v) if isinstance(v, (int, float, np.number)) else v) for k, v in info.items()}
     text = _warning_text(caught)
     n = info.get("CalibNumSamples")
     if not info.get("CalibOK"):
-        why = text or (f"sphere not populated: still points must lie beyond ±0.3 g on every axis ({n} still 10 s windows)"
-                       if info.get("CalibNumIters") == 0 else
+        gate = 0.3 if calib_cube is None else calib_cube
+        why = text or (f"sphere not populated: still points must lie beyond ±{gate:g} g on every axis ({n} still 10 s "
+                       "windows)" if info.get("CalibNumIters") == 0 else
                        f"error after fit {info.get('CalibErrorAfter(mg)', float('nan')):.1f} mg >= 10 mg or no convergence")
         return _declined("actipy", f"CalibOK=0: {why}", dt, **info)
     if "CalibxIntercept" not in info:  # below 10 mg before any fit: actipy leaves the data as they are
@@ -180,6 +193,10 @@ def _actipy(t_s, acc_g, fs_hz, temp_c, **_) -> PeerResult:
     sT = np.array([info.get(f"Calib{a}SlopeT", 0.0) for a in "xyz"])
     return PeerResult("actipy", True, f"calibrated ({n} still windows, {info.get('CalibErrorAfter(mg)', 0):.1f} mg)", dt,
                       offset_g=-b / s, scale=s, matrix=np.diag(s), temp_coef=sT, temp_ref=0.0, info=info)
+
+
+def _actipy(t_s, acc_g, fs_hz, temp_c, **_) -> PeerResult:
+    return run_actipy(actipy_frame(t_s, acc_g, temp_c))
 
 
 def _imucal(t_s, acc_g, fs_hz, temp_c, *, sections=None, gyro_dps=None, **_) -> PeerResult:
@@ -229,7 +246,7 @@ def calibrate(name: str, t_s: np.ndarray, acc_g: np.ndarray, fs_hz: float, temp_
     """
     if name not in _ADAPTERS:
         raise ValueError(f"unknown peer {name!r}; known: {', '.join(PEERS)}")
-    why = available()[name]
+    why = available(name)[name]
     if why is not None:
         raise ValueError(f"peer {name} unavailable: {why}")
     t_s = np.asarray(t_s, dtype=float)
