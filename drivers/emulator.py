@@ -461,6 +461,10 @@ class Emulator:
                                 self._event(f"reconnected at t={ts[a]:.3f}s")
                             status, frames = self.link.send(part, self.faults, math.isinf(rate))
                             self._log(part, status, frames)
+                            lost = np.flatnonzero(status == OVERRUN)
+                            if lost.size:  # a real UART's overflow: the host fell behind; say so
+                                self._event(f"overrun at t={ts[a + lost[0]]:.3f}s: {lost.size} samples lost "
+                                            "(the host did not read; the link's buffer was full)")
                     self.sent_index += chunk.shape[0]
                     j += chunk.shape[0]
                     if not math.isinf(rate):

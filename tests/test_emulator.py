@@ -121,6 +121,22 @@ def test_emulator_paces_in_time_lapse():
     assert 0.24 <= wall < 1.5  # 2 s of stream at 8x = 0.25 s (upper bound generous for loaded CI)
 
 
+def test_an_overrun_is_logged_and_reported_as_an_event(tmp_path):
+    """Nobody reads the pty at 50x: its buffer fills, frames are lost as OVERRUN (a real UART's
+    overflow) and the emulator says so, so a test can tell a loaded host from a lossy daemon."""
+    events: list[str] = []
+    link = PtyLink(tmp_path / "ttyLOG")
+    log = SentLog()
+    try:
+        Emulator(pattern_blocks(fs=200, duration=60.0), 200.0, link, speed=200.0, log=log,
+                 on_event=events.append).run()
+    finally:
+        link.close()
+    lost = log.counts().get("overrun", 0)
+    assert lost > 0, log.counts()  # 60 s x 200 Hz x 29 bytes = 348 kB: more than a pty holds
+    reported = [e for e in events if e.startswith("overrun")]
+    assert reported and sum(int(e.split(": ")[1].split()[0]) for e in reported) == lost, (reported[:3], lost)
+
 def test_replay_of_a_recording_written_by_gravcal_simulate(tmp_path):
     from gravcal.daemon import recordings
     s = np.concatenate(list(pattern_blocks(seed=6, fs=100, duration=1.0)))
