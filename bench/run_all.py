@@ -316,6 +316,49 @@ def accuracy_verdict(d: dict[str, Any]) -> list[str]:
     return lines
 
 
+def render_speed(j: dict[str, Any]) -> list[str]:
+    """gravcal calibrate vs the peers on the same simulated days (bench_calibrate.py's JSON)."""
+    out = ["Simulated daily living at 100 Hz (cached .npy, 20 B/sample); each method a child process on the same "
+           "file, right after gravcal (ratios peer / gravcal hold under load). *read* and *calibrate* are "
+           "separate; peak RSS from os.wait4. A peer's time to decline is a lower bound on a fit.", ""]
+    mb = 1 / 2 ** 20
+    peers = (j.get("peers") or {}).get("rows", [])
+    rows = []
+    for g in j.get("rows", []):
+        days = g.get("days")
+        rows.append([days, "gravcal", _n(g.get("read_s")), _n(g.get("calibrate_s")), _n(g.get("wall_s")), "1", "1",
+                     _n(g.get("peak_rss_bytes", 0) * mb, "{:.0f}"), _n(g.get("rss_ratio")),
+                     _n(g.get("truth_err_mg")), f"model {g.get('model')}, {g.get('windows')} windows, held-out "
+                     f"{_n(g.get('heldout_rms_mg'))} mg"])
+        for r in (x for x in peers if x.get("days") == days):
+            rows.append([days, f"{r.get('peer')} ({r.get('form')})", _n(r.get("read_s")), _n(r.get("calibrate_s")),
+                         _n(r.get("wall_s")), _n(r.get("calibrate_x_gravcal")), _n(r.get("wall_x_gravcal")),
+                         _n(r.get("peak_rss_bytes", 0) * mb, "{:.0f}"), _n(r.get("rss_ratio")),
+                         _n(r.get("truth_err_mg")),
+                         ("TIMEOUT" if r.get("timed_out") else "calibrated" if r.get("ok") else "DECLINED: ")
+                         + ("" if r.get("ok") else str(r.get("message", ""))[:120])])
+    out += _table(["days", "method", "read s", "calibrate s", "wall s", "calibrate x", "wall x", "peak RSS MB",
+                   "RSS / input", "truth err mg", "result"], rows)
+    out.append("")
+    na = (j.get("peers") or {}).get("not_applicable") or {}
+    missing = (j.get("peers") or {}).get("missing") or {}
+    out += [f"- {k}: {v}" for k, v in {**na, **missing}.items()]
+    growth = j.get("growth") or {}
+    if growth:
+        out.append(f"- gravcal growth {growth.get('from_days')} → {growth.get('to_days')} days "
+                   f"({_n(growth.get('samples_x'))}x samples): calibrate {_n(growth.get('calibrate_s_x'))}x, "
+                   f"read {_n(growth.get('read_s_x'))}x, peak RSS {_n(growth.get('peak_rss_x'))}x")
+    for name, g in ((j.get("peers") or {}).get("growth") or {}).items():
+        if name != "gravcal" and isinstance(g, dict):
+            out.append(f"- {name} growth: calibrate {_n(g.get('calibrate_s'))}x, read {_n(g.get('read_s'))}x, "
+                       f"peak RSS {_n(g.get('peak_rss_bytes'))}x")
+    t, met = j.get("targets") or {}, j.get("targets_met") or {}
+    if t:
+        out.append(f"- targets: calibration ≤ {t.get('calibrate_s_7d')} s for 7 days, peak RSS ≤ {t.get('rss_ratio')}x "
+                   f"the input; met: {met}")
+    return out
+
+
 def render_daemon(steps: list[dict[str, Any]]) -> list[str]:
     out: list[str] = []
     lat = [s for s in steps if s.get("status") == "ok" and s.get("json", {}).get("what") == "latency"]
@@ -477,6 +520,8 @@ def render_part(name: str, part: dict[str, Any]) -> list[str]:
             out += render_daemon(ok)
         elif name == "efficiency":
             out += render_efficiency(ok[0]["json"])
+        elif name == "speed":
+            out += render_speed(ok[0]["json"])
         else:
             for s in ok:
                 if "json" in s:

@@ -177,3 +177,18 @@ def test_run_all_writes_page_and_reports_a_missing_part(tmp_path, monkeypatch):
     assert "| cores |" in page and "| numpy |" in page and "run_all.py --quick --skip estimator" in page
     fps = data["parts"]["codec"]["steps"][0]["json"]["decode"]["decode_64_kB_reads_frames_per_s"]
     assert fps > 0
+
+
+def test_the_speed_table_puts_each_peer_beside_gravcal():
+    j = {"rows": [{"days": 7, "read_s": 1.9, "calibrate_s": 5.6, "wall_s": 9.3, "peak_rss_bytes": 2 ** 30,
+                   "rss_ratio": 0.99, "truth_err_mg": 0.17, "model": "6", "windows": 11980, "heldout_rms_mg": 0.51}],
+         "peers": {"rows": [{"days": 7, "peer": "skdh", "form": "nominal", "ok": False, "message": "too few still",
+                             "read_s": 9.7, "calibrate_s": 3.9, "wall_s": 17.2, "calibrate_x_gravcal": 0.69,
+                             "wall_x_gravcal": 1.85, "peak_rss_bytes": 2 * 2 ** 30, "rss_ratio": 1.94}],
+                   "not_applicable": {"imucal": "needs a lab session"}},
+         "targets": {"calibrate_s_7d": 1.0, "rss_ratio": 1.2}, "targets_met": {"calibrate_s": False}}
+    lines = run_all.render_speed(j)
+    rows = [ln for ln in lines if ln.startswith("| 7 |")]
+    assert len(rows) == 2 and "| gravcal |" in rows[0] and "| 1024 |" in rows[0]
+    assert "skdh (nominal)" in rows[1] and "DECLINED: too few still" in rows[1] and "| 2048 |" in rows[1]
+    assert any("imucal" in ln and "lab session" in ln for ln in lines)
