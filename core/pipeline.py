@@ -29,6 +29,7 @@ import numpy as np
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.lotters import (START_TOLERANCE, LottersBatch, _relative_difference,
                                              resolve_parameterization, start_far_note)
+from gravcal.core.estimators.order import extended_base
 from gravcal.core.heldout import HeldoutResult, heldout_error
 from gravcal.core.windows import WindowSet
 
@@ -48,6 +49,9 @@ REDETECT_CHANGE = 0.02  # re-detect when the fit moved the start by more than 2 
 
 MODELS = ("auto",)  # model names calibrate_recording accepts beyond PARAMETERIZATIONS (`gravcal calibrate --model`)
 AUTO_MIN_WINDOWS = 3  # auto needs at least the offsets' 3 windows (6 for sensitivities)
+# extended terms auto may add on top of the chosen order, each only on top of the previous one (chosen):
+# judged by the online path's rule (order.term_testability, order.is_observable_extended, order.compare_extended)
+AUTO_EXTENDED_TERMS = ("temperature_offset", "temperature_sensitivity")
 
 
 class OrderNotDetermined(ValueError):
@@ -65,6 +69,7 @@ class CalibrationReport:
     heldout: HeldoutResult | None = None
     start: Calibration | None = None
     order: dict[str, Any] | None = None  # {"model", "reason", "evidence"}: which order was fitted and why
+    extended_terms: dict[str, dict[str, Any]] | None = None  # auto: per AUTO_EXTENDED_TERMS term, status and reason
 
     def to_json_dict(self) -> dict[str, Any]:
         """The `gravcal calibrate --json` object (raw units: offset [raw], sensitivity [raw per g])."""
@@ -88,6 +93,7 @@ class CalibrationReport:
             "order": _jsonable(self.order if self.order is not None else
                                {"model": cal.model, "reason": "", "evidence": {}}),
             "extended": extended_summary(cal),
+            "extended_terms": _jsonable(self.extended_terms),
             "calibration": cal.to_dict(),
         }
         return d
@@ -284,7 +290,8 @@ def calibrate_recording(
 
     ``model``: "auto" (default: ``order.select_order`` on the windows chooses offsets, 6, or the full
     identifiable set 9 / 12 and the report's ``order`` says why; OrderNotDetermined, a ValueError, when
-    nothing is determined), or an order name ("offsets", "6", "9", "12", an extended name). Explicit
+    nothing is determined; then AUTO_EXTENDED_TERMS on top of it where testable, observable and warranted,
+    each term's verdict in the report's ``extended_terms``), or an order name ("offsets", "6", "9", "12", an extended name). Explicit
     offsets/6/9/12 are refused (ValueError saying what is missing) when the windows cannot determine
     them to Lötters' 3 %. ``lab``: a lab calibration (Bragge, ``gravcal calibrate --lab``) whose frame
     model "12" holds; it is also the start when ``start`` is not given. ``detection``: "blocks"
@@ -362,7 +369,8 @@ def calibrate_recording(
     notes += ho.notes
     log.info("calibrated %d windows (order %s): held-out %.3g mg, in-sample %.3g mg", len(ws), fitted.model,
              ho.heldout_rms_mg, ho.insample_rms_mg)
-    return CalibrationReport(cal, ws, ho.heldout_rms_mg, ho.insample_rms_mg, len(ws), notes, ho, start, fitted.order)
+    return CalibrationReport(cal, ws, ho.heldout_rms_mg, ho.insample_rms_mg, len(ws), notes, ho, start, fitted.order,
+                             fitted.extended_terms)
 
 
 @dataclass
@@ -373,6 +381,7 @@ class _Fitted:
     fold_start: Calibration  # start (and held values: frame, cross-axis terms) of every fold fit
     n_params: int
     order: dict[str, Any]
+    extended_terms: dict[str, dict[str, Any]] | None = None  # auto only: AUTO_EXTENDED_TERMS' verdicts
 
 
 def _fit_order(ws: WindowSet, model: Any, start: Calibration, lab: Calibration | None,
@@ -415,9 +424,104 @@ def _fit_order(ws: WindowSet, model: Any, start: Calibration, lab: Calibration |
         order = {"model": model, "reason": reason, "evidence": ev}
     estimator = LottersBatch(chosen, sigma_floor_g=sigma_floor_g)
     cal = estimator.fit(ws, fit_start)
-    if chosen in ("9", "12"):
+    extended_status = None
+    if model == "auto":
+        chosen, cal, extended_status = _auto_extended(ws, chosen, cal, lab, sigma_floor_g, folds)
+        if chosen != order["model"]:
+            order["reason"] += f"; {chosen[len(order['model']) + 1:]} added (" + "; ".join(
+                f"{t}: {v['reason']}" for t, v in extended_status.items() if v["status"] == "chosen") + ")"
+            order["model"] = chosen
+            # the folds start where the base order's did (fit_start: not the full fit), terms from 0
+            estimator = LottersBatch(chosen, sigma_floor_g=sigma_floor_g)
+    if extended_base(chosen) in ("9", "12"):
         from gravcal.core.estimators.inuse12 import FRAME_CONVENTION, frame_of, rotation_angle_deg
 
         cal.metadata.update({"frame": frame_of(cal).tolist(), "frame_angle_deg": rotation_angle_deg(frame_of(cal)),
-                             "frame_source": "lab calibration" if chosen == "12" else FRAME_CONVENTION})
-    return _Fitted(chosen, cal, estimator, fit_start, resolve_parameterization(chosen, fit_start).n_params, order)
+                             "frame_source": "lab calibration" if extended_base(chosen) == "12" else FRAME_CONVENTION})
+    return _Fitted(chosen, cal, estimator, fit_start, resolve_parameterization(chosen, fit_start).n_params, order,
+                   extended_status)
+
+
+def _extended_start(model: str, cal: Calibration, lab: Calibration | None) -> Calibration:
+    """Linearisation point and held values for a fit of ``model`` (a base order or an extended one on it),
+    as the online calibrator takes them: ``cal`` itself when it is a fit on the same base order, else the
+    base order's reference start (order._reference_start)."""
+    from gravcal.core.estimators.order import _reference_start
+
+    base = extended_base(model)
+    if extended_base(cal.model) == base or base == "offsets":
+        return cal
+    return _reference_start(base, cal, lab)
+
+
+def _auto_extended(ws: WindowSet, base: str, base_cal: Calibration, lab: Calibration | None,
+                   sigma_floor_g: float | None, folds: int) -> tuple[str, Calibration, dict[str, dict[str, Any]]]:
+    """Model auto: add AUTO_EXTENDED_TERMS on top of the chosen order ``base`` (fitted: ``base_cal``), each
+    only on top of the previous one, by the rule the online calibrator applies (core/estimators/online.py):
+    testable (order.term_testability: a temperature channel with a spread), observable
+    (order.is_observable_extended: predicted error over orientations and the session's temperatures <= 10 mg)
+    and warranted (order.compare_extended: BIC *and* held-out error better than the model without it).
+    Returns (model, its fit, {term: {"status", "reason", ...}}); status is one of "chosen", "untestable",
+    "not observable", "not warranted", "not tried"."""
+    from gravcal.core.estimators.extended import model_name
+    from gravcal.core.estimators.order import (SIGMA_FLOOR_G, compare_extended, extended_terms,
+                                               is_observable_extended, term_testability)
+
+    status: dict[str, dict[str, Any]] = {}
+    model, cal = base, base_cal
+    for term in AUTO_EXTENDED_TERMS:
+        if term.startswith("temperature") and (ws.aux.ndim != 2 or ws.aux.shape[1] == 0):
+            status[term] = {"status": "untestable", "reason": "no temperature column"}
+            continue
+        if model != model_name(base, AUTO_EXTENDED_TERMS[:AUTO_EXTENDED_TERMS.index(term)]):
+            prev = AUTO_EXTENDED_TERMS[AUTO_EXTENDED_TERMS.index(term) - 1]
+            status[term] = {"status": "not tried", "reason": f"tried only on top of {prev}, which was not chosen"}
+            continue
+        ok, why = term_testability(ws, term)
+        if not ok:
+            status[term] = {"status": "untestable", "reason": why}
+            continue
+        cand = model_name(base, (*extended_terms(model), term))
+        if "+" in model and lab is not None:
+            # compare_extended's reference start for an extended base is the diagonal one: it would drop the
+            # lab frame / lab cross-axis terms the base holds
+            status[term] = {"status": "not tried", "reason": f"with a lab calibration {term} is not compared on top "
+                                                             f"of {model} (the comparison would drop the lab frame)"}
+            continue
+        at = _extended_start(model, cal, lab)
+        try:
+            ok, obs = is_observable_extended(ws, at, cand)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            ok, obs = False, {"reason": f"observability not computable ({exc})", "predicted_mg": None}
+        if not ok:
+            status[term] = {"status": "untestable" if "untestable" in obs else "not observable",
+                            "reason": obs["reason"], "predicted_mg": obs.get("predicted_mg")}
+            continue
+        try:
+            sc = compare_extended(ws, model, cand, at, lab=lab,
+                                  sigma_floor_g=sigma_floor_g if sigma_floor_g is not None else SIGMA_FLOOR_G,
+                                  folds=folds)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            status[term] = {"status": "not warranted", "reason": f"comparison failed ({exc})",
+                            "predicted_mg": obs.get("predicted_mg")}
+            continue
+        sb, se = sc[model], sc[cand]
+        hb, he = sb["heldout_rms_mg"], se["heldout_rms_mg"]
+        better = se["bic"] < sb["bic"] and (hb is None or he is None or he < hb)
+        cmp = (f"BIC {cand} {se['bic']:.1f} vs {model} {sb['bic']:.1f}" +
+               ("" if hb is None or he is None else f", held-out {he:.4g} vs {hb:.4g} mg"))
+        entry = {"status": "chosen" if better else "not warranted", "reason": cmp,
+                 "predicted_mg": obs.get("predicted_mg"), "comparison": sc}
+        if better:
+            try:
+                fit = LottersBatch(cand, sigma_floor_g=sigma_floor_g).fit(ws, _extended_start(cand, cal, lab))
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                fit = None
+                entry = {**entry, "status": "not warranted", "reason": f"{cmp}; fit failed ({exc})"}
+            if fit is not None and not fit.converged:
+                fit = None
+                entry = {**entry, "status": "not warranted", "reason": f"{cmp}; fit did not converge"}
+            if fit is not None:
+                model, cal = cand, fit
+        status[term] = entry
+    return model, cal, status

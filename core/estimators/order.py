@@ -402,7 +402,8 @@ class OnlineOrderSelector:
 
 
 # -- extended terms (temperature, drift) online: testability, observability, evidence ----------------
-MIN_TEMP_SPREAD_C = 2.0  # a temperature term is testable only when the windows span this much (5-95 %) [°C]
+MIN_TEMP_SPREAD_C = 1.0  # a temperature term is testable only when the windows span this much (5-95 %) [°C]; whether
+# that spread determines it is the observability rule's call (predicted error over the session's temperatures)
 MIN_DRIFT_SPAN_H = 2.0  # a drift term is testable only when the windows span this long [h]
 
 
