@@ -208,9 +208,8 @@ def fit_gravcal(rec: Rec, model: str, idx: np.ndarray, ws_fit: WindowSet) -> Fit
         fitted = _fit_order(ws_fit, model.split("+")[0], start, None, None, 5)
         cal = fitted.calibration
         if "+" in model:
-            # LottersBatch.fit of an extended model keeps only K, o at the reference temperature (no
-            # metadata["params"]: apply_extended would silently drop the terms), so the extended fit is
-            # fit_extended (iterated eq. 11a, data-derived floor) from the base fit, as `gravcal diagnose` does
+            # the extended fit from the base fit, as `gravcal diagnose` does (iterated eq. 11a with the
+            # data-derived floor); its calibration carries the terms for apply_extended
             from gravcal.core.estimators.order import fit_extended_floor
 
             ext, _floor = fit_extended_floor(model, ws_fit, cal)

@@ -239,6 +239,9 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
                          for k, v in mag["value"].items())
         lines.append(f"{term:<11} {vals} [{_unit(mag['unit'])}] "
                      f"(offset and sensitivity above hold at {_fmt(ext.get('t_ref_c'), '.3g')} °C)")
+    for term, verdict in (out.get("extended_terms") or {}).items():  # model auto: why a term is (not) in
+        if isinstance(verdict, dict) and verdict.get("status") != "chosen":
+            lines.append(f"{term:<11} {verdict.get('status')}: {verdict.get('reason', '')}")
     if out.get("heldout_scheme") == "leave-one-face-out":
         lines.append(f"|a - known| held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg (leave one face out), "
                      f"in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg")
