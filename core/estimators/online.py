@@ -39,7 +39,6 @@ survives a week of standing in the store and the order never falls back for lack
 from __future__ import annotations
 
 import logging
-import math
 from typing import Any
 
 import numpy as np
@@ -408,13 +407,7 @@ class OnlineCalibrator:
         if not cal.converged:
             self.reason += f"; re-seed with order {model} did not converge, order {self.model} kept"
             return
-        if model != self.model:
-            log.info("online order %s -> %s after %d windows: %s", self.model, model, self.n_windows, d.reason)
-        self.model = model
-        self.recursive = self._recursion(cal, model)
-        self._drift_inflation(ws)
-        self._seed_size, self._since_seed = len(ws), 0
-        self.n_reseeds += 1
+        self._adopt(model, cal, ws, d)
 
     def _reseed_extended(self, model: str, ws: WindowSet, here: Calibration, d: OrderDecision) -> None:
         base = extended_base(model)
@@ -429,6 +422,10 @@ class OnlineCalibrator:
             return
         cal = fit.calibration(len(ws))
         cal.metadata["sigma_floor_g"] = floor
+        self._adopt(model, cal, ws, d)
+
+    def _adopt(self, model: str, cal: Calibration, ws: WindowSet, d: OrderDecision) -> None:
+        """A converged re-seed fit of ``ws`` becomes the recursion's new start."""
         if model != self.model:
             log.info("online order %s -> %s after %d windows: %s", self.model, model, self.n_windows, d.reason)
         self.model = model
