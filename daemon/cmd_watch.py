@@ -11,6 +11,8 @@ from .client import Client, default_socket_path
 from .errors import InputError
 from .protocol import STANDARD_GRAVITY
 
+STATIC_WORDS = {True: "static", False: "moving"}  # null: the detector had no decision recent enough
+
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
@@ -40,7 +42,7 @@ def format_imu(msg: dict[str, Any], raw: bool = False) -> str:
         acc_s = "acc unavailable (missing channel)"
     gyro = msg.get("gyro")
     gyro_s = f"  gyro {gyro:+7.3f} rad/s" if isinstance(gyro, (int, float)) else ""
-    line = f"IMU {msg.get('seq'):>9} t {msg.get('t', float('nan')):12.3f} s  acc {acc_s}{gyro_s}  {'static' if msg.get('static') else 'moving'}"
+    line = f"IMU {msg.get('seq'):>9} t {msg.get('t', float('nan')):12.3f} s  acc {acc_s}{gyro_s}  {STATIC_WORDS.get(msg.get('static'), 'unknown')}"
     if raw and msg.get("duty") is not None:
         line += "  duty " + " ".join("  null  " if d is None else f"{d:.5f}" for d in msg["duty"])
     return line

@@ -58,7 +58,7 @@ from . import config as config_mod
 from .cmd_emulate import disconnect_arg, speed_arg
 from .config import Config, ConfigError
 from .persistence import CalibrationState, RateLimitedSaver, StateStore, load_lab_calibration
-from .protocol import STANDARD_GRAVITY, calib_message
+from .protocol import STANDARD_GRAVITY, STATIC_UNKNOWN, calib_message
 from .sdnotify import Notifier, WatchdogPolicy, watchdog_interval
 from .server import ServerConfig, SocketPathError, SocketServer, activated_socket
 
@@ -79,6 +79,12 @@ SIGMA_FLOOR_G = 0.002  # quasi-static floor on each window's norm noise [g] (ord
 MAX_SEED_WINDOWS = 300  # windows kept for the batch fit that seeds the recursion (see SeedPool)
 REOPEN_AFTER_READ_ERRORS = 3  # a driver whose read() keeps raising is closed and reopened
 ANALYSIS_BLOCK_S = 0.05  # samples collected before the detector and estimator run [s of data]
+# A published sample's `static` is the detector's latest decision only while that decision is at most this much
+# sensor time older than the sample (null beyond): it is ANALYSIS_BLOCK_S old when the processing thread keeps up,
+# and the detection signal is itself a 0.5 Hz low-pass; a starved processing thread (a loaded host, a time-lapse
+# emulator) would otherwise label seconds of later motion with an old "still".
+STATIC_MAX_AGE_S = 2.0
+SEED_OUTLIER_GATE_SIGMA = 5.0  # the seed fit's outlier gate (LottersBatch), as the recursion's gate_sigma
 SEED_RETRY_EVERY = 10  # windows between seed fits when no new orientation arrived
 # With as many windows as parameters a batch fit matches them exactly and can pass its own
 # observability check while 30 % off (seen with 6 windows of the six-position scenario, seed 0);
@@ -173,7 +179,9 @@ class Processor:
         self.lab = lab
         self.start = start.calibration  # the batch fit's starting point
         self.applied = start.calibration  # what corrects the published samples until an update is accepted
-        self.static_now = False  # the detector's latest per-sample decision
+        # (seq of the last analysed sample, the detector's decision there): one tuple, swapped atomically, read by
+        # correct() in the acquisition thread; seq None before any analysis
+        self.analysed: tuple[int | None, bool] = (None, False)
         self.windows_base = int(start.calibration.n_windows) if resumed else 0
         self.pool = SeedPool(MAX_SEED_WINDOWS, start.calibration)  # for (re)seeding the recursion
         self._since_try = 0
@@ -184,6 +192,7 @@ class Processor:
         self.detector = detector if detector is not None else self._make_detector()
         self.detector.to_g = self.applied
         self.windows_seen = 0
+        self.windows_screened = 0  # moving more than pipeline.MAX_WINDOW_STD_G on an axis: not used
         self.windows_rejected = 0
         self.changed = False
         saved_remount = start.extra.get("remount") if resumed else None
@@ -269,7 +278,11 @@ class Processor:
         if not self.applied.converged:
             return False
         before = (est.n_windows, est.n_windows_rejected, est.pose.n_pairs)
-        est.window(w, self.applied)
+        try:
+            est.window(w, self.applied)
+        except (ValueError, np.linalg.LinAlgError) as exc:  # one window the gyro cannot use: never the rest of the block
+            log.warning("window skipped by the gyro estimator: %s", exc)
+            return False
         if (est.n_windows, est.n_windows_rejected, est.pose.n_pairs) == before:
             return False
         self._gyro_apply(est.calibration)
@@ -323,10 +336,25 @@ class Processor:
                             np.linalg.inv(np.asarray(cal.sensitivity, dtype=float)).T * STANDARD_GRAVITY,
                             temp_coef, general)
 
+    @property
+    def static_now(self) -> bool:
+        """The detector's latest per-sample decision."""
+        return self.analysed[1]
+
+    def static_codes(self, seq: np.ndarray) -> np.ndarray:
+        """Each sample's ``static`` code (protocol.static_words): the detector's latest decision while it is at
+        most STATIC_MAX_AGE_S of sensor time older than the sample, else STATIC_UNKNOWN (null)."""
+        last, static = self.analysed
+        codes = np.full(seq.shape[0], STATIC_UNKNOWN, dtype=np.int8)
+        if last is not None:
+            fresh = (seq.astype(np.int64) - last) <= STATIC_MAX_AGE_S * self.cfg.device.fs_hz
+            codes[fresh] = int(static)
+        return codes
+
     def correct(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The fast path, per block as it arrives: (acc [m/s²] (N, 3) corrected with the accepted
-        calibration, gyro [rad/s] (N,) NaN when not configured, static (N,) bool = the
-        detector's latest decision, at most ANALYSIS_BLOCK_S of data old)."""
+        calibration, gyro [rad/s] (N,) NaN when not configured, static (N,) codes: the detector's
+        latest decision, or unknown when that is more than STATIC_MAX_AGE_S of data old)."""
         offset, kinv_t, temp_coef, general = self._correction
         if general is not None:
             from ..core.estimators.extended import apply_extended
@@ -341,7 +369,7 @@ class Processor:
             acc = (raw_triad(block) - offset) @ kinv_t
         bias, sens = self._gyro_correction
         gyro = (block["gyro"].astype(float) - bias) / sens  # NaN while either is unknown
-        return acc, gyro, np.full(block.shape[0], self.static_now)
+        return acc, gyro, self.static_codes(block["seq"])
 
     def analyse(self, block: np.ndarray) -> np.ndarray:
         """Detector and estimator over a block (in arrival order, any split); returns the
@@ -359,8 +387,6 @@ class Processor:
             static = det < self.detector.threshold_g
         else:
             static = np.zeros(block.shape[0], dtype=bool)
-        if static.shape[0]:
-            self.static_now = bool(static[-1])
         self.changed = False
         for w in windows:
             self._window(w)
@@ -368,6 +394,8 @@ class Processor:
                 extra = {**self.state.extra, "gyro": self.gyro_json}
                 self.state = dataclasses.replace(self.state, extra=extra)
                 self.changed = True
+        if static.shape[0]:
+            self.analysed = (int(block["seq"][-1]), bool(static[-1]))
         return static
 
     def process(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -376,7 +404,14 @@ class Processor:
         return acc, gyro, self.analyse(block)
 
     def _window(self, w: Window) -> None:
+        from ..core.pipeline import MAX_WINDOW_STD_G, window_std_g
+
         self.windows_seen += 1
+        # the offline pipeline's screen (pipeline.screen_windows): a window whose samples move more than
+        # MAX_WINDOW_STD_G on an axis averages postures (a slow turn at constant |a|) and is not quasi-static
+        if float(window_std_g(WindowSet.from_windows([w]), self.applied)[0]) > MAX_WINDOW_STD_G:
+            self.windows_screened += 1
+            return
         self.pool.add(w)
         self._since_try += 1
         self._remount_window(w)
@@ -476,7 +511,9 @@ class Processor:
         magnitudes with std) when the calibration has extended terms, every extended candidate's status
         (chosen / not warranted / not observable / untestable, with the reason), and the re-mount events."""
         cal = self.state.calibration
-        out: dict[str, Any] = {"remount": list(self.remount_events)}
+        # the sample the estimator had analysed up to when it made this revision (a client can tell which data a
+        # calibration rests on; it lags the published samples when the processing thread falls behind)
+        out: dict[str, Any] = {"remount": list(self.remount_events), "data_through_seq": self.analysed[0]}
         ext = cal.metadata.get("extended") if isinstance(cal.metadata, dict) else None
         if ext:
             params = cal.metadata.get("params") or {}
@@ -518,7 +555,7 @@ class Processor:
         if model == "12" and self.lab is None and start.model != "12":
             model = "9"  # no frame to hold: the online estimator's full order is 9
         try:  # from the start values; LottersBatch retries from an ellipsoid fit when they are far off
-            cal = LottersBatch(model).fit(self.pool.window_set(), start=start)
+            cal = LottersBatch(model, outlier_gate_sigma=SEED_OUTLIER_GATE_SIGMA).fit(self.pool.window_set(), start=start)
         except ValueError as exc:  # e.g. too few distinct orientations yet
             log.debug("seed batch fit not possible yet: %s", exc)
             return None
@@ -707,6 +744,8 @@ class Gravcald:
         self._acq_stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.samples_in = 0
+        self.last_seq: int | None = None  # seq of the last sample read (for the processing lag in STATUS)
+        self.static_unknown = 0  # published samples whose `static` was null (the detector too far behind)
         self.read_errors = 0
         self.exit_code = 0
         self._rate_hz = 0.0
@@ -813,9 +852,11 @@ class Gravcald:
             if not n:
                 continue
             self.samples_in += n
+            self.last_seq = int(block["seq"][-1])
             self.watchdog.samples_arrived(n)
             try:
                 acc, gyro, static = p.correct(block)
+                self.static_unknown += int(np.count_nonzero(static == STATIC_UNKNOWN))
             except Exception:  # a numerics bug must not stop acquisition
                 self.process_errors += 1
                 log.exception("correcting a block of %d samples failed", n)
@@ -881,9 +922,9 @@ class Gravcald:
             "device": {"spec": self.cfg.device.spec, "rate_hz": round(self._rate_hz, 2), "samples": self.samples_in,
                        "read_errors": self.read_errors, "reopens": self.driver_reopens, **drv_stats},
             "ring": self.ring.stats(),
-            "processing": {"errors": self.process_errors},
+            "processing": {"errors": self.process_errors, **self._lag()},
             "detector": {"method": self.cfg.detector.method, "threshold_g": self.cfg.detector.threshold_g,
-                         "windows": p.windows_seen, **det_stats},
+                         "windows": p.windows_seen, "screened": p.windows_screened, **det_stats},
             "calibration": {"model": st.model, "revision": st.revision, "accepted": st.accepted,
                             "n_windows": st.calibration.n_windows, "rejected_windows": p.windows_rejected,
                             "updated": st.updated},
@@ -898,6 +939,13 @@ class Gravcald:
             "notes": list(self.notes),
             **({"emulator": self.emulator.status()} if self.emulator is not None else {}),
         }
+
+    def _lag(self) -> dict[str, Any]:
+        """How far the detector and estimator are behind acquisition, and the published samples whose
+        `static` was unknown (null) because of it."""
+        analysed = self.processor.analysed[0]
+        lag = (self.last_seq - analysed) / self.cfg.device.fs_hz if analysed is not None and self.last_seq is not None else None
+        return {"analysed_seq": analysed, "lag_s": lag, "static_unknown": self.static_unknown}
 
     def _status_text(self) -> str:
         st = self.processor.state

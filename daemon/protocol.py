@@ -235,6 +235,18 @@ def calib_message(
     return msg
 
 
+STATIC_UNKNOWN = -1  # a static code: the detector has no decision recent enough for this sample (JSON null)
+
+
+def static_words(static: np.ndarray, n: int) -> np.ndarray:
+    """The JSON words of the per-sample ``static`` field: a bool array, or int codes 1 (still),
+    0 (moving) and STATIC_UNKNOWN (null: no decision recent enough, see gravcald.Processor.correct)."""
+    st = np.asarray(static).reshape(n)
+    if st.dtype == bool:
+        return np.where(st, "true", "false")
+    return np.array(["null", "false", "true"])[np.clip(st.astype(np.int64), -1, 1) + 1]
+
+
 # IMU lines are formatted with %-templates: the hot path of the server (one line per sample
 # per encoding), and several times faster than json.dumps on a dict.
 _IMU_HEAD = '{"class":"IMU","seq":%d,"t":%.6f,"acc":[%.5f,%.5f,%.5f],"gyro":%s,"static":%s,"temp":%.2f,"vsupply":%.3f'
@@ -280,7 +292,7 @@ def encode_imu_joined(
     cols: list[Any] = [samples["seq"], samples["t"], acc[:, 0], acc[:, 1], acc[:, 2]]
     if not gyro_null:
         cols.append(gyro)
-    cols += [np.where(np.asarray(static, dtype=bool).reshape(n), "true", "false"),
+    cols += [static_words(static, n),
              samples["temp"], samples["vsupply"]]
     template = _HEAD_FIELDS.replace("{gyro}", "null" if gyro_null else "%.6f")
     if raw:
@@ -306,19 +318,18 @@ def encode_imu(
     """IMU lines for a block of samples (SAMPLE_DTYPE) with their calibrated values.
 
     acc_ms2 (N, 3) calibrated specific force [m/s²]; gyro_rads (N,) rate [rad/s] (NaN:
-    not calibrated -> null); static (N,) bool. ``raw`` adds the driver's raw fields.
+    not calibrated -> null); static (N,) bool or codes (:func:`static_words`). ``raw`` adds the driver's raw fields.
     """
     n = samples.shape[0]
     acc = np.asarray(acc_ms2, dtype=float).reshape(n, 3)
     gyro = np.asarray(gyro_rads, dtype=float).reshape(n)
-    stat = np.asarray(static, dtype=bool).reshape(n)
     seq = samples["seq"].tolist()
     t = samples["t"].tolist()
     temp = samples["temp"].astype(float).tolist()
     vs = samples["vsupply"].astype(float).tolist()
     accl = acc.tolist()
     gyro_s = [("%.6f" % g) if math.isfinite(g) else "null" for g in gyro.tolist()]
-    stat_s = ["true" if s else "false" for s in stat.tolist()]
+    stat_s = static_words(static, n).tolist()
     finite = bool(np.all(np.isfinite(acc)) and np.all(np.isfinite(samples["t"])))
     if finite and np.all(np.isfinite(samples["temp"])) and np.all(np.isfinite(samples["vsupply"])):
         heads = [

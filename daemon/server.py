@@ -308,6 +308,7 @@ class SocketServer:
         # counters (written by the server thread only, except inbox_* under the lock)
         self.published_samples = 0
         self.inbox_overruns = 0  # samples dropped because the server thread fell behind
+        self._inbox_lost = 0  # ... not yet reported to the watchers (DROPPED)
         self.clients_total = 0
         self.clients_rejected = 0
         self.clients_stalled = 0
@@ -373,11 +374,13 @@ class SocketServer:
                 old = self._inbox.popleft()
                 if isinstance(old, ImuBlock):
                     self.inbox_overruns += old.samples.shape[0]
+                    self._inbox_lost += old.samples.shape[0]
                 else:  # never lose a calibration change: keep it, drop the next block instead
                     self._inbox.appendleft(old)
                     for i, o in enumerate(self._inbox):
                         if isinstance(o, ImuBlock):
                             self.inbox_overruns += o.samples.shape[0]
+                            self._inbox_lost += o.samples.shape[0]
                             del self._inbox[i]
                             break
             self._inbox.append(item)
@@ -638,9 +641,15 @@ class SocketServer:
             items = list(self._inbox)
             self._inbox.clear()
             self._wake_pending = False
+            lost, self._inbox_lost = self._inbox_lost, 0
+        watchers = [c for c in self._clients.values() if c.watch.enable]
+        if lost:  # samples this thread fell too far behind to take: every watcher missed them, and is told
+            for c in watchers:
+                c.dropped_total += lost
+                c.dropped_unreported += lost
+                self.dropped_total += lost
         if not items:
             return
-        watchers = [c for c in self._clients.values() if c.watch.enable]
         for k, item in enumerate(items):
             if k:  # hand the previous item to the sockets first: a burst must not overflow queues needlessly
                 for c in watchers:

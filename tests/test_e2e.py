@@ -9,6 +9,10 @@ sensor time and sits within a few mg by ~240 s (measured: median |norm error| 0-
 240-300 s, `gravcal daemon-demo`). The bound asserted, 10 mg over the static samples of
 sensor time 240-300 s, is ~5x the sample noise (ADXL210E 200 µg/√Hz over its ~10 Hz bandwidth
 plus timer quantisation: ~1-2 mg) and far below the start's error (> 100 mg, also asserted).
+"Sensor time 240-300 s" is counted from the first calibration that rests on 240 s of data (CALIB
+`data_through_seq`): on a loaded machine the processing thread may lag the published samples by
+seconds of sensor time at a 50x time-lapse, and the bound is on the estimator, not on the host's
+scheduling (the lag and the samples whose `static` was unknown are in the failure message).
 
 Wall time: the emulator runs 10-50x faster than real time; every wait polls a condition with a
 generous deadline (a loaded 2-core machine), none sleeps for a fixed outcome.
@@ -118,6 +122,7 @@ class Stream:
     def __init__(self):
         self.t, self.err_mg, self.static, self.seq, self.flags = [], [], [], [], []
         self.calibs, self.dropped = [], 0
+        self.calib_at: list[int] = []  # IMU messages received before each CALIB
 
     def take(self, msg: dict) -> None:
         cls = msg["class"]
@@ -131,13 +136,28 @@ class Stream:
                 self.flags.append(msg["flags"])
         elif cls == "CALIB":
             self.calibs.append(msg)
+            self.calib_at.append(len(self.t))
         elif cls == "DROPPED":
             self.dropped += msg["count"]
 
-    def static_median_abs_mg(self, t0: float, t1: float) -> tuple[float, int]:
-        t, e, s = np.array(self.t), np.array(self.err_mg), np.array(self.static)
+    def static_median_abs_mg(self, t0: float, t1: float, first: int = 0) -> tuple[float, int]:
+        t, e, s = np.array(self.t[first:]), np.array(self.err_mg[first:]), np.array(self.static[first:], dtype=bool)
         sel = s & (t >= t0) & (t < t1) & np.isfinite(e)
         return (float(np.median(np.abs(e[sel]))) if sel.any() else math.nan), int(sel.sum())
+
+    def settled_from(self, data_s: float) -> int | None:
+        """Index of the first IMU message after the first accepted CALIB that rests on at least ``data_s``
+        of sensor time (its `data_through_seq`), None before it arrived."""
+        for msg, at in zip(self.calibs, self.calib_at):
+            through = msg.get("data_through_seq")
+            if msg["accepted"] and through is not None and through / FS >= data_s and at < len(self.t):
+                return at
+        return None
+
+    def settled(self) -> bool:
+        """The stream holds the settled span: SETTLED_S's length of sensor time after settled_from(SETTLED_S[0])."""
+        i = self.settled_from(SETTLED_S[0])
+        return i is not None and self.t[-1] >= self.t[i] + SETTLED_S[1] - SETTLED_S[0]
 
 
 def watch_until(client: Client, stream: Stream, done, timeout: float, raw: bool = False) -> None:
@@ -157,13 +177,19 @@ def config_text(tmp: Path, **sections) -> str:
     return "\n".join(lines) + "\n"
 
 
-def assert_converges(stream: Stream, bus: str) -> None:
+def assert_converges(stream: Stream, bus: str, status: dict) -> None:
     start_err, n0 = stream.static_median_abs_mg(0.0, 100.0)
-    late_err, n1 = stream.static_median_abs_mg(*SETTLED_S)
-    assert n0 > 200 and n1 > 200, (n0, n1)
+    i = stream.settled_from(SETTLED_S[0])
+    assert i is not None, f"{bus}: no accepted calibration resting on {SETTLED_S[0]} s of data"
+    t0 = stream.t[i]
+    late_err, n1 = stream.static_median_abs_mg(t0, t0 + SETTLED_S[1] - SETTLED_S[0], first=i)
+    context = (f"CALIBs (revision, accepted, data through [s]): "
+               f"{[(c['revision'], c['accepted'], (c.get('data_through_seq') or 0) / FS) for c in stream.calibs]}; "
+               f"processing {status.get('processing')}; ring {status.get('ring')}; detector {status.get('detector')}")
+    assert n0 > 200 and n1 > 200, (n0, n1, context)
     assert start_err > START_WRONG_MG, f"{bus}: the datasheet start should be visibly wrong, got {start_err:.1f} mg"
-    assert late_err < BOUND_MG, (f"{bus}: static norm error {late_err:.2f} mg over sensor time {SETTLED_S} "
-                                 f"(bound {BOUND_MG} mg); CALIBs: {[(c['revision'], c['accepted']) for c in stream.calibs]}")
+    assert late_err < BOUND_MG, (f"{bus}: static norm error {late_err:.2f} mg over sensor time {t0:.0f}-"
+                                 f"{t0 + SETTLED_S[1] - SETTLED_S[0]:.0f} s (bound {BOUND_MG} mg); {context}")
     accepted = [c for c in stream.calibs if c["accepted"]]
     assert accepted and accepted[-1]["n_windows"] >= 12
 
@@ -201,8 +227,8 @@ def test_serial_calibration_converges_from_the_datasheet_start(serial_daemon):
         first = c.calib()
         assert first["revision"] == 0 and not first["accepted"]
         assert first["offset"] == [0.5, 0.5, 0.5]  # the datasheet start
-        watch_until(c, stream, lambda: stream.t and stream.t[-1] >= SETTLED_S[1], timeout=120)
-    assert_converges(stream, "serial")
+        watch_until(c, stream, stream.settled, timeout=180)
+    assert_converges(stream, "serial", d.status())
     # the first sample came from the start of the emulated stream: nothing was skipped at start-up
     assert stream.seq[0] < FS * 10
     st = d.status()
@@ -333,13 +359,13 @@ def test_sigterm_saves_the_state_and_a_restart_resumes_it(serial_daemon):
 def test_calibration_converges_over_can_and_i2c(tmp_path, bus, speed):
     # CAN: 4 frames per sample in slcan ASCII through a pty and python-can is the slowest link,
     # hence the lower time-lapse (1500 samples/s = 6000 CAN frames/s at 15x).
-    d = Daemon(tmp_path, "--bus", bus, "--scenario", "six_position", "--speed", str(speed), "--duration", "400")
+    d = Daemon(tmp_path, "--bus", bus, "--scenario", "six_position", "--speed", str(speed), "--duration", "600")
     try:
         d.wait_serving()
         stream = Stream()
         with d.client() as c:
-            watch_until(c, stream, lambda: stream.t and stream.t[-1] >= SETTLED_S[1], timeout=120)
-        assert_converges(stream, bus)
+            watch_until(c, stream, stream.settled, timeout=180)
+        assert_converges(stream, bus, d.status())
         st = d.status()
         assert st["emulator"]["bus"] == bus and st["device"]["bus"] == bus
         assert st["device"]["crc_errors" if bus == "i2c" else "bad_frames"] == 0

@@ -61,6 +61,7 @@ BIAS_SIGMAS, BIAS_MAX_COUNTS = 5.0, 1.0
 SENS_SIGMAS = 3.0
 STATIC_MAX_RAD_S = 0.01
 MOVING_RAD_S = 0.1  # |true rate| above which a sample counts as rotating
+STILL_TRUE_RAD_S = 0.01  # |true rate| below which a sample counts as still
 SUPPLY_RIPPLE_REL = 0.002
 RMS_SPREAD = 1.2
 N_SAMPLES = 6000  # 60 s of sensor time: several pose changes
@@ -174,8 +175,9 @@ def test_published_rate_is_the_true_rate(pitch_run):
     assert np.isfinite(r).all(), "once bias and sensitivity are known every IMU gyro value is finite"
     moving = np.abs(e) > MOVING_RAD_S
     assert moving.sum() > 200 and np.abs(e).max() > 0.5, "the record holds pose changes to compare"
-    still = s & ~moving
-    assert still.sum() > 500
+    # still by the truth, not by the published `static` (null while the daemon's analysis lags on a loaded host)
+    still = np.abs(e) < STILL_TRUE_RAD_S
+    assert still.sum() > 500 and s.sum() > 0
     static_err = r[still] - e[still]
     assert float(np.median(np.abs(static_err))) < STATIC_MAX_RAD_S, np.median(np.abs(static_err))
     rms_static = float(np.sqrt(np.mean(static_err**2)))

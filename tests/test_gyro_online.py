@@ -137,3 +137,30 @@ def test_the_online_buffer_stays_bounded_through_hours_without_a_still_moment():
     for _ in range(1800):  # 5 hours at 100 Hz
         online.push(block)
     assert online._buf.shape[0] <= online.horizon_n + block.size
+
+
+def test_a_lagging_caller_handing_over_minutes_at_once_loses_no_pair():
+    """The daemon's processing thread, when it falls behind, analyses a long block at once: every window
+    the detector emits for it must still pair with the previous one (before the fix the gyro buffer was
+    cut to the last 90 s of the block before its windows were folded in, and make_pair raised)."""
+    f = simulate_foot(foot_poses(np.random.default_rng(1011), n_poses=20), 11)
+    seq = np.arange(f.t.size, dtype=float)
+
+    def feed(blocks):
+        det = QuasiStaticDetector(FS, to_g=f.acc_calibration)
+        online = OnlineGyroCalibrator(FS, k=1, axis=(0.0, 1.0, 0.0), hp_hz=0.3, start_sensitivity=NOMINAL,
+                                      range_rad_s=np.radians(300.0), rails=(0, 4095))
+        for i, j in zip(blocks[:-1], blocks[1:]):
+            online.push(f.gyro[i:j])
+            for w in det.update(seq[i:j] / FS, f.acc_raw[i:j]):
+                online.window(w, f.acc_calibration)
+        return online.calibration
+
+    n = f.t.size
+    small = feed(list(range(0, n, BLOCK)) + [n])
+    big = int(150 * FS)  # longer than the buffer horizon (max_gap_s + max_window_s = 90 s)
+    lagging = feed(list(range(0, n, big)) + [n])
+    assert small.n_pairs >= MIN_PAIRS and lagging.n_pairs == small.n_pairs, (small.n_pairs, lagging.n_pairs,
+                                                                             lagging.rejected_pairs)
+    assert "window samples no longer buffered" not in lagging.rejected_pairs
+    np.testing.assert_allclose(lagging.sensitivity, small.sensitivity, rtol=1e-6)

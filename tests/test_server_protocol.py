@@ -137,3 +137,15 @@ def test_decimation_gives_at_most_rate_per_second_for_any_block_split(rate, fs, 
     if rate > 0 and rate < fs:
         gaps = np.diff(sent)
         assert gaps.min() > 1.0 / rate - 2.0 / fs  # never faster than the requested rate (within a sample)
+
+
+@pytest.mark.parametrize("raw", [False, True])
+@pytest.mark.parametrize("nan_acc", [False, True])  # the block fast path and the per-line path
+def test_static_codes_encode_true_false_and_null(raw, nan_acc):
+    s = _block(3)
+    acc = np.array([[0.1, -0.2, 9.80665]] * 3)
+    if nan_acc:
+        acc[1, 0] = np.nan
+    codes = np.array([1, 0, protocol.STATIC_UNKNOWN], dtype=np.int8)
+    msgs = [json.loads(x) for x in protocol.encode_imu_joined(s, acc, np.zeros(3), codes, raw=raw).splitlines()]
+    assert [m["static"] for m in msgs] == [True, False, None]

@@ -42,6 +42,8 @@ ANCHOR_STD_G = 0.3  # weak prior on the start [fraction of 1 g] (see LottersBatc
 STEP_TOL_STD = 1e-6  # Gauss-Newton stops when no parameter moves by more than this fraction of its std
 MAX_PLAUSIBLE_RMS_G = 0.5  # a converged fit leaving more than this RMS |a| - 1 g is not a calibration
 _TINY_VAR_G2 = 1e-14  # guard against zero-variance windows when no floor is given [g²]
+OUTLIER_FLOOR_G = 0.002  # the per-window std floor of the outlier gate when no sigma_floor_g is given [g] (order.SIGMA_FLOOR_G)
+OUTLIER_MAX_FRACTION = 0.1  # the gate leaves out at most this fraction of the windows (more is a model error, not outliers)
 
 
 # --------------------------------------------------------------------------------------
@@ -392,6 +394,14 @@ class LottersBatch:
         of the order over all orientations, including the geometry's amplification of per-window model
         error). Default ``order.TOL_G`` (10 mg, what ``--model auto`` uses), or inf (no rule) when
         max_std_g is inf (reproducing the paper's tables, which report every estimate).
+    outlier_gate_sigma: None (default: every window counts, the paper's estimator) or k: after the fit,
+        windows whose norm residual exceeds k robust sigmas are left out and the rest refitted (at most
+        OUTLIER_MAX_FRACTION of them; metadata ``outlier_windows``, ``outlier_t``). The robust
+        sigma is 1.4826 x the median |residual| in units of each window's own std (noise of its mean plus
+        ``sigma_floor_g``, else OUTLIER_FLOOR_G), never below 1, of a robust (Cauchy-loss) fit. It is the batch counterpart of
+        LottersRecursive's gate: a detector on |a| passes a window that straddles a bump or a smooth
+        acceleration plateau (its mean is off the sphere by tens of mg), and with a data-derived floor
+        such a window keeps the weight of a good one, so a single one moves a 20-window fit by ~10 mg.
     """
 
     def __init__(
@@ -404,7 +414,11 @@ class LottersBatch:
         max_std_g: float = 0.03,
         retry_from_ellipsoid: bool = True,
         tol_g: float | None = None,
+        outlier_gate_sigma: float | None = None,
     ):
+        if outlier_gate_sigma is not None and not (outlier_gate_sigma > 0 and math.isfinite(outlier_gate_sigma)):
+            raise ValueError(f"outlier_gate_sigma must be a finite number > 0 or None, got {outlier_gate_sigma!r}")
+        self.outlier_gate_sigma = outlier_gate_sigma
         if sigma_floor_g is not None and not (sigma_floor_g >= 0 and math.isfinite(sigma_floor_g)):
             raise ValueError(f"sigma_floor_g must be a finite number >= 0, got {sigma_floor_g!r}")
         self.model = model
@@ -481,6 +495,38 @@ class LottersBatch:
     # -- public ------------------------------------------------------------------------
     def fit(self, ws: WindowSet, start: Calibration | None = None) -> Calibration:
         """Calibration (raw = K a + o) from quasi-static windows; raises ValueError on unusable input."""
+        return self._fit(ws, start, gate=self.outlier_gate_sigma is not None)
+
+    def _outliers(self, par: Parameterization, sol: _Solve, mean: np.ndarray, floor2: float) -> np.ndarray:
+        """Windows more than outlier_gate_sigma robust sigmas off a robust fit (bool (m,)), the largest first,
+        at most OUTLIER_MAX_FRACTION of them. The robust fit (Cauchy loss on the residuals in units of each
+        window's std, scipy.optimize.least_squares from the least-squares solution) keeps two outliers from
+        masking each other: least squares spreads them over the other windows, so its residuals would not
+        single them out."""
+        from scipy.optimize import least_squares  # noqa: PLC0415
+
+        floor_g2 = floor2 if self.sigma_floor_g is not None else OUTLIER_FLOOR_G**2
+        sd = np.sqrt(np.maximum(sol.var_g2 - floor2 + floor_g2, _TINY_VAR_G2))
+
+        def resid(p: np.ndarray) -> np.ndarray:
+            return (1.0 - par.norm_and_jacobian(p, mean)[0]) / sd
+
+        def jac(p: np.ndarray) -> np.ndarray:
+            return -par.norm_and_jacobian(p, mean)[1] / sd[:, None]
+
+        try:
+            rob = least_squares(resid, sol.p, jac=jac, loss="cauchy", f_scale=1.0, x_scale="jac", max_nfev=200)
+            r = np.abs(resid(rob.x))
+        except (ValueError, np.linalg.LinAlgError):
+            r = np.abs(sol.resid_g) / sd
+        sigma = max(1.4826 * float(np.median(r)), 1.0)
+        over = np.flatnonzero(r > self.outlier_gate_sigma * sigma)
+        over = over[np.argsort(-r[over])][: int(OUTLIER_MAX_FRACTION * len(r))]
+        mask = np.zeros(len(r), dtype=bool)
+        mask[over] = True
+        return mask
+
+    def _fit(self, ws: WindowSet, start: Calibration | None, *, gate: bool = False) -> Calibration:
         if not isinstance(ws, WindowSet):
             raise ValueError(f"expected a WindowSet, got {type(ws).__name__}")
         validate_windows(ws)
@@ -522,6 +568,16 @@ class LottersBatch:
                 notes.append(f"ellipsoid-fit retry impossible: {exc}")
 
         m, P = len(ws), par.n_params
+        if gate and sol.converged:
+            out = self._outliers(par, sol, mean, floor2)
+            if out.any() and m - int(out.sum()) >= P + 3:
+                cal = self._fit(ws.subset(np.flatnonzero(~out)), start)
+                cal.metadata["outlier_windows"] = int(out.sum())
+                cal.metadata["outlier_t"] = [float(t) for t in ws.t[out]]
+                note = (f"left out {int(out.sum())} of {m} windows whose |a| is more than {self.outlier_gate_sigma:g} "
+                        f"robust sigmas off the fit (not quasi-static: a bump or an acceleration plateau)")
+                cal.message = "; ".join(x for x in (cal.message, note) if x)
+                return cal
         dof = m - P
         chi2_red_stat = sol.chi2 / dof if dof > 0 else float("nan")
         floor_used = math.sqrt(floor2)

@@ -399,7 +399,8 @@ class OnlineCalibrator:
         else:
             fit_start = _reference_start(model, here, self.lab)
         try:
-            cal = LottersBatch(model, sigma_floor_g=self.sigma_floor_g).fit(ws, fit_start)
+            # gated as the recursion gates each window: the store holds every window, the bumps it rejected too
+            cal = LottersBatch(model, sigma_floor_g=self.sigma_floor_g, outlier_gate_sigma=self.gate_sigma).fit(ws, fit_start)
         except ValueError as exc:
             log.info("re-seed with order %s not possible: %s", model, exc)
             self.reason += f"; re-seed with order {model} failed ({exc}), order {self.model} kept"

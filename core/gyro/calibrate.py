@@ -439,12 +439,15 @@ class OnlineGyroCalibrator:
     def push(self, gyro_block: np.ndarray) -> None:
         y = np.asarray(gyro_block, float).reshape(-1, self.k)
         self._buf = np.concatenate([self._buf, y])
+        block_start = self._n
         self._n += y.shape[0]
-        keep_from = self._n - self.horizon_n
-        # the last window's samples while a window can still pair with it: any window ending from now
-        # on starts at most max_window_s ago, so beyond max_gap_s + max_window_s after the last
-        # window's end the pair is "too long between windows" anyway (counted then)
-        if self._prev is not None and self._n - self._prev.end <= self.horizon_n:
+        # counted from the start of this block, not its end: the windows the detector emits for this block
+        # (any number, a lagging caller hands over seconds at once) end inside it, so each starts at most
+        # max_window_s before block_start and needs no older samples of its own ...
+        keep_from = block_start - self.horizon_n
+        # ... and the last window's samples while a window can still pair with it: beyond max_gap_s +
+        # max_window_s after the last window's end the pair is "too long between windows" anyway (counted then)
+        if self._prev is not None and block_start - self._prev.end <= self.horizon_n:
             keep_from = min(self._prev.start, keep_from)
         cut = max(0, keep_from - self._buf_start)
         if cut:
@@ -475,6 +478,9 @@ class OnlineGyroCalibrator:
             return
         if w.start <= prev.end + 1:
             self.rejected[NO_ROTATION] += 1
+            return
+        if prev.start < self._buf_start:  # (push keeps them; a caller that skipped blocks)
+            self.rejected["window samples no longer buffered"] += 1
             return
         ws = WindowSet.from_windows([prev, w])
         pair = make_pair(self._buf, ws, 0, 1, acc_calibration, bias=self.bias_est.bias, fs=self.fs,
