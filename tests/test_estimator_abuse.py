@@ -242,3 +242,21 @@ def test_remount_leaves_the_calibration_valid_and_the_daemon_reports_it(caplog):
     tr = truth_params(truth)
     vals = truth_params(cal)
     assert max(abs(vals[k] - tr[k]) / cal.std[k] for k in PARAMS) < K_SIGMA
+
+
+def test_a_window_moving_more_than_the_offline_screen_allows_is_not_used():
+    """The daemon applies the offline pipeline's screen (pipeline.screen_windows, MAX_WINDOW_STD_G per
+    axis) before anything else: a window whose samples move 60 mg on an axis (a slow turn at constant |a|
+    that the |a| detector cannot see) is counted and never reaches the pool or the estimator; one at
+    40 mg is used."""
+    from gravcal.core.pipeline import MAX_WINDOW_STD_G
+
+    p = processor()
+    K = np.asarray(p.applied.sensitivity)
+    mean = np.asarray(p.applied.offset) + K @ np.array([0.0, 0.0, 1.0])
+    for std_g, used in ((1.5 * MAX_WINDOW_STD_G, False), (0.8 * MAX_WINDOW_STD_G, True)):
+        cov = K @ np.diag([std_g**2, 1e-8, 1e-8]) @ K.T
+        before = (p.windows_screened, len(p.pool), p.online.n_windows)
+        p._window(Window(0, 400, 0.0, 2.0, mean, cov, np.array([25.0])))
+        after = (p.windows_screened, len(p.pool), p.online.n_windows)
+        assert after == ((before[0], before[1] + 1, before[2] + 1) if used else (before[0] + 1, before[1], before[2]))
