@@ -5,14 +5,16 @@ socket clients talking the protocol, signals and sd_notify as systemd would use 
 The emulated sensor is drawn off-nominal from the seed; the daemon starts from the ADXL210
 datasheet values (offsets off by up to ~0.9 g for seed 0, sensitivities by ~7 %). The scenario
 is six_position (the board turned through its faces): the estimate is accepted after ~130 s of
-sensor time and sits within a few mg by ~240 s (measured: median |norm error| 0-3 mg at
-240-300 s, `gravcal daemon-demo`). The bound asserted, 10 mg over the static samples of
-sensor time 240-300 s, is ~5x the sample noise (ADXL210E 200 µg/√Hz over its ~10 Hz bandwidth
-plus timer quantisation: ~1-2 mg) and far below the start's error (> 100 mg, also asserted).
-"Sensor time 240-300 s" is counted from the first calibration that rests on 240 s of data (CALIB
-`data_through_seq`): on a loaded machine the processing thread may lag the published samples by
-seconds of sensor time at a 50x time-lapse, and the bound is on the estimator, not on the host's
-scheduling (the lag and the samples whose `static` was unknown are in the failure message).
+sensor time and sits within ~1 mg from then on (measured: median |norm error| 0.6-1.5 mg per
+20 s, `gravcal daemon-demo`). The bound asserted, 10 mg over the still samples of 60 s of sensor
+time, is ~5x the sample noise (ADXL210E 200 µg/√Hz over its ~10 Hz bandwidth plus timer
+quantisation: ~1-2 mg) and far below the start's error (> 100 mg, also asserted).
+The 60 s start at the first calibration that rests on 240 s of data (CALIB `data_through_seq`),
+and "still" is the emulated motion's own (its six_position holds, from the seed), not the
+daemon's `static`: on a loaded machine the processing thread may lag the published samples by
+tens of seconds of sensor time at a 50x time-lapse (measured in CI: 38 s), its calibration lags
+with it and `static` is null meanwhile. The bound is on the estimator, not on the host's
+scheduling (the lag is in the failure message).
 
 Wall time: the emulator runs 10-50x faster than real time; every wait polls a condition with a
 generous deadline (a loaded 2-core machine), none sleeps for a fixed outcome.
@@ -34,6 +36,8 @@ import numpy as np
 import pytest
 
 from gravcal.core.samples import FLAG_GAP_BEFORE, FLAG_RECONNECT
+from gravcal.core.scenarios import plan_motion
+from gravcal.core.simulate import _streams  # the emulator's seed -> (motion, model, sensor) streams
 from gravcal.daemon.client import Client, ClientError
 
 G = 9.80665
@@ -140,8 +144,11 @@ class Stream:
         elif cls == "DROPPED":
             self.dropped += msg["count"]
 
-    def static_median_abs_mg(self, t0: float, t1: float, first: int = 0) -> tuple[float, int]:
-        t, e, s = np.array(self.t[first:]), np.array(self.err_mg[first:]), np.array(self.static[first:], dtype=bool)
+    def static_median_abs_mg(self, t0: float, t1: float, first: int = 0, still: np.ndarray | None = None) -> tuple[float, int]:
+        """Median |norm error| [mg] of the still samples in sensor time [t0, t1) from message ``first`` on;
+        still: the daemon's `static` flags, or a mask over the stream's samples (e.g. true_still)."""
+        s = np.array(self.static if still is None else still, dtype=bool)[first:]
+        t, e = np.array(self.t[first:]), np.array(self.err_mg[first:])
         sel = s & (t >= t0) & (t < t1) & np.isfinite(e)
         return (float(np.median(np.abs(e[sel]))) if sel.any() else math.nan), int(sel.sum())
 
@@ -177,12 +184,22 @@ def config_text(tmp: Path, **sections) -> str:
     return "\n".join(lines) + "\n"
 
 
-def assert_converges(stream: Stream, bus: str, status: dict) -> None:
-    start_err, n0 = stream.static_median_abs_mg(0.0, 100.0)
+def true_still(stream: Stream, duration_s: float) -> np.ndarray:
+    """The emulated motion's own still samples (six_position holds) at the stream's seq: what the error is
+    measured on, independent of the daemon's `static` flags (null while its analysis lags the stream)."""
+    seq = np.asarray(stream.seq, dtype=np.int64)
+    plan = plan_motion("six_position", duration=duration_s, fs=FS, rng=_streams(SEED)[0])
+    return plan.render(0, int(seq.max()) + 1).still[seq]
+
+
+def assert_converges(stream: Stream, bus: str, status: dict, duration_s: float) -> None:
+    still = true_still(stream, duration_s)
+    start_err, n0 = stream.static_median_abs_mg(0.0, 100.0, still=still)
     i = stream.settled_from(SETTLED_S[0])
     assert i is not None, f"{bus}: no accepted calibration resting on {SETTLED_S[0]} s of data"
     t0 = stream.t[i]
-    late_err, n1 = stream.static_median_abs_mg(t0, t0 + SETTLED_S[1] - SETTLED_S[0], first=i)
+    late_err, n1 = stream.static_median_abs_mg(t0, t0 + SETTLED_S[1] - SETTLED_S[0], first=i, still=still)
+
     context = (f"CALIBs (revision, accepted, data through [s]): "
                f"{[(c['revision'], c['accepted'], (c.get('data_through_seq') or 0) / FS) for c in stream.calibs]}; "
                f"processing {status.get('processing')}; ring {status.get('ring')}; detector {status.get('detector')}")
@@ -197,6 +214,7 @@ def assert_converges(stream: Stream, bus: str, status: dict) -> None:
 # -- the serial daemon: convergence, protocol, clients, reload, stop, restart ---------------
 
 SERIAL_SPEED = 50.0
+SERIAL_DURATION_S = 1500.0
 
 
 @pytest.fixture(scope="module")
@@ -205,7 +223,7 @@ def serial_daemon(tmp_path_factory):
     cfg = config_text(tmp, socket={"queue_messages": 20000, "stall_timeout_s": 30.0},
                       state={"save_interval_s": 3600.0}, detector={"threshold_g": 0.02})
     d = Daemon(tmp, "--bus", "serial", "--scenario", "six_position", "--speed", str(SERIAL_SPEED),
-               "--duration", "1500", config=cfg)
+               "--duration", str(SERIAL_DURATION_S), config=cfg)
     try:
         d.wait_serving()
         yield d
@@ -228,7 +246,7 @@ def test_serial_calibration_converges_from_the_datasheet_start(serial_daemon):
         assert first["revision"] == 0 and not first["accepted"]
         assert first["offset"] == [0.5, 0.5, 0.5]  # the datasheet start
         watch_until(c, stream, stream.settled, timeout=180)
-    assert_converges(stream, "serial", d.status())
+    assert_converges(stream, "serial", d.status(), SERIAL_DURATION_S)
     # the first sample came from the start of the emulated stream: nothing was skipped at start-up
     assert stream.seq[0] < FS * 10
     st = d.status()
@@ -341,7 +359,7 @@ def test_sigterm_saves_the_state_and_a_restart_resumes_it(serial_daemon):
             stream = Stream()
             # no re-learning: the first static samples of the new stream are already calibrated
             watch_until(c, stream, lambda: stream.t and stream.t[-1] >= 40.0, timeout=60)
-            err, n = stream.static_median_abs_mg(0.0, 40.0)
+            err, n = stream.static_median_abs_mg(0.0, 40.0, still=true_still(stream, 600.0))
             assert n > 200 and err < BOUND_MG, (err, n)
             # and the estimator goes on from there: revisions continue, windows accumulate
             later = poll(lambda: (m := c.calib())["revision"] > saved["revision"] and m, 60, "a new revision")
@@ -365,7 +383,7 @@ def test_calibration_converges_over_can_and_i2c(tmp_path, bus, speed):
         stream = Stream()
         with d.client() as c:
             watch_until(c, stream, stream.settled, timeout=180)
-        assert_converges(stream, bus, d.status())
+        assert_converges(stream, bus, d.status(), 600.0)
         st = d.status()
         assert st["emulator"]["bus"] == bus and st["device"]["bus"] == bus
         assert st["device"]["crc_errors" if bus == "i2c" else "bad_frames"] == 0
