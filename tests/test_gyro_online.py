@@ -27,13 +27,13 @@ K_SIGMA = 4.0
 BLOCK = 5  # samples per block, as a serial driver delivers them
 
 
-def daemon_feed(gyro, seq, raw, acc, *, after_s=130.0):
+def daemon_feed(gyro, seq, raw, acc, *, after_s=130.0, block=BLOCK):
     det = QuasiStaticDetector(FS, to_g=acc)
     online = OnlineGyroCalibrator(FS, k=1, axis=(0.0, 1.0, 0.0), hp_hz=0.3, start_sensitivity=NOMINAL,
                                   range_rad_s=np.radians(300.0), rails=(0, 4095))
-    for i in range(0, gyro.shape[0], BLOCK):
-        online.push(gyro[i:i + BLOCK])
-        for w in det.update(seq[i:i + BLOCK] / FS, raw[i:i + BLOCK]):
+    for i in range(0, gyro.shape[0], block):
+        online.push(gyro[i:i + block])
+        for w in det.update(seq[i:i + block] / FS, raw[i:i + block]):
             if w.t_end >= after_s:  # windows before the accelerometer is accepted are dropped
                 online.window(w, acc)
     return online.calibration
@@ -146,20 +146,9 @@ def test_a_lagging_caller_handing_over_minutes_at_once_loses_no_pair():
     f = simulate_foot(foot_poses(np.random.default_rng(1011), n_poses=20), 11)
     seq = np.arange(f.t.size, dtype=float)
 
-    def feed(blocks):
-        det = QuasiStaticDetector(FS, to_g=f.acc_calibration)
-        online = OnlineGyroCalibrator(FS, k=1, axis=(0.0, 1.0, 0.0), hp_hz=0.3, start_sensitivity=NOMINAL,
-                                      range_rad_s=np.radians(300.0), rails=(0, 4095))
-        for i, j in zip(blocks[:-1], blocks[1:]):
-            online.push(f.gyro[i:j])
-            for w in det.update(seq[i:j] / FS, f.acc_raw[i:j]):
-                online.window(w, f.acc_calibration)
-        return online.calibration
-
-    n = f.t.size
-    small = feed(list(range(0, n, BLOCK)) + [n])
-    big = int(150 * FS)  # longer than the buffer horizon (max_gap_s + max_window_s = 90 s)
-    lagging = feed(list(range(0, n, big)) + [n])
+    small = daemon_feed(f.gyro, seq, f.acc_raw, f.acc_calibration, after_s=0.0)
+    # longer than the buffer horizon (max_gap_s + max_window_s = 90 s)
+    lagging = daemon_feed(f.gyro, seq, f.acc_raw, f.acc_calibration, after_s=0.0, block=int(150 * FS))
     assert small.n_pairs >= MIN_PAIRS and lagging.n_pairs == small.n_pairs, (small.n_pairs, lagging.n_pairs,
                                                                              lagging.rejected_pairs)
     assert "window samples no longer buffered" not in lagging.rejected_pairs
