@@ -8,6 +8,10 @@ Convention (the same everywhere in gravcal, and in ``gravcal calibrate --json``)
 ``sensitivity`` is 3x3 (diagonal for the 6-parameter model), in raw units per g;
 ``offset`` in raw units. ``covariance`` is over the estimated parameters named in
 ``param_names``, in the same raw units; parameters held fixed have no entry.
+
+An extended calibration (model ``"<order>+<term>..."``, e.g. ``"6+temperature_offset"``) holds K and
+o at reference conditions and, in ``metadata``, the parameters of its terms (``params``) and their
+references (``extended``); :meth:`Calibration.apply` applies every term at each sample's covariates.
 """
 from __future__ import annotations
 
@@ -17,6 +21,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from .model.effect import apply_terms, needed_covariates, references
+from .model.terms import COVARIATES, calibration_view
 
 SCHEMA = "gravcal.calibration/1"
 
@@ -42,10 +49,53 @@ class Calibration:
             self.covariance = np.zeros((len(self.param_names), len(self.param_names)))
 
     # -- use -------------------------------------------------------------------------
-    def apply(self, raw: np.ndarray) -> np.ndarray:
-        """Calibrated acceleration [g] from raw triad rows (N, 3) or one row (3,)."""
+    def apply(self, raw: np.ndarray, *, temp: Any = None, vsupply: Any = None, t: Any = None) -> np.ndarray:
+        """Calibrated acceleration [g] from raw triad rows (N, 3) or one row (3,), with every term the
+        calibration carries applied at each row's covariates: ``temp`` [°C], ``vsupply`` [V], ``t`` [s]
+        (arrays of N or scalars; only those its terms need). A covariate the terms need and not given
+        is an error naming it: applying the reference K, o alone would silently drop the terms."""
+        terms = self.extended_terms
+        if not terms:
+            return self.apply_reference(raw)
+        given = {"temp": temp, "vsupply": vsupply, "time": t}
+        missing = [c for c in needed_covariates(terms) if given[c] is None]
+        if missing:
+            raise ValueError(f"calibration {self.model} needs the {' and '.join(COVARIATES[c].label for c in missing)} of each sample "
+                             f"(its terms: {', '.join(terms)})")
+        raw = np.asarray(raw, dtype=float)
+        params = self.metadata.get("params") or {}
+        extra = np.array([float(params[n]) for n in self.extended_param_names])
+        a = apply_terms(self.sensitivity, self.offset, terms, extra, raw.reshape(-1, 3), given,
+                        references(self.metadata["extended"]))
+        return a.reshape(raw.shape)
+
+    def apply_reference(self, raw: np.ndarray) -> np.ndarray:
+        """K^-1 (raw - o) at the reference conditions [g]: for directions (postures, coverage), where
+        the terms' small changes do not matter; a plain calibration's whole correction."""
         raw = np.asarray(raw, dtype=float)
         return np.linalg.solve(self.sensitivity, (raw - self.offset).T).T
+
+    @property
+    def extended_terms(self) -> tuple[str, ...]:
+        """The terms an extended calibration carries (empty for a plain one); a calibration named after an
+        extended model without its terms' parameters is refused."""
+        ext = self.metadata.get("extended") if isinstance(self.metadata, dict) else None
+        if not ext:
+            if "+" in str(self.model):
+                raise ValueError(f"calibration of extended model {self.model!r} carries no metadata['extended'] "
+                                 f"(its terms' parameters are unknown): re-fit it")
+            return ()
+        return tuple(ext.get("terms", ()))
+
+    @property
+    def extended_param_names(self) -> list[str]:
+        """Names of the terms' parameters in ``metadata['params']`` (3 per term, in term order)."""
+        names = [n for t in self.extended_terms for n in calibration_view(t).param_names()]
+        params = self.metadata.get("params") or {}
+        missing = [n for n in names if n not in params]
+        if missing:
+            raise ValueError(f"calibration {self.model!r}: metadata['params'] lacks {missing}: cannot apply its terms")
+        return names
 
     @property
     def std(self) -> dict[str, float]:

@@ -54,7 +54,7 @@ def make_parameterization(model: str | Parameterization, cal: Calibration) -> Pa
 
 def on_ellipsoid(ws: WindowSet, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
     """(directions a_i (M, 3) unit [g], noise-free means r_i* = K a_i + o (M, 3) raw)."""
-    a = cal.apply(ws.mean)
+    a = cal.apply_reference(ws.mean)
     a = a / np.linalg.norm(a, axis=1, keepdims=True)
     return a, a @ cal.sensitivity.T + cal.offset
 

@@ -29,7 +29,9 @@ import numpy as np
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.lotters import (START_TOLERANCE, LottersBatch, _relative_difference,
                                              resolve_parameterization, start_far_note)
-from gravcal.core.estimators.order import extended_base
+from gravcal.core.estimators.order import extended_base, extended_terms
+from gravcal.core.model.effect import needed_covariates
+from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.heldout import HeldoutResult, heldout_error
 from gravcal.core.windows import WindowSet
 
@@ -49,9 +51,10 @@ REDETECT_CHANGE = 0.02  # re-detect when the fit moved the start by more than 2 
 
 MODELS = ("auto",)  # model names calibrate_recording accepts beyond PARAMETERIZATIONS (`gravcal calibrate --model`)
 AUTO_MIN_WINDOWS = 3  # auto needs at least the offsets' 3 windows (6 for sensitivities)
-# extended terms auto may add on top of the chosen order, each only on top of the previous one (chosen):
-# judged by the online path's rule (order.term_testability, order.is_observable_extended, order.compare_extended)
-AUTO_EXTENDED_TERMS = ("temperature_offset", "temperature_sensitivity")
+# extended terms auto may add on top of the chosen order: every registered calibration term except the
+# cross-axis one (the order rule's 6-vs-full comparison decides that), judged by the online path's rule
+# (order.term_testability, order.is_observable_extended, order.compare_extended)
+AUTO_EXTENDED_TERMS = tuple(t for t in CALIBRATION_TERMS if calibration_view(t).acts_on != "cross")
 
 
 class OrderNotDetermined(ValueError):
@@ -201,6 +204,18 @@ def data_start(t: np.ndarray, raw: Any, fs: float | None = None) -> Calibration:
     return _bootstrap(t, _Columns(raw), float(fs) if fs else _estimate_fs(t))
 
 
+def covariate_columns(n: int, temp: Any, vsupply: Any) -> Any:
+    """The windows' aux channels for the samples, in AUX_COLUMNS order: None, temp (N,) [°C] alone, or
+    (N, 2) temp and vsupply [V] (temp NaN when the recording has none)."""
+    if vsupply is None:
+        return temp
+    v = np.asarray(vsupply, dtype=float)
+    if v.shape != (n,):
+        raise ValueError(f"vsupply must have one value per raw row ({n}), got {v.shape[0] if v.ndim else 'a scalar'}")
+    T = np.full(n, np.nan) if temp is None else np.asarray(temp, dtype=float)
+    return np.column_stack([T, v])
+
+
 def _block_stats(t: np.ndarray, cols: _Columns, fs: float, temp: Any) -> Any:
     """One pass over the samples: core.fastdetect.BlockStats (mapped pages released as it goes)."""
     from gravcal.core.fastdetect import block_stats
@@ -240,11 +255,11 @@ def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calib
     windows = []
     for i in range(0, cols.n, CHUNK):
         j = min(i + CHUNK, cols.n)
-        aux = None if temp is None else np.asarray(temp[i:j], dtype=float)[:, None]
+        aux = None if temp is None else np.asarray(temp[i:j], dtype=float).reshape(j - i, -1)
         windows += det.update(np.asarray(t[i:j], dtype=float), cols.block(i, j), aux)
     windows += det.flush()
     if not windows:
-        k = 0 if temp is None else 1
+        k = 0 if temp is None else (1 if np.ndim(temp) == 1 else np.shape(temp)[1])
         return WindowSet(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0), np.zeros((0, k)),
                          np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
     return WindowSet.from_windows(windows)
@@ -273,6 +288,7 @@ def calibrate_recording(
     raw: Any,
     *,
     temp: Any = None,
+    vsupply: Any = None,
     model: Any = "auto",
     fs: float | None = None,
     detector: str = "lotters",
@@ -285,7 +301,7 @@ def calibrate_recording(
     detection: str = "auto",
 ) -> CalibrationReport:
     """Calibrate a recording: t (N,) [s], raw (N, 3) or three (N,) columns [raw units: ax, ay, az],
-    optional temp (N,) [°C] (kept as the windows' aux mean). Raises ValueError with a precise
+    optional temp (N,) [°C] and vsupply (N,) [V] (kept as the windows' aux means). Raises ValueError with a precise
     message on unusable input (no quasi-static windows, too few, bad shapes).
 
     ``model``: "auto" (default: ``order.select_order`` on the windows chooses offsets, 6, or the full
@@ -319,9 +335,13 @@ def calibrate_recording(
 
     if not (model == "auto" or isinstance(model, str)):
         raise ValueError(f"model must be 'auto' or a model name, not {type(model).__name__}")
-    if temp is None and "+" in model and "+temperature" in model:
-        raise ValueError(f"model {model!r} has temperature terms: the recording needs a temperature column "
-                         f"(temp [°C]) and has none")
+    if "+" in model:
+        given = {"temp": temp, "vsupply": vsupply, "time": t}
+        missing = [c for c in needed_covariates(extended_terms(model)) if given[c] is None]
+        if missing:
+            raise ValueError(f"model {model!r} has terms that need a {' and a '.join(COVARIATES[c].label for c in missing)} "
+                             f"column; the recording has none")
+    temp = covariate_columns(cols.n, temp, vsupply)
     user_start = start
     if start is None and lab is not None:
         start = lab
@@ -456,72 +476,91 @@ def _extended_start(model: str, cal: Calibration, lab: Calibration | None) -> Ca
 
 def _auto_extended(ws: WindowSet, base: str, base_cal: Calibration, lab: Calibration | None,
                    sigma_floor_g: float | None, folds: int) -> tuple[str, Calibration, dict[str, dict[str, Any]]]:
-    """Model auto: add AUTO_EXTENDED_TERMS on top of the chosen order ``base`` (fitted: ``base_cal``), each
-    only on top of the previous one, by the rule the online calibrator applies (core/estimators/online.py):
-    testable (order.term_testability: a temperature channel with a spread), observable
-    (order.is_observable_extended: predicted error over orientations and the session's temperatures <= 10 mg)
-    and warranted (order.compare_extended: BIC *and* held-out error better than the model without it).
+    """Model auto: add AUTO_EXTENDED_TERMS on top of the chosen order ``base`` (fitted: ``base_cal``) by the
+    rule the online calibrator applies (core/estimators/online.py): testable (order.term_testability: the
+    term's covariate present with its spread), observable (order.is_observable_extended: predicted error
+    over orientations and the session's covariates <= 10 mg) and warranted (order.compare_extended: BIC
+    *and* held-out error better than the model without it). Forward selection: each round tries every
+    remaining term on top of the current model and adds the one with the lowest BIC among the warranted.
     Returns (model, its fit, {term: {"status", "reason", ...}}); status is one of "chosen", "untestable",
     "not observable", "not warranted", "not tried"."""
     from gravcal.core.estimators.extended import model_name
-    from gravcal.core.estimators.order import (SIGMA_FLOOR_G, compare_extended, extended_terms,
-                                               is_observable_extended, term_testability)
+    from gravcal.core.estimators.order import (SIGMA_FLOOR_G, compare_extended, is_observable_extended,
+                                               term_testability)
 
     status: dict[str, dict[str, Any]] = {}
     model, cal = base, base_cal
+    remaining = []
     for term in AUTO_EXTENDED_TERMS:
-        if term.startswith("temperature") and (ws.aux.ndim != 2 or ws.aux.shape[1] == 0):
-            status[term] = {"status": "untestable", "reason": "no temperature column"}
-            continue
-        if model != model_name(base, AUTO_EXTENDED_TERMS[:AUTO_EXTENDED_TERMS.index(term)]):
-            prev = AUTO_EXTENDED_TERMS[AUTO_EXTENDED_TERMS.index(term) - 1]
-            status[term] = {"status": "not tried", "reason": f"tried only on top of {prev}, which was not chosen"}
-            continue
         ok, why = term_testability(ws, term)
-        if not ok:
+        if ok:
+            remaining.append(term)
+        else:
             status[term] = {"status": "untestable", "reason": why}
-            continue
-        cand = model_name(base, (*extended_terms(model), term))
+    while remaining:
         if "+" in model and lab is not None:
             # compare_extended's reference start for an extended base is the diagonal one: it would drop the
             # lab frame / lab cross-axis terms the base holds
-            status[term] = {"status": "not tried", "reason": f"with a lab calibration {term} is not compared on top "
-                                                             f"of {model} (the comparison would drop the lab frame)"}
-            continue
+            for term in remaining:
+                status[term] = {"status": "not tried", "reason": f"with a lab calibration {term} is not compared on "
+                                                                 f"top of {model} (the comparison would drop the lab frame)"}
+            break
         at = _extended_start(model, cal, lab)
-        try:
-            ok, obs = is_observable_extended(ws, at, cand)
-        except (ValueError, np.linalg.LinAlgError) as exc:
-            ok, obs = False, {"reason": f"observability not computable ({exc})", "predicted_mg": None}
-        if not ok:
-            status[term] = {"status": "untestable" if "untestable" in obs else "not observable",
-                            "reason": obs["reason"], "predicted_mg": obs.get("predicted_mg")}
-            continue
-        try:
-            sc = compare_extended(ws, model, cand, at, lab=lab,
-                                  sigma_floor_g=sigma_floor_g if sigma_floor_g is not None else SIGMA_FLOOR_G,
-                                  folds=folds)
-        except (ValueError, np.linalg.LinAlgError) as exc:
-            status[term] = {"status": "not warranted", "reason": f"comparison failed ({exc})",
-                            "predicted_mg": obs.get("predicted_mg")}
-            continue
-        sb, se = sc[model], sc[cand]
-        hb, he = sb["heldout_rms_mg"], se["heldout_rms_mg"]
-        better = se["bic"] < sb["bic"] and (hb is None or he is None or he < hb)
-        cmp = (f"BIC {cand} {se['bic']:.1f} vs {model} {sb['bic']:.1f}" +
-               ("" if hb is None or he is None else f", held-out {he:.4g} vs {hb:.4g} mg"))
-        entry = {"status": "chosen" if better else "not warranted", "reason": cmp,
-                 "predicted_mg": obs.get("predicted_mg"), "comparison": sc}
-        if better:
+        round_: dict[str, dict[str, Any]] = {}
+        for term in remaining:
+            cand = model_name(base, (*extended_terms(model), term))
+            round_[term] = _judge_extended(ws, model, cand, at, lab, sigma_floor_g, folds,
+                                           SIGMA_FLOOR_G, compare_extended, is_observable_extended)
+        warranted = [t for t in remaining if round_[t]["status"] == "chosen"]
+        status.update({t: v for t, v in round_.items()})
+        best = None
+        for term in sorted(warranted, key=lambda t: round_[t]["comparison"][model_name(
+                base, (*extended_terms(model), t))]["bic"]):
+            cand = model_name(base, (*extended_terms(model), term))
             try:
                 fit = LottersBatch(cand, sigma_floor_g=sigma_floor_g).fit(ws, _extended_start(cand, cal, lab))
             except (ValueError, np.linalg.LinAlgError) as exc:
-                fit = None
-                entry = {**entry, "status": "not warranted", "reason": f"{cmp}; fit failed ({exc})"}
-            if fit is not None and not fit.converged:
-                fit = None
-                entry = {**entry, "status": "not warranted", "reason": f"{cmp}; fit did not converge"}
-            if fit is not None:
-                model, cal = cand, fit
-        status[term] = entry
+                status[term] = {**status[term], "status": "not warranted", "reason": f"{status[term]['reason']}; "
+                                                                                     f"fit failed ({exc})"}
+                continue
+            if not fit.converged:
+                status[term] = {**status[term], "status": "not warranted",
+                                "reason": f"{status[term]['reason']}; fit did not converge"}
+                continue
+            best = term
+            model, cal = cand, fit
+            break
+        for term in warranted:
+            if term != best and status[term]["status"] == "chosen":
+                status[term] = {**status[term], "status": "not warranted",
+                                "reason": f"{status[term]['reason']}; {best} explained more (lower BIC)"}
+        if best is None:
+            break
+        remaining = [t for t in remaining if t != best and round_[t]["status"] in ("chosen", "not warranted")
+                     and "fit failed" not in status[t]["reason"]]
     return model, cal, status
+
+
+def _judge_extended(ws: WindowSet, model: str, cand: str, at: Calibration, lab: Calibration | None,
+                    sigma_floor_g: float | None, folds: int, default_floor: float, compare_extended: Any,
+                    is_observable_extended: Any) -> dict[str, Any]:
+    """One candidate's verdict on top of ``model``: observable, then warranted (BIC and held-out)."""
+    try:
+        ok, obs = is_observable_extended(ws, at, cand)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        ok, obs = False, {"reason": f"observability not computable ({exc})", "predicted_mg": None}
+    if not ok:
+        return {"status": "untestable" if "untestable" in obs else "not observable", "reason": obs["reason"],
+                "predicted_mg": obs.get("predicted_mg")}
+    try:
+        sc = compare_extended(ws, model, cand, at, lab=lab,
+                              sigma_floor_g=sigma_floor_g if sigma_floor_g is not None else default_floor, folds=folds)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return {"status": "not warranted", "reason": f"comparison failed ({exc})", "predicted_mg": obs.get("predicted_mg")}
+    sb, se = sc[model], sc[cand]
+    hb, he = sb["heldout_rms_mg"], se["heldout_rms_mg"]
+    better = se["bic"] < sb["bic"] and (hb is None or he is None or he < hb)
+    cmp = (f"BIC {cand} {se['bic']:.1f} vs {model} {sb['bic']:.1f}" +
+           ("" if hb is None or he is None else f", held-out {he:.4g} vs {hb:.4g} mg"))
+    return {"status": "chosen" if better else "not warranted", "reason": cmp, "predicted_mg": obs.get("predicted_mg"),
+            "comparison": sc}

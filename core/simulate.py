@@ -20,7 +20,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from .model import SensorModel
-from .model.adxl210 import Axes, projection_matrix
+from .model.terms import Axes, projection_matrix
 from .model.base import Context
 from .model.defaults import default_model, triad_truth
 from .samples import FLAG_SATURATED, empty

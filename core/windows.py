@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .model.spec import AUX_COLUMNS
+
 
 @dataclass(frozen=True)
 class Window:
@@ -53,6 +55,16 @@ class WindowSet:
     def subset(self, idx: np.ndarray) -> "WindowSet":
         idx = np.asarray(idx)
         return WindowSet(self.mean[idx], self.cov[idx], self.n[idx], self.t[idx], self.aux[idx], self.start[idx], self.end[idx])
+
+    def covariate(self, name: str) -> np.ndarray | None:
+        """The windows' mean of an aux channel by name (``AUX_COLUMNS``: temp [°C], vsupply [V]); time [s]
+        is ``t``. None when the windows carry no such column."""
+        if name == "time":
+            return self.t
+        col = AUX_COLUMNS.index(name)
+        if self.aux.ndim != 2 or self.aux.shape[1] <= col:
+            return None
+        return self.aux[:, col]
 
     @classmethod
     def from_windows(cls, windows: list[Window]) -> "WindowSet":

@@ -74,9 +74,10 @@ def _time(t: float) -> str:
     return f"{t // 3600:02d}:{t // 60 % 60:02d}:{t % 60:02d}"
 
 
-def norm_error_mg(cal, mean: np.ndarray) -> float:
-    """|a| - 1 g [mg] of a window mean (raw units) under a calibration."""
-    return (float(np.linalg.norm(cal.apply(mean))) - 1.0) * 1e3
+def norm_error_mg(cal, w) -> float:
+    """|a| - 1 g [mg] of a window (mean in raw units) under a calibration, at the window's temperature and time."""
+    temp = float(w.aux_mean[0]) if len(w.aux_mean) else float("nan")
+    return (float(np.linalg.norm(cal.apply(np.asarray(w.mean, dtype=float), temp=temp, t=float(w.t_mid)))) - 1.0) * 1e3
 
 
 def param_errors(cal, truth) -> tuple[float, float]:
@@ -143,14 +144,14 @@ class DemoPipeline:
         """One block (t [s], raw triad (N, 3) [duty], temp [°C]) -> calibrated samples (N, 3) [g]."""
         for w in self.detector.update(t, raw, aux=temp[:, None]):  # quasi-static windows
             self.on_window(w)
-        calibrated = self.calibration.apply(raw)  # the correction clients would receive
+        calibrated = self.calibration.apply(raw, temp=temp, t=t)  # the correction clients would receive
         self.n_calibrated += calibrated.shape[0]
         return calibrated
 
     def on_window(self, w) -> None:
         before = self.calibration
-        err = norm_error_mg(before, w.mean)  # held out: before the window is used
-        err_truth = norm_error_mg(self.truth, w.mean)
+        err = norm_error_mg(before, w)  # held out: before the window is used
+        err_truth = norm_error_mg(self.truth, w)
         if self.order != "none":
             self.heldout_mg.setdefault(self.order, []).append(err)
             self.truth_mg.setdefault(self.order, []).append(err_truth)

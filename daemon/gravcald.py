@@ -140,7 +140,7 @@ class SeedPool:
         return len(self.windows)
 
     def add(self, w: Window) -> None:
-        a = self.to_g.apply(np.asarray(w.mean, dtype=float)[None, :])[0]
+        a = self.to_g.apply_reference(np.asarray(w.mean, dtype=float)[None, :])[0]
         norm = float(np.linalg.norm(a))
         cell = tuple(int(v) for v in np.round(3.0 * a / norm)) if norm > 0 and np.isfinite(norm) else (0, 0, 0)
         self.new_cell = cell not in self.cells
@@ -495,7 +495,7 @@ class Processor:
         not see the housing's rotation on the body); it is reported, not corrected."""
         if not self.applied.converged:
             return
-        a = self.applied.apply(np.asarray(w.mean, dtype=float)[None, :])[0]
+        a = self.applied.apply_reference(np.asarray(w.mean, dtype=float)[None, :])[0]
         dur = float(w.t_end - w.t_start) if w.t_end > w.t_start else max(w.n, 1) / self.cfg.device.fs_hz
         ev = self.remount.update(float(w.t_mid), a, dur)
         if ev is not None:

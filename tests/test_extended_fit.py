@@ -93,8 +93,11 @@ def test_apply_extended_corrects_the_temperature_extremes():
             a = apply_extended(cal, ws.mean[sel], temp=T[sel])
             np.testing.assert_allclose(a, apply_windows(cal, ws.subset(np.flatnonzero(sel))), atol=1e-12)
             err = rms(np.linalg.norm(a, axis=1) - 1.0) * 1e3
-            # K, o alone (what apply_extended did with the old batch output): off by c_T (T - 25)
-            plain = rms(np.linalg.norm(cal.apply(ws.mean[sel]), axis=1) - 1.0) * 1e3
+            np.testing.assert_allclose(a, cal.apply(ws.mean[sel], temp=T[sel]), atol=0)  # apply applies every term
+            with pytest.raises(ValueError, match="needs the temperature"):
+                cal.apply(ws.mean[sel])  # never silently at the reference
+            # K, o alone: off by c_T (T - 25)
+            plain = rms(np.linalg.norm(cal.apply_reference(ws.mean[sel]), axis=1) - 1.0) * 1e3
             planted_mg = float(np.max(c_mg) * np.max(np.abs(T[sel] - 25.0)))
             assert err < 2.0 * noise_mg, (seed, err, noise_mg)
             assert plain > 5.0 * err and plain > 0.1 * planted_mg, (seed, plain, err, planted_mg)
@@ -127,7 +130,7 @@ def test_recursive_calibration_carries_the_terms_and_resumes_from_them():
     assert set(out.metadata["extended"]["magnitudes"]["temperature_offset"]["std"]) == {"x", "y", "z"}
     later = ws.subset(np.arange(half, len(ws)))
     err = rms(np.linalg.norm(apply_windows(out, later), axis=1) - 1.0) * 1e3
-    plain = rms(np.linalg.norm(out.apply(later.mean), axis=1) - 1.0) * 1e3
+    plain = rms(np.linalg.norm(out.apply_reference(later.mean), axis=1) - 1.0) * 1e3
     assert err < 2.0 * cal.metadata["insample_rms_mg"] and plain > 5.0 * err, (err, plain)
 
 
@@ -193,7 +196,7 @@ def test_cli_reports_the_coefficient_and_a_heldout_error_that_uses_it(recording,
     still = sim.motion.still & (sim.motion.temp > 22.0 + 0.9 * 12.0)
     raw = raw_triad(sim.samples[still])
     a = apply_extended(cal, raw, temp=sim.samples["temp"][still].astype(float))
-    plain = cal.apply(raw)
+    plain = cal.apply_reference(raw)
     err = abs(float(np.median(np.linalg.norm(a, axis=1))) - 1.0)
     err_plain = abs(float(np.median(np.linalg.norm(plain, axis=1))) - 1.0)
     assert err < 0.2 * err_plain, (err, err_plain)

@@ -12,7 +12,7 @@ from gravcal.core.gyro.conditioning import highpass_ba
 from gravcal.core.gyro.pose import ABOUT_GRAVITY, NO_ROTATION, SATURATED, Pair
 from gravcal.core.gyro.rotation import attitude
 from gravcal.core.gyro.scapellato import Placement, step_height_search
-from gravcal.core.model import default_model
+from gravcal.core.model.defaults import default_model
 from gravcal.core.model.enc03j import conditioning_response, gyro_truth
 from gravcal.core.windows import WindowSet
 

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gravcal.core.model import Context, SensorModel, default_model, triad_truth
-from gravcal.core.model.adxl210 import (
+from gravcal.core.model import Context, SensorModel
+from gravcal.core.model.defaults import default_model, triad_truth
+from gravcal.core.model.terms import (
     AnalogLowpass, Axes, DutyCycle, Misalignment, Noise, OffsetDrift, Timer, misaligned_axes,
 )
 from gravcal.core.model.defaults import CATALOGUE, catalogue_term, linear_channels

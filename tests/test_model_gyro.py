@@ -2,7 +2,7 @@
 import numpy as np
 from scipy import signal
 
-from gravcal.core.model import default_model
+from gravcal.core.model.defaults import default_model
 from gravcal.core.model.enc03j import gyro_null_counts, gyro_scale_counts_per_rad_s
 from gravcal.core.scenarios import Motion
 from gravcal.core.simulate import simulate

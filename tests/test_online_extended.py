@@ -192,7 +192,7 @@ def test_processor_selects_and_applies_the_temperature_term():
     norm_err = np.abs(np.linalg.norm(acc[still], axis=1) / STANDARD_GRAVITY - 1.0)
     assert np.median(norm_err) < 0.003, np.median(norm_err)
     cal = st.calibration
-    plain = np.abs(np.linalg.norm(cal.apply(np.column_stack([tail["t1"][still, i] / 20000.0 for i in range(3)])),
+    plain = np.abs(np.linalg.norm(cal.apply_reference(np.column_stack([tail["t1"][still, i] / 20000.0 for i in range(3)])),
                                   axis=1) - 1.0)
     assert np.median(plain) > 3 * np.median(norm_err)
     # equal to apply_extended (the fast path is the same formula)

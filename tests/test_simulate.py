@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from gravcal.core.calibration import Calibration
-from gravcal.core.model import SensorModel, default_model, triad_truth
+from gravcal.core.model import SensorModel
+from gravcal.core.model.defaults import default_model, triad_truth
 from gravcal.core.samples import FLAG_SATURATED, SAMPLE_DTYPE, raw_triad
 from gravcal.core.scenarios import Motion, make_motion
 from gravcal.core.simulate import simulate, simulate_blocks

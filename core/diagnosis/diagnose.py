@@ -25,6 +25,8 @@ from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.extended import EXTRA_TERMS, ExtendedParameterization, extended_residuals_g
 from gravcal.core.estimators.lotters import HELD_KEY, LottersBatch
 from gravcal.core.estimators.order import coverage, select_order
+from gravcal.core.model.terms import CATALOGUE as TERM_CATALOGUE
+from gravcal.core.model.terms import REGISTRY, term_spec
 from gravcal.core.windows import WindowSet
 
 from .compare import Comparison, simulate_compare
@@ -33,8 +35,9 @@ from .terms import TermSelector, TermTest, select_terms
 
 log = logging.getLogger(__name__)
 
-CATALOGUE: tuple[str, ...] = ("misalignment", "nonlinearity", "temperature_offset", "temperature_sensitivity",
-                              "offset_drift", "sensitivity_drift", "colored_noise", "quantization")
+CATALOGUE: tuple[str, ...] = tuple(sorted(TERM_CATALOGUE, key=lambda c: (
+    REGISTRY[TERM_CATALOGUE[c]].view is None, REGISTRY[TERM_CATALOGUE[c]].view.rank if REGISTRY[TERM_CATALOGUE[c]].view else 0)))
+"""The effects diagnose tests (the registry's catalogue): window-mean terms in canonical order, then noise."""
 OUTLIER_SIGMA = 6.0  # robust (MAD) std of the baseline residual beyond which a window is excluded
 DOMINANT_POSTURE_DEG = 20.0  # offsets-only baseline: term tests on windows this close to the dominant posture
 MIN_WINDOWS = 8  # fewer quasi-static windows: nothing can be tested
@@ -97,22 +100,10 @@ class Diagnosis:
 
 
 def sensor_model_term(effect: str, magnitude: dict[str, Any]) -> dict[str, Any] | None:
-    """The finding as a term of the sensor model (core/model; channels ax, ay, az, ax2 = x, y, z, x)."""
-    v = magnitude.get("value", {})
-    ch = lambda f: [f(v.get("x", 0.0)), f(v.get("y", 0.0)), f(v.get("z", 0.0)), f(v.get("x", 0.0))]  # noqa: E731
-    if effect == "temperature_offset":
-        return {"name": "temperature_offset", "params": {"coef_g_per_c": ch(lambda x: x * 1e-3), "t0_c": 25.0}}
-    if effect == "temperature_sensitivity":
-        return {"name": "temperature_sensitivity", "params": {"coef_per_c": ch(lambda x: x * 1e-2), "t0_c": 25.0}}
-    if effect == "offset_drift":
-        return {"name": "offset_drift", "params": {"rate_g_per_h": ch(lambda x: x * 1e-3),
-                                                   "walk_g_per_sqrt_h": [0.0] * 4}}
-    if effect == "sensitivity_drift":
-        return {"name": "sensitivity_drift", "params": {"rate_per_h": ch(lambda x: x * 1e-2),
-                                                        "walk_per_sqrt_h": [0.0] * 4}}
-    if effect == "nonlinearity":
-        return {"name": "nonlinearity", "params": {"c2": ch(float), "c3": [0.0] * 4}}
-    return None
+    """The finding as a term of the sensor model (core/model; channels ax, ay, az, ax2 = x, y, z, x);
+    None for a term whose view has no forward counterpart."""
+    spec = term_spec(effect)
+    return None if spec.sensor_term is None else spec.sensor_term(magnitude.get("value", {}))
 
 
 def _static_stretches(ws: WindowSet, max_gap: int) -> list[tuple[int, int]]:

@@ -16,23 +16,16 @@ from typing import Any
 import numpy as np
 
 from gravcal.core.calibration import Calibration
-from gravcal.core.model.adxl210 import (Axes, DutyCycle, Misalignment, Nonlinearity, OffsetDrift, SensitivityDrift,
-                                        TemperatureOffset, TemperatureSensitivity)
 from gravcal.core.model.base import Context, SensorModel
-from gravcal.core.model.defaults import D0_TYP, NOISE_DENSITY_UG, SENS_TYP
+from gravcal.core.model.datasheet import D0_TYP, NOISE_DENSITY_UG, SENS_TYP
+from gravcal.core.model.spec import planted_values
+from gravcal.core.model.terms import CALIBRATION_TERMS, REGISTRY, Axes, DutyCycle, term_spec
 from gravcal.core.samples import TRIAD
 from gravcal.core.windows import WindowSet
 
-# Planted magnitudes (per axis, random sign, x U(1, 2) by seed); each at or above the floor of an
-# hour of daily living documented in docs/measured-data.md.
-PLANT = {
-    "temperature_offset": 1.0e-3,  # g/°C (datasheet +-2 mg/°C)
-    "temperature_sensitivity": 5.0e-4,  # 1/°C = 0.05 %/°C (datasheet typ 0.01 %/°C: below the hour's floor)
-    "offset_drift": 3.0e-3,  # g/h
-    "sensitivity_drift": 3.0e-3,  # 1/h = 0.3 %/h
-    "misalignment": np.deg2rad(1.0),  # rad per axis error (datasheet +-1°)
-    "nonlinearity": 4.0e-3,  # c2 [1/g] (datasheet 0.2 % FS at 10 g = 2e-4: far below the floor)
-}
+PLANT = {name: REGISTRY[name].plant_scale for name in CALIBRATION_TERMS if REGISTRY[name].plant is not None}
+"""Planted magnitude scale per term (per axis, random sign x U(1, 2) by seed): each term's ``plant_scale``,
+at or above the floor of an hour of daily living documented in docs/measured-data.md."""
 
 
 @dataclass
@@ -58,28 +51,21 @@ def plant_terms(effects: dict[str, float], rng: np.random.Generator) -> dict[str
     """Model terms for the effects (name -> magnitude scale; per channel random sign x U(1, 2))."""
     terms: dict[str, Any] = {}
     for name, mag in effects.items():
-        v = mag * rng.uniform(1.0, 2.0, 4) * np.where(rng.random(4) < 0.5, -1.0, 1.0)
-        if name == "temperature_offset":
-            terms[name] = TemperatureOffset(coef_g_per_c=v, t0_c=25.0)
-        elif name == "temperature_sensitivity":
-            terms[name] = TemperatureSensitivity(coef_per_c=v, t0_c=25.0)
-        elif name == "offset_drift":
-            terms[name] = OffsetDrift(rate_g_per_h=v, walk_g_per_sqrt_h=np.zeros(4))
-        elif name == "sensitivity_drift":
-            terms[name] = SensitivityDrift(rate_per_h=v, walk_per_sqrt_h=np.zeros(4))
-        elif name == "nonlinearity":
-            terms[name] = Nonlinearity(c2=v, c3=np.zeros(4))
-        elif name == "misalignment":
-            terms[name] = Misalignment(axis_err=rng.normal(0, 1, (4, 2)) / np.sqrt(2) * mag * 1.5)
-        else:
-            raise ValueError(f"cannot plant {name!r}")
+        spec = term_spec(name)
+        v = planted_values(rng, mag)
+        if spec.plant is None:
+            raise ValueError(f"cannot plant {name!r}: plantable terms are {', '.join(PLANT)}")
+        terms[spec.name] = spec.plant(rng, v, mag)
     return terms
 
 
 def window_session(seed: int, effects: dict[str, float] | None = None, *, duration_s: float = 3600.0,
                    n_windows: int = 200, floor_g: float = 1e-3, temp_c: tuple[float, float] = (24.0, 34.0),
-                   fs: float = 100.0) -> Session:
-    """One session with ``effects`` planted (name -> magnitude scale, see PLANT); {} or None: control."""
+                   supply_v: tuple[float, float] = (3.05, 3.3), fs: float = 100.0) -> Session:
+    """One session with ``effects`` planted (name -> magnitude scale, see PLANT); {} or None: control.
+
+    The supply [V] sags from ``supply_v[1]`` toward ``supply_v[0]`` and back under load (its own random
+    stream: the other draws do not depend on it)."""
     rng = np.random.default_rng(seed)
     effects = dict(effects or {})
     planted = plant_terms(effects, rng)
@@ -93,17 +79,23 @@ def window_session(seed: int, effects: dict[str, float] | None = None, *, durati
     temp += rng.normal(0, 0.2, m)
     u = _directions(rng, m)
     u_moved = u + rng.normal(0, floor_g, (m, 3))  # residual body motion: ~floor_g on the norm
-    terms = [planted.get("misalignment", Axes())] + [v for k, v in planted.items() if k != "misalignment"]
+    supply_rng = np.random.default_rng([seed, 2])
+    vlo, vhi = supply_v
+    vsupply = vhi - (vhi - vlo) * np.abs(np.sin(np.pi * t / duration_s * supply_rng.uniform(1.0, 2.5)
+                                                 + supply_rng.uniform(0, np.pi)))
+    vsupply += supply_rng.normal(0, 0.005, m)
+    projection = [v for v in planted.values() if isinstance(v, Axes)]
+    terms = (projection or [Axes()]) + [v for v in planted.values() if not isinstance(v, Axes)]
     terms.append(DutyCycle(d0=np.full(4, D0_TYP), k=np.full(4, SENS_TYP)))
     model = SensorModel(terms)
-    ctx = Context(t=t, temp=temp, vsupply=np.full(m, 3.3), fs=fs, rng=np.random.default_rng(seed + 1))
+    ctx = Context(t=t, temp=temp, vsupply=vsupply, fs=fs, rng=np.random.default_rng(seed + 1))
     x = model.run_stage("board", u_moved, ctx)
     x = model.run_stage("channel", x, ctx)
     duty = model.run_stage("duty", x, ctx)[:, list(TRIAD)]
     sigma = NOISE_DENSITY_UG * 1e-6 * np.sqrt(fs / 2) * SENS_TYP  # per-sample std [duty]
     cov = np.broadcast_to(np.eye(3) * sigma**2, (m, 3, 3)).copy()
     mean = duty + rng.normal(0, 1, (m, 3)) * sigma / np.sqrt(n)[:, None]
-    ws = WindowSet(mean, cov, n, t, temp[:, None], np.arange(m) * 10_000, np.arange(m) * 10_000 + n.astype(int))
+    ws = WindowSet(mean, cov, n, t, np.column_stack([temp, vsupply]), np.arange(m) * 10_000, np.arange(m) * 10_000 + n.astype(int))
     K = np.diag(np.full(3, SENS_TYP)) * (1 + rng.normal(0, 0.01, (3, 3)))
     start = Calibration("start", np.full(3, D0_TYP) + rng.normal(0, 0.01 * SENS_TYP, 3), K)
     info = {k: v.to_dict()["params"] for k, v in planted.items()}

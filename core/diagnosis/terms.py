@@ -25,15 +25,13 @@ from scipy.optimize import brentq
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.extended import (EXTRA_TERMS, ExtendedParameterization, extended_class,
                                               extended_residuals_g, fit_extended, model_name)
-from gravcal.core.estimators.order import TOL_G
+from gravcal.core.estimators.order import TOL_G, term_testability
+from gravcal.core.model.terms import calibration_view
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 from gravcal.core.windows import WindowSet
 
 from .noise import DELTA_BIC
 
-MIN_TEMP_SPAN_C = 2.0  # temperature terms need windows spread over at least this [°C]
-MIN_TIME_SPAN_S = 600.0  # drift terms need windows spread over at least this [s]
-SENSITIVITY_TERMS = ("misalignment", "nonlinearity", "temperature_sensitivity", "sensitivity_drift")
 CONFOUND_FRACTION = 0.02  # a column with < 2 % of its weighted norm outside the model's span is confounded
 
 
@@ -57,7 +55,7 @@ class TermTest:
 
 def norm_var_g2(ws: WindowSet, cal: Calibration, floor_g: float) -> np.ndarray:
     """Per-window variance of h = |a| [g²]: delta method on cov/n plus floor²."""
-    a = cal.apply(ws.mean)
+    a = cal.apply_reference(ws.mean)
     u = a / np.linalg.norm(a, axis=1, keepdims=True)
     g = u @ np.linalg.inv(cal.sensitivity)
     return np.einsum("mi,mij,mj->m", g, ws.cov_of_mean, g) + floor_g**2
@@ -81,6 +79,8 @@ class TermSelector:
         self.m = len(ws)
         self.t_ref_c = float(np.median(ws.aux[:, 0])) if (has_temp and t_ref_c is None) else (t_ref_c or 25.0)
         self.t0_s = float(ws.t.min()) if t0_s is None else float(t0_s)
+        supply = ws.covariate("vsupply")
+        self.v_ref = float(np.median(supply)) if supply is not None and np.all(np.isfinite(supply)) else None
         self.var0 = norm_var_g2(ws, base_cal, 0.0)
         self.var = self.var0
         self.order = np.argsort(ws.t, kind="stable")
@@ -104,7 +104,8 @@ class TermSelector:
         K0, o0 = self.base_cal.sensitivity, self.base_cal.offset
         if not terms:
             return PARAMETERIZATIONS[self.base](K0, o0)
-        return extended_class(name)(K0, o0, t_ref_c=self.t_ref_c, t0_s=self.t0_s)
+        kw = {} if self.v_ref is None else {"v_ref": self.v_ref}
+        return extended_class(name)(K0, o0, t_ref_c=self.t_ref_c, t0_s=self.t0_s, **kw)
 
     def free_mask(self, par, held: dict[str, list[int]]) -> np.ndarray:
         free = np.ones(par.n_params, dtype=bool)
@@ -144,21 +145,12 @@ class TermSelector:
 
     # -- observability of one term's axes -----------------------------------------------------------
     def effect_std_g(self, par, f, term: str) -> np.ndarray:
-        """Std [g] of each axis' effect over the covered range (temperature span, time span, 1 g, 1 rad)."""
+        """Std [g] of each axis' effect over the covered range of the term's covariate."""
         k = par.base.n_params + 3 * list(par.terms).index(term)
-        sd = f.std[k:k + 3]
-        s = np.abs(np.diag(self.base_cal.sensitivity))
-        if term.startswith("temperature"):
-            span = float(np.ptp(self.ws.aux[:, 0]))
-        elif term.endswith("drift"):
-            span = float(np.ptp(self.ws.t)) / 3600.0
-        else:
-            span = 1.0
-        if term == "misalignment":
-            return sd / np.sqrt([s[0] * s[1], s[0] * s[2], s[1] * s[2]])
-        if term == "nonlinearity":
-            return sd  # relative per g² at 1 g
-        return sd * span / s
+        view = calibration_view(term)
+        values = self.ws.covariate(view.covariate) if view.covariate not in (None, "accel") else None
+        span = 1.0 if values is None else float(np.ptp(values)) / (3600.0 if view.covariate == "time" else 1.0)
+        return view.effect_std_g(f.std[k:k + 3], np.abs(np.diag(self.base_cal.sensitivity)), span)
 
     def confounded(self, terms: tuple[str, ...], held: dict[str, list[int]], term: str) -> list[int]:
         """Axes of ``term`` whose Jacobian column lies (almost) in the span of the current model's free columns."""
@@ -186,22 +178,18 @@ class TermSelector:
 
 
 def untestable_reason(term: str, sel: TermSelector, spread_deg: float) -> str | None:
-    """Why ``term`` cannot be tested on these windows (None: it can)."""
-    ws = sel.ws
-    if term.startswith("temperature"):
-        if not sel.has_temp:
-            return "no temperature column in the recording"
-        span = float(np.ptp(ws.aux[:, 0]))
-        if span < MIN_TEMP_SPAN_C:
-            return f"the windows span only {span:.2f} °C (need >= {MIN_TEMP_SPAN_C:g} °C)"
-    if term.endswith("drift"):
-        span = float(np.ptp(ws.t))
-        if span < MIN_TIME_SPAN_S:
-            return f"the windows span only {span:.0f} s (need >= {MIN_TIME_SPAN_S:.0f} s)"
-    if term in SENSITIVITY_TERMS and sel.base == "offsets":
-        return (f"sensitivities are not observable (all {len(ws)} windows within {spread_deg:.0f}° of one "
+    """Why ``term`` cannot be tested on these windows (None: it can): the one testability rule
+    (order.term_testability), then what the base model leaves for it to act on."""
+    view = calibration_view(term)
+    if view.covariate == "temp" and not sel.has_temp:
+        return "no temperature column in the recording"
+    ok, why = term_testability(sel.ws, term)
+    if not ok:
+        return why
+    if view.through_sensitivity and sel.base == "offsets":
+        return (f"sensitivities are not observable (all {len(sel.ws)} windows within {spread_deg:.0f}° of one "
                 f"direction), so a term acting through the sensitivity cannot be separated from the offsets")
-    if term == "misalignment" and sel.base in ("9", "12"):
+    if view.acts_on == "cross" and sel.base in ("9", "12"):
         return "the base model already estimates the cross-axis terms"
     return None
 

@@ -35,23 +35,16 @@ from typing import Any, ClassVar
 import numpy as np
 
 from gravcal.core.calibration import Calibration
-from gravcal.core.estimators.parameterization import AXES, PARAMETERIZATIONS, Parameterization
+from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, Parameterization
+from gravcal.core.model.effect import (apply_terms, constant_rows, covariate_deviation, needed_covariates,
+                                       references, term_rows)
+from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.windows import WindowSet
 
-EXTRA_TERMS: tuple[str, ...] = ("misalignment", "nonlinearity", "temperature_offset", "temperature_sensitivity",
-                                "offset_drift", "sensitivity_drift")
-"""Catalogue terms with a calibration-level (window-mean) effect, in canonical order."""
+EXTRA_TERMS: tuple[str, ...] = CALIBRATION_TERMS
+"""Registered terms with a calibration-level (window-mean) effect, in canonical order."""
 
-T_REF_C = 25.0  # reference temperature [°C] of the extended K, o (the model's t0_c)
-_PAIRS = ((0, 1), (0, 2), (1, 2))
-
-
-def _extra_names(term: str) -> list[str]:
-    if term == "misalignment":
-        return [f"m_{AXES[i]}{AXES[j]}" for i, j in _PAIRS]
-    prefix = {"nonlinearity": "q2", "temperature_offset": "oT", "temperature_sensitivity": "sT",
-              "offset_drift": "oh", "sensitivity_drift": "sh"}[term]
-    return [f"{prefix}_{a}" for a in AXES]
+T_REF_C = COVARIATES["temp"].default_ref  # reference temperature [°C] of the extended K, o (the model's t0_c)
 
 
 class ExtendedParameterization(Parameterization):
@@ -66,26 +59,20 @@ class ExtendedParameterization(Parameterization):
     covariates: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, K0: np.ndarray, o0: np.ndarray, *, t_ref_c: float = T_REF_C, t0_s: float = 0.0,
-                 temp_column: int = 0):
+                 temp_column: int = 0, v_ref: float = COVARIATES["vsupply"].default_ref):
         super().__init__(K0, o0)
         self.base = PARAMETERIZATIONS[self.base_model](K0, o0)
         self.t_ref_c, self.t0_s, self.temp_column = float(t_ref_c), float(t0_s), int(temp_column)
+        self.v_ref = float(v_ref)
         nb = self.base.n_params
-        self.extra_names = [n for term in self.terms for n in _extra_names(term)]
+        self.extra_names = [n for term in self.terms for n in calibration_view(term).param_names()]
         self.names = list(self.base.names) + self.extra_names
         P = len(self.names)
         # at the reference (T = T_ref, t = t0, a0² = 0): the base, extras without effect, except the
         # misalignment terms, whose derivative is constant
-        self.dK = np.zeros((P, 3, 3))
-        self.do = np.zeros((P, 3))
+        self.dK, self.do = constant_rows(self.terms, nb, P)
         self.dK[:nb], self.do[:nb] = self.base.dK, self.base.do
         self.K_const, self.o_const = self.base.K_const, self.base.o_const
-        k = nb
-        for term in self.terms:
-            if term == "misalignment":
-                for m, (i, j) in enumerate(_PAIRS):
-                    self.dK[k + m, i, j] = self.dK[k + m, j, i] = 1.0
-            k += 3
         self._K0inv = np.linalg.inv(self.K0)
         self._diagK0 = np.abs(np.diag(self.K0))
 
@@ -94,20 +81,31 @@ class ExtendedParameterization(Parameterization):
         return np.concatenate([self.base.pack(K, o), np.zeros(len(self.extra_names))])
 
     # -- covariates ------------------------------------------------------------------------------
+    @property
+    def refs(self) -> dict[str, float]:
+        """Covariate references: temperature [°C], supply [V], time [s]."""
+        return {"temp": self.t_ref_c, "vsupply": self.v_ref, "time": self.t0_s}
+
+    def aux_column(self, covariate: str) -> int:
+        return self.temp_column if covariate == "temp" else int(COVARIATES[covariate].aux_column)
+
     def window_covariates(self, ws: WindowSet) -> dict[str, np.ndarray]:
-        """dT [°C] from T_ref, dt [h] from t0, a0² [g²] per window (only those the terms need)."""
-        out: dict[str, np.ndarray] = {}
-        if any(t.startswith("temperature") for t in self.terms):
-            if ws.aux.ndim != 2 or ws.aux.shape[1] <= self.temp_column:
-                raise ValueError(f"{'/'.join(t for t in self.terms if t.startswith('temperature'))} needs the "
-                                 f"windows' temperature (aux column {self.temp_column}); the windows have none")
-            out["dT"] = ws.aux[:, self.temp_column] - self.t_ref_c
-        if any(t.endswith("drift") for t in self.terms):
-            out["dt_h"] = (ws.t - self.t0_s) / 3600.0
-        if "nonlinearity" in self.terms:
+        """Per covariate the terms need: its (M, 3) deviation from the reference per window (module docstring)."""
+        values: dict[str, np.ndarray | None] = {"time": ws.t}
+        for cov in needed_covariates(self.terms):
+            if cov == "time":
+                continue
+            col = self.aux_column(cov)
+            if ws.aux.ndim != 2 or ws.aux.shape[1] <= col:
+                users = [t for t in self.terms if calibration_view(t).covariate == cov]
+                raise ValueError(f"{'/'.join(users)} needs the windows' {COVARIATES[cov].label} (aux column {col}); the windows have none")
+            values[cov] = ws.aux[:, col]
+        accel_sq = None
+        if any(calibration_view(t).covariate == "accel" for t in self.terms):
             a0 = (ws.mean - self.o0) @ self._K0inv.T
-            out["a2"] = a0 * a0
-        return out
+            accel_sq = self._diagK0 * a0 * a0
+        covs = {calibration_view(t).covariate for t in self.terms} - {None}
+        return {c: covariate_deviation(c, values, self.refs, accel_sq, len(ws)) for c in covs}
 
     def at_windows(self, ws: WindowSet) -> "Parameterization":
         """This parameterization bound to the windows' covariates (per-row derivatives)."""
@@ -115,50 +113,25 @@ class ExtendedParameterization(Parameterization):
 
     def row_derivatives(self, ws: WindowSet) -> tuple[np.ndarray, np.ndarray]:
         """Per-window dK (M, P, 3, 3) and do (M, P, 3)."""
-        z = self.window_covariates(ws)
         M = len(ws)
         dK = np.broadcast_to(self.dK, (M,) + self.dK.shape).copy()
         do = np.broadcast_to(self.do, (M,) + self.do.shape).copy()
-        k = self.base.n_params
-        for term in self.terms:
-            for i in range(3):
-                if term == "temperature_offset":
-                    do[:, k + i, i] = z["dT"]
-                elif term == "temperature_sensitivity":
-                    dK[:, k + i, i, i] = z["dT"]
-                elif term == "offset_drift":
-                    do[:, k + i, i] = z["dt_h"]
-                elif term == "sensitivity_drift":
-                    dK[:, k + i, i, i] = z["dt_h"]
-                elif term == "nonlinearity":
-                    do[:, k + i, i] = self._diagK0[i] * z["a2"][:, i]
-            k += 3
+        term_rows(self.terms, self.base.n_params, dK, do, self.window_covariates(ws))
         return dK, do
 
     # -- physical magnitudes ---------------------------------------------------------------------
     def magnitudes(self, p: np.ndarray, std: np.ndarray | None = None) -> dict[str, dict[str, Any]]:
-        """Each extra term in physical units (per axis), with std when given."""
+        """Each extra term in its report units (per axis), with std when given."""
         K, _ = self.unpack(p)
         s = np.abs(np.diag(K))
         out: dict[str, dict[str, Any]] = {}
         k = self.base.n_params
         for term in self.terms:
-            v = np.asarray(p[k:k + 3], dtype=float)
-            sd = None if std is None else np.asarray(std[k:k + 3], dtype=float)
-            if term == "misalignment":
-                den = np.array([math.sqrt(s[i] * s[j]) for i, j in _PAIRS])
-                conv, unit, keys = np.degrees(1.0) / den, "deg", ["xy", "xz", "yz"]
-            else:
-                keys = list(AXES)
-                conv, unit = {"temperature_offset": (1e3 / s, "mg_per_C"),
-                              "temperature_sensitivity": (100.0 / s, "pct_per_C"),
-                              "offset_drift": (1e3 / s, "mg_per_h"),
-                              "sensitivity_drift": (100.0 / s, "pct_per_h"),
-                              "nonlinearity": (np.ones(3), "c2_per_g")}[term]
-            val = v * conv
-            d: dict[str, Any] = {"unit": unit, "value": dict(zip(keys, val.tolist()))}
-            if sd is not None:
-                d["std"] = dict(zip(keys, (sd * np.abs(conv)).tolist()))
+            view = calibration_view(term)
+            conv, keys = view.report_factor(s), view.keys
+            d: dict[str, Any] = {"unit": view.unit, "value": dict(zip(keys, (np.asarray(p[k:k + 3]) * conv).tolist()))}
+            if std is not None:
+                d["std"] = dict(zip(keys, (np.asarray(std[k:k + 3]) * np.abs(conv)).tolist()))
             out[term] = d
             k += 3
         return out
@@ -213,14 +186,14 @@ def extended_class(name: str) -> type[ExtendedParameterization]:
     bad = [t for t in terms if t not in EXTRA_TERMS]
     if bad:
         raise ValueError(f"extended model {name!r}: unknown term(s) {bad}; known: {list(EXTRA_TERMS)}")
-    if "misalignment" in terms and base in ("9", "12"):
-        raise ValueError(f"extended model {name!r}: base {base} already has the cross-axis terms")
+    cross = [t for t in terms if calibration_view(t).acts_on == "cross"]
+    if cross and base in ("9", "12"):
+        raise ValueError(f"extended model {name!r}: base {base} already has the cross-axis terms ({cross[0]})")
     terms = sorted(set(terms), key=EXTRA_TERMS.index)
     canonical = "+".join([base, *terms])
     if canonical in PARAMETERIZATIONS:
         return PARAMETERIZATIONS[canonical]  # type: ignore[return-value]
-    covs = tuple(sorted({"temp_c" for t in terms if t.startswith("temperature")}
-                        | {"t_s" for t in terms if t.endswith("drift")} | {"mean" for t in terms if t == "nonlinearity"}))
+    covs = tuple(sorted({calibration_view(t).covariate for t in terms} - {None}))
     cls = type(f"Extended_{canonical.replace('+', '_')}", (ExtendedParameterization,),
                {"model": canonical, "base_model": base, "terms": tuple(terms), "covariates": covs,
                 "__doc__": f"{base} parameters + {', '.join(terms)} (calibration-level view of those model terms)."})
@@ -260,7 +233,7 @@ def extended_metadata(par: Parameterization, p: np.ndarray, std: np.ndarray | No
     p = np.asarray(p, dtype=float)
     meta: dict[str, Any] = {"params": dict(zip(par.names, p.tolist()))}
     if isinstance(par, ExtendedParameterization):
-        meta["extended"] = {"terms": list(par.terms), "t_ref_c": par.t_ref_c, "t0_s": par.t0_s,
+        meta["extended"] = {"terms": list(par.terms), "t_ref_c": par.t_ref_c, "t0_s": par.t0_s, "v_ref": par.v_ref,
                             "temp_column": par.temp_column, "magnitudes": par.magnitudes(p, std)}
     return meta
 
@@ -364,10 +337,11 @@ def _extended_parameters(cal: Calibration) -> tuple[ExtendedParameterization, np
     if not ext:
         if "+" in str(cal.model):
             raise ValueError(f"calibration of extended model {cal.model!r} carries no metadata['extended'] (its "
-                             f"temperature/drift terms are unknown; written by an older gravcal?): re-fit it")
+                             f"terms' parameters are unknown): re-fit it")
         return None
-    par = extended_class(cal.model)(cal.sensitivity, cal.offset, t_ref_c=ext["t_ref_c"], t0_s=ext["t0_s"],
-                                    temp_column=ext.get("temp_column", 0))
+    refs = references(ext)
+    par = extended_class(cal.model)(cal.sensitivity, cal.offset, t_ref_c=refs["temp"], t0_s=refs["time"],
+                                    v_ref=refs["vsupply"], temp_column=ext.get("temp_column", 0))
     missing = [n for n in par.names if not isinstance(params, dict) or n not in params]
     if missing:
         raise ValueError(f"calibration {cal.model!r}: metadata['params'] lacks {missing}: cannot apply its terms")
@@ -375,28 +349,10 @@ def _extended_parameters(cal: Calibration) -> tuple[ExtendedParameterization, np
 
 
 def apply_extended(cal: Calibration, raw: np.ndarray, *, temp: np.ndarray | None = None,
-                   t: np.ndarray | None = None) -> np.ndarray:
-    """Calibrated acceleration [g] of raw samples (N, 3) under an extended calibration (at each
-    sample's temperature [°C] and time [s]); a plain calibration is applied as is."""
-    found = _extended_parameters(cal)
-    if found is None:
-        return cal.apply(raw)
-    par, p = found
-    raw = np.asarray(raw, dtype=float).reshape(-1, 3)
-    n = raw.shape[0]
-    needs_t = any(x.endswith("drift") for x in par.terms)
-    needs_T = any(x.startswith("temperature") for x in par.terms)
-    if needs_T and temp is None:
-        raise ValueError(f"calibration {cal.model} needs the temperature of each sample")
-    if needs_t and t is None:
-        raise ValueError(f"calibration {cal.model} needs the time of each sample")
-    aux = np.zeros((n, par.temp_column + 1))
-    if temp is not None:
-        aux[:, par.temp_column] = np.broadcast_to(np.asarray(temp, dtype=float), (n,))
-    tt = np.zeros(n) if t is None else np.broadcast_to(np.asarray(t, dtype=float), (n,))
-    ws = WindowSet(raw, np.zeros((n, 3, 3)), np.ones(n), tt, aux, np.arange(n), np.arange(n) + 1)
-    a, _ = par.at_windows(ws).accel_and_jacobian(p, raw)
-    return a
+                   t: np.ndarray | None = None, vsupply: np.ndarray | None = None) -> np.ndarray:
+    """Calibrated acceleration [g] of raw samples (N, 3) at each sample's temperature [°C], time [s] and
+    supply [V]: ``Calibration.apply`` with its covariates (kept for the estimators' callers)."""
+    return cal.apply(raw, temp=temp, t=t, vsupply=vsupply)
 
 
 def apply_windows(cal: Calibration, ws: WindowSet) -> np.ndarray:

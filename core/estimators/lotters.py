@@ -92,7 +92,7 @@ def validate_windows(ws: WindowSet, n_params: int | None = None) -> None:
 
 def window_directions_spread_deg(mean: np.ndarray, cal: Calibration) -> float:
     """Largest angle [deg] between a window's acceleration direction and their mean direction."""
-    a = cal.apply(mean)
+    a = cal.apply_reference(mean)
     u = a / np.linalg.norm(a, axis=1, keepdims=True)
     c = u.sum(axis=0)
     nc = np.linalg.norm(c)
@@ -194,7 +194,7 @@ CONSIDER_KEY = "consider"
 def _datasheet_rel_spreads() -> tuple[float, float]:
     """(sensitivity std as a fraction of it, zero-g offset std [g]) of an ADXL210 part, from the
     datasheet min/max in core/model/defaults.py (min/max = +-3 sigma, the model's own convention)."""
-    from gravcal.core.model.defaults import D0_LIMITS, SENS_LIMITS, SENS_TYP  # noqa: PLC0415
+    from gravcal.core.model.datasheet import D0_LIMITS, SENS_LIMITS, SENS_TYP  # noqa: PLC0415
 
     return (SENS_LIMITS[1] - SENS_LIMITS[0]) / 6.0 / SENS_TYP, (D0_LIMITS[1] - D0_LIMITS[0]) / 6.0 / SENS_TYP
 

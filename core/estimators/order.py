@@ -38,6 +38,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..crlb import RANK_RTOL, bound_from_fisher, fisher_inuse, norm_noise_var, on_ellipsoid, sphere_directions, sphere_metric
+from ..model.terms import calibration_view
 from ..windows import Window, WindowSet
 
 ORDERS = ("offsets", "6", "9", "12")
@@ -70,7 +71,7 @@ def coverage(ws: WindowSet, cal: Calibration) -> dict[str, Any]:
     spread_deg: largest angle from the mean direction (Lötters' theta); scatter_eig: eigenvalues of
     mean(u u^T) (1/3 each for the full sphere, (1, 0, 0) for one posture); distinct_postures:
     occupied cells of a ~10° grid on the sphere."""
-    a = cal.apply(ws.mean)
+    a = cal.apply_reference(ws.mean)
     u = a / np.linalg.norm(a, axis=1, keepdims=True)
     c = u.sum(axis=0)
     nc = np.linalg.norm(c)
@@ -401,12 +402,7 @@ class OnlineOrderSelector:
         return d
 
 
-# -- extended terms (temperature, drift) online: testability, observability, evidence ----------------
-MIN_TEMP_SPREAD_C = 1.0  # a temperature term is testable only when the windows span this much (5-95 %) [°C]; whether
-# that spread determines it is the observability rule's call (predicted error over the session's temperatures)
-MIN_DRIFT_SPAN_H = 2.0  # a drift term is testable only when the windows span this long [h]
-
-
+# -- extended terms (the registry's calibration terms): testability, observability, evidence ------------
 def extended_base(model: str) -> str:
     """"6+temperature_offset" -> "6"; a plain order is its own base."""
     return model.split("+", 1)[0]
@@ -417,30 +413,25 @@ def extended_terms(model: str) -> tuple[str, ...]:
 
 
 def term_testability(ws: WindowSet, term: str, *, temp_column: int = 0) -> tuple[bool, str]:
-    """Can the windows test catalogue term ``term`` at all? A temperature term needs a temperature
-    channel (finite aux column ``temp_column``) with a spread of at least MIN_TEMP_SPREAD_C (else
-    c_T (T - T_ref) is a constant, indistinguishable from the offsets); a drift term needs
-    MIN_DRIFT_SPAN_H of windows. Returns (testable, the reason when not)."""
-    if term.startswith("temperature"):
-        if ws.aux.ndim != 2 or ws.aux.shape[1] <= temp_column:
-            return False, "the windows carry no temperature (no temperature channel)"
-        T = ws.aux[:, temp_column]
-        if not np.all(np.isfinite(T)):
-            return False, (f"{int(np.sum(~np.isfinite(T)))} of {len(T)} windows carry no temperature (the "
-                           f"temperature channel reads no value)")
-        lo, hi = np.percentile(T, [5, 95])
-        if hi - lo < MIN_TEMP_SPREAD_C:
-            return False, (f"no temperature spread: the windows span {hi - lo:.2g} °C (5-95 %) < "
-                           f"{MIN_TEMP_SPREAD_C:g} °C, so a temperature term cannot be told from the offsets")
+    """Can the windows test registered term ``term`` at all? Its covariate must be there and finite, with
+    the spread (5-95 %) its calibration view states (``min_span``: below it the term is a constant,
+    indistinguishable from the offsets); whether a wider spread determines the term is the observability
+    rule's call. Returns (testable, the reason when not)."""
+    view = calibration_view(term)
+    cov = view.covariate
+    if cov is None or cov == "accel":
         return True, ""
-    if term.endswith("drift"):
+    if cov == "temp" and temp_column != 0:
+        values = ws.aux[:, temp_column] if ws.aux.ndim == 2 and ws.aux.shape[1] > temp_column else None
+    else:
+        values = ws.covariate(cov)
+    if cov == "time":
         span_h = (float(np.max(ws.t)) - float(np.min(ws.t))) / 3600.0 if len(ws) else 0.0
-        if span_h < MIN_DRIFT_SPAN_H:
-            return False, f"the windows span {span_h:.2g} h < {MIN_DRIFT_SPAN_H:g} h: a drift cannot be told from the offsets"
+        if span_h < view.min_span:
+            return False, (f"the windows span {span_h * 3600:.0f} s ({span_h:.2g} h) < {view.min_span:g} h: "
+                           f"{view.span_reason}")
         return True, ""
-    if term in ("misalignment", "nonlinearity"):
-        return True, ""
-    raise ValueError(f"unknown extended term {term!r}")
+    return view.testability(values)
 
 
 def _extended_params(par: Any, cal: Calibration) -> np.ndarray:

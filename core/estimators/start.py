@@ -20,7 +20,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..detectors import MovingVarianceDetector, estimate_fs
-from ..model.defaults import SENS_LIMITS, SENS_TYP
+from ..model.datasheet import SENS_LIMITS, SENS_TYP
 from ..windows import WindowSet
 from .lotters import with_held_uncertainty
 

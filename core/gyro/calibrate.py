@@ -126,7 +126,7 @@ def central_half(y: np.ndarray) -> np.ndarray:
 
 def gravity_direction(mean_raw: np.ndarray, cov_of_mean_raw: np.ndarray, acc: Calibration) -> tuple[np.ndarray, np.ndarray]:
     """Unit gravity direction (body frame) of a window and its covariance (3, 3)."""
-    a = acc.apply(mean_raw)
+    a = acc.apply_reference(mean_raw)
     kinv = np.linalg.inv(acc.sensitivity)
     cov_a = kinv @ cov_of_mean_raw @ kinv.T
     n = float(np.linalg.norm(a))

@@ -13,9 +13,11 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy import signal
 
 from .base import Context, Term, register
+from .datasheet import (GYRO_ADC_BITS, GYRO_GAIN, GYRO_HP_HZ, GYRO_LP_HZ, GYRO_NOISE_DPS_RTHZ, GYRO_NULL_TEMPCO_MV_PER_C,
+                        GYRO_NULL_TOL_V, GYRO_NULL_V, GYRO_RANGE_DPS, GYRO_SCALE_MV_PER_DPS, GYRO_SCALE_TOL)
+from .spec import TermSpec, signed, spread
 from .stateful import StatefulTerm
 
 DEG = np.pi / 180.0
@@ -73,16 +75,22 @@ class GyroConditioning(StatefulTerm):
     def sos(self, fs: float) -> np.ndarray:
         """The two sections at sample rate fs. An analog low-pass at or above Nyquist cannot be
         represented in the sampled signal; it is then placed at 0.45 fs (the samples alias anyway)."""
+        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
+
         hp = signal.butter(1, float(self.params["hp_hz"]), "highpass", fs=fs, output="sos")
         lp = signal.butter(1, min(float(self.params["lp_hz"]), 0.45 * fs), "lowpass", fs=fs, output="sos")
         return np.vstack([hp, lp])
 
     def init_state(self, x: np.ndarray, ctx: Context) -> dict[str, Any]:
+        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
+
         x0 = float(np.asarray(x, float)[0]) if len(x) else 0.0
         sos = self.sos(ctx.fs)  # designed once per session: small blocks stay cheap
         return {"sos": sos, "zi": signal.sosfilt_zi(sos) * x0}
 
     def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
+        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
+
         st = self.current_state(x, ctx)
         y, st["zi"] = signal.sosfilt(st["sos"], np.asarray(x, float), zi=st["zi"])
         vs = np.asarray(ctx.vsupply, float)
@@ -121,7 +129,7 @@ def gyro_null_counts(model: Any) -> float:
 ENC03J_TERMS: tuple[str, ...] = ("gyro_sensor", "gyro_conditioning", "gyro_adc")
 
 
-# -- issue 7: what the conditioning does to the signal, and the gyro's calibration-level truth ----
+# -- what the conditioning does to the signal, and the gyro's calibration-level truth ----
 def conditioning_response(model: Any, f_hz: Any, fs: float = 100.0) -> tuple[np.ndarray, np.ndarray]:
     """Gain (relative to the pass band, unitless) and phase [deg] of the conditioning stage
     (high-pass + low-pass as simulated, bilinear at ``fs``) at frequencies ``f_hz`` [Hz].
@@ -131,6 +139,8 @@ def conditioning_response(model: Any, f_hz: Any, fs: float = 100.0) -> tuple[np.
     0.99 / -6° (the low-pass). A pose change
     (a rate pulse of ~1 s) therefore integrates to a wrong angle unless the high-pass is
     undone (``gravcal.core.gyro.conditioning.HighPassInverse``)."""
+    from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
+
     f = np.atleast_1d(np.asarray(f_hz, dtype=float))
     _, h = signal.sosfreqz(model["gyro_conditioning"].sos(fs), worN=f, fs=fs)
     return np.abs(h), np.degrees(np.angle(h))
@@ -153,3 +163,20 @@ def gyro_truth(model: Any, vsupply: float = 3.3) -> dict[str, float]:
             "hp_hz": float(model["gyro_conditioning"].params["hp_hz"]),
             "axis": np.asarray(model["gyro_sensor"].params["axis"], float).tolist(),
             "range_rad_s": float(model["gyro_sensor"].params["range_dps"]) * DEG}
+
+
+SPECS = (
+    TermSpec(name="gyro_sensor", forward=GyroSensor, prior=lambda rng: GyroSensor(
+        scale_mv_per_dps=GYRO_SCALE_MV_PER_DPS if rng is None
+        else spread(rng, GYRO_SCALE_MV_PER_DPS, (GYRO_SCALE_MV_PER_DPS * (1 - GYRO_SCALE_TOL),
+                                                 GYRO_SCALE_MV_PER_DPS * (1 + GYRO_SCALE_TOL)), 1)[0],
+        null_v=GYRO_NULL_V if rng is None
+        else spread(rng, GYRO_NULL_V, (GYRO_NULL_V - GYRO_NULL_TOL_V, GYRO_NULL_V + GYRO_NULL_TOL_V), 1)[0],
+        range_dps=GYRO_RANGE_DPS, noise_dps_rthz=GYRO_NOISE_DPS_RTHZ),
+        # the null drifts with temperature (removed by the conditioning's high-pass)
+        variants={"temperature": lambda term, rng: GyroSensor(**{
+            **term.params, "null_tempco_mv_per_c": signed(rng, GYRO_NULL_TEMPCO_MV_PER_C, 1)[0]})}),
+    TermSpec(name="gyro_conditioning", forward=GyroConditioning,
+             prior=lambda rng: GyroConditioning(hp_hz=GYRO_HP_HZ, gain=GYRO_GAIN, lp_hz=GYRO_LP_HZ)),
+    TermSpec(name="gyro_adc", forward=GyroADC, prior=lambda rng: GyroADC(bits=GYRO_ADC_BITS)),
+)

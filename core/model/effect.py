@@ -1,0 +1,103 @@
+"""The calibration-level effect of registered terms: rows of the Lötters Jacobian and their application.
+
+For a window (or sample) with covariates c, the extended model reads raw = K(c) a + o(c) with
+
+    K(c) = K_ref + sum_p p * dK_p(c),   o(c) = o_ref + sum_p p * do_p(c)
+
+(``core/model/spec.py`` says what each term's view adds). :func:`term_rows` builds the per-row
+derivatives dK_p, do_p (eq. 13's Jacobian of an extended parameter is -K^-1 (dK_p a + do_p));
+:func:`apply_terms` corrects raw samples at their own covariates, so a Calibration can apply every
+term it carries without knowing which exist.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from .spec import COVARIATES, CROSS_PAIRS
+from .terms import calibration_view
+
+
+def references(meta: dict[str, Any]) -> dict[str, float]:
+    """Covariate references of an extended calibration's metadata (defaults where absent)."""
+    return {c.name: float(meta.get(c.ref_key, c.default_ref)) for c in COVARIATES.values() if c.ref_key}
+
+
+def covariate_deviation(name: str, values: dict[str, np.ndarray | None], refs: dict[str, float],
+                        accel_sq: np.ndarray | None, n: int) -> np.ndarray:
+    """(n, 3) per-axis deviation z of covariate ``name`` from its reference: temp [°C], vsupply [V],
+    time [h] (values["time"] in s), accel (diag K0 a0², given as ``accel_sq``)."""
+    if name == "accel":
+        if accel_sq is None:
+            raise ValueError("the nonlinearity needs the reference acceleration of each row")
+        return np.asarray(accel_sq, dtype=float).reshape(n, 3)
+    v = values.get(name)
+    if v is None:
+        raise ValueError(f"needs the {COVARIATES[name].label} of each row [{COVARIATES[name].unit}]; none given")
+    z = np.broadcast_to(np.asarray(v, dtype=float), (n,)) - refs.get(name, COVARIATES[name].default_ref)
+    if name == "time":
+        z = z / 3600.0
+    return np.repeat(z[:, None], 3, axis=1)
+
+
+def needed_covariates(terms: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """Covariates (by name, "accel" excluded: derived from the samples) the terms need."""
+    out = []
+    for t in terms:
+        c = calibration_view(t).covariate
+        if c is not None and c != "accel" and c not in out:
+            out.append(c)
+    return tuple(out)
+
+
+def constant_rows(terms: tuple[str, ...], n_base: int, n_params: int) -> tuple[np.ndarray, np.ndarray]:
+    """dK (P, 3, 3), do (P, 3) of the extra parameters at the reference: only "cross" terms act there."""
+    dK, do = np.zeros((n_params, 3, 3)), np.zeros((n_params, 3))
+    k = n_base
+    for term in terms:
+        if calibration_view(term).acts_on == "cross":
+            for m, (i, j) in enumerate(CROSS_PAIRS):
+                dK[k + m, i, j] = dK[k + m, j, i] = 1.0
+        k += 3
+    return dK, do
+
+
+def term_rows(terms: tuple[str, ...], n_base: int, dK: np.ndarray, do: np.ndarray,
+              deviations: dict[str, np.ndarray]) -> None:
+    """Fill the per-row derivatives dK (M, P, 3, 3), do (M, P, 3) of the extra parameters in place;
+    ``deviations``: covariate name -> (M, 3) deviations from :func:`covariate_deviation`."""
+    k = n_base
+    for term in terms:
+        view = calibration_view(term)
+        if view.acts_on != "cross":
+            z = deviations[view.covariate]
+            for i in range(3):
+                if view.acts_on == "offset":
+                    do[:, k + i, i] = z[:, i]
+                else:
+                    dK[:, k + i, i, i] = z[:, i]
+        k += 3
+
+
+def apply_terms(K: np.ndarray, o: np.ndarray, terms: tuple[str, ...], extra: np.ndarray, raw: np.ndarray,
+                covariates: dict[str, np.ndarray | None], refs: dict[str, float]) -> np.ndarray:
+    """Calibrated acceleration [g] (N, 3) of raw samples under K, o at the reference plus the extra
+    parameters ``extra`` (3 per term, in ``terms`` order) at each sample's covariates."""
+    raw = np.asarray(raw, dtype=float).reshape(-1, 3)
+    n = raw.shape[0]
+    P = 3 * len(terms)
+    dK0, do0 = constant_rows(tuple(terms), 0, P)
+    dK = np.broadcast_to(dK0, (n,) + dK0.shape).copy()
+    do = np.broadcast_to(do0, (n,) + do0.shape).copy()
+    Kinv = np.linalg.inv(K)
+    accel_sq = None
+    if any(calibration_view(t).covariate == "accel" for t in terms):
+        a0 = (raw - o) @ Kinv.T
+        accel_sq = np.abs(np.diag(K)) * a0 * a0
+    devs = {c: covariate_deviation(c, covariates, refs, accel_sq, n)
+            for c in {calibration_view(t).covariate for t in terms} - {None}}
+    term_rows(tuple(terms), 0, dK, do, devs)
+    Kc = K[None] + np.einsum("p,npij->nij", extra, dK)
+    oc = o[None] + np.einsum("p,npi->ni", extra, do)
+    return np.linalg.solve(Kc, (raw - oc)[..., None])[..., 0]

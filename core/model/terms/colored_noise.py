@@ -1,0 +1,60 @@
+"""Colored noise (bias instability / flicker); diagnosed on static samples (Allan deviation)."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..base import Context, register
+from ..datasheet import BIAS_INSTABILITY_G, BIAS_TAU_S
+from ..spec import TermSpec
+from ..stateful import StatefulTerm
+
+
+@register
+class ColoredNoise(StatefulTerm):
+    """Sum of first-order Gauss-Markov processes per channel.
+
+    params: ``sigma_g`` (4,) total stationary std [g], ``tau_s`` (k,) correlation times [s]
+    (log-spaced times of equal variance approximate a 1/f spectrum between them).
+    State: the filter states of the k processes (they start in their stationary distribution).
+    """
+
+    name = "colored_noise"
+    stage = "channel"
+    order = 42
+
+    def __init__(self, sigma_g: Any = np.zeros(4), tau_s: Any = (1.0, 10.0, 100.0), **params: Any):
+        super().__init__(sigma_g=sigma_g, tau_s=np.atleast_1d(np.asarray(tau_s, float)), **params)
+
+    def _phi(self, fs: float) -> np.ndarray:
+        return np.exp(-1.0 / (fs * self.params["tau_s"]))
+
+    def init_state(self, x: np.ndarray, ctx: Context) -> dict[str, Any]:
+        k = self.params["tau_s"].size
+        s = self.params["sigma_g"] / np.sqrt(k)
+        p0 = self.state["rng"].standard_normal((k, 4)) * s  # stationary start
+        return {"zi": self._phi(ctx.fs)[:, None] * p0}
+
+    def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
+        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
+
+        st = self.current_state(x, ctx)
+        k = self.params["tau_s"].size
+        s = self.params["sigma_g"] / np.sqrt(k)
+        phi = self._phi(ctx.fs)
+        w = st["rng"].standard_normal((x.shape[0], k, 4))  # sample-major: block-split invariant
+        out = np.array(x, dtype=float, copy=True)
+        for j in range(k):  # k is 2-4 processes, not samples
+            y, zf = signal.lfilter([1.0], [1.0, -phi[j]], w[:, j] * (s * np.sqrt(1.0 - phi[j] ** 2)),
+                                   axis=0, zi=st["zi"][j][None, :])
+            st["zi"][j] = zf[0]
+            out += y
+        return out
+
+    def linear_part(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
+        return np.ones(4), np.zeros(4)
+
+
+SPEC = TermSpec(name="colored_noise", forward=ColoredNoise, group="drift", diagnosed_by="samples",
+                prior=lambda rng: ColoredNoise(sigma_g=np.full(4, BIAS_INSTABILITY_G), tau_s=BIAS_TAU_S))

@@ -1,0 +1,36 @@
+"""Ratiometric supply: each channel's gain moves with the supply voltage (simulation only: on a
+regulated logger supply the gain change is far below what quasi-static windows resolve)."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..base import Context, Term, register
+from ..datasheet import SUPPLY_GAIN_PER_V, V_NOMINAL
+from ..spec import TermSpec, column, signed
+
+
+@register
+class RatiometricSupply(Term):
+    """Supply dependence of the gain: x (1 + gain_per_v dV), dV = vsupply - v0 [V]."""
+
+    name = "ratiometric_supply"
+    stage = "channel"
+    order = 22
+
+    def __init__(self, gain_per_v: Any = np.zeros(4), v0: Any = V_NOMINAL, **params: Any):
+        super().__init__(gain_per_v=gain_per_v, v0=v0, **params)
+
+    def linear_part(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
+        dv = column(ctx.vsupply) - self.params["v0"]
+        return 1.0 + self.params["gain_per_v"] * dv, np.zeros(4)
+
+    def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
+        return x * self.linear_part(ctx)[0]
+
+
+SPEC = TermSpec(
+    name="ratiometric_supply", forward=RatiometricSupply, group="supply",
+    prior=lambda rng: RatiometricSupply(gain_per_v=signed(rng, SUPPLY_GAIN_PER_V, 4), v0=V_NOMINAL),
+)
