@@ -410,14 +410,13 @@ class _Windower:
             self._pend_aux = np.zeros((self._k, 0))
         elif aux.shape[1] != self._k:
             raise ValueError(f"aux has {aux.shape[1]} channels, earlier blocks had {self._k}")
+        # aux channels do not decide whether a sample is usable: a recording without a temperature but with a
+        # supply voltage carries NaN in the temperature column, and a window's NaN aux mean says "not measured"
         with np.errstate(over="ignore", invalid="ignore"):  # a finite sum proves every entry finite
-            fine = np.isfinite(raw.sum()) and np.isfinite(t.sum()) and (aux.shape[1] == 0 or np.isfinite(aux.sum()))
+            fine = np.isfinite(raw.sum()) and np.isfinite(t.sum())
         if fine:
             return t, raw, aux, None  # ok = None: every sample is finite
-        ok = _finite_rows(raw) & np.isfinite(t)
-        if aux.shape[1]:
-            ok &= _finite_rows(aux)
-        return t, raw, aux, ok
+        return t, raw, aux, _finite_rows(raw) & np.isfinite(t)
 
     def _gaps(self, t: np.ndarray, ok: np.ndarray | None) -> np.ndarray | None:
         """gap_before[i]: time jumped by more than 1.5/fs (a dropout) or did not increase.

@@ -29,7 +29,7 @@ import numpy as np
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.lotters import (START_TOLERANCE, LottersBatch, _relative_difference,
                                              resolve_parameterization, start_far_note)
-from gravcal.core.estimators.order import extended_base, extended_terms
+from gravcal.core.estimators.order import TOL_G, extended_base, extended_terms
 from gravcal.core.model.effect import needed_covariates
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.heldout import HeldoutResult, heldout_error
@@ -419,6 +419,10 @@ def _fit_order(ws: WindowSet, model: Any, start: Calibration, lab: Calibration |
         d = select_order(ws, start=start, lab=lab, sigma_floor_g=SELECT_SIGMA_FLOOR_G, folds=folds)
         if d.model == "none":
             why = d.reason.replace("; holding the current calibration", "")
+            given = (d.evidence.get("orders") or {}).get("offsets", {}).get("predicted_given_held_mg")
+            if given is not None and given <= TOL_G * 1e3:
+                why += (f"; given the held sensitivities the offsets would be determined to {given:.3g} mg (the question "
+                        f"`gravcal diagnose` answers, relative to them)")
             raise OrderNotDetermined(f"model auto: the windows determine nothing: {why}. Record several "
                                      f"still postures (sitting, lying, bending); with little variety give a --start calibration "
                                      f"(datasheet values) so the windows are seen in g")

@@ -54,7 +54,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "calibrate", help="calibrate a recording (CSV or .npy) from its quasi-static moments",
         description="Offline in-use calibration of a recording. CSV: header row; columns t [s], ax, ay, az "
-                    "(raw units of any scale), optional gx, gy, gz, temp [°C]; other columns ignored. "
+                    "(raw units of any scale), optional gx, gy, gz, temp [°C], vsupply [V]; other columns ignored. "
                     ".npy: a structured array with the same field names.",
     )
     p.add_argument("file", type=Path, help="recording: FILE.csv or FILE.npy")
@@ -128,8 +128,19 @@ def run(args: argparse.Namespace) -> int:
     from .recordings import jsonable, read_recording
 
     models = model_choices()
-    if args.model not in models:
-        raise InputError(f"unknown --model {args.model!r}; choose one of {', '.join(models)}")
+    if "+" in args.model:
+        from gravcal.core.estimators.extended import extended_class
+
+        try:
+            extended_class(args.model)
+        except ValueError as exc:
+            raise InputError(f"--model: {exc}") from None
+    elif args.model not in models:
+        from gravcal.core.model.terms import CALIBRATION_TERMS
+
+        raise InputError(f"unknown --model {args.model!r}; choose one of {', '.join(m for m in models if '+' not in m)}, "
+                         f"or an order with registered terms, <order>+<term>[+<term>...], terms: "
+                         f"{', '.join(CALIBRATION_TERMS)}")
     if args.lab and args.model not in ("auto", "12"):
         raise InputError(f"--lab fits all 12 parameters from the six faces; --model {args.model} does not apply")
     if args.lab and args.lab_calibration:
@@ -151,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
 
         report = calibrate_lab(rec.t, rec.raw, fs=rec.fs, to_g=start)
     else:
-        report = calibrate_recording(rec.t, rec.raw, temp=rec.temp, model=args.model, fs=rec.fs,
+        report = calibrate_recording(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, model=args.model, fs=rec.fs,
                                      detector=args.detector, start=start, folds=args.folds, lab=lab)
     t_cal, c_cal = time.perf_counter() - t0, time.process_time() - c0
     cal = report.calibration

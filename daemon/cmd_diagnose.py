@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--replicas must be >= 1, got {args.replicas}")
     rec = read_recording(args.file, check_saturation=args.check_saturation)
     try:
-        d = diagnose(rec.t, rec.raw, temp=rec.temp, fs=rec.fs, replicas=args.replicas, seed=args.seed)
+        d = diagnose(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, fs=rec.fs, replicas=args.replicas, seed=args.seed)
     except ValueError as exc:
         raise InputError(f"{args.file}: {exc}") from None
     out = d.to_json_dict()

@@ -18,11 +18,13 @@ from typing import Any
 
 import numpy as np
 
+from gravcal.core.model.terms import GROUPS, REGISTRY
+
 from .errors import InputError
 
 log = logging.getLogger(__name__)
 
-MODEL_FLAGS = ("misalignment", "temperature", "nonlinearity", "drift", "supply")
+MODEL_FLAGS = tuple(GROUPS)  # one flag per group of registered terms
 BLOCK_SAMPLES = 1 << 16
 
 
@@ -57,7 +59,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, metavar="FILE.csv|FILE.npy", help="output recording")
     p.add_argument("--nominal", action="store_true", help="a datasheet-typical sensor instead of one drawn from the spreads")
     for flag in MODEL_FLAGS:
-        p.add_argument(f"--{flag}", action="store_true", help=f"switch on the model's {flag} terms")
+        p.add_argument(f"--{flag}", action="store_true", help=f"switch on the model's {flag} terms ({', '.join(GROUPS[flag])})")
+    p.add_argument("--term", dest="terms", action="append", default=[], metavar="NAME",
+                   help=f"add one registered term, repeatable ({', '.join(REGISTRY)})")
     p.add_argument("--set", dest="scenario_kw", action="append", type=_kv, default=[], metavar="KEY=VALUE",
                    help="scenario option, repeatable (e.g. --set orientation=2 --set theta_max_deg=60)")
     return p
@@ -93,7 +97,11 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--out {args.out}: the extension must be .csv or .npy")
     if not args.out.parent.exists():
         raise InputError(f"--out {args.out}: directory {args.out.parent} does not exist")
-    flags = {f: bool(getattr(args, f)) for f in MODEL_FLAGS}
+    flags: dict[str, Any] = {f: bool(getattr(args, f)) for f in MODEL_FLAGS}
+    for name in args.terms:
+        if name not in REGISTRY:
+            raise InputError(f"unknown --term {name!r}; registered terms: {', '.join(REGISTRY)}")
+        flags[name] = True
     kw = dict(args.scenario_kw)
     model = build_model(args.seed, nominal=args.nominal, **flags)
     n_total = int(round(args.duration * args.fs))

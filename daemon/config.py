@@ -19,7 +19,12 @@ import tomllib
 from dataclasses import dataclass, field, fields
 from typing import Any, get_type_hints
 
+from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
+
 from .errors import InputError
+
+ONLINE_TERMS = tuple(t for t in CALIBRATION_TERMS if calibration_view(t).acts_on != "cross")
+"""Registered terms the online estimator may add (the cross-axis one is the order rule's: order 9)."""
 
 DEFAULT_CONFIG_PATH = "/etc/gravcal/gravcald.toml"
 
@@ -47,10 +52,13 @@ class EstimatorConfig:
     model: str = field(default="6", metadata=_meta("model order", choices=("offsets", "6", "9", "12")))
     min_windows: int = field(default=6, metadata=_meta("windows before a calibration may be accepted (the first batch fit also waits for 2 per parameter)", min=0))
     process_noise: float = field(default=0.0, metadata=_meta("random-walk variance of every parameter per second of sensor time added to P [raw²/s] (0: none; drifting sensors: e.g. 1e-12 tracks ~1 mg/h)", min=0.0))
-    extended_terms: str = field(default="temperature_offset", metadata=_meta(
-        "extended terms the online estimator may add to orders >= 6, comma-separated (temperature_offset, "
-        "temperature_sensitivity, offset_drift, sensitivity_drift; \"\" for none); each is used only when the "
-        "windows can test it (a temperature channel with a spread), determine it and the evidence warrants it"))
+    # Default: the terms whose covariates the board itself measures. A time-drift term is linear in time from
+    # its reference and would extrapolate for days in a long-running service; drift is followed by the recursion
+    # (process_noise) and by re-seeds instead. Offline, `gravcal calibrate --model auto` tests every term.
+    extended_terms: str = field(default="temperature_offset,supply_offset", metadata=_meta(
+        f"extended terms the online estimator may add to orders >= 6, comma-separated ({', '.join(ONLINE_TERMS)}; "
+        "\"\" for none); each is used only when the windows can test it (its covariate channel with a spread), "
+        "determine it and the evidence warrants it"))
 
 
 @dataclass
@@ -165,7 +173,6 @@ def _apply(cfg: Config, source: str, section: str, key: str, value: Any) -> None
     setattr(getattr(cfg, section), key, value)
 
 
-ONLINE_TERMS = ("temperature_offset", "temperature_sensitivity", "offset_drift", "sensitivity_drift")
 
 
 def _validate_whole(cfg: Config, source: str) -> None:

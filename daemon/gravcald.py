@@ -320,21 +320,12 @@ class Processor:
     @applied.setter
     def applied(self, cal: Calibration) -> None:
         self._applied = cal
-        # a = K^-1 (raw - o) as one matrix product per block: the inverse is taken once here.
-        # One tuple, swapped atomically: correct() runs in the acquisition thread. An extended calibration
-        # (core/estimators/extended.py) adds its terms: temperature_offset alone is o + c_T (T - T_ref) per
-        # sample (the fast path, equal to apply_extended); any other term goes through apply_extended.
-        ext = cal.metadata.get("extended") if isinstance(cal.metadata, dict) else None
-        temp_coef, general = None, None
-        if ext:
-            params = cal.metadata.get("params") or {}
-            if list(ext.get("terms", [])) == ["temperature_offset"]:
-                temp_coef = (np.array([params[f"oT_{a}"] for a in "xyz"], dtype=float), float(ext["t_ref_c"]))
-            else:
-                general = cal
+        # A plain calibration: a = K^-1 (raw - o) as one matrix product per block, the inverse taken once here.
+        # An extended one applies its terms at each sample's covariates (Calibration.apply). One tuple, swapped
+        # atomically: correct() runs in the acquisition thread.
         self._correction = (np.asarray(cal.offset, dtype=float),
                             np.linalg.inv(np.asarray(cal.sensitivity, dtype=float)).T * STANDARD_GRAVITY,
-                            temp_coef, general)
+                            cal if cal.extended_terms else None)
 
     @property
     def static_now(self) -> bool:
@@ -355,16 +346,11 @@ class Processor:
         """The fast path, per block as it arrives: (acc [m/s²] (N, 3) corrected with the accepted
         calibration, gyro [rad/s] (N,) NaN when not configured, static (N,) codes: the detector's
         latest decision, or unknown when that is more than STATIC_MAX_AGE_S of data old)."""
-        offset, kinv_t, temp_coef, general = self._correction
-        if general is not None:
-            from ..core.estimators.extended import apply_extended
-
-            acc = apply_extended(general, raw_triad(block), temp=block["temp"].astype(float),
+        offset, kinv_t, extended = self._correction
+        if extended is not None:  # a sample without a covariate its terms need (NaN) gets NaN
+            acc = extended.apply(raw_triad(block), temp=block["temp"].astype(float),
+                                 vsupply=block["vsupply"].astype(float),
                                  t=block["seq"].astype(float) / self.cfg.device.fs_hz) * STANDARD_GRAVITY
-        elif temp_coef is not None:  # o(T) = o + c_T (T - T_ref); a sample without temperature gets NaN
-            coef, t_ref = temp_coef
-            o_t = offset + (block["temp"].astype(float) - t_ref)[:, None] * coef
-            acc = (raw_triad(block) - o_t) @ kinv_t
         else:
             acc = (raw_triad(block) - offset) @ kinv_t
         bias, sens = self._gyro_correction
@@ -381,7 +367,9 @@ class Processor:
         # stamps: USB latency jitter (or an emulator's time-lapse) would read as time gaps and
         # cut every window, while lost samples still show as seq jumps.
         t_device = block["seq"].astype(np.float64) / self.cfg.device.fs_hz
-        windows = self.detector.update(t_device, raw, block["temp"].astype(float)[:, None])
+        # the windows' aux channels, in AUX_COLUMNS order: temperature [°C], supply voltage [V]
+        aux = np.column_stack([block["temp"].astype(float), block["vsupply"].astype(float)])
+        windows = self.detector.update(t_device, raw, aux)
         det = getattr(self.detector, "last_detection", None)
         if det is not None and det.shape[0] == block.shape[0]:
             static = det < self.detector.threshold_g

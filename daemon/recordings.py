@@ -4,7 +4,7 @@ Two formats hold the same columns:
 
 - CSV: a header row, then one sample per line. Columns ``t`` [s], ``ax``, ``ay``, ``az``
   (raw units of any scale: counts, volts, duty cycle or g); optional ``gx``, ``gy``, ``gz``
-  (gyro, any unit) and ``temp`` [°C]; any other column is ignored. Delimiter ``,`` (``;`` or
+  (gyro, any unit), ``temp`` [°C] and ``vsupply`` [V]; any other column is ignored. Delimiter ``,`` (``;`` or
   tab are recognised from the header), ``#`` starts a comment line.
 - ``.npy``: a structured array with the same field names, opened memory-mapped so a week at
   100 Hz (60 M samples) is not copied; ``t``, ``ax``, ``ay``, ``az`` come back as views.
@@ -37,7 +37,8 @@ from .errors import InputError
 log = logging.getLogger(__name__)
 
 REQUIRED = ("t", "ax", "ay", "az")
-OPTIONAL = ("gx", "gy", "gz", "temp")
+OPTIONAL = ("gx", "gy", "gz", "temp", "vsupply")
+VSUPPLY_RANGE_V = (0.5, 60.0)  # a supply-voltage reading outside this is not a supply [V]: handled like NaN
 MIN_SAMPLES = 50
 """Fewer samples than this cannot hold even one quasi-static window at any usual rate."""
 MAX_NONFINITE_FRACTION = 0.5
@@ -61,7 +62,8 @@ class Recording:
     """A validated recording in memory (or memory-mapped).
 
     ``raw`` is (N, 3) in the file's raw units; ``t`` (N,) [s]; ``temp`` (N,) [°C] or None;
-    ``gyro`` (N, 3) in the file's gyro units or None; ``fs`` [Hz] estimated from ``t``.
+    ``gyro`` (N, 3) in the file's gyro units or None; ``fs`` [Hz] estimated from ``t``;
+    ``vsupply`` (N,) [V] or None.
     """
 
     t: np.ndarray
@@ -70,6 +72,7 @@ class Recording:
     gyro: np.ndarray | None
     fs: float
     source: Path
+    vsupply: np.ndarray | None = None
     n_dropped: int = 0  # rows dropped for NaN/inf
     n_saturated: int = 0  # rows dropped as saturated
     columns: tuple[str, ...] = ()  # every column/field name found in the file
@@ -343,11 +346,16 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: _Where, columns: t
     if raw is None:
         raw = np.column_stack([cols["ax"], cols["ay"], cols["az"]]).astype(np.float64, copy=False)
     temp = cols.get("temp")
+    vsupply = cols.get("vsupply")
+    if vsupply is not None:  # an out-of-range reading is no supply value: counted and dropped like NaN
+        v = np.asarray(vsupply, dtype=np.float64)
+        vsupply = np.where((v >= VSUPPLY_RANGE_V[0]) & (v <= VSUPPLY_RANGE_V[1]), v, np.nan)
     gyro = np.column_stack([cols[c] for c in ("gx", "gy", "gz")]) if all(c in cols for c in ("gx", "gy", "gz")) else None
     flags = cols.get("flags")
     n = int(t.shape[0])
     notes: list[str] = []
-    extra = [v for v in (temp,) if v is not None] + ([gyro[:, i] for i in range(3)] if gyro is not None else [])
+    extra = ([v for v in (temp, vsupply) if v is not None]
+             + ([gyro[:, i] for i in range(3)] if gyro is not None else []))
     scan = _scan(t, raw, extra, flags)
 
     # 1. NaN / inf in any column we use: drop the rows (a copy; only when there are any).
@@ -357,13 +365,17 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: _Where, columns: t
         used = {"t": t, "ax": raw[:, 0], "ay": raw[:, 1], "az": raw[:, 2]}
         if temp is not None:
             used["temp"] = temp
+        if vsupply is not None:
+            used["vsupply"] = vsupply
         if gyro is not None:
             used.update(gx=gyro[:, 0], gy=gyro[:, 1], gz=gyro[:, 2])
         bad = _nonfinite_rows(used, n)
         n_dropped = int(bad.sum())
         first = int(np.argmax(bad))
         which = [name for name, v in used.items() if not np.isfinite(v[first])]
-        msg = (f"{n_dropped} of {n} samples ({100.0 * n_dropped / n:.1f} %) hold NaN/inf or empty values "
+        what = "NaN/inf or empty values" + (f" (or a supply voltage outside {VSUPPLY_RANGE_V[0]:g}-"
+                                             f"{VSUPPLY_RANGE_V[1]:g} V)" if vsupply is not None else "")
+        msg = (f"{n_dropped} of {n} samples ({100.0 * n_dropped / n:.1f} %) hold {what} "
                f"(first at {where(first)}, column {', '.join(which)})")
         if n_dropped > MAX_NONFINITE_FRACTION * n:
             raise InputError(f"{path}: {msg}: too many to drop")
@@ -393,6 +405,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: _Where, columns: t
     if keep is not None:
         t, raw = t[keep], raw[keep]
         temp = temp[keep] if temp is not None else None
+        vsupply = vsupply[keep] if vsupply is not None else None
         gyro = gyro[keep] if gyro is not None else None
         orig_index = np.flatnonzero(keep)
     else:
@@ -408,7 +421,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: _Where, columns: t
     fs = 1.0 / float(np.median(scan.dt_medians))
     for note in notes:
         log.warning("%s: %s", path, note)
-    return Recording(t=t, raw=raw, temp=temp, gyro=gyro, fs=fs, source=path, n_dropped=n_dropped,
+    return Recording(t=t, raw=raw, temp=temp, vsupply=vsupply, gyro=gyro, fs=fs, source=path, n_dropped=n_dropped,
                      n_saturated=n_saturated, columns=columns, warnings=notes)
 
 

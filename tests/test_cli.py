@@ -59,7 +59,13 @@ def test_model_choices_come_from_the_parameterizations(capsys, six):
     assert set(PARAMETERIZATIONS) <= set(model_choices())
     code, _, err = run_cli(capsys, "calibrate", six, "--model", "no-such-model")
     assert code == 2
-    assert_one_error_line(err, "unknown --model 'no-such-model'", ", ".join(PARAMETERIZATIONS))
+    orders = ", ".join(m for m in PARAMETERIZATIONS if "+" not in m)
+    from gravcal.core.model.terms import CALIBRATION_TERMS
+
+    assert_one_error_line(err, "unknown --model 'no-such-model'", orders, ", ".join(CALIBRATION_TERMS))
+    code, _, err = run_cli(capsys, "calibrate", six, "--model", "6+bogus")  # an unknown term lists the registry's
+    assert code == 2
+    assert_one_error_line(err, "unknown term(s) ['bogus']", ", ".join(repr(t) for t in CALIBRATION_TERMS))
     code, _, err = run_cli(capsys, "calibrate", six, "--detector", "magic")
     assert code == 2
     assert_one_error_line(err, "unknown --detector 'magic'", "lotters")

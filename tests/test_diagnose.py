@@ -42,6 +42,27 @@ def test_actigraph_reveals_temperature_offset(actigraph):
     assert "sensitivities are not observable" in why["temperature_sensitivity"]
 
 
+def test_calibrate_and_diagnose_give_one_answer_on_the_chamber(actigraph):
+    """One observability rule: calibrate refuses the single-pose chamber (absolute offsets not determined,
+    the held sensitivities dominate) and diagnose says the same, judging its terms given those sensitivities."""
+    from gravcal.core.pipeline import OrderNotDetermined, calibrate_recording
+
+    r = D.load("actigraph_cpw_thermal_chamber")
+    with pytest.raises(OrderNotDetermined) as exc:
+        calibrate_recording(r.t, r.acc, temp=r.temp, fs=r.fs)
+    msg = str(exc.value)
+    assert "not even the offsets are determined" in msg and "given the held sensitivities" in msg
+    obs = actigraph.observability
+    assert obs["determined"] is False
+    assert obs["predicted_mg"] > 10.0 and obs["given_held_mg"] <= 10.0
+    assert "`gravcal calibrate` refuses" in obs["reason"] and "held" in obs["reason"]
+    assert obs["reason"] in actigraph.notes
+    # the same rule, the same numbers: calibrate's message quotes the predicted error diagnose reports (to 5 %: the
+    # pipeline re-detects its windows with the fitted calibration, diagnose keeps the baseline's)
+    pred = float(msg.split("not even the offsets are determined (predicted error ")[1].split(" mg")[0])
+    assert abs(pred - obs["predicted_mg"]) <= 0.05 * pred, (pred, obs)
+
+
 def test_xsens_reveals_misalignment(measured_data_dir):
     r = D.load("imu_tk_xsens")
     d = diagnose(r.t, r.acc, fs=r.fs, replicas=10)

@@ -24,7 +24,7 @@ import numpy as np
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.extended import EXTRA_TERMS, ExtendedParameterization, extended_residuals_g
 from gravcal.core.estimators.lotters import HELD_KEY, LottersBatch
-from gravcal.core.estimators.order import coverage, select_order
+from gravcal.core.estimators.order import TOL_G, coverage, held_note, is_observable, select_order
 from gravcal.core.model.terms import CATALOGUE as TERM_CATALOGUE
 from gravcal.core.model.terms import REGISTRY, term_spec
 from gravcal.core.windows import WindowSet
@@ -69,6 +69,7 @@ class Diagnosis:
     resid_extended_g: np.ndarray | None = None
     has_temp: bool = False
     white_g: np.ndarray | None = None
+    observability: dict[str, Any] | None = None  # the offsets by order.is_observable, as `gravcal calibrate` judges them
 
     @property
     def heldout_gain_mg(self) -> float | None:
@@ -80,6 +81,7 @@ class Diagnosis:
         r = lambda x: None if x is None or not math.isfinite(x) else round(float(x), 4)  # noqa: E731
         return {
             "findings": self.findings,
+            "observability": self.observability,
             "baseline": {"model": self.base_model, "heldout_rms_mg": r(self.baseline_heldout_mg),
                          "insample_rms_mg": r(self.baseline_insample_mg),
                          "simulation": None if self.compare_baseline is None else self.compare_baseline.to_dict()},
@@ -104,6 +106,22 @@ def sensor_model_term(effect: str, magnitude: dict[str, Any]) -> dict[str, Any] 
     None for a term whose view has no forward counterpart."""
     spec = term_spec(effect)
     return None if spec.sensor_term is None else spec.sensor_term(magnitude.get("value", {}))
+
+
+def offsets_observability(ws: WindowSet, start: Calibration) -> dict[str, Any]:
+    """The offsets judged by THE observability rule (order.is_observable at the start with its held
+    uncertainty), as `gravcal calibrate --model auto` judges them: determined absolutely, or only given
+    the held sensitivities (what the term tests are relative to), with the numbers and why."""
+    ok, obs = is_observable(ws, start, "offsets")
+    out = {"determined": ok, "predicted_mg": obs["predicted_mg"], "given_held_mg": obs["predicted_given_held_mg"],
+           "reason": ""}
+    if not ok:
+        pred = "unbounded" if obs["predicted_mg"] is None else f"{obs['predicted_mg']:.3g} mg"
+        out["reason"] = (f"the absolute offsets are not determined (predicted error {pred} > "
+                         f"{TOL_G * 1e3:.0f} mg; {held_note(obs) or 'too few postures'}): `gravcal calibrate` refuses "
+                         f"this recording for that reason; given the held sensitivities the offsets are determined to "
+                         f"{obs['predicted_given_held_mg']} mg, and the terms here are judged relative to them")
+    return out
 
 
 def _static_stretches(ws: WindowSet, max_gap: int) -> list[tuple[int, int]]:
@@ -207,10 +225,10 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
                      cmp_b, cmp_e, None, cov, sel.floor_g * 1e3, notes, ws, res_b, res_e, has_temp)
 
 
-def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, fs: float | None = None,
-             candidates: tuple[str, ...] = CATALOGUE, replicas: int = 40, folds: int = 5, seed: int = 0,
-             simulate: bool = True) -> Diagnosis:
-    """Diagnose a recording: t (N,) [s], raw (N, 3) [raw units], temp (N,) [°C] or None."""
+def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, vsupply: np.ndarray | None = None,
+             fs: float | None = None, candidates: tuple[str, ...] = CATALOGUE, replicas: int = 40, folds: int = 5,
+             seed: int = 0, simulate: bool = True) -> Diagnosis:
+    """Diagnose a recording: t (N,) [s], raw (N, 3) [raw units], temp (N,) [°C] and vsupply (N,) [V] or None."""
     from gravcal.core.pipeline import calibrate_recording, data_start  # noqa: PLC0415
 
     t = np.asarray(t, dtype=float)
@@ -240,15 +258,19 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
             keep[a + 1:b] = False  # the first sample of a run is a real one
         t, raw = t[keep], raw[keep]
         temp = None if temp is None else temp[keep]
-    start0 = data_start(t, raw, fs)
+        vsupply = None if vsupply is None else np.asarray(vsupply)[keep]
+    held_start = start0 = data_start(t, raw, fs)
     if HELD_KEY in start0.metadata:
         start0 = given_held(start0)
         notes.append(GIVEN_HELD_NOTE)
-    rep = calibrate_recording(t, raw, temp=temp, model="offsets", fs=fs, start=start0)
+    rep = calibrate_recording(t, raw, temp=temp, vsupply=vsupply, model="offsets", fs=fs, start=start0)
     ws = rep.windows
     has_temp = temp is not None and np.ptp(temp) > 0
     d = diagnose_windows(ws, rep.start or rep.calibration, has_temp=has_temp, candidates=candidates,
                          replicas=replicas, folds=folds, seed=seed, simulate=simulate)
+    d.observability = offsets_observability(ws, held_start)
+    if not d.observability["determined"]:
+        notes.append(d.observability["reason"])
     d.notes = notes + d.notes
     # noise tests on static stretches (samples in g through the diagonal of the baseline K)
     scale = np.abs(np.diag(d.baseline_cal.sensitivity))

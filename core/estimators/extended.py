@@ -1,30 +1,25 @@
-"""Parameterizations extended by catalogue terms whose effect depends on per-window covariates.
+"""Parameterizations extended by the registry's calibration terms, whose effect depends on per-window covariates.
 
-The sensor model's terms (core/model/adxl210.py) have a calibration-level view (``linear_part``):
-at a window with temperature T [°C] and mid time t [s] the triad reads
+Each registered term with a calibration view (``core/model/terms``, one module per effect) adds three
+parameters to a base order; at a window with covariates c (temperature, supply voltage, mid time, or the
+window's own reference acceleration) the triad reads
 
-    raw = K(T, t) (a + q(a)) + o(T, t)
+    raw = K(c) a + o(c),   K(c) = K_ref + sum_p p dK_p(c),   o(c) = o_ref + sum_p p do_p(c)
 
-    temperature_offset       o += c_T (T - T_ref)              c_T (3,) [raw/°C]
-    temperature_sensitivity  K += diag(k_T) (T - T_ref)        k_T (3,) [raw/g/°C]
-    offset_drift             o += r_o (t - t0) / 3600          r_o (3,) [raw/h]
-    sensitivity_drift        K += diag(r_s) (t - t0) / 3600    r_s (3,) [raw/g/h]
-    nonlinearity             o += diag(K0) c2 * a0²            c2 (3,) [1/g], a0 = K0^-1 (m - o0)
-    misalignment             K += symmetric off-diagonal       m_xy, m_xz, m_yz [raw/g] (the 9-param cross-axis part)
-
+with the rows dK_p, do_p the term's view declares (``core/model/spec.py``, ``core/model/effect.py``).
 Every extra parameter enters linearly, with derivatives that depend on the window's covariates
-(T, t, a0) instead of being constant. So an extended parameterization is a Parameterization
-whose ``at_windows(ws)`` returns the same thing bound to those windows' covariates (per-row
-dK, do); at the reference (T = T_ref, t = t0) it reduces to its base ("offsets", "6", "9"),
-which is what ``unpack`` returns. ``LottersRecursive`` uses it window by window (it passes
-each window's aux and time; see the hook there), ``LottersBatch`` and ``fit_extended`` below in batch.
-Every estimator stores :func:`extended_metadata` with its Calibration (``params``, ``extended``): its K, o
-hold at the reference only, and :func:`apply_extended` / :func:`apply_windows` (the held-out error) need
-the terms to correct at each sample's or window's temperature and time.
+instead of being constant. So an extended parameterization is a Parameterization whose
+``at_windows(ws)`` returns the same thing bound to those windows' covariates (per-row dK, do); at the
+references (T_ref, V_ref, t0) it reduces to its base ("offsets", "6", "9"), which is what ``unpack``
+returns. ``LottersRecursive`` uses it window by window (it passes each window's aux and time),
+``LottersBatch`` and ``fit_extended`` below in batch. Every estimator stores :func:`extended_metadata`
+with its Calibration (``params``, ``extended``): its K, o hold at the references only, and
+``Calibration.apply`` / :func:`apply_windows` (the held-out error) need the terms to correct at each
+sample's or window's covariates.
 
 Names are ``"<base>+<term>+<term>..."`` (e.g. ``"6+temperature_offset"``); :func:`extended_class`
-builds and registers the class in PARAMETERIZATIONS on first use; common ones are registered at
-import. Temperature is the windows' ``aux[:, temp_column]`` (the pipeline puts temp there).
+builds and registers the class in PARAMETERIZATIONS on first use. The covariates are the windows'
+``aux`` columns by name (``core/model/spec.AUX_COLUMNS``: temperature, supply voltage) and ``t``.
 """
 from __future__ import annotations
 
@@ -214,13 +209,6 @@ def parameterization(model: str, K0: np.ndarray, o0: np.ndarray, **kw: Any) -> P
     if "+" in model:
         return extended_class(model)(K0, o0, **kw)
     return PARAMETERIZATIONS[model](K0, o0)
-
-
-# common ones, so they can be named in configs and on the command line
-for _n in ("offsets+temperature_offset", "6+temperature_offset", "6+temperature_offset+temperature_sensitivity",
-           "9+temperature_offset", "9+temperature_offset+temperature_sensitivity", "6+offset_drift",
-           "offsets+offset_drift"):
-    extended_class(_n)
 
 
 # -- what a calibration must carry -----------------------------------------------------------------

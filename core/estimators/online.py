@@ -23,7 +23,7 @@ upright windows determine the offsets only *given* the held sensitivities, whose
 the offsets are then fitted provisionally (a far better linearisation point than the start), reported with
 that std and observable=False (``provisional``), until other postures make order 6 observable.
 
-Extended terms (issue 6 item 4): candidates may name extended models ("6+temperature_offset",
+Extended terms: candidates may name extended models ("6+temperature_offset",
 core/estimators/extended.py). Once the base order is chosen, each extended candidate on that base is
 judged by the same rule -- testable (a temperature channel with a spread, order.term_testability),
 observable (order.is_observable_extended: predicted error over orientations and the session's
@@ -45,6 +45,8 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..crlb import sphere_directions
+from ..model.effect import needed_covariates, references
+from ..model.terms import COVARIATES
 from ..windows import Window, WindowSet
 from .inuse12 import with_frame
 from .lotters import LottersBatch, LottersRecursive, validate_windows
@@ -267,8 +269,10 @@ class OnlineCalibrator:
         a = np.linalg.solve(K, mean - o)
         self.store.add(mean, cov, n, t, aux, a / max(float(np.linalg.norm(a)), 1e-12))
         self.n_windows += 1
-        needs_aux = "+" in self.model and any(x.startswith("temperature") for x in extended_terms(self.model))
-        if self.recursive is not None and not (needs_aux and not np.all(np.isfinite(aux))):
+        # a window without a covariate its model's terms need (NaN aux) cannot update them: stored, not recursed on
+        cols = [COVARIATES[c].aux_column for c in needed_covariates(extended_terms(self.model)) if c != "time"]
+        usable = all(c < len(aux) and np.isfinite(aux[c]) for c in cols)
+        if self.recursive is not None and usable:
             if not self.recursive.step(mean, cov / n, t, aux):
                 self.n_rejected += 1
         self._since_check += 1
@@ -461,8 +465,9 @@ class OnlineCalibrator:
         from .extended import parameterization  # noqa: PLC0415
 
         ext = cal.metadata.get("extended") or {}
-        par = parameterization(model, cal.sensitivity, cal.offset, t_ref_c=ext.get("t_ref_c", 25.0),
-                               t0_s=ext.get("t0_s", 0.0), temp_column=ext.get("temp_column", 0))
+        refs = references(ext)
+        par = parameterization(model, cal.sensitivity, cal.offset, t_ref_c=refs["temp"], t0_s=refs["time"],
+                               v_ref=refs["vsupply"], temp_column=ext.get("temp_column", 0))
         # LottersRecursive starts the extra parameters from the fit's metadata["params"]
         return LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=self.process_noise,
                                 gate_sigma=self.gate_sigma)

@@ -6,28 +6,23 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, Term, register
+from ..base import register
 from ..datasheet import SUPPLY_GAIN_PER_V, V_NOMINAL
-from ..spec import TermSpec, column, signed
+from ..spec import TermSpec, signed
+from .linear import CovariateLinearTerm
 
 
 @register
-class RatiometricSupply(Term):
+class RatiometricSupply(CovariateLinearTerm):
     """Supply dependence of the gain: x (1 + gain_per_v dV), dV = vsupply - v0 [V]."""
 
     name = "ratiometric_supply"
     stage = "channel"
     order = 22
+    covariate, coef_key, ref_key, acts_on = "vsupply", "gain_per_v", "v0", "gain"
 
     def __init__(self, gain_per_v: Any = np.zeros(4), v0: Any = V_NOMINAL, **params: Any):
         super().__init__(gain_per_v=gain_per_v, v0=v0, **params)
-
-    def linear_part(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
-        dv = column(ctx.vsupply) - self.params["v0"]
-        return 1.0 + self.params["gain_per_v"] * dv, np.zeros(4)
-
-    def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
-        return x * self.linear_part(ctx)[0]
 
 
 SPEC = TermSpec(

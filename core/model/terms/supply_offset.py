@@ -10,27 +10,23 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, Term, register
+from ..base import register
 from ..datasheet import SUPPLY_OFFSET_G_PER_V, V_NOMINAL
-from ..spec import CalibrationView, TermSpec, channels_from_axes, column, per_sensitivity, signed
+from ..spec import CalibrationView, TermSpec, channels_from_axes, per_sensitivity, signed
+from .linear import CovariateLinearTerm
 
 
 @register
-class SupplyOffset(Term):
+class SupplyOffset(CovariateLinearTerm):
     """Offset coef_g_per_v (vsupply - v0) per channel [g/V]."""
 
     name = "supply_offset"
     stage = "channel"
     order = 34
+    covariate, coef_key, ref_key, acts_on = "vsupply", "coef_g_per_v", "v0", "offset"
 
     def __init__(self, coef_g_per_v: Any = np.zeros(4), v0: Any = V_NOMINAL, **params: Any):
         super().__init__(coef_g_per_v=coef_g_per_v, v0=v0, **params)
-
-    def linear_part(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
-        return np.ones(4), self.params["coef_g_per_v"] * (column(ctx.vsupply) - self.params["v0"])
-
-    def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
-        return x + self.linear_part(ctx)[1]
 
 
 SPEC = TermSpec(

@@ -5,27 +5,23 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, Term, register
+from ..base import register
 from ..datasheet import TEMP_OFFSET_G_PER_C
-from ..spec import CalibrationView, TermSpec, channels_from_axes, column, per_sensitivity, signed
+from ..spec import CalibrationView, TermSpec, channels_from_axes, per_sensitivity, signed
+from .linear import CovariateLinearTerm
 
 
 @register
-class TemperatureOffset(Term):
+class TemperatureOffset(CovariateLinearTerm):
     """Offset coef_g_per_c (T - t0_c) per channel [g/°C]."""
 
     name = "temperature_offset"
     stage = "channel"
     order = 30
+    covariate, coef_key, ref_key, acts_on = "temp", "coef_g_per_c", "t0_c", "offset"
 
     def __init__(self, coef_g_per_c: Any = np.zeros(4), t0_c: Any = 25.0, **params: Any):
         super().__init__(coef_g_per_c=coef_g_per_c, t0_c=t0_c, **params)
-
-    def linear_part(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
-        return np.ones(4), self.params["coef_g_per_c"] * (column(ctx.temp) - self.params["t0_c"])
-
-    def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
-        return x + self.linear_part(ctx)[1]
 
 
 SPEC = TermSpec(

@@ -5,30 +5,23 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, Term, register
+from ..base import register
 from ..datasheet import TEMP_SENS_PER_C
-from ..spec import CalibrationView, TermSpec, channels_from_axes, column, per_sensitivity, signed
+from ..spec import CalibrationView, TermSpec, channels_from_axes, per_sensitivity, signed
+from .linear import CovariateLinearTerm
 
 
 @register
-class TemperatureSensitivity(Term):
+class TemperatureSensitivity(CovariateLinearTerm):
     """Gain (1 + coef_per_c (T - t0_c)) per channel [1/°C]."""
 
     name = "temperature_sensitivity"
     stage = "channel"
     order = 20
+    covariate, coef_key, ref_key, acts_on = "temp", "coef_per_c", "t0_c", "gain"
 
     def __init__(self, coef_per_c: Any = np.zeros(4), t0_c: Any = 25.0, **params: Any):
         super().__init__(coef_per_c=coef_per_c, t0_c=t0_c, **params)
-
-    def _gain(self, ctx: Context) -> np.ndarray:
-        return 1.0 + self.params["coef_per_c"] * (column(ctx.temp) - self.params["t0_c"])
-
-    def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
-        return x * self._gain(ctx)
-
-    def linear_part(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
-        return self._gain(ctx), np.zeros(4)
 
 
 SPEC = TermSpec(
