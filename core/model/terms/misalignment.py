@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..adxl210 import CHANNEL_SOURCE, CHIP_A_NOMINAL, CHIP_B_NOMINAL, N_CHANNELS
 from ..base import Term, register
@@ -23,6 +22,8 @@ def misaligned_axes(chip_a: Any = (0, 0, 0), chip_b: Any = (0, 0, 0), mount_b: A
     frame. axis_err (4, 2): per-channel deviation of the sensitive axis inside the die toward
     the two chip axes perpendicular to it (datasheet "alignment error" / cross-axis sensitivity).
     """
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415 (scipy is heavy: the daemon imports this module)
+
     axis_err = np.asarray(axis_err, dtype=float).reshape(N_CHANNELS, 2)
     r_a = CHIP_A_NOMINAL @ Rotation.from_rotvec(np.asarray(chip_a, float)).as_matrix()
     r_b = (Rotation.from_rotvec(np.asarray(mount_b, float)).as_matrix() @ CHIP_B_NOMINAL
