@@ -8,7 +8,7 @@ times faster and puts the frames on a bus the real drivers open unchanged:
 - slcan: a pty speaking the LAWICEL/slcan ASCII protocol on the master side (answers the
   open/close/bitrate commands python-can sends, emits ``t`` frames while the channel is open);
 - python-can bus: any in-process python-can interface, e.g. ``virtual``;
-- I2C: see ``fakes.FakeI2CDevice`` (pull-based: the FIFO fills with time).
+- I2C: see ``fake_i2c.FakeI2CDevice`` (pull-based: the FIFO fills with time).
 
 Fault injection (:class:`Faults`): bit-error rate, dropped frames, disconnects at given stream
 times. Every sample's fate is written to a :class:`SentLog` (what went on the wire, wire-exact),
@@ -31,8 +31,8 @@ from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
-from ..core.samples import SAMPLE_DTYPE
-from .codec import FRAME_LEN, encode_frames, wire_roundtrip
+from ...core.samples import SAMPLE_DTYPE
+from ..codec import FRAME_LEN, encode_frames, wire_roundtrip
 
 log = logging.getLogger(__name__)
 
@@ -267,7 +267,7 @@ class SlcanPtyLink(PtyLink):
         if link is None:
             link = Path(tempfile.mkdtemp(prefix="gravcal-emu-")) / "ttyGRAVCAN0"
         super().__init__(link)
-        from .can import DEFAULT_BASE_ID
+        from ..can import DEFAULT_BASE_ID  # the CAN driver loads python-can (~0.1 s): only CAN links pay it
 
         self.base_id = DEFAULT_BASE_ID if base_id is None else base_id
         self.bitrate = bitrate
@@ -322,7 +322,7 @@ class SlcanPtyLink(PtyLink):
         return "\a"
 
     def send(self, samples, faults, blocking):
-        from .can import FRAME_DLC, TIMING, pack_frames
+        from ..can import FRAME_DLC, TIMING, pack_frames
 
         n = samples.shape[0]
         if not self.channel_open:
@@ -354,7 +354,7 @@ class PythonCanLink(Link):
     name = "can"
 
     def __init__(self, interface: str = "virtual", channel: str = "gravcal0", base_id: int | None = None):
-        from .can import DEFAULT_BASE_ID
+        from ..can import DEFAULT_BASE_ID
 
         self.interface, self.channel = interface, channel
         self.base_id = DEFAULT_BASE_ID if base_id is None else base_id
@@ -377,7 +377,7 @@ class PythonCanLink(Link):
     def send(self, samples, faults, blocking):
         import can
 
-        from .can import TIMING, pack_frames
+        from ..can import TIMING, pack_frames
 
         n = samples.shape[0]
         frames = np.ones((n, 4), bool)
