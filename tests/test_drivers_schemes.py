@@ -16,9 +16,9 @@ DRIVERS_DIR = Path(drivers_pkg.__file__).resolve().parent
 RIGS = "gravcal.drivers.rigs"
 
 
-def _imported_modules(path: Path) -> list[tuple[int, str]]:
-    """Absolute names of every module ``path`` imports, at any depth (function-level too)."""
-    package = "gravcal.drivers"  # the real drivers sit directly in the package
+def _imported_modules(path: Path, package: str = "gravcal.drivers") -> list[tuple[int, str]]:
+    """Absolute names of every module ``path`` (a module of ``package``) imports, at any depth
+    (function-level too)."""
     out = []
     for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"), str(path))):
         if isinstance(node, ast.Import):
@@ -41,6 +41,18 @@ def test_real_drivers_never_import_the_rigs():
     offenders = [f"{p.name}:{line} imports {mod}" for p in real for line, mod in _imported_modules(p)
                  if mod == RIGS or mod.startswith(RIGS + ".") or mod.endswith(".rigs")]
     assert offenders == []
+
+
+def test_no_driver_or_rig_knows_the_daemon():
+    from gravcal.drivers.rigs import hil
+
+    offenders = []
+    for p in sorted(DRIVERS_DIR.rglob("*.py")):
+        package = "gravcal.drivers" + ("" if p.parent == DRIVERS_DIR else ".rigs")
+        offenders += [f"{p.name}:{line} imports {mod}" for line, mod in _imported_modules(p, package)
+                      if mod.startswith("gravcal.daemon")]
+    assert offenders == []
+    assert hil.EMULATOR_MODULE == "gravcal.drivers.rigs.emulate"  # the HIL runner starts the rig's entry point
 
 
 def test_import_checker_sees_relative_and_function_level_imports(tmp_path):
