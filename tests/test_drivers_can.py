@@ -14,8 +14,9 @@ from gravcal.core.samples import FLAG_GAP_BEFORE, FLAG_PARTIAL, FLAG_RECONNECT
 from gravcal.drivers import DriverError, open_driver
 from gravcal.drivers import can as gcan
 from gravcal.drivers.codec import SeqUnwrapper, wire_roundtrip
+from gravcal.drivers.rigs.can_links import PythonCanLink
 from gravcal.drivers.rigs.emulator import (
-    CLOSED, DROPPED, OFFLINE, PARTIAL, SENT, Emulator, Faults, PythonCanLink, SentLog, load_sent_log,
+    CLOSED, DROPPED, OFFLINE, PARTIAL, SENT, Emulator, Faults, SentLog, load_sent_log,
 )
 from gravcal.drivers.rigs.hil import EmulatorProcess
 from gravcal.drivers.rigs.sources import pattern_blocks

@@ -12,8 +12,9 @@ import pytest
 from gravcal.core.samples import SAMPLE_DTYPE
 from gravcal.drivers.rigs import emulate
 from gravcal.drivers.codec import decode_frames
+from gravcal.drivers.rigs.can_links import SlcanPtyLink
 from gravcal.drivers.rigs.emulator import (
-    CORRUPTED, DROPPED, SENT, Emulator, Faults, PtyLink, SentLog, SlcanPtyLink, load_sent_log,
+    CORRUPTED, DROPPED, SENT, Emulator, Faults, PtyLink, SentLog, load_sent_log,
 )
 from gravcal.drivers.rigs.sources import pattern_blocks, replay_source
 

@@ -1,7 +1,8 @@
 """Test rigs: the logger without the hardware, for HIL tests, benchmarks and ``gravcald --emulate``.
 
 - ``sources``: where emulated samples come from (sensor model, recording, test pattern);
-- ``emulator``: paces a source onto a serial pty, an slcan pty or a python-can bus, with faults;
+- ``emulator``: paces a source onto a link (a serial pty; ``can_links``: an slcan pty or a
+  python-can bus), with fault injection and a log of every sample's fate;
 - ``fake_i2c``: the logger as an I2C target behind a fake ``smbus2.SMBus`` (the ``fake-i2c://``
   driver scheme);
 - ``emulate``: the emulator's entry point (``python -m gravcal.drivers.rigs.emulate``), and

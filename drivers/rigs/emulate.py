@@ -24,12 +24,15 @@ from typing import Sequence
 
 import numpy as np
 
-from .emulator import Emulator, Faults, PtyLink, SentLog, SlcanPtyLink
+from .can_links import SlcanPtyLink
+from .emulator import Emulator, Faults, PtyLink, SentLog
 from .fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec
 from .options import disconnect_arg, positive_arg, probability_arg, speed_arg
 from .sources import replay_source, scenario_source
 
 DESCRIPTION = "emulate the logger on a serial pty, slcan pty, or fake I2C device"
+STREAM_LINKS = {"serial": PtyLink, "can": SlcanPtyLink}
+"""--bus -> the link the emulator pushes frames onto (i2c is pulled: see _run_i2c)."""
 
 
 def configure_parser(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -73,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     _install_stop(stop)
     if args.bus == "i2c":
         return _run_i2c(args, source, faults, sent_log, stop)
-    link = PtyLink(args.link) if args.bus == "serial" else SlcanPtyLink(args.link)
+    link = STREAM_LINKS[args.bus](args.link)
     emu = Emulator(source.blocks, source.fs, link, speed=args.speed, faults=faults, log=sent_log, stop=stop,
                    on_event=lambda text: _say(f"event: {text}"))
     started = threading.Event()
