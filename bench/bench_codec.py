@@ -19,8 +19,8 @@ import numpy as np
 
 from gravcal.drivers import open_driver
 from gravcal.drivers.codec import FRAME_LEN, FrameDecoder, encode_frames
-from gravcal.drivers.hil import EmulatorProcess
-from gravcal.drivers.sources import pattern_blocks
+from gravcal.drivers.rigs.hil import EmulatorProcess
+from gravcal.drivers.rigs.sources import pattern_blocks
 
 
 def bench_decode(n: int = 400_000) -> dict:
@@ -48,7 +48,7 @@ def bench_decode(n: int = 400_000) -> dict:
 def bench_driver(bus: str, seconds: float) -> dict:
     fs = 200.0
     if bus == "i2c":
-        drv = open_driver(f"i2c://fake/0x42?scenario=pattern&fs={fs:g}&speed=1&duration={seconds + 60}")
+        drv = open_driver(f"fake-i2c://0x42?scenario=pattern&fs={fs:g}&speed=1&duration={seconds + 60}")
         emu = None
     else:
         emu = EmulatorProcess(["--bus", bus, "--scenario", "pattern", "--fs", str(fs), "--duration",

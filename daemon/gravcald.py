@@ -55,7 +55,7 @@ from ..core.ringbuffer import RingBuffer
 from ..core.samples import SAMPLE_DTYPE, raw_triad
 from ..core.windows import Window, WindowSet
 from . import config as config_mod
-from .cmd_emulate import disconnect_arg, speed_arg
+from ..drivers.rigs.options import disconnect_arg, speed_arg
 from .config import Config, ConfigError
 from .persistence import CalibrationState, RateLimitedSaver, StateStore, load_lab_calibration
 from .protocol import STANDARD_GRAVITY, STATIC_UNKNOWN, calib_message
@@ -582,7 +582,7 @@ def _DetachedEmulator(args: Sequence[str], *, linger: float) -> Any:
     reaches only the daemon, which then saves its state and stops the emulator itself."""
     import queue
     import subprocess
-    from ..drivers.hil import EmulatorProcess
+    from ..drivers.rigs.hil import EmulatorProcess
 
     class Detached(EmulatorProcess):
         def __enter__(self) -> "Detached":
@@ -659,10 +659,10 @@ class EmulatedBus:
         return open_driver(self.spec)
 
     def _open_i2c(self) -> Any:
-        from ..drivers.emulator import Faults
-        from ..drivers.fakes import FakeI2CDevice, FakeSMBus
+        from ..drivers.rigs.emulator import Faults
+        from ..drivers.rigs.fake_i2c import FakeI2CDevice, FakeSMBus
         from ..drivers.i2c import I2CDriver
-        from ..drivers.sources import scenario_source
+        from ..drivers.rigs.sources import scenario_source
 
         speed = self.speed if math.isfinite(self.speed) else 100.0  # a FIFO fills at a finite pace
         source = scenario_source(self.scenario, seed=self.seed, fs=self.fs, duration=self.duration)

@@ -249,16 +249,11 @@ def static_words(static: np.ndarray, n: int) -> np.ndarray:
 
 # IMU lines are formatted with %-templates: the hot path of the server (one line per sample
 # per encoding), and several times faster than json.dumps on a dict.
-_IMU_HEAD = '{"class":"IMU","seq":%d,"t":%.6f,"acc":[%.5f,%.5f,%.5f],"gyro":%s,"static":%s,"temp":%.2f,"vsupply":%.3f'
-_RAW_TAIL = ',"duty":[%s],"t1":[%d,%d,%d,%d],"t2":[%d,%d],"gyro_counts":%d,"tick":%d,"flags":%d}\n'
-
-
-def _num(x: float, fmt: str) -> str:
-    return fmt % x if math.isfinite(x) else "null"
-
-
 _HEAD_FIELDS = '{"class":"IMU","seq":%d,"t":%.6f,"acc":[%.5f,%.5f,%.5f],"gyro":{gyro},"static":%s,"temp":%.2f,"vsupply":%.3f'
 _RAW_FIELDS = ',"duty":[%.6f,%.6f,%.6f,%.6f],"t1":[%d,%d,%d,%d],"t2":[%d,%d],"gyro_counts":%d,"tick":%d,"flags":%d}\n'
+# How % writes non-finite floats; JSON has no such numbers, so they become null. No key or
+# word of an IMU line contains these letters, so replacing them touches only numbers.
+_NON_FINITE_WORDS = (b"-inf", b"inf", b"nan")
 
 
 def encode_imu_joined(
@@ -269,33 +264,29 @@ def encode_imu_joined(
     *,
     raw: bool = False,
 ) -> bytes:
-    """The IMU lines of a block as one byte string (what :func:`encode_imu` gives, joined).
+    """The IMU lines of a block of samples (SAMPLE_DTYPE) as one byte string.
 
-    Hot path of the server: when every number is finite (the usual case) the whole block is
-    formatted by ONE ``%`` operation over a template repeated N times and a flat tuple of the
-    values, built column-wise by numpy (no Python step per sample); blocks with missing
-    values (NaN -> null) go through :func:`encode_imu`'s per-line path.
+    acc_ms2 (N, 3) calibrated specific force [m/s²]; gyro_rads (N,) rate [rad/s] (NaN: not
+    calibrated -> null); static (N,) bool or codes (:func:`static_words`). ``raw`` adds the
+    driver's raw fields. Missing values (NaN, e.g. a channel with T2 = 0) are null.
+
+    The whole block is formatted by ONE ``%`` operation over a template repeated N times and a
+    flat tuple of the values, built column-wise by numpy (no Python step per sample).
     """
     n = samples.shape[0]
     acc = np.asarray(acc_ms2, dtype=float).reshape(n, 3)
     gyro = np.asarray(gyro_rads, dtype=float).reshape(n)
-    finite = n > 0 and bool(np.isfinite(acc).all() and np.isfinite(samples["t"]).all()
-                            and np.isfinite(samples["temp"]).all() and np.isfinite(samples["vsupply"]).all())
-    gyro_null = bool(np.isnan(gyro).all())
-    if finite and not gyro_null and not np.isfinite(gyro).all():
-        finite = False  # a mix of calibrated and missing gyro values: per line
-    duty = duty_ratios(samples) if raw and finite else None
-    if duty is not None and not np.isfinite(duty).all():
-        finite = False
-    if not finite:
-        return b"".join(encode_imu(samples, acc_ms2, gyro_rads, static, raw=raw))
+    gyro_null = bool(np.isnan(gyro).all())  # the usual uncalibrated gyro: a literal null, no scan
     cols: list[Any] = [samples["seq"], samples["t"], acc[:, 0], acc[:, 1], acc[:, 2]]
     if not gyro_null:
         cols.append(gyro)
-    cols += [static_words(static, n),
-             samples["temp"], samples["vsupply"]]
+    cols += [static_words(static, n), samples["temp"], samples["vsupply"]]
     template = _HEAD_FIELDS.replace("{gyro}", "null" if gyro_null else "%.6f")
+    finite = bool(np.isfinite(acc).all() and np.isfinite(samples["t"]).all() and np.isfinite(samples["temp"]).all()
+                  and np.isfinite(samples["vsupply"]).all() and (gyro_null or np.isfinite(gyro).all()))
     if raw:
+        duty = duty_ratios(samples)
+        finite = finite and bool(np.isfinite(duty).all())
         cols += [duty[:, 0], duty[:, 1], duty[:, 2], duty[:, 3], *samples["t1"].T, *samples["t2"].T,
                  samples["gyro"], samples["tick"], samples["flags"]]
         template += _RAW_FIELDS
@@ -304,7 +295,11 @@ def encode_imu_joined(
     table = np.empty((n, len(cols)), dtype=object)
     for j, c in enumerate(cols):
         table[:, j] = c  # numpy converts to Python int/float/str, in C
-    return ((template * n) % tuple(table.ravel().tolist())).encode()
+    text = ((template * n) % tuple(table.ravel().tolist())).encode()
+    if not finite:
+        for word in _NON_FINITE_WORDS:
+            text = text.replace(word, b"null")
+    return text
 
 
 def encode_imu(
@@ -315,49 +310,8 @@ def encode_imu(
     *,
     raw: bool = False,
 ) -> list[bytes]:
-    """IMU lines for a block of samples (SAMPLE_DTYPE) with their calibrated values.
-
-    acc_ms2 (N, 3) calibrated specific force [m/s²]; gyro_rads (N,) rate [rad/s] (NaN:
-    not calibrated -> null); static (N,) bool or codes (:func:`static_words`). ``raw`` adds the driver's raw fields.
-    """
-    n = samples.shape[0]
-    acc = np.asarray(acc_ms2, dtype=float).reshape(n, 3)
-    gyro = np.asarray(gyro_rads, dtype=float).reshape(n)
-    seq = samples["seq"].tolist()
-    t = samples["t"].tolist()
-    temp = samples["temp"].astype(float).tolist()
-    vs = samples["vsupply"].astype(float).tolist()
-    accl = acc.tolist()
-    gyro_s = [("%.6f" % g) if math.isfinite(g) else "null" for g in gyro.tolist()]
-    stat_s = static_words(static, n).tolist()
-    finite = bool(np.all(np.isfinite(acc)) and np.all(np.isfinite(samples["t"])))
-    if finite and np.all(np.isfinite(samples["temp"])) and np.all(np.isfinite(samples["vsupply"])):
-        heads = [
-            _IMU_HEAD % (seq[i], t[i], a[0], a[1], a[2], gyro_s[i], stat_s[i], temp[i], vs[i])
-            for i, a in enumerate(accl)
-        ]
-    else:  # rare: missing channels (T2 = 0) give NaN; JSON has no NaN, so null
-        heads = []
-        for i, a in enumerate(accl):
-            acc_s = "[" + ",".join(_num(v, "%.5f") for v in a) + "]"
-            heads.append(
-                '{"class":"IMU","seq":%d,"t":%s,"acc":%s,"gyro":%s,"static":%s,"temp":%s,"vsupply":%s'
-                % (seq[i], _num(t[i], "%.6f"), acc_s, gyro_s[i], stat_s[i], _num(temp[i], "%.2f"), _num(vs[i], "%.3f"))
-            )
-    if not raw:
-        return [(h + "}\n").encode() for h in heads]
-    duty = duty_ratios(samples)
-    # A missing period (T2 = 0) gives a NaN duty cycle -> null.
-    duty_s = [",".join(_num(v, "%.6f") for v in row) for row in duty.tolist()]
-    t1 = samples["t1"].tolist()
-    t2 = samples["t2"].tolist()
-    g = samples["gyro"].tolist()
-    tick = samples["tick"].tolist()
-    flags = samples["flags"].tolist()
-    out = []
-    for i, h in enumerate(heads):
-        out.append((h + _RAW_TAIL % (duty_s[i], *t1[i], *t2[i], g[i], tick[i], flags[i])).encode())
-    return out
+    """The IMU lines of :func:`encode_imu_joined`, one per sample."""
+    return encode_imu_joined(samples, acc_ms2, gyro_rads, static, raw=raw).splitlines(keepends=True)
 
 
 def decimation_mask(t: np.ndarray, rate: float, last_bucket: float) -> tuple[np.ndarray, float]:

@@ -1,8 +1,9 @@
-"""gravcal.drivers: buses and framing only (serial, I2C, CAN), their fakes and the emulator.
+"""gravcal.drivers: buses and framing only (serial, I2C, CAN).
 
-``open_driver(spec)`` gives a :class:`Driver` for a URL-like spec (see ``base.py``);
-``codec.py`` is the shared frame format, ``emulator.py``/``fakes.py`` the HIL rig.
+``open_driver(spec)`` gives a :class:`Driver` for a URL-like spec, found by the spec's scheme
+in ``base.DRIVER_SCHEMES``; ``codec.py`` is the shared frame format. The test rigs (emulator,
+fake devices, HIL runner) are the subpackage ``rigs``, which no driver imports.
 """
-from .base import Backoff, Driver, DriverError, open_driver
+from .base import Backoff, Driver, DriverError, open_driver, register_scheme
 
-__all__ = ["Backoff", "Driver", "DriverError", "open_driver"]
+__all__ = ["Backoff", "Driver", "DriverError", "open_driver", "register_scheme"]

@@ -5,7 +5,12 @@ four calls; which one you get is chosen by a URL-like spec, pyserial style::
 
     serial:///dev/ttyUSB0?baudrate=460800      serial:loop://  (pyserial's loopback, in-process)
     can://slcan/dev/ttyACM0?bitrate=1000000    can://socketcan/can0    can://virtual/gravcal0
-    i2c://1/0x42?rate=200                      i2c://fake/0x42?scenario=static&seed=1&speed=1
+    i2c://1/0x42?rate=200                      fake-i2c://0x42?scenario=static&seed=1&speed=1
+
+The spec's scheme is looked up in :data:`DRIVER_SCHEMES` (python-can's interface table is the
+model): each entry names the module and the class whose ``from_spec`` builds the driver, and
+the module is imported on first use, so a scheme served by a test rig (``fake-i2c``) costs a
+production install nothing and the real drivers never import the rigs.
 
 ``read`` never raises for transient bus trouble (a cable pulled, a bus-off, a NACK): the
 driver counts it, reopens the device with exponential backoff inside later ``read`` calls,
@@ -17,6 +22,7 @@ from __future__ import annotations
 
 import errno
 import grp
+import importlib
 import logging
 import os
 import threading
@@ -313,7 +319,8 @@ def parse_spec(spec: str) -> DriverSpec:
         spec = "serial://" + spec  # a bare device path means a serial port
     scheme, sep, rest = spec.partition(":")
     if not sep:
-        raise DriverError(f"driver spec {spec!r} has no scheme; use serial:, can: or i2c:")
+        raise DriverError(f"driver spec {spec!r} has no scheme; use one of "
+                          f"{', '.join(s + ':' for s in sorted(DRIVER_SCHEMES))}")
     scheme = scheme.lower()
     rest, _, query = rest.partition("?")
     try:
@@ -343,17 +350,43 @@ def take_options(spec: DriverSpec, known: dict[str, Callable[[str], Any]]) -> di
     return out
 
 
+DRIVER_SCHEMES: dict[str, tuple[str, str]] = {
+    "serial": ("gravcal.drivers.serial", "SerialDriver"),
+    "can": ("gravcal.drivers.can", "CanDriver"),
+    "i2c": ("gravcal.drivers.i2c", "I2CDriver"),
+    "fake-i2c": ("gravcal.drivers.rigs.fake_i2c", "FakeI2CDriver"),
+}
+"""Scheme -> (module, class with ``from_spec(DriverSpec) -> Driver``); extend with :func:`register_scheme`."""
+
+
+def register_scheme(scheme: str, module: str, class_name: str) -> None:
+    """Serve ``scheme://...`` specs with ``module.class_name.from_spec`` (imported on first use)."""
+    scheme = scheme.lower()
+    if not scheme or not (scheme[0].isalpha() and all(c.isalnum() or c in "+-." for c in scheme)):
+        raise ValueError(f"driver scheme {scheme!r} is not a URL scheme (a letter, then letters, digits, + - .)")
+    DRIVER_SCHEMES[scheme] = (module, class_name)
+
+
+def driver_class(scheme: str) -> type[Driver]:
+    """The driver class serving ``scheme``; DriverError listing the known schemes if none does."""
+    entry = DRIVER_SCHEMES.get(scheme.lower())
+    if entry is None:
+        raise DriverError(f"unknown bus {scheme!r}; known schemes: {', '.join(sorted(DRIVER_SCHEMES))}")
+    module_name, class_name = entry
+    module = importlib.import_module(module_name)
+    try:
+        return getattr(module, class_name)
+    except AttributeError:
+        raise DriverError(f"driver scheme {scheme!r}: {module_name} has no {class_name}") from None
+
+
 def open_driver(spec: str, *, open: bool = True) -> Driver:
     """A driver for ``spec`` (see the module docstring), opened unless ``open=False``."""
     parsed = parse_spec(spec)
-    if parsed.scheme == "serial":
-        from .serial import SerialDriver as cls
-    elif parsed.scheme == "can":
-        from .can import CanDriver as cls
-    elif parsed.scheme == "i2c":
-        from .i2c import I2CDriver as cls
-    else:
-        raise DriverError(f"unknown bus {parsed.scheme!r} in driver spec {spec!r}; use serial, can or i2c")
+    try:
+        cls = driver_class(parsed.scheme)
+    except DriverError as exc:
+        raise DriverError(f"{exc} (driver spec {spec!r})") from None
     driver = cls.from_spec(parsed)
     if open:
         driver.open()

@@ -69,8 +69,8 @@ _NACK_ERRNOS = (errno.ENXIO, errno.EREMOTEIO, errno.EIO, errno.ETIMEDOUT, errno.
 class I2CDriver(FramedStreamDriver):
     """Samples from the logger's FIFO over I2C.
 
-    ``smbus_factory(bus)`` makes the SMBus object (default ``smbus2.SMBus``); tests and the
-    emulator substitute a fake device at exactly this boundary.
+    ``smbus_factory(bus)`` makes the SMBus object (default ``smbus2.SMBus``); the test rigs
+    (``rigs.fake_i2c``) substitute a fake device at exactly this boundary.
     """
 
     bus = "i2c"
@@ -111,10 +111,6 @@ class I2CDriver(FramedStreamDriver):
 
     @classmethod
     def from_spec(cls, spec: DriverSpec) -> "I2CDriver":
-        if spec.host == "fake":
-            from .fakes import fake_i2c_driver
-
-            return fake_i2c_driver(spec)
         opts = take_options(spec, {"rate": float, "burst_frames": int, "poll_s": float, "tick_hz": float})
         try:
             bus: int | str = int(spec.host)

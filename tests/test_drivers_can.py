@@ -14,11 +14,12 @@ from gravcal.core.samples import FLAG_GAP_BEFORE, FLAG_PARTIAL, FLAG_RECONNECT
 from gravcal.drivers import DriverError, open_driver
 from gravcal.drivers import can as gcan
 from gravcal.drivers.codec import SeqUnwrapper, wire_roundtrip
-from gravcal.drivers.emulator import (
-    CLOSED, DROPPED, OFFLINE, PARTIAL, SENT, Emulator, Faults, PythonCanLink, SentLog, load_sent_log,
+from gravcal.drivers.rigs.can_links import PythonCanLink
+from gravcal.drivers.rigs.emulator import (
+    CLOSED, DROPPED, OFFLINE, PARTIAL, SENT, Emulator, Faults, SentLog, load_sent_log,
 )
-from gravcal.drivers.hil import EmulatorProcess
-from gravcal.drivers.sources import pattern_blocks
+from gravcal.drivers.rigs.hil import EmulatorProcess
+from gravcal.drivers.rigs.sources import pattern_blocks
 
 # which sample fields travel in which frame (docs/protocol.md, CAN layout)
 FIELDS_OF_FRAME = {

@@ -9,13 +9,13 @@ from smbus2 import i2c_msg
 
 from gravcal.core.samples import FLAG_FIFO_OVERFLOW, FLAG_GAP_BEFORE, FLAG_RECONNECT
 from gravcal.drivers import DriverError, open_driver
-from gravcal.drivers.emulator import CORRUPTED, DROPPED, FIFO_FULL, OFFLINE, SENT, Faults, SentLog
-from gravcal.drivers.fakes import FakeI2CDevice, FakeSMBus, ManualClock
+from gravcal.drivers.rigs.emulator import CORRUPTED, DROPPED, FIFO_FULL, OFFLINE, SENT, Faults, SentLog
+from gravcal.drivers.rigs.fake_i2c import FakeI2CDevice, FakeSMBus, ManualClock
 from gravcal.drivers.i2c import (
     REG_FIFO_COUNT, REG_FIFO_DEPTH, REG_ODR, REG_STATUS, REG_WHO_AM_I, STATUS_FIFO_OVERFLOW, WHO_AM_I_VALUE,
     I2CDriver,
 )
-from gravcal.drivers.sources import pattern_blocks
+from gravcal.drivers.rigs.sources import pattern_blocks
 
 PAYLOAD = ("tick", "t1", "t2", "gyro", "temp", "vsupply")
 
@@ -145,7 +145,7 @@ def test_open_errors_are_named():
 
 
 def test_fake_spec_in_process_and_empty_reads_do_not_hang():
-    drv = open_driver("i2c://fake/0x42?scenario=pattern&seed=1&fs=200&speed=1")
+    drv = open_driver("fake-i2c://0x42?scenario=pattern&seed=1&fs=200&speed=1")
     with drv:
         import time
 

@@ -11,9 +11,9 @@ import serial
 from gravcal.core.samples import FLAG_GAP_BEFORE, FLAG_RECONNECT, SAMPLE_DTYPE
 from gravcal.drivers import DriverError, open_driver
 from gravcal.drivers.codec import encode_frames, wire_roundtrip
-from gravcal.drivers.emulator import OFFLINE, SENT, CORRUPTED, DROPPED, PtyLink, load_sent_log
-from gravcal.drivers.hil import EmulatorProcess
-from gravcal.drivers.sources import pattern_blocks
+from gravcal.drivers.rigs.emulator import OFFLINE, SENT, CORRUPTED, DROPPED, PtyLink, load_sent_log
+from gravcal.drivers.rigs.hil import EmulatorProcess
+from gravcal.drivers.rigs.sources import pattern_blocks
 
 PAYLOAD = ("tick", "t1", "t2", "gyro", "temp", "vsupply")
 

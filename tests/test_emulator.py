@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 from gravcal.core.samples import SAMPLE_DTYPE
-from gravcal.daemon import cmd_emulate
+from gravcal.drivers.rigs import emulate
 from gravcal.drivers.codec import decode_frames
-from gravcal.drivers.emulator import (
-    CORRUPTED, DROPPED, SENT, Emulator, Faults, PtyLink, SentLog, SlcanPtyLink, load_sent_log,
+from gravcal.drivers.rigs.can_links import SlcanPtyLink
+from gravcal.drivers.rigs.emulator import (
+    CORRUPTED, DROPPED, SENT, Emulator, Faults, PtyLink, SentLog, load_sent_log,
 )
-from gravcal.drivers.sources import pattern_blocks, replay_source
+from gravcal.drivers.rigs.sources import pattern_blocks, replay_source
 
 
 def read_until(fd: int, terminator_count: int, timeout: float = 5.0) -> bytes:
@@ -155,7 +156,7 @@ def test_replay_of_a_recording_written_by_gravcal_simulate(tmp_path):
 
 
 def parse(argv):
-    p = cmd_emulate.configure_parser(argparse.ArgumentParser())
+    p = emulate.configure_parser(argparse.ArgumentParser())
     return p.parse_args(argv)
 
 
@@ -167,16 +168,16 @@ def test_cli_options(capsys):
         with pytest.raises(SystemExit) as e:
             parse(bad)
         assert e.value.code == 2 and msg in capsys.readouterr().err
-    assert cmd_emulate.main(["--replay", "/nonexistent/rec.csv"]) == 2
+    assert emulate.main(["--replay", "/nonexistent/rec.csv"]) == 2
     assert "no such recording" in capsys.readouterr().err
 
 
 def test_cli_i2c_loopback(tmp_path, capsys):
     rec = tmp_path / "i2c.npz"
-    rc = cmd_emulate.main(["--bus", "i2c", "--scenario", "pattern", "--fs", "200", "--duration", "2",
+    rc = emulate.main(["--bus", "i2c", "--scenario", "pattern", "--fs", "200", "--duration", "2",
                            "--speed", "20", "--drop", "0.05", "--seed", "2", "--record", str(rec)])
     out = capsys.readouterr().out.splitlines()
-    assert rc == 0 and out[0].startswith("i2c://fake/0x42?scenario=pattern")
+    assert rc == 0 and out[0].startswith("fake-i2c://0x42?scenario=pattern")
     fields = dict(kv.split("=") for kv in out[-1].removeprefix("done: ").split())
     log = load_sent_log(rec)
     assert int(fields["received"]) == (log["status"] == SENT).sum() > 300

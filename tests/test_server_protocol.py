@@ -107,6 +107,23 @@ def test_encode_imu_nonfinite_become_null_and_stay_valid_json():
     assert msgs[1]["duty"] == [None, None, None, None]
 
 
+def test_encode_imu_infinities_and_partly_missing_gyro_are_null_and_values_unchanged():
+    s = _block(3)
+    s["t"][2] = np.inf
+    s["temp"][0] = np.nan
+    acc = np.array([[0.1, -np.inf, 9.80665], [np.inf, 0.25, -1.5], [0.0, 0.0, 9.8]])
+    gyro = np.array([np.nan, -0.75, np.inf])  # calibrated samples beside missing ones
+    joined = protocol.encode_imu_joined(s, acc, gyro, np.zeros(3, bool), raw=True)
+    lines = protocol.encode_imu(s, acc, gyro, np.zeros(3, bool), raw=True)
+    assert b"".join(lines) == joined and len(lines) == 3
+    msgs = [json.loads(x) for x in lines]
+    assert [m["acc"] for m in msgs] == [[0.1, None, 9.80665], [None, 0.25, -1.5], [0.0, 0.0, 9.8]]
+    assert [m["gyro"] for m in msgs] == [None, -0.75, None]
+    assert [m["t"] for m in msgs] == [0.0, pytest.approx(0.005), None]
+    assert msgs[0]["temp"] is None and msgs[1]["temp"] == pytest.approx(24.5)
+    assert msgs[2]["duty"] == pytest.approx([0.5, 10100 / 20000, 10200 / 21000, 10300 / 21000], abs=1e-6)
+
+
 def test_encode_message_replaces_nan_with_null():
     line = protocol.encode({"class": "X", "a": float("nan"), "b": [1.0, float("inf")], "c": np.float32(2.5)})
     assert json.loads(line) == {"class": "X", "a": None, "b": [1.0, None], "c": 2.5}
@@ -140,7 +157,7 @@ def test_decimation_gives_at_most_rate_per_second_for_any_block_split(rate, fs, 
 
 
 @pytest.mark.parametrize("raw", [False, True])
-@pytest.mark.parametrize("nan_acc", [False, True])  # the block fast path and the per-line path
+@pytest.mark.parametrize("nan_acc", [False, True])  # all values finite, or one missing (null)
 def test_static_codes_encode_true_false_and_null(raw, nan_acc):
     s = _block(3)
     acc = np.array([[0.1, -0.2, 9.80665]] * 3)

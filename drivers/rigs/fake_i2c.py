@@ -5,6 +5,7 @@ fills with time (``clock``, ``speed``) from a sample source, overflows when the 
 slowly, and injects faults (drops, bit errors in bursts, NACKs while "disconnected").
 :class:`FakeSMBus` has the methods of ``smbus2.SMBus`` the driver uses and fills real
 ``smbus2.i2c_msg`` buffers, so the driver's code path is the production one.
+:class:`FakeI2CDriver` is the real I2C driver on such a device, the ``fake-i2c://`` scheme.
 """
 from __future__ import annotations
 
@@ -18,11 +19,10 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 from smbus2.smbus2 import I2C_M_RD
 
-from ..core.samples import SAMPLE_DTYPE
-from .base import DriverError, DriverSpec, take_options
-from .codec import FRAME_LEN, encode_frames
-from .emulator import CORRUPTED, DROPPED, FIFO_FULL, OFFLINE, SENT, Faults, SentLog
-from .i2c import (
+from ...core.samples import SAMPLE_DTYPE
+from ..base import DriverError, DriverSpec, take_options
+from ..codec import FRAME_LEN, encode_frames
+from ..i2c import (
     CTRL_ENABLE,
     CTRL_FIFO_RESET,
     DEFAULT_ADDRESS,
@@ -43,6 +43,8 @@ from .i2c import (
     I2CDriver,
     odr_code,
 )
+from .emulator import CORRUPTED, DROPPED, FIFO_FULL, OFFLINE, SENT, Faults, SentLog
+from .sources import PATTERN, scenario_source
 
 
 class ManualClock:
@@ -298,26 +300,46 @@ class FakeSMBus:
         self.close()
 
 
-def fake_i2c_driver(spec: DriverSpec) -> I2CDriver:
-    """``i2c://fake/0x42?scenario=NAME&seed=N&speed=X&fs=HZ&duration=S&fifo_depth=N&drop=P&ber=P``:
-    an I2C driver on an in-process fake logger (the HIL rig without a second process)."""
-    from .sources import PATTERN, scenario_source
+class FakeI2CDriver(I2CDriver):
+    """The production I2C driver reading ``device`` through a :class:`FakeSMBus`.
 
-    opts = take_options(spec, {
-        "scenario": str, "seed": int, "speed": float, "fs": float, "duration": float,
-        "fifo_depth": int, "drop": float, "ber": float, "burst_frames": int, "poll_s": float,
-    })
-    try:
-        address = int(spec.path.strip("/") or str(DEFAULT_ADDRESS), 0)
-        source = scenario_source(opts.pop("scenario", PATTERN), seed=opts.get("seed", 0),
-                                 fs=opts.pop("fs", 200.0), duration=opts.pop("duration", 3600.0))
-        device = FakeI2CDevice(source.blocks, source.fs, address=address, speed=opts.pop("speed", 1.0),
-                               fifo_depth=opts.pop("fifo_depth", 32),
-                               faults=Faults(ber=opts.pop("ber", 0.0), drop=opts.pop("drop", 0.0),
-                                             seed=opts.pop("seed", 0)))
-    except ValueError as exc:
-        raise DriverError(f"fake I2C device: {exc}") from None
-    opts.setdefault("poll_s", max(0.001, device.depth / (device.rate * device.speed) / 4))
-    driver = I2CDriver("fake", address, smbus_factory=lambda bus: FakeSMBus(device, bus), **opts)
-    driver.device = device
-    return driver
+    As a spec, ``fake-i2c://0x42?scenario=NAME&seed=N&speed=X&fs=HZ&duration=S&fifo_depth=N&drop=P&ber=P``
+    (plus the I2C driver's ``burst_frames``, ``poll_s``, ``tick_hz``): an in-process logger, the
+    HIL rig without a second process.
+    """
+
+    def __init__(self, device: FakeI2CDevice, **options):
+        super().__init__("fake", device.address, smbus_factory=lambda bus: FakeSMBus(device, bus), **options)
+        self.device = device
+
+    @classmethod
+    def from_spec(cls, spec: DriverSpec) -> "FakeI2CDriver":
+        opts = take_options(spec, {
+            "scenario": str, "seed": int, "speed": float, "fs": float, "duration": float,
+            "fifo_depth": int, "drop": float, "ber": float, "burst_frames": int, "poll_s": float,
+            "tick_hz": float,
+        })
+        address_text = (spec.host or spec.path).strip("/")
+        try:
+            address = int(address_text or str(DEFAULT_ADDRESS), 0)
+        except ValueError:
+            raise DriverError(f"fake I2C address {address_text!r} is not a number like 0x42 "
+                              f"(fake-i2c://0x42?scenario=pattern)") from None
+        try:
+            source = scenario_source(opts.pop("scenario", PATTERN), seed=opts.get("seed", 0),
+                                     fs=opts.pop("fs", 200.0), duration=opts.pop("duration", 3600.0))
+            device = FakeI2CDevice(source.blocks, source.fs, address=address, speed=opts.pop("speed", 1.0),
+                                   fifo_depth=opts.pop("fifo_depth", 32),
+                                   faults=Faults(ber=opts.pop("ber", 0.0), drop=opts.pop("drop", 0.0),
+                                                 seed=opts.pop("seed", 0)))
+        except ValueError as exc:
+            raise DriverError(f"fake I2C device: {exc}") from None
+        # A quarter of the FIFO's fill time in wall seconds: it never overflows while read() runs.
+        opts.setdefault("poll_s", max(0.001, device.depth / (device.rate * device.speed) / 4))
+        return cls(device, **opts)
+
+
+def fake_i2c_spec(device: FakeI2CDevice, *, scenario: str, seed: int, fs: float) -> str:
+    """The ``fake-i2c://`` spec that makes another such device (same source, FIFO and pace)."""
+    return (f"fake-i2c://0x{device.address:02X}?scenario={scenario}&seed={seed}&fs={fs:g}"
+            f"&speed={device.speed:g}&fifo_depth={device.depth}")

@@ -1,4 +1,4 @@
-"""Run ``gravcal emulate`` in a child process and talk to it: for HIL tests and scripts.
+"""Run the emulator (``python -m gravcal.drivers.rigs.emulate``) in a child process and talk to it.
 
     with EmulatorProcess(["--bus", "serial", "--scenario", "pattern", "--duration", "5"]) as emu:
         with open_driver(emu.spec) as drv:
@@ -7,6 +7,8 @@
 
 The child's stdout protocol: first line the driver spec, then ``event: ...`` lines, then
 ``done: ...``. The child lingers (``--linger``) after the stream until this object stops it.
+``new_session=True`` starts it in its own session, so a Ctrl-C at the terminal reaches only the
+parent (a daemon that must save its state before it stops the emulator itself).
 """
 from __future__ import annotations
 
@@ -19,11 +21,15 @@ import threading
 from pathlib import Path
 from typing import Sequence
 
+EMULATOR_MODULE = f"{__package__}.emulate"  # the entry point beside this module
+
 
 class EmulatorProcess:
-    def __init__(self, args: Sequence[str], *, linger: float = 120.0, start_timeout: float = 30.0):
-        self.args = [sys.executable, "-m", "gravcal.daemon.cmd_emulate", *args, "--linger", str(linger)]
+    def __init__(self, args: Sequence[str], *, linger: float = 120.0, start_timeout: float = 30.0,
+                 new_session: bool = False):
+        self.args = [sys.executable, "-m", EMULATOR_MODULE, *args, "--linger", str(linger)]
         self.start_timeout = start_timeout
+        self.new_session = new_session
         self.proc: subprocess.Popen | None = None
         self.spec = ""
         self.events: list[str] = []
@@ -34,7 +40,7 @@ class EmulatorProcess:
 
     def __enter__(self) -> "EmulatorProcess":
         self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=self.new_session)
         threading.Thread(target=self._pump, daemon=True).start()
         try:
             line = self._lines.get(timeout=self.start_timeout)

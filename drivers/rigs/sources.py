@@ -11,8 +11,8 @@ from typing import Iterable, Iterator
 
 import numpy as np
 
-from ..core.samples import CHANNELS, FLAG_REPLAYED, SAMPLE_DTYPE
-from .codec import TICK_HZ
+from ...core.samples import CHANNELS, FLAG_REPLAYED, SAMPLE_DTYPE
+from ..codec import TICK_HZ
 
 PATTERN = "pattern"
 """Scenario name of the deterministic test pattern (no sensor model involved)."""
@@ -30,16 +30,11 @@ def scenario_source(name: str, *, seed: int = 0, fs: float = 100.0, duration: fl
     """The sensor model on a scenario, via ``gravcal.core.simulate.simulate_blocks``."""
     if name == PATTERN:
         return Source(pattern_blocks(seed=seed, fs=fs, duration=duration, block=block), fs, name)
-    try:
-        from ..core.simulate import simulate_blocks
-    except ImportError as exc:
-        raise ValueError(f"scenario {name!r} needs gravcal.core.simulate ({exc}); use --scenario pattern "
-                         f"or --replay FILE") from None
-    try:  # fail before the emulator announces a device, not at the first block
-        from ..core.scenarios import SCENARIOS
-    except ImportError:
-        SCENARIOS = None
-    if SCENARIOS is not None and name not in SCENARIOS:
+    # The sensor model loads scipy (~0.4 s); the test pattern and replays do without it.
+    from ...core.scenarios import SCENARIOS
+    from ...core.simulate import simulate_blocks
+
+    if name not in SCENARIOS:  # fail before the emulator announces a device, not at the first block
         raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)} or {PATTERN}")
     blocks = simulate_blocks(name, None, seed=seed, duration=duration, fs=fs, block=block, **scenario_kw)
     return Source(_with_ticks(blocks, fs), fs, name)
