@@ -138,7 +138,7 @@ def memory(args) -> dict:
     from bench_server import ReplayDriver
 
     from gravcal.daemon.config import Config
-    from gravcal.daemon.gravcald import Gravcald
+    from gravcal.daemon.service import Gravcald
 
     tmp = tempfile.mkdtemp(prefix="bench-daemon-mem-")
     cfg = Config()

@@ -22,7 +22,8 @@ from scipy.spatial.transform import Rotation
 
 from gravcal.core.calibration import Calibration
 from gravcal.core.crlb import cap_directions, crlb, daily_living_directions, windows_on_ellipsoid
-from gravcal.core.estimators.lotters import LottersBatch, LottersRecursive
+from gravcal.core.estimators.lotters import LottersBatch
+from gravcal.core.estimators.recursive import LottersRecursive
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 
 NOISE_G, N_SAMPLES, M_WINDOWS = 0.005, 300, 120

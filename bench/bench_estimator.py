@@ -12,7 +12,8 @@ import time
 import numpy as np
 
 from gravcal.core.calibration import Calibration
-from gravcal.core.estimators.lotters import LottersBatch, LottersRecursive
+from gravcal.core.estimators.lotters import LottersBatch
+from gravcal.core.estimators.recursive import LottersRecursive
 from gravcal.core.windows import Window, WindowSet
 
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from gravcal.core.samples import SAMPLE_DTYPE
 from gravcal.daemon.config import Config
-from gravcal.daemon.gravcald import Gravcald
+from gravcal.daemon.service import Gravcald
 
 READ_BLOCK = 2048  # [device] read_block: samples per driver read (a replay file is read in large chunks)
 

@@ -59,12 +59,18 @@ def on_ellipsoid(ws: WindowSet, cal: Calibration) -> tuple[np.ndarray, np.ndarra
     return a, a @ cal.sensitivity.T + cal.offset
 
 
+def h_variance(a: np.ndarray, Kinv: np.ndarray, cov_mean: np.ndarray) -> np.ndarray:
+    """Delta-method variance [g²] of h = |a| from the covariance of the window mean (raw units²):
+    dh/dm = (a/|a|)^T K^-1, so var h = g cov g^T with g that row vector (Lötters' C_mu, per window)."""
+    u = a / np.linalg.norm(a, axis=1, keepdims=True)
+    g = u @ Kinv
+    return np.einsum("mi,mij,mj->m", g, cov_mean, g)
+
+
 def norm_noise_var(ws: WindowSet, cal: Calibration, *, sigma_floor_g: float = 0.0) -> np.ndarray:
-    """Variance [g^2] of each window's norm measurement h_i: b^T (cov/n) b + floor^2."""
+    """Variance [g^2] of each window's norm measurement h_i: h_variance + floor^2."""
     a, _ = on_ellipsoid(ws, cal)
-    b = np.linalg.solve(cal.sensitivity.T, a.T).T  # K^-T a, |a| = 1
-    var = np.einsum("mi,mij,mj->m", b, ws.cov_of_mean, b)
-    return var + float(sigma_floor_g) ** 2
+    return h_variance(a, np.linalg.inv(cal.sensitivity), ws.cov_of_mean) + float(sigma_floor_g) ** 2
 
 
 def sphere_metric(param: Parameterization, cal: Calibration, n_dirs: int = 256) -> np.ndarray:

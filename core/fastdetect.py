@@ -26,7 +26,7 @@ estimators use:
    covariances are exact functions of the samples (block means and the within-block scatter
    recombined: Σ_w = Σ_b W_b + n_b Σ_b (m_b - m)(m_b - m)ᵀ), not approximations.
 
-Equivalence with the streaming detector (tests/test_fastdetect.py): window boundaries agree to
+Equivalence with the streaming detector (tests/core/test_fastdetect.py): window boundaries agree to
 within about one guard plus one block (the detection signal is the same filter chain, sampled
 coarser), the calibrations fitted on the two window sets agree within their reported standard
 deviations, and the held-out error is not worse. A recording's last ``n mod block_n`` samples
@@ -44,7 +44,8 @@ import numpy as np
 from scipy import signal
 
 from .calibration import Calibration
-from .detectors import _filter_rows
+from .detectors import estimate_fs
+from .detectors.windowing import _filter_rows
 from .windows import WindowSet
 
 BLOCK_S = 0.1  # block length [s]: 10 Hz detection, boundaries to 0.1 s
@@ -446,7 +447,7 @@ def detect(t: np.ndarray, raw: np.ndarray, *, method: str = "lotters", fs: float
            **kw: Any) -> WindowSet:
     """All quasi-static windows of an in-memory (or memory-mapped) recording t (N,), raw (N, 3):
     the offline counterpart of core.detectors.detect."""
-    from .detectors import estimate_fs
+
 
     t = np.asarray(t) if not isinstance(t, np.ndarray) else t
     raw = np.asarray(raw) if not isinstance(raw, np.ndarray) else raw

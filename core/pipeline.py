@@ -14,7 +14,7 @@ only block and window statistics are kept. The bootstrap sees at most
 ``BOOTSTRAP_MAX_SAMPLES`` samples, taken as evenly spaced contiguous segments.
 ``detection="stream"`` runs the streaming detectors of core.detectors over every sample
 instead (the daemon's detector; ~10x slower offline, same windows within a block or two at
-the edges: tests/test_fastdetect.py); the default "auto" uses blocks for recordings of
+the edges: tests/core/test_fastdetect.py); the default "auto" uses blocks for recordings of
 BLOCKS_MIN_SAMPLES samples or more.
 """
 from __future__ import annotations
@@ -27,13 +27,20 @@ from typing import Any, Sequence
 import numpy as np
 
 from gravcal.core.calibration import Calibration
-from gravcal.core.estimators.lotters import (START_TOLERANCE, LottersBatch, _relative_difference,
+from gravcal.core.detectors import DETECTORS
+from gravcal.core.estimators.extended import extended_class, model_name
+from gravcal.core.estimators.inuse12 import FRAME_CONVENTION, frame_of, rotation_angle_deg, with_frame
+from gravcal.core.estimators.lotters import (START_TOLERANCE, LottersBatch, relative_difference,
                                              resolve_parameterization, start_far_note)
-from gravcal.core.estimators.order import TOL_G, extended_base, extended_terms
+from gravcal.core.estimators.observability import N_PARAMS, SIGMA_FLOOR_G, TOL_G, check_observable
+from gravcal.core.estimators.order import (compare_extended, extended_base, extended_terms, is_observable_extended,
+                                           reference_start, select_order, term_testability)
+from gravcal.core.estimators.start import bootstrap
+from gravcal.core.fastdetect import block_stats, detect_blocks
 from gravcal.core.model.effect import needed_covariates
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.heldout import HeldoutResult, heldout_error
-from gravcal.core.windows import WindowSet
+from gravcal.core.windows import MAX_WINDOW_STD_G, WindowSet, window_std_g
 
 log = logging.getLogger(__name__)
 
@@ -43,9 +50,7 @@ BLOCKS_MIN_SAMPLES = 2_000_000  # detection "auto": blocks from here (5.5 h at 1
 DETECTOR_THREADS = min(2, os.cpu_count() or 1)  # the Lötters detector filters half its channels in a 2nd thread
 BOOTSTRAP_MAX_SAMPLES = 300_000  # 50 min at 100 Hz, in BOOTSTRAP_SEGMENTS pieces spread over the recording
 BOOTSTRAP_SEGMENTS = 30  # 100 s each at 100 Hz
-MAX_WINDOW_STD_G = 0.05  # per-axis std inside a window above which it is not quasi-static [g] (bias < 1.3 mg)
 FALLBACK_DETECTOR = "variance"
-SELECT_SIGMA_FLOOR_G = 0.002  # order selection's quasi-static floor [g] (order.SIGMA_FLOOR_G)
 REDETECT_CHANGE = 0.02  # re-detect when the fit moved the start by more than 2 % of 1 g (eq. 15-16 units)
 
 
@@ -110,7 +115,6 @@ def extended_summary(cal: Calibration) -> dict[str, Any] | None:
     ext = cal.metadata.get("extended") if isinstance(cal.metadata, dict) else None
     if not ext:
         return None
-    from gravcal.core.estimators.extended import extended_class
 
     params, std = cal.metadata.get("params") or {}, cal.std
     names = extended_class(cal.model)(cal.sensitivity, cal.offset).extra_names
@@ -183,7 +187,6 @@ def _estimate_fs(t: np.ndarray) -> float:
 
 
 def _bootstrap(t: np.ndarray, cols: _Columns, fs: float) -> Calibration:
-    from gravcal.core.estimators.start import bootstrap
 
     n = cols.n
     if n <= BOOTSTRAP_MAX_SAMPLES:
@@ -218,7 +221,6 @@ def covariate_columns(n: int, temp: Any, vsupply: Any) -> Any:
 
 def _block_stats(t: np.ndarray, cols: _Columns, fs: float, temp: Any) -> Any:
     """One pass over the samples: core.fastdetect.BlockStats (mapped pages released as it goes)."""
-    from gravcal.core.fastdetect import block_stats
 
     if cols.arr is not None:
         arr = cols.arr
@@ -239,12 +241,10 @@ def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calib
             detector_kw: dict[str, Any], blocks: Any = None, detection: str = "blocks") -> WindowSet:
     """Quasi-static windows: on block statistics (``blocks``, computed when None) or, with
     detection="stream", by the streaming detector over every sample."""
-    from gravcal.core.detectors import DETECTORS
 
     if detector not in DETECTORS:
         raise ValueError(f"unknown detector {detector!r}; choose one of {sorted(DETECTORS)}")
     if detection == "blocks":
-        from gravcal.core.fastdetect import detect_blocks
 
         bs = blocks if blocks is not None else _block_stats(t, cols, fs, temp)
         return detect_blocks(bs, t, detector, to_g, **detector_kw)
@@ -263,13 +263,6 @@ def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calib
         return WindowSet(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0), np.zeros((0, k)),
                          np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
     return WindowSet.from_windows(windows)
-
-
-def window_std_g(ws: WindowSet, cal: Calibration) -> np.ndarray:
-    """Largest per-axis std [g] of the samples inside each window, under ``cal``."""
-    Kinv = np.linalg.inv(cal.sensitivity)
-    cov_g = np.einsum("ij,mjk,lk->mil", Kinv, ws.cov, Kinv)
-    return np.sqrt(np.clip(np.diagonal(cov_g, axis1=1, axis2=2), 0, None)).max(axis=1)
 
 
 def screen_windows(ws: WindowSet, cal: Calibration, max_std_g: float) -> tuple[WindowSet, int]:
@@ -369,7 +362,7 @@ def calibrate_recording(
                          "right units?)")
     fitted = _fit_order(ws, model, start, lab, sigma_floor_g, folds)
     cal = fitted.calibration
-    change = _relative_difference(cal, start)
+    change = relative_difference(cal, start)
     if change > REDETECT_CHANGE and cal.converged:
         # the detection signal |a| used the start: with a better calibration the still/moving split changes
         ws2, _ = screen_windows(detect(detector, cal, detector_kw), cal, max_window_std_g)
@@ -380,7 +373,7 @@ def calibrate_recording(
             fitted = _fit_order(ws, model, cal, lab, sigma_floor_g, folds)
             cal = fitted.calibration
     if user_start is not None:
-        off = _relative_difference(cal, user_start)
+        off = relative_difference(cal, user_start)
         if off > START_TOLERANCE and "too far off" not in cal.message:
             note = start_far_note(off)
             cal.message = f"{cal.message}; {note}" if cal.message else note
@@ -407,16 +400,13 @@ class _Fitted:
 def _fit_order(ws: WindowSet, model: Any, start: Calibration, lab: Calibration | None,
                sigma_floor_g: float | None, folds: int) -> _Fitted:
     """Choose (auto) or check (explicit) the model order, then fit it (docs/twelve-parameters.md)."""
-    from gravcal.core.estimators.inuse12 import with_frame
-    from gravcal.core.estimators.order import N_PARAMS, _reference_start, check_observable, select_order
-
     m = len(ws)
     if model == "auto":
         if m < AUTO_MIN_WINDOWS:
             raise OrderNotDetermined(
                 f"only {m} quasi-static window(s) found: model auto needs at least {AUTO_MIN_WINDOWS} for the offsets; "
                 f"need at least 6, in different postures, for sensitivities")
-        d = select_order(ws, start=start, lab=lab, sigma_floor_g=SELECT_SIGMA_FLOOR_G, folds=folds)
+        d = select_order(ws, start=start, lab=lab, sigma_floor_g=SIGMA_FLOOR_G, folds=folds)
         if d.model == "none":
             why = d.reason.replace("; holding the current calibration", "")
             given = (d.evidence.get("orders") or {}).get("offsets", {}).get("predicted_given_held_mg")
@@ -427,7 +417,7 @@ def _fit_order(ws: WindowSet, model: Any, start: Calibration, lab: Calibration |
                                      f"still postures (sitting, lying, bending); with little variety give a --start calibration "
                                      f"(datasheet values) so the windows are seen in g")
         chosen = d.model
-        fit_start = start if chosen == "offsets" else _reference_start(chosen, start, lab)
+        fit_start = start if chosen == "offsets" else reference_start(chosen, start, lab)
         order = {"model": chosen, "reason": f"auto: {d.reason}", "evidence": d.evidence}
     else:
         chosen = model
@@ -458,7 +448,6 @@ def _fit_order(ws: WindowSet, model: Any, start: Calibration, lab: Calibration |
             # the folds start where the base order's did (fit_start: not the full fit), terms from 0
             estimator = LottersBatch(chosen, sigma_floor_g=sigma_floor_g)
     if extended_base(chosen) in ("9", "12"):
-        from gravcal.core.estimators.inuse12 import FRAME_CONVENTION, frame_of, rotation_angle_deg
 
         cal.metadata.update({"frame": frame_of(cal).tolist(), "frame_angle_deg": rotation_angle_deg(frame_of(cal)),
                              "frame_source": "lab calibration" if extended_base(chosen) == "12" else FRAME_CONVENTION})
@@ -469,13 +458,12 @@ def _fit_order(ws: WindowSet, model: Any, start: Calibration, lab: Calibration |
 def _extended_start(model: str, cal: Calibration, lab: Calibration | None) -> Calibration:
     """Linearisation point and held values for a fit of ``model`` (a base order or an extended one on it),
     as the online calibrator takes them: ``cal`` itself when it is a fit on the same base order, else the
-    base order's reference start (order._reference_start)."""
-    from gravcal.core.estimators.order import _reference_start
+    base order's reference start (order.reference_start)."""
 
     base = extended_base(model)
     if extended_base(cal.model) == base or base == "offsets":
         return cal
-    return _reference_start(base, cal, lab)
+    return reference_start(base, cal, lab)
 
 
 def _auto_extended(ws: WindowSet, base: str, base_cal: Calibration, lab: Calibration | None,
@@ -488,9 +476,6 @@ def _auto_extended(ws: WindowSet, base: str, base_cal: Calibration, lab: Calibra
     remaining term on top of the current model and adds the one with the lowest BIC among the warranted.
     Returns (model, its fit, {term: {"status", "reason", ...}}); status is one of "chosen", "untestable",
     "not observable", "not warranted", "not tried"."""
-    from gravcal.core.estimators.extended import model_name
-    from gravcal.core.estimators.order import (SIGMA_FLOOR_G, compare_extended, is_observable_extended,
-                                               term_testability)
 
     status: dict[str, dict[str, Any]] = {}
     model, cal = base, base_cal

@@ -20,7 +20,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from .model import SensorModel
-from .model.terms import Axes, projection_matrix
+from .model.terms import REGISTRY, Axes, projection_matrix
 from .model.base import Context
 from .model.defaults import default_model, triad_truth
 from .samples import FLAG_SATURATED, empty
@@ -43,12 +43,17 @@ class _Forward:
     def __init__(self, model: SensorModel, rng: np.random.Generator, fs: float):
         self.model = SensorModel.from_dict(model.to_dict())  # private copy: fresh term state
         projection_matrix(self.model)  # raises if both 'axes' and 'misalignment' are present
-        for required in ("duty_cycle", "timer"):
-            if required not in self.model:
-                raise ValueError(f"sensor model has no {required!r} term; the simulator needs it to "
-                                 "produce t1/t2 counts")
+        for stage in ("duty", "counts"):
+            if not self.model.stage_terms(stage):
+                which = " or ".join(n for n, spec in REGISTRY.items() if spec.forward.stage == stage)
+                raise ValueError(f"sensor model has no {stage!r}-stage term ({which}); the simulator needs one "
+                                 "to produce t1/t2 counts")
+        clocks = [t.tick_hz for t in self.model.stage_terms("counts") if t.tick_hz is not None]
+        if not clocks:
+            raise ValueError("sensor model's counts stage has no timer (a term with tick_hz): the simulator "
+                             "needs its clock for the tick field")
         self.has_projection = any(isinstance(t, Axes) for t in self.model.stage_terms("board"))
-        self.clock_hz = float(self.model["timer"].params["clock_hz"])
+        self.clock_hz = float(clocks[0])
         self.rng = rng
         self.fs = float(fs)
         self.seq = 0
@@ -62,7 +67,11 @@ class _Forward:
         if not self.has_projection:
             x = Axes().forward(x, ctx)  # no axes term: ideal geometry
         x = m.run_stage("channel", x, ctx)
-        saturated = m["saturation"].at_rail(x) if "saturation" in m else np.zeros(n, bool)
+        saturated = np.zeros(n, bool)
+        for term in m.stage_terms("channel"):
+            rail = term.at_rail(x)
+            if rail is not None:
+                saturated |= rail
         duty = m.run_stage("duty", x, ctx)
         counts = m.run_stage("counts", duty, ctx)
         if counts.shape != (n, 6):
@@ -82,7 +91,7 @@ class _Forward:
         return out
 
 
-def _streams(seed: int) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
+def seed_streams(seed: int) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
     motion, model, sensor = np.random.SeedSequence(seed).spawn(3)
     return np.random.default_rng(motion), np.random.default_rng(model), np.random.default_rng(sensor)
 
@@ -107,7 +116,7 @@ def simulate(scenario: str | Motion | MotionPlan, model: SensorModel | None = No
     quasi-static samples and at the mid time (exact for a model without temperature, supply
     or drift terms; otherwise the conditions are in ``truth["conditions"]``).
     """
-    motion_rng, model_rng, sensor_rng = _streams(seed)
+    motion_rng, model_rng, sensor_rng = seed_streams(seed)
     src = _source(scenario, motion_rng, duration, fs, scenario_kw)
     motion = src.render() if isinstance(src, MotionPlan) else src
     if model is None:
@@ -142,7 +151,7 @@ def simulate_blocks(scenario: str | Motion | MotionPlan, model: SensorModel | No
     block = int(block)
     if block < 1:
         raise ValueError(f"block must be a positive number of samples, got {block}")
-    motion_rng, model_rng, sensor_rng = _streams(seed)
+    motion_rng, model_rng, sensor_rng = seed_streams(seed)
     src = _source(scenario, motion_rng, duration, fs, scenario_kw)
     if model is None:
         model = default_model(model_rng)

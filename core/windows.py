@@ -10,7 +10,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .calibration import Calibration
 from .model.spec import AUX_COLUMNS
+
+MAX_WINDOW_STD_G = 0.05  # per-axis std inside a window above which it is not quasi-static [g] (bias < 1.3 mg)
 
 
 @dataclass(frozen=True)
@@ -90,3 +93,11 @@ class WindowSet:
         cov = v[:, None, None] * np.eye(3)[None] * n
         return cls(mean, cov, np.full(m, float(n)), np.arange(m, dtype=float), np.zeros((m, 0)),
                    np.arange(m, dtype=np.int64), np.arange(m, dtype=np.int64) + 1)
+
+
+def window_std_g(ws: WindowSet, cal: Calibration) -> np.ndarray:
+    """Largest per-axis std [g] of the samples inside each window, under ``cal``: above MAX_WINDOW_STD_G a
+    window averages postures (a slow turn at constant |a|), its mean lies inside the ellipsoid."""
+    Kinv = np.linalg.inv(cal.sensitivity)
+    cov_g = np.einsum("ij,mjk,lk->mil", Kinv, ws.cov, Kinv)
+    return np.sqrt(np.clip(np.diagonal(cov_g, axis1=1, axis2=2), 0, None)).max(axis=1)

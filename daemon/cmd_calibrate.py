@@ -32,7 +32,7 @@ AXES = ("x", "y", "z")
 
 def model_choices() -> list[str]:
     """Model names the pipeline accepts: the registered parameterizations (offsets, 6, and
-    whatever H-twelve adds) plus any extra names the pipeline declares in ``MODELS`` (e.g.
+    9, 12) plus any extra names the pipeline declares in ``MODELS`` (e.g.
     "auto"). Imports the pipeline, so it is only called when a calibration runs."""
     from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 
@@ -184,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
     }
     # wall and CPU (all threads) seconds: CPU is the figure that holds on a shared machine
     out["timing_s"] = {"read": t_read, "calibrate": t_cal, "read_cpu": c_read, "calibrate_cpu": c_cal}
-    if rec.gyro is not None:  # issue 7 (H-gyro): gyro bias/sensitivity from the same quasi-static windows
+    if rec.gyro is not None:  # gyro bias/sensitivity from the same quasi-static windows
         from gravcal.core.gyro import gyro_report
 
         out["gyro"] = gyro_report(rec.t, rec.gyro, report, fs=rec.fs)

@@ -5,8 +5,9 @@ The data flow is the service's, with the simulator standing in for the bus::
     source   simulate_blocks: a daily-living session of a sensor drawn off-nominal
       -> RingBuffer            fixed capacity, overwrite-oldest: acquisition and processing decoupled
       -> QuasiStaticDetector   Lötters' norm high-pass/rectify/low-pass detector, streaming -> Windows
-      -> OnlineCalibrator      per window: the order the windows determine (none, offsets, 6, 9),
-                               a batch re-fit of the stored windows when it grows, recursion between
+      -> OnlineCalibrator      ``feed``: the service's online policy (screen, order the windows
+                               determine, batch (re-)seeds, gate, acceptance), the same decisions
+                               gravcald makes on the same windows
       -> correction            a = K^-1 (raw - o): the calibrated samples [g] clients would get
 
 The start is the datasheet's nominal part (50 % duty at 0 g, 4 %/g). A part drawn from the
@@ -33,12 +34,14 @@ from typing import Any, TextIO
 
 import numpy as np
 
+from ..core.estimators.observability import ORDER_LADDER
 from .errors import InputError
 
 SOURCE_BLOCK_S = 60.0  # the simulator is cheapest in large blocks (its per-block overhead is ~ms)
 AXES = ("x", "y", "z")
-ORDER_RANK = ("none", "offsets", "6", "9")  # the orders the demo may reach (no lab frame: full = 9)
+ORDER_RANK = ("none", *ORDER_LADDER["9"])  # the orders the demo may reach (no lab frame: full = 9)
 MODEL_CHOICES = ("auto", "offsets", "6", "9")
+SERVICE_MODEL = {"auto": "9", "offsets": "offsets", "6": "6", "9": "9"}  # --model -> the configured order
 K_COVER = 4.0  # "the std covers the error": |error| < K_COVER x reported std (per parameter, ~6e-5 two-sided)
 HEADER = ("   sim time   win order    offset x y z [duty]        sensitivity x y z [duty/g]    std o [mg] s [%]"
           "   next win |a|-1g [mg] (truth)   error vs truth o [mg] s [%]")
@@ -108,12 +111,11 @@ def covered(cal, truth, names: tuple[str, ...], k: float = K_COVER) -> bool:
     return True
 
 
-def candidates_for(model: str) -> tuple[str, ...]:
-    """The orders OnlineCalibrator may choose for ``--model``."""
+def service_model(model: str) -> str:
+    """The configured order of the service (``estimator.model``) that ``--model`` stands for."""
     if model not in MODEL_CHOICES:
         raise InputError(f"unknown --model {model!r}; choose one of {', '.join(MODEL_CHOICES)}")
-    top = ORDER_RANK.index("9" if model == "auto" else model)
-    return ORDER_RANK[1:top + 1]
+    return SERVICE_MODEL[model]
 
 
 class DemoPipeline:
@@ -127,7 +129,8 @@ class DemoPipeline:
         self.out = out if out is not None else sys.stdout
         self.every = every
         self.detector = QuasiStaticDetector(fs, to_g=start)
-        self.estimator = OnlineCalibrator(start, candidates=candidates_for(model))
+        # the service's calibrator (gravcald's Processor builds the same): one policy, one set of decisions
+        self.estimator = OnlineCalibrator.for_service(start, model=service_model(model), fs=fs)
         self.order = "none"
         self.changes: list[tuple[float, int, str, str]] = []  # (t [s], windows so far, order, reason)
         self.heldout_mg: dict[str, list[float]] = {}  # order -> next-window norm errors under that order [mg]
@@ -155,8 +158,11 @@ class DemoPipeline:
         if self.order != "none":
             self.heldout_mg.setdefault(self.order, []).append(err)
             self.truth_mg.setdefault(self.order, []).append(err_truth)
-        rejected = self.estimator.n_rejected
-        cal = self.estimator.update(w)
+        step = self.estimator.feed(w)
+        if step.screened:
+            self._line(w, "screened: not quasi-static (the samples move), not used")
+            return
+        cal = self.estimator.calibration
         n = self.estimator.n_windows
         if self.estimator.model != self.order:
             self.order = self.estimator.model
@@ -169,7 +175,7 @@ class DemoPipeline:
             return
         so, ss = _stds(cal)
         eo, es = param_errors(cal, self.truth)
-        gate = self.estimator.n_rejected > rejected
+        gate = step.rejected
         if gate:
             self.rejected[self.order] = self.rejected.get(self.order, 0) + 1
         s_std = "  held" if math.isnan(ss) else f"{ss:6.3f}"
@@ -249,7 +255,7 @@ def summary(pipeline: DemoPipeline, truth, start, out: TextIO) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from gravcal.core.model.defaults import default_model, triad_truth
-    from gravcal.core.estimators.lotters import datasheet_held_uncertainty
+    from gravcal.core.estimators.consider import datasheet_held_uncertainty
     from gravcal.core.ringbuffer import RingBuffer
     from gravcal.core.samples import raw_triad
     from gravcal.core.simulate import simulate_blocks
@@ -258,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--duration, --fs and --block must be > 0, --speed >= 0 and --every >= 1")
     if not 0 <= args.start_hour < 24:
         raise InputError(f"--start-hour must be in [0, 24), got {args.start_hour:g}")
-    candidates_for(args.model)  # a bad --model is refused before the session starts
+    service_model(args.model)  # a bad --model is refused before the session starts
     out = sys.stdout
 
     # The sensor: drawn from the datasheet spreads (the truth); the start: the datasheet's nominal part.

@@ -19,6 +19,7 @@ import tomllib
 from dataclasses import dataclass, field, fields
 from typing import Any, get_type_hints
 
+from gravcal.core.estimators.observability import ORDER_LADDER
 from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
 
 from .errors import InputError
@@ -49,7 +50,7 @@ class DeviceConfig:
 
 @dataclass
 class EstimatorConfig:
-    model: str = field(default="6", metadata=_meta("model order", choices=("offsets", "6", "9", "12")))
+    model: str = field(default="6", metadata=_meta("model order", choices=tuple(ORDER_LADDER)))
     min_windows: int = field(default=6, metadata=_meta("windows before a calibration may be accepted (the first batch fit also waits for 2 per parameter)", min=0))
     process_noise: float = field(default=0.0, metadata=_meta("random-walk variance of every parameter per second of sensor time added to P [raw²/s] (0: none; drifting sensors: e.g. 1e-12 tracks ~1 mg/h)", min=0.0))
     # Default: the terms whose covariates the board itself measures. A time-drift term is linear in time from

@@ -1,7 +1,7 @@
 """Loaders for the measured recordings in ``$GRAVCAL_DATA`` (default ``../shared/data``).
 
 The data are never copied into the repository: :func:`data_dir` locates them, :func:`load`
-reads one into a :class:`Recording` (raw units as recorded, units named), and
+reads one into a :class:`MeasuredRecording` (raw units as recorded, units named), and
 :func:`to_calibrate_csv` writes the ``gravcal calibrate`` CSV layout (t, ax, ay, az,
 [gx, gy, gz], [temp]) so every command can run on them.
 
@@ -50,7 +50,7 @@ _default_data_dir = data_dir  # load() has a keyword of the same name
 
 
 @dataclass
-class Recording:
+class MeasuredRecording:
     """One measured recording, as recorded (no calibration applied).
 
     ``t`` (N,) [s] from the first sample (original epoch in ``meta["t0_unix"]`` when there is
@@ -80,12 +80,12 @@ class Recording:
     def duration_s(self) -> float:
         return float(self.t[-1] - self.t[0]) if self.n_samples else 0.0
 
-    def section(self, name: str) -> "Recording":
-        """The samples of one named section, as a Recording of its own."""
+    def section(self, name: str) -> "MeasuredRecording":
+        """The samples of one named section, as a MeasuredRecording of its own."""
         if name not in self.sections:
             raise InputError(f"{self.name}: no section {name!r} (have: {', '.join(self.sections) or 'none'})")
         a, b = self.sections[name]
-        return Recording(
+        return MeasuredRecording(
             name=f"{self.name}[{name}]", t=self.t[a:b], acc=self.acc[a:b], acc_units=self.acc_units, fs=self.fs,
             source=self.source, gyro=None if self.gyro is None else self.gyro[a:b], gyro_units=self.gyro_units,
             temp=None if self.temp is None else self.temp[a:b], sections={}, meta=dict(self.meta),
@@ -120,13 +120,13 @@ def _source_summary(folder: Path) -> str:
 # ---------------------------------------------------------------------------------------
 # the recordings
 # ---------------------------------------------------------------------------------------
-def _load_xsens(root: Path, variant: str | None) -> Recording:
+def _load_xsens(root: Path, variant: str | None) -> MeasuredRecording:
     folder = _folder(root, "imu_tk_xsens")
     acc = np.loadtxt(_file(folder, "xsens_acc.mat"), dtype=np.float64, ndmin=2)
     gyr = np.loadtxt(_file(folder, "xsens_gyro.mat"), dtype=np.float64, ndmin=2)
     if acc.shape != gyr.shape or not np.array_equal(acc[:, 0], gyr[:, 0]):
         raise InputError(f"{folder}: xsens_acc.mat and xsens_gyro.mat do not share timestamps")
-    return Recording(
+    return MeasuredRecording(
         name="imu_tk_xsens", t=acc[:, 0] - acc[0, 0], acc=acc[:, 1:4], gyro=gyr[:, 1:4],
         acc_units="counts (16-bit unsigned ADC, zero ~32768)", gyro_units="counts (16-bit unsigned ADC, zero ~32768)",
         fs=100.0, source=_source_summary(folder),
@@ -135,7 +135,7 @@ def _load_xsens(root: Path, variant: str | None) -> Recording:
     )
 
 
-def _load_actigraph(root: Path, variant: str | None) -> Recording:
+def _load_actigraph(root: Path, variant: str | None) -> MeasuredRecording:
     folder = _folder(root, "actigraph_cpw_thermal_chamber")
     raw = np.loadtxt(_file(folder, "cpw_chamber_raw_counts.csv.gz"), delimiter=",", skiprows=1, dtype=np.float64, ndmin=2)
     tc = np.loadtxt(_file(folder, "cpw_chamber_temperature_C.csv"), delimiter=",", skiprows=1, dtype=np.float64, ndmin=2)
@@ -143,7 +143,7 @@ def _load_actigraph(root: Path, variant: str | None) -> Recording:
     t_unix = raw[:, 0]
     # Temperature every 4 s: linear interpolation onto the 32 Hz samples (held at the ends).
     temp = np.interp(t_unix, tc[:, 0], tc[:, col])
-    return Recording(
+    return MeasuredRecording(
         name="actigraph_cpw_thermal_chamber" + (f"/{variant}" if variant else ""),
         t=t_unix - t_unix[0], acc=raw[:, 1:4], acc_units="counts (raw ADC, ~256 counts/g nominal, +-8 g)",
         fs=32.0, temp=temp, source=_source_summary(folder),
@@ -154,7 +154,7 @@ def _load_actigraph(root: Path, variant: str | None) -> Recording:
     )
 
 
-def _load_ferraris(root: Path, variant: str | None) -> Recording:
+def _load_ferraris(root: Path, variant: str | None) -> MeasuredRecording:
     folder = _folder(root, "imucal_ferraris")
     if variant == "annotated":
         with open(_file(folder, "annotated_session.csv"), encoding="utf-8", newline="") as f:
@@ -173,7 +173,7 @@ def _load_ferraris(root: Path, variant: str | None) -> Recording:
             if k == len(parts) or parts[k] != parts[start]:
                 sections[parts[start]] = (start, k)
                 start = k
-        return Recording(
+        return MeasuredRecording(
             name="imucal_ferraris/annotated", t=sample[order] / fs, acc=vals[:, :3], gyro=vals[:, 3:],
             acc_units="a.u. (raw counts, ~2048 counts/g)", gyro_units="a.u. (raw counts)", fs=fs,
             source=_source_summary(folder), sections=sections,
@@ -184,7 +184,7 @@ def _load_ferraris(root: Path, variant: str | None) -> Recording:
     fs = 102.4
     spans = json.loads(_file(folder, "example_ferraris_session_list.json").read_text(encoding="utf-8"))
     sections = {k: (int(v["start"]), int(v["end"])) for k, v in spans.items()}
-    return Recording(
+    return MeasuredRecording(
         name="imucal_ferraris", t=d[:, 0] / fs, acc=d[:, 4:7], gyro=d[:, 1:4], acc_units="m/s^2 (nominally scaled, uncalibrated)",
         gyro_units="deg/s (nominally scaled, uncalibrated)", fs=fs, source=_source_summary(folder), sections=sections,
         meta={"acc_per_g": G_STANDARD, "gyro_per_rad_s": float(np.degrees(1.0)),
@@ -196,7 +196,7 @@ _MPU_FILES = {"calibration": "example_data_calibration.csv", "static": "example_
               "x_rot": "imu_90_x_rot.csv"}
 
 
-def _load_mpu6050(root: Path, variant: str | None) -> Recording:
+def _load_mpu6050(root: Path, variant: str | None) -> MeasuredRecording:
     folder = _folder(root, "mpu6050_tomisuarez")
     variant = variant or "calibration"
     path = _file(folder, _MPU_FILES[variant])
@@ -214,7 +214,7 @@ def _load_mpu6050(root: Path, variant: str | None) -> Recording:
     t_init = float(header.get("Initialization time", "-1"))
     if t_init > 0:
         sections["initial_static"] = (0, min(len(d), int(round(t_init * fs))))
-    return Recording(
+    return MeasuredRecording(
         name=f"mpu6050_tomisuarez/{variant}", t=np.arange(len(d)) / fs, acc=d[:, 0:3], gyro=d[:, 3:6],
         acc_units="counts (int16, ~16384 counts/g at +-2 g)", gyro_units="counts (int16, ~131 counts/(deg/s))", fs=fs,
         source=_source_summary(folder), sections=sections,
@@ -223,7 +223,7 @@ def _load_mpu6050(root: Path, variant: str | None) -> Recording:
     )
 
 
-_LOADERS: dict[str, tuple[Callable[[Path, str | None], Recording], str | None]] = {
+_LOADERS: dict[str, tuple[Callable[[Path, str | None], MeasuredRecording], str | None]] = {
     "imu_tk_xsens": (_load_xsens, None),
     "actigraph_cpw_thermal_chamber": (_load_actigraph, None),
     "actigraph_cpw_thermal_chamber/mcu": (_load_actigraph, "mcu"),
@@ -242,7 +242,7 @@ RECORDINGS: tuple[str, ...] = ("imu_tk_xsens", "actigraph_cpw_thermal_chamber", 
 """The four recordings (one default variant each)."""
 
 
-def load(name: str, *, data_dir: str | Path | None = None) -> Recording:
+def load(name: str, *, data_dir: str | Path | None = None) -> MeasuredRecording:
     """Load the measured recording ``name`` (one of :data:`DATASETS`) from ``data_dir`` (default :func:`data_dir`)."""
     if name not in _LOADERS:
         raise InputError(f"unknown dataset {name!r}; known: {', '.join(DATASETS)}")
@@ -251,7 +251,7 @@ def load(name: str, *, data_dir: str | Path | None = None) -> Recording:
     return loader(root, variant)
 
 
-def to_calibrate_csv(rec: Recording, path: str | Path) -> Path:
+def to_calibrate_csv(rec: MeasuredRecording, path: str | Path) -> Path:
     """Write ``rec`` in the ``gravcal calibrate`` CSV layout: t, ax, ay, az, [gx, gy, gz], [temp].
 
     Values stay in the recording's units (the calibrate/diagnose commands work in raw units);

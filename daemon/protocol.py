@@ -240,7 +240,7 @@ STATIC_UNKNOWN = -1  # a static code: the detector has no decision recent enough
 
 def static_words(static: np.ndarray, n: int) -> np.ndarray:
     """The JSON words of the per-sample ``static`` field: a bool array, or int codes 1 (still),
-    0 (moving) and STATIC_UNKNOWN (null: no decision recent enough, see gravcald.Processor.correct)."""
+    0 (moving) and STATIC_UNKNOWN (null: no decision recent enough, see daemon/processing.Processor.correct)."""
     st = np.asarray(static).reshape(n)
     if st.dtype == bool:
         return np.where(st, "true", "false")

@@ -4,7 +4,7 @@ The protocol is one datagram of newline-separated KEY=VALUE assignments sent to 
 AF_UNIX socket named in $NOTIFY_SOCKET (a leading '@' means the Linux abstract namespace).
 Without $NOTIFY_SOCKET (not under systemd) every call is a no-op that returns False.
 
-The watchdog rule (issue 5): WATCHDOG=1 is a claim that the service works, so it is sent
+The watchdog rule: WATCHDOG=1 is a claim that the service works, so it is sent
 only when samples arrived since the previous feed. A silent bus therefore lets systemd's
 WatchdogSec= expire and restart the daemon (which reopens the device).
 """

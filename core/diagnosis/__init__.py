@@ -1,4 +1,4 @@
-"""Measured data against the simulation (issue 6): diagnose what the baseline model gets wrong,
+"""Measured data against the simulation: diagnose what the baseline model gets wrong,
 name the cause among the catalogue terms, extend the model and measure the held-out gain."""
 from .diagnose import CATALOGUE, Diagnosis, diagnose, diagnose_windows
 

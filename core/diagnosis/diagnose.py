@@ -22,9 +22,11 @@ from typing import Any
 import numpy as np
 
 from gravcal.core.calibration import Calibration
-from gravcal.core.estimators.extended import EXTRA_TERMS, ExtendedParameterization, extended_residuals_g
-from gravcal.core.estimators.lotters import HELD_KEY, LottersBatch
-from gravcal.core.estimators.order import TOL_G, coverage, held_note, is_observable, select_order
+from gravcal.core.estimators.extended import EXTRA_TERMS, extended_residuals_g
+from gravcal.core.estimators.consider import HELD_KEY
+from gravcal.core.estimators.lotters import LottersBatch
+from gravcal.core.estimators.observability import TOL_G, coverage, held_note, is_observable
+from gravcal.core.estimators.order import select_order
 from gravcal.core.model.terms import CATALOGUE as TERM_CATALOGUE
 from gravcal.core.model.terms import REGISTRY, term_spec
 from gravcal.core.windows import WindowSet
@@ -279,36 +281,11 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
     parts_g = [(p - p.mean(axis=0)) / scale for p in parts_raw]
     longest = max((p.shape[0] for p in parts_g), default=0) / fs
     extra_tests: list[TermTest] = []
-    if "colored_noise" in candidates:
-        if longest < MIN_ALLAN_STRETCH_S:
-            extra_tests.append(TermTest("colored_noise", "untestable", f"the longest static stretch is {longest:.1f} s "
-                                        f"(need >= {MIN_ALLAN_STRETCH_S:g} s for the Allan deviation)"))
-        else:
-            if len(parts_g) >= 2:
-                train, test = parts_g[0::2], parts_g[1::2]
-            else:
-                h = parts_g[0].shape[0] // 2
-                train, test = [parts_g[0][:h]], [parts_g[0][h:]]
-            d.allan = pooled_allan(parts_g, fs)
-            tr, te = pooled_allan(train, fs), pooled_allan(test, fs)
-            res = colored_noise_test(tr, te) if tr is not None else {"found": False}
-            tt = TermTest("colored_noise", "found" if res["found"] else "not_found",
-                          "" if res["found"] else "Allan deviation explained by white noise (ΔBIC <= 10 or no "
-                          "held-out gain)", res.get("delta_bic"))
-            tt.magnitude = {"unit": "mg", "value": dict(zip("xyz", res.get("bias_instability_mg", [0, 0, 0])))}
-            tt._extra = res  # type: ignore[attr-defined]
-            extra_tests.append(tt)
-    if "quantization" in candidates:
-        if not parts_raw:
-            extra_tests.append(TermTest("quantization", "untestable", "no static stretch"))
-        else:
-            res = quantization_test(parts_raw, scale)
-            tt = TermTest("quantization", "found" if res["found"] else "not_found",
-                          "" if res["found"] else "samples look continuous at the noise level (ΔBIC <= 10 or no "
-                          "held-out gain)", res.get("delta_bic"))
-            tt.magnitude = {"unit": "mg_per_lsb", "value": {a: r.get("lsb_mg", 0.0) for a, r in zip("xyz", res["axes"])},
-                            "noise_std_lsb": {a: r.get("noise_std_lsb") for a, r in zip("xyz", res["axes"])}}
-            tt._extra = res  # type: ignore[attr-defined]
+    for spec in REGISTRY.values():
+        if spec.sample_test is not None and spec.catalogue_name in candidates:
+            tt = SAMPLE_TESTS[spec.sample_test](spec.catalogue_name, parts_raw, parts_g, scale, fs, longest)
+            if getattr(tt, "_allan", None) is not None:
+                d.allan = tt._allan  # type: ignore[attr-defined]  # the pooled Allan deviation, for the report
             extra_tests.append(tt)
     for tt in extra_tests:
         d.tests.append(tt)
@@ -320,3 +297,42 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
     if d.allan is not None:
         d.white_g = d.allan.white_g
     return d
+
+
+def _allan_test(name: str, parts_raw: list, parts_g: list, scale: np.ndarray, fs: float, longest: float) -> TermTest:
+    """Colored noise on static stretches: the Allan deviation beyond white noise (fitted on alternate stretches,
+    judged on the others)."""
+    if longest < MIN_ALLAN_STRETCH_S:
+        return TermTest(name, "untestable", f"the longest static stretch is {longest:.1f} s "
+                                            f"(need >= {MIN_ALLAN_STRETCH_S:g} s for the Allan deviation)")
+    if len(parts_g) >= 2:
+        train, test = parts_g[0::2], parts_g[1::2]
+    else:
+        h = parts_g[0].shape[0] // 2
+        train, test = [parts_g[0][:h]], [parts_g[0][h:]]
+    tr, te = pooled_allan(train, fs), pooled_allan(test, fs)
+    res = colored_noise_test(tr, te) if tr is not None else {"found": False}
+    tt = TermTest(name, "found" if res["found"] else "not_found",
+                  "" if res["found"] else "Allan deviation explained by white noise (ΔBIC <= 10 or no "
+                  "held-out gain)", res.get("delta_bic"))
+    tt.magnitude = {"unit": "mg", "value": dict(zip("xyz", res.get("bias_instability_mg", [0, 0, 0])))}
+    tt._extra = res  # type: ignore[attr-defined]
+    tt._allan = pooled_allan(parts_g, fs)  # type: ignore[attr-defined]
+    return tt
+
+
+def _lsb_test(name: str, parts_raw: list, parts_g: list, scale: np.ndarray, fs: float, longest: float) -> TermTest:
+    """Quantisation on static stretches: samples on a grid of steps well above the noise."""
+    if not parts_raw:
+        return TermTest(name, "untestable", "no static stretch")
+    res = quantization_test(parts_raw, scale)
+    tt = TermTest(name, "found" if res["found"] else "not_found",
+                  "" if res["found"] else "samples look continuous at the noise level (ΔBIC <= 10 or no "
+                  "held-out gain)", res.get("delta_bic"))
+    tt.magnitude = {"unit": "mg_per_lsb", "value": {a: r.get("lsb_mg", 0.0) for a, r in zip("xyz", res["axes"])},
+                    "noise_std_lsb": {a: r.get("noise_std_lsb") for a, r in zip("xyz", res["axes"])}}
+    tt._extra = res  # type: ignore[attr-defined]
+    return tt
+
+
+SAMPLE_TESTS = {"allan": _allan_test, "lsb": _lsb_test}  # TermSpec.sample_test -> the static-sample test

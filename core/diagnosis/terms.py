@@ -23,9 +23,11 @@ import numpy as np
 from scipy.optimize import brentq
 
 from gravcal.core.calibration import Calibration
+from gravcal.core.crlb import h_variance
 from gravcal.core.estimators.extended import (EXTRA_TERMS, ExtendedParameterization, extended_class,
                                               extended_residuals_g, fit_extended, model_name)
-from gravcal.core.estimators.order import TOL_G, term_testability
+from gravcal.core.estimators.observability import TOL_G
+from gravcal.core.estimators.order import term_testability
 from gravcal.core.model.terms import calibration_view
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 from gravcal.core.windows import WindowSet
@@ -55,10 +57,7 @@ class TermTest:
 
 def norm_var_g2(ws: WindowSet, cal: Calibration, floor_g: float) -> np.ndarray:
     """Per-window variance of h = |a| [g²]: delta method on cov/n plus floor²."""
-    a = cal.apply_reference(ws.mean)
-    u = a / np.linalg.norm(a, axis=1, keepdims=True)
-    g = u @ np.linalg.inv(cal.sensitivity)
-    return np.einsum("mi,mij,mj->m", g, ws.cov_of_mean, g) + floor_g**2
+    return h_variance(cal.apply_reference(ws.mean), np.linalg.inv(cal.sensitivity), ws.cov_of_mean) + floor_g**2
 
 
 def floor_for(resid_g: np.ndarray, var0: np.ndarray, dof: int) -> float:

@@ -27,8 +27,10 @@ from scipy.cluster.hierarchy import fcluster, linkage
 
 from ..calibration import Calibration
 from ..crlb import BRAGGE_NAMES, bragge_H
+from ..detectors import detect
 from ..pipeline import CalibrationReport
 from ..windows import WindowSet
+from .start import bootstrap
 
 FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
 FACE_DIRECTIONS = {f: (1.0 if f[0] == "+" else -1.0) * np.eye(3)["xyz".index(f[1])] for f in FACES}
@@ -209,7 +211,7 @@ def bragge_fit(directions: np.ndarray, means: np.ndarray, cov_of_mean: np.ndarra
 
 @dataclass
 class LabReport(CalibrationReport):
-    """Result of ``calibrate_lab``: H-estimate's CalibrationReport (same ``to_json_dict`` keys as the in-use
+    """Result of ``calibrate_lab``: a CalibrationReport (same ``to_json_dict`` keys as the in-use
     ``gravcal calibrate --json``, model "12") plus the faces. heldout_rms_mg: leave-one-face-out vector
     error of the left-out face [mg]; insample_rms_mg: vector error of the fitted faces [mg]."""
 
@@ -293,11 +295,9 @@ def calibrate_lab(t: np.ndarray, raw: np.ndarray, *, fs: float | None = None, de
     (t [s], raw (N, 3) triad in raw units), match them to the faces and fit all 12 parameters.
 
     ``to_g``: an approximate calibration for the detector's threshold in g and for classifying
-    (default: H-detect's scale-free ``bootstrap`` of the recording). ``detector`` defaults to the
+    (default: the scale-free ``bootstrap`` of the recording). ``detector`` defaults to the
     moving-variance detector: turning the box from face to face by hand is a rotation that leaves the
     norm (all Lötters' detector looks at, eq. 1) nearly unchanged, but moves every axis."""
-    from ..detectors import detect  # noqa: PLC0415
-
     t = np.asarray(t, dtype=float)
     raw = np.asarray(raw, dtype=float)
     if raw.ndim != 2 or raw.shape[1] != 3 or raw.shape[0] != t.shape[0]:
@@ -305,12 +305,10 @@ def calibrate_lab(t: np.ndarray, raw: np.ndarray, *, fs: float | None = None, de
     det_to_g = to_g
     if det_to_g is None:
         try:
-            from .start import bootstrap  # noqa: PLC0415 (H-detect's module)
-
             det_to_g = bootstrap(t, raw, fs)
             if det_to_g.metadata.get("fallback"):  # no ellipsoid from the data (e.g. 7 postures, one off-face):
                 det_to_g = _isotropic_scale(raw)  # a six-face session spans -1..+1 g on every axis
-        except (ImportError, ValueError):
+        except ValueError:
             det_to_g = _isotropic_scale(raw)
     ws = detect(t, raw, method=detector, fs=fs, to_g=det_to_g, **detect_kw)
     return calibrate_faces(ws, to_g=to_g, max_tilt_deg=max_tilt_deg, merge_tol_deg=merge_tol_deg,

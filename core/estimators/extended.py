@@ -31,7 +31,7 @@ import numpy as np
 
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, Parameterization
-from gravcal.core.model.effect import (apply_terms, constant_rows, covariate_deviation, needed_covariates,
+from gravcal.core.model.effect import (constant_rows, covariate_deviation, needed_covariates,
                                        references, term_rows)
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.windows import WindowSet

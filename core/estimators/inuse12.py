@@ -11,7 +11,7 @@ frame: how the sensing axes sit in the capsule) must come from elsewhere:
 
 See docs/twelve-parameters.md for the argument. The parameterizations themselves are
 ``NineParameter`` / ``TwelveInUse`` in ``parameterization.py``; this module adds the frame
-bookkeeping and a checked batch fit on top of H-estimate's LottersBatch.
+bookkeeping and a checked batch fit on top of LottersBatch.
 """
 from __future__ import annotations
 
@@ -21,7 +21,10 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..windows import WindowSet
+from .lotters import LottersBatch
+from .observability import check_observable
 from .parameterization import polar_frame
+from .start import ellipsoid_fit
 
 FRAME_CONVENTION = "R0 = I (no lab frame: K symmetric)"
 
@@ -69,16 +72,13 @@ def fit_inuse(ws: WindowSet, model: str = "12", *, lab: Calibration | None = Non
     cannot determine the 9 parameters (``order.check_observable``) with a message saying what is
     missing. ``batch_kw`` go to LottersBatch.
     """
-    from .lotters import LottersBatch, _ellipsoid_start  # noqa: PLC0415 (H-estimate's module)
-    from .order import check_observable  # noqa: PLC0415
-
     if model not in ("9", "12"):
         raise ValueError(f"fit_inuse fits model '9' or '12', not {model!r}")
     if model == "12" and lab is None:
         raise ValueError("model 12 holds the frame of a lab calibration: give lab= (gravcal calibrate --lab output), "
                          "or use model 9 (frame convention R0 = I)")
     if start is None:
-        start = _full_start(ws) if len(ws) >= 9 else _ellipsoid_start(ws)
+        start = full_start(ws) if len(ws) >= 9 else ellipsoid_fit(ws)
     frame = frame_of(lab) if model == "12" else np.eye(3)
     start = with_frame(start, frame)
     if check:
@@ -95,15 +95,10 @@ def fit_inuse(ws: WindowSet, model: str = "12", *, lab: Calibration | None = Non
     return cal
 
 
-def _full_start(ws: WindowSet) -> Calibration:
-    """A symmetric-K start (H-detect's ellipsoid_fit(full=True)) when available, else axis-aligned."""
-    from .lotters import _ellipsoid_start  # noqa: PLC0415
-
-    try:
-        from .start import ellipsoid_fit  # noqa: PLC0415 (H-detect's module)
-    except ImportError:
-        return _ellipsoid_start(ws)
+def full_start(ws: WindowSet) -> Calibration:
+    """A symmetric-K start (the general quadric, ``ellipsoid_fit(full=True)``); the axis-aligned fit when
+    the windows cannot determine the general one."""
     try:
         return ellipsoid_fit(ws, full=True)
-    except (TypeError, ValueError):
-        return _ellipsoid_start(ws)
+    except ValueError:
+        return ellipsoid_fit(ws)

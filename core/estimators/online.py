@@ -49,10 +49,14 @@ from ..model.effect import needed_covariates, references
 from ..model.terms import COVARIATES
 from ..windows import Window, WindowSet
 from .inuse12 import with_frame
-from .lotters import LottersBatch, LottersRecursive, validate_windows
-from .order import (N_PARAMS, POSTURE_CELLS, SIGMA_FLOOR_G, SYSTEMATIC_G, TOL_G, OrderDecision, _reference_start,
-                    compare_extended, extended_base, extended_terms, fit_extended_floor, held_note,
-                    is_observable_extended, select_order)
+from .consider import datasheet_held_uncertainty
+from .extended import extended_class, parameterization
+from .lotters import LottersBatch, validate_windows
+from .observability import N_PARAMS, ORDERS, POSTURE_CELLS, SIGMA_FLOOR_G, SYSTEMATIC_G, TOL_G, OrderDecision, held_note
+from .online_policy import OnlinePolicy, OnlineStep, PolicySettings, online_candidates
+from .order import (compare_extended, extended_base, extended_terms, fit_extended_floor, is_observable_extended,
+                    reference_start, select_order)
+from .recursive import LottersRecursive
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +146,8 @@ class OnlineCalibrator:
                  capacity: int = STORE_CAPACITY, every: int = CHECK_EVERY, compare_every: int = COMPARE_EVERY,
                  sigma_floor_g: float | None = None, process_noise: float | np.ndarray | None = None,
                  gate_sigma: float = 5.0, candidates: tuple[str, ...] | None = None, tol_g: float = TOL_G,
-                 systematic_g: float = SYSTEMATIC_G, terms: tuple[str, ...] = ()):
+                 systematic_g: float = SYSTEMATIC_G, terms: tuple[str, ...] = (), policy: PolicySettings | None = None,
+                 policy_start: Calibration | None = None, policy_lab: Calibration | None = None):
         if not isinstance(start, Calibration):
             raise ValueError("OnlineCalibrator needs a start Calibration (datasheet nominal, saved state, or a fit)")
         self.lab = lab
@@ -155,8 +160,6 @@ class OnlineCalibrator:
         self.candidates = tuple(c for c in cands if "+" not in c)  # the orders select_order chooses among
         ext = [c for c in cands if "+" in c]
         ext += [f"{b}+{t}" for t in terms for b in self.candidates if b != "offsets"]
-        from .extended import extended_class  # noqa: PLC0415 (registers the names; raises on unknown terms)
-
         self.extended_candidates = tuple(dict.fromkeys(extended_class(c).model for c in ext))
         bad = [c for c in self.extended_candidates if extended_base(c) not in self.candidates]
         if bad:
@@ -181,6 +184,34 @@ class OnlineCalibrator:
             self.reason = f"resumed order {start.model} from the start calibration"
             self.recursive = self._recursion(self.start, start.model)
             self._seed_size = max(int(start.n_windows), self.every)  # the saved state's information: re-fit later
+        self.policy = OnlinePolicy(self, policy or PolicySettings(seeded=resume), policy_start or start,
+                                   policy_lab if policy is not None else lab)
+
+    @classmethod
+    def for_service(cls, start: Calibration, *, model: str, extended_terms: str | tuple[str, ...] = (),
+                    lab: Calibration | None = None, resumed: bool = False, min_windows: int = 6, fs: float = 100.0,
+                    process_noise: float | None = None, windows_base: int = 0,
+                    remount_events: list[dict[str, Any]] | None = None) -> "OnlineCalibrator":
+        """The online calibrator as gravcald, ``gravcal demo`` and an offline replay run it (``feed``): the
+        orders up to the configured ``model`` with the ``extended_terms``, the bootstrap from a start without
+        a stated uncertainty (the datasheet values: the order rule sees their spread), the 2 mg quasi-static
+        floor (the emulated sensor's windows are cleaner than its model errors, and a data-derived floor from a
+        few windows undercuts them)."""
+        est_start = start
+        if not resumed and start.covariance.size == 0 and lab is None:
+            est_start = datasheet_held_uncertainty(start)
+        settings = PolicySettings(model=model, min_windows=min_windows, fs=fs, seeded=resumed,
+                                  windows_base=windows_base, remount_events=list(remount_events or []))
+        # a resumed or given 12-parameter calibration carries its frame
+        frame = lab if lab is not None or model != "12" else start
+        return cls(est_start, lab=frame, resume=resumed, candidates=online_candidates(model, extended_terms),
+                   process_noise=process_noise, sigma_floor_g=SIGMA_FLOOR_G, policy=settings, policy_start=start,
+                   policy_lab=lab)
+
+    def feed(self, window: Window) -> OnlineStep:
+        """Every decision from one window to an accepted calibration (core/estimators/online_policy.py):
+        screen, re-mount, update, bootstrap, give-up, acceptance. ``update`` is the recursion alone."""
+        return self.policy.feed(window)
 
     # -- public ------------------------------------------------------------------------------
     @property
@@ -302,7 +333,7 @@ class OnlineCalibrator:
         elif d.model in ("9", "12") and self._cross_axis is False:
             d = OrderDecision("6", d.reason + "; cross-axis terms held back (the last comparison preferred 6)",
                               d.evidence)
-        rank = {m: k for k, m in enumerate(("none", "offsets", "6", "9", "12"))}
+        rank = {m: k for k, m in enumerate(("none", *ORDERS))}
         target, provisional = d.model, False
         if target == "none" and "offsets" in self.candidates:
             # the offsets are determined *given* the held sensitivities, but those are too uncertain (a
@@ -355,7 +386,7 @@ class OnlineCalibrator:
         self._extended_not(base, f"order {base} chosen")
         chosen = base
         for c in (c for c in self.extended_candidates if extended_base(c) == base):
-            at = here if extended_base(here.model) == base else _reference_start(base, here, self.lab)
+            at = here if extended_base(here.model) == base else reference_start(base, here, self.lab)
             try:
                 ok, obs = is_observable_extended(ws, at, c, tol_g=self.tol_g, systematic_g=self.systematic_g)
             except (ValueError, np.linalg.LinAlgError) as exc:
@@ -401,7 +432,7 @@ class OnlineCalibrator:
         if model == "offsets":
             fit_start = here
         else:
-            fit_start = _reference_start(model, here, self.lab)
+            fit_start = reference_start(model, here, self.lab)
         try:
             # not outlier-gated (LottersBatch outlier_gate_sigma): with drifting parameters the oldest stored windows
             # sit off a fit of the whole store and were cut, which left the week-long soak over-confident (5.6 %
@@ -418,7 +449,7 @@ class OnlineCalibrator:
 
     def _reseed_extended(self, model: str, ws: WindowSet, here: Calibration, d: OrderDecision) -> None:
         base = extended_base(model)
-        start = here if here.model == model else _reference_start(base, here, self.lab)
+        start = here if here.model == model else reference_start(base, here, self.lab)
         try:
             fit, floor = fit_extended_floor(model, ws, start, sigma_floor_g=self.sigma_floor_g)
         except (ValueError, np.linalg.LinAlgError) as exc:
@@ -462,7 +493,6 @@ class OnlineCalibrator:
             return LottersRecursive(cal, model, sigma_floor_g=floor, process_noise=self.process_noise,
                                     gate_sigma=self.gate_sigma)
         # an extended model: the parameterization carries the fit's reference (T_ref, t0)
-        from .extended import parameterization  # noqa: PLC0415
 
         ext = cal.metadata.get("extended") or {}
         refs = references(ext)

@@ -1,201 +1,32 @@
-"""Model order by observability: which parameters can the windows determine now?
+"""Model order: which parameters the windows determine, and which the evidence warrants.
 
 Two questions, answered in this order (docs/twelve-parameters.md, "Model order"):
 
-1. Observability (what *can* be updated). For every candidate order — offsets (3), 6,
-   the full identifiable set 9 (or 12 with a lab frame) — the Fisher information of the
-   windows (``core/crlb.py``) gives two numbers, both as RMS calibrated-acceleration error
-   over all orientations [g]:
-
-   * statistical: sqrt(tr(G F^-1)) with the window noise plus a quasi-static floor;
-   * systematic: a per-window model error of ``systematic_g`` RMS (nonlinearity, residual
-     motion, temperature) amplified by the geometry, ``amp = sqrt(lambda_max(G Fbar^-1))``
-     with Fbar the per-window information at unit noise. amp depends only on the coverage of
-     the sphere, not on the number of windows: it is why orientation 1 with theta = 30° never
-     gives sensitivities however long one records (amp ~ 1600 for 6 parameters, ~ 4 for offsets).
-
-   * consider: the parameters the order holds (offsets-only holds the sensitivities) carry the
-     uncertainty the current calibration states for them (lotters.held_uncertainty: its covariance,
-     its stated held covariance, or the datasheet spread for a nominal start); through these
-     windows it biases the estimated ones by Gc dtheta (Schmidt consider gain), RMS over all
-     orientations sqrt(tr(G Gc C_h Gc^T)). Upright windows cannot tell a sensitivity error from
-     an offset: from a datasheet start the offsets are then not determined.
-
-   An order is observable when sqrt(stat^2 + (amp * systematic)^2 + consider^2) <= ``tol_g``.
+1. Observability (what *can* be updated): ``observability.is_observable``, the one rule (predicted
+   RMS calibrated-acceleration error of an order <= ``tol_g``; statistical, systematic and consider
+   parts, see observability.py).
 
 2. Evidence (what *should* be updated), only between the 6-parameter model and the full set
-   (cross-axis terms): both are fitted (H-estimate's LottersBatch) and compared by BIC (and
+   (cross-axis terms): both are fitted (LottersBatch) and compared by BIC (and
    AIC) on the weighted chi-square, and by k-fold held-out norm error. The cross-axis terms
    are chosen only when BIC prefers them *and* they lower the held-out error.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ..calibration import Calibration
-from ..crlb import RANK_RTOL, bound_from_fisher, fisher_inuse, norm_noise_var, on_ellipsoid, sphere_directions, sphere_metric
+from ..crlb import RANK_RTOL, norm_noise_var, sphere_directions
 from ..model.terms import calibration_view
-from ..windows import Window, WindowSet
-
-ORDERS = ("offsets", "6", "9", "12")
-N_PARAMS = {"offsets": 3, "6": 6, "9": 9, "12": 9}
-TOL_G = 0.010  # auto: predicted RMS acceleration error allowed [g]: 1 % of 1 g (a third of Lötters' 3 %)
-TOL_EXPLICIT_G = 0.030  # an order the user asked for is refused only beyond Lötters' 3 % criterion
-SYSTEMATIC_G = 0.0005  # per-window model error that no window count averages away [g] (nonlinearity, residual motion)
-SIGMA_FLOOR_G = 0.002  # quasi-static floor on each window's norm noise [g] (residual body motion)
-POSTURE_CELLS = 400  # sphere cells (~10° apart) for counting distinct postures
-
-
-@dataclass
-class OrderDecision:
-    """The order chosen (``model``: "none", "offsets", "6", "9" or "12"), why, and the numbers."""
-
-    model: str
-    reason: str
-    evidence: dict[str, Any] = field(default_factory=dict)
-    calibration: Calibration | None = None  # the fit of the chosen order when select_order fitted it
-
-    @property
-    def updates_sensitivities(self) -> bool:
-        return self.model in ("6", "9", "12")
-
-
-# -- coverage and observability -----------------------------------------------------------
-def coverage(ws: WindowSet, cal: Calibration) -> dict[str, Any]:
-    """How much of the sphere the windows cover (directions through ``cal``).
-
-    spread_deg: largest angle from the mean direction (Lötters' theta); scatter_eig: eigenvalues of
-    mean(u u^T) (1/3 each for the full sphere, (1, 0, 0) for one posture); distinct_postures:
-    occupied cells of a ~10° grid on the sphere."""
-    a = cal.apply_reference(ws.mean)
-    u = a / np.linalg.norm(a, axis=1, keepdims=True)
-    c = u.sum(axis=0)
-    nc = np.linalg.norm(c)
-    spread = 180.0 if nc < 1e-12 else float(np.degrees(np.arccos(np.clip(u @ (c / nc), -1, 1).min())))
-    cells = np.argmax(u @ sphere_directions(POSTURE_CELLS).T, axis=1)
-    return {
-        "n_windows": len(ws),
-        "spread_deg": round(spread, 2),
-        "scatter_eig": np.round(np.linalg.eigvalsh(u.T @ u / len(u))[::-1], 4).tolist(),
-        "distinct_postures": int(np.unique(cells).size),
-    }
-
-
-def observability(ws: WindowSet, cal: Calibration, model: str, *, sigma_floor_g: float = SIGMA_FLOOR_G,
-                  systematic_g: float = SYSTEMATIC_G) -> dict[str, Any]:
-    """Predicted errors of order ``model`` for these windows at ``cal`` (see module docstring)."""
-    # one Jacobian for both informations: with the window noise (+ floor), and per window at unit noise
-    F, param, Fu = fisher_inuse(ws, cal, model, sigma_floor_g=sigma_floor_g, unit_floor_g=1.0)
-    G = sphere_metric(param, cal)
-    bound = bound_from_fisher(param.model, param.names, F, G, len(ws))
-    Fbar = Fu / max(len(ws), 1)  # geometry only
-    w = np.linalg.eigvalsh(Fbar) if len(ws) else np.zeros(1)
-    if len(ws) == 0 or w.min() <= 1e-12 * max(w.max(), 1e-300):
-        amp = math.inf
-    else:
-        L = np.linalg.cholesky(G)
-        amp = float(np.sqrt(np.linalg.eigvalsh(L.T @ np.linalg.solve(Fbar, L)).max()))
-    stat = bound.accel_rms_g
-    consider, held = _consider_g(ws, cal, param, F, G, sigma_floor_g) if math.isfinite(stat) else (0.0, None)
-    total = (math.sqrt(stat**2 + (amp * systematic_g) ** 2 + consider**2)
-             if math.isfinite(stat) and math.isfinite(amp) and math.isfinite(consider) else math.inf)
-    return {
-        "n_params": param.n_params,
-        "stat_mg": _mg(stat),
-        "amplification": round(amp, 2) if math.isfinite(amp) else None,
-        "consider_mg": _mg(consider),
-        "held": None if held is None else {"names": held.names, "source": held.source},
-        "predicted_mg": _mg(total),
-        # the same without the held parameters' uncertainty: determined *given* the held values
-        "predicted_given_held_mg": _mg(math.hypot(stat, amp * systematic_g) if math.isfinite(stat) and math.isfinite(amp)
-                                       else math.inf),
-        "fisher_eig_per_window": np.round(w * float(np.mean(np.abs(np.diag(cal.sensitivity)))) ** 2, 8).tolist()
-        if len(ws) else [],
-        "undetermined": bound.undetermined,
-        "_total_g": total,
-    }
-
-
-def _consider_g(ws: WindowSet, cal: Calibration, param, F: np.ndarray, G: np.ndarray,
-                sigma_floor_g: float) -> tuple[float, Any]:
-    """RMS calibrated-acceleration error [g] over all orientations that the uncertainty of the parameters
-    ``param`` holds (``cal``'s stated uncertainty, lotters.held_uncertainty) puts into the estimated ones
-    through these windows: sqrt(tr(G_sphere Gc C_h Gc^T)), Gc the consider gain (Schmidt) at ``cal``."""
-    from .lotters import consider_gain, held_jacobian, held_uncertainty  # noqa: PLC0415 (lotters imports this module lazily)
-
-    held = held_uncertainty(cal, param)
-    if held is None or len(ws) == 0:
-        return 0.0, held
-    _, r_star = on_ellipsoid(ws, cal)
-    p = param.pack(cal.sensitivity, cal.offset)
-    _, B, _ = param.norm_and_jacobian(p, r_star)
-    var = norm_noise_var(ws, cal, sigma_floor_g=sigma_floor_g)
-    w, V = np.linalg.eigh(0.5 * (F + F.T))
-    if w.min() <= RANK_RTOL * max(w.max(), 1e-300):
-        return math.inf, held
-    Gc = consider_gain((V / w) @ V.T, B, var, held_jacobian(param, p, r_star, held))
-    return float(np.sqrt(max(np.trace(G @ Gc @ held.cov @ Gc.T), 0.0))), held
-
-
-def held_note(obs: dict[str, Any]) -> str:
-    """What to say when the held parameters' uncertainty dominates an order's predicted error ('' if not)."""
-    c, stat, held = obs.get("consider_mg"), obs.get("stat_mg"), obs.get("held")
-    if held is None or c is None or stat is None or c <= stat:
-        return ""
-    what = "sensitivities" if all(n.startswith("s_") and len(n) == 3 for n in held["names"]) else ", ".join(held["names"])
-    return (f"the uncertainty of the held {what} ({held['source']}) dominates: {c:.3g} mg of the predicted error "
-            f"(window noise {stat:.3g} mg); windows in other postures (lying, bending: the sensor's axes "
-            f"along and against gravity) determine the sensitivities (order 6), or start from a calibration "
-            f"with a small covariance")
-
-
-def is_observable(ws: WindowSet, cal: Calibration, model, *, tol_g: float = TOL_G,
-                  sigma_floor_g: float = SIGMA_FLOOR_G, systematic_g: float = SYSTEMATIC_G) -> tuple[bool, dict[str, Any]]:
-    """THE observability rule of gravcal (one place; select_order, check_observable and LottersBatch's
-    ``observable`` flag all use it): order ``model`` (a name or a Parameterization, evaluated at ``cal``)
-    is observable from ``ws`` when there are at least as many windows as parameters and the predicted
-    RMS calibrated-acceleration error sqrt(stat² + (amp·systematic)² + consider²) [g] over all orientations
-    is <= ``tol_g`` (consider: the held parameters' stated uncertainty, see the module docstring). Returns (verdict, the numbers of ``observability``)."""
-    obs = observability(ws, cal, model, sigma_floor_g=sigma_floor_g, systematic_g=systematic_g)
-    return bool(len(ws) >= obs["n_params"] and obs["_total_g"] <= tol_g), obs
-
-
-def _mg(x: float) -> float | None:
-    return round(x * 1e3, 3) if math.isfinite(x) else None
-
-
-def _default_start(ws: WindowSet) -> Calibration:
-    from .inuse12 import _full_start  # noqa: PLC0415
-
-    return _full_start(ws)
-
-
-def check_observable(ws: WindowSet, model: str, start: Calibration, *, tol_g: float = TOL_EXPLICIT_G,
-                     sigma_floor_g: float = SIGMA_FLOOR_G, systematic_g: float = SYSTEMATIC_G) -> dict[str, Any]:
-    """Raise ValueError saying what is missing if ``model`` cannot be determined from ``ws``;
-    return the observability numbers otherwise."""
-    if model not in N_PARAMS:
-        raise ValueError(f"unknown model order {model!r}; expected one of {', '.join(ORDERS)}")
-    m, P = len(ws), N_PARAMS[model]
-    if m < P:
-        raise ValueError(f"model {model} has {P} parameters but there are only {m} quasi-static window(s): "
-                         f"need at least {P}, from different postures")
-    cov = coverage(ws, start)
-    ok, obs = is_observable(ws, start, model, tol_g=tol_g, sigma_floor_g=sigma_floor_g, systematic_g=systematic_g)
-    if not ok:
-        what = "offsets" if model == "offsets" else ("sensitivities" if model == "6" else "sensitivities and cross-axis terms")
-        pred = "unbounded (singular Fisher information)" if obs["predicted_mg"] is None else f"{obs['predicted_mg']:.3g} mg"
-        raise ValueError(
-            f"model {model}: the {m} windows do not determine the {what}: they cover {cov['distinct_postures']} "
-            f"distinct posture(s) within {cov['spread_deg']:.0f}° of one direction (scatter eigenvalues "
-            f"{', '.join(f'{e:.3g}' for e in cov['scatter_eig'])}); predicted error {pred} > {tol_g * 1e3:.3g} mg"
-            + (f" ({note})" if (note := held_note(obs)) else "") +
-            ". Record more varied postures (lying, bending), or use --model auto")
-    return obs
+from ..windows import WindowSet
+from .extended import ExtendedParameterization, extended_residuals_g, fit_extended, parameterization
+from .inuse12 import full_start, with_frame
+from .lotters import LottersBatch
+from .observability import (N_PARAMS, ORDERS, SIGMA_FLOOR_G, SYSTEMATIC_G, TOL_G, OrderDecision, coverage, held_note,
+                            is_observable, mg_or_none)
 
 
 # -- evidence: information criteria and held-out error ---------------------------------------
@@ -204,16 +35,12 @@ def _norm_residuals(cal: Calibration, ws: WindowSet) -> np.ndarray:
 
 
 def _fit(ws: WindowSet, model: str, start: Calibration) -> Calibration:
-    from .lotters import LottersBatch  # noqa: PLC0415 (H-estimate's estimator: one Gauss-Newton in gravcal)
-
     return LottersBatch(model).fit(ws, start)
 
 
-def _reference_start(model: str, start: Calibration, lab: Calibration | None) -> Calibration:
+def reference_start(model: str, start: Calibration, lab: Calibration | None) -> Calibration:
     """Held values for ``model`` in a comparison: the 6-parameter model holds the cross-axis terms of the
     lab calibration (or none), never ones the same data produced; 9/12 take their frame."""
-    from .inuse12 import with_frame  # noqa: PLC0415
-
     if model == "12":
         return with_frame(start, lab)
     if model == "9":
@@ -231,10 +58,8 @@ def compare_orders(ws: WindowSet, models: tuple[str, ...], start: Calibration, *
     """Fit each order and score it: in-sample RMS, AIC and BIC (Gaussian: chi2 with the same per-window
     weights for every order, scaled by the largest model's reduced chi2 when > 1), and k-fold held-out
     RMS norm error [mg] (time-contiguous folds; the windows scored were not used for the fit)."""
-    from ..crlb import norm_noise_var  # noqa: PLC0415
-
     m = len(ws)
-    fits = {k: _fit(ws, k, _reference_start(k, start, lab)) for k in models}
+    fits = {k: _fit(ws, k, reference_start(k, start, lab)) for k in models}
     ref = fits[models[-1]]
     w = 1.0 / norm_noise_var(ws, ref, sigma_floor_g=sigma_floor_g)
     out: dict[str, dict[str, Any]] = {}
@@ -262,7 +87,7 @@ def compare_orders(ws: WindowSet, models: tuple[str, ...], start: Calibration, *
             for idx in np.array_split(order, k_folds):
                 train = np.setdiff1d(order, idx)
                 try:
-                    c = _fit(ws.subset(train), k, _reference_start(k, cal, lab))
+                    c = _fit(ws.subset(train), k, reference_start(k, cal, lab))
                 except ValueError:
                     held[idx] = np.nan
                     continue
@@ -297,7 +122,7 @@ def select_order(ws: WindowSet, *, start: Calibration | None = None, lab: Calibr
         return OrderDecision("none", "no quasi-static windows yet: nothing is determined", {"n_windows": 0})
     if start is None:
         try:
-            start = _default_start(ws)
+            start = full_start(ws)
         except ValueError as exc:
             return OrderDecision("none", f"no start calibration and none derivable from the windows ({exc})",
                                  {"n_windows": len(ws)})
@@ -356,52 +181,6 @@ def select_order(ws: WindowSet, *, start: Calibration | None = None, lab: Calibr
     return OrderDecision(best, reason, evidence, chosen_cal)
 
 
-class OnlineOrderSelector:
-    """select_order as windows accumulate (the daemon / recursive estimator): observability after every
-    ``every`` new windows (cheap), the 6-vs-full comparison (fits) every ``compare_every`` windows; in
-    between, the last comparison's verdict on the cross-axis terms stands. The caller keeps ``start``
-    current (``selector.start = estimator.calibration``) so the information is evaluated at the estimate."""
-
-    def __init__(self, start: Calibration, *, lab: Calibration | None = None, every: int = 10,
-                 compare_every: int = 100, **kw: Any):
-        self.start, self.lab, self.every, self.compare_every, self.kw = start, lab, int(every), int(compare_every), kw
-        self._parts: list[WindowSet] = []
-        self._since, self._since_compare = 0, 0
-        self._cross_axis: bool | None = None  # verdict of the last comparison
-        self.decision = OrderDecision("none", "no quasi-static windows yet: nothing is determined", {"n_windows": 0})
-
-    @property
-    def windows(self) -> WindowSet:
-        if len(self._parts) > 1:
-            self._parts = [WindowSet(*(np.concatenate([getattr(p, f) for p in self._parts]) for f in
-                                       ("mean", "cov", "n", "t", "aux", "start", "end")))]
-        return self._parts[0] if self._parts else WindowSet.from_points(np.zeros((0, 3)), 1.0)
-
-    def update(self, window: Window | WindowSet) -> OrderDecision:
-        """Add one window (or several) and return the current decision."""
-        ws = WindowSet.from_windows([window]) if isinstance(window, Window) else window
-        if len(ws) == 0:
-            return self.decision
-        if self._parts and ws.aux.shape[1] != self._parts[0].aux.shape[1]:
-            ws = WindowSet(ws.mean, ws.cov, ws.n, ws.t, np.zeros((len(ws), self._parts[0].aux.shape[1])), ws.start, ws.end)
-        self._parts.append(ws)
-        self._since += len(ws)
-        self._since_compare += len(ws)
-        if self._since < self.every:
-            return self.decision
-        self._since = 0
-        compare = self._since_compare >= self.compare_every or self._cross_axis is None
-        d = select_order(self.windows, start=self.start, lab=self.lab, compare=compare, **self.kw)
-        if compare and "comparison" in d.evidence:
-            self._cross_axis = d.model in ("9", "12")
-            self._since_compare = 0
-        elif d.model in ("9", "12") and self._cross_axis is False:
-            d = OrderDecision("6", d.reason + "; cross-axis terms held back (last comparison preferred 6)",
-                              d.evidence)
-        self.decision = d
-        return d
-
-
 # -- extended terms (the registry's calibration terms): testability, observability, evidence ------------
 def extended_base(model: str) -> str:
     """"6+temperature_offset" -> "6"; a plain order is its own base."""
@@ -449,8 +228,6 @@ def extended_observability(ws: WindowSet, cal: Calibration, model: str, *, sigma
     averaged over all orientations *and* the windows' covariates (the RMS calibrated-acceleration
     error over the session's conditions). No consider term (the extended orders hold no parameter
     with a stated uncertainty beyond the base order's cross-axis part)."""
-    from .extended import ExtendedParameterization, parameterization  # noqa: PLC0415
-
     par = parameterization(model, cal.sensitivity, cal.offset)
     if not isinstance(par, ExtendedParameterization):
         raise ValueError(f"{model!r} is not an extended model")
@@ -493,8 +270,8 @@ def extended_observability(ws: WindowSet, cal: Calibration, model: str, *, sigma
     total = math.sqrt(stat**2 + (amp * systematic_g) ** 2) if math.isfinite(stat) and math.isfinite(amp) else math.inf
     std = np.sqrt(np.maximum(np.diag(((V / np.maximum(w, 1e-300)) @ V.T) / np.outer(d, d)), 0.0)) \
         if not singular else np.full(P, math.inf)
-    return {"n_params": P, "stat_mg": _mg(stat), "amplification": round(amp, 2) if math.isfinite(amp) else None,
-            "predicted_mg": _mg(total), "extra_std": dict(zip(par.extra_names, std[len(par.base.names):].tolist())),
+    return {"n_params": P, "stat_mg": mg_or_none(stat), "amplification": round(amp, 2) if math.isfinite(amp) else None,
+            "predicted_mg": mg_or_none(total), "extra_std": dict(zip(par.extra_names, std[len(par.base.names):].tolist())),
             "_total_g": total}
 
 
@@ -522,8 +299,6 @@ def fit_extended_floor(model: str, ws: WindowSet, start: Calibration, *, sigma_f
     Returns (ExtendedFit, floor [g])."""
     from scipy.optimize import brentq  # noqa: PLC0415
 
-    from .extended import fit_extended, parameterization  # noqa: PLC0415
-
     par = parameterization(model, start.sensitivity, start.offset)
     p0 = _extended_params(par, start) if p0 is None else p0
     var0 = norm_noise_var(ws, start)
@@ -548,9 +323,7 @@ def compare_extended(ws: WindowSet, base: str, model: str, start: Calibration, *
     both fitted (iterated eq. 11a) with the same fixed per-window weights, BIC on the chi² (scaled by the
     larger model's reduced chi² when > 1), and k-fold held-out RMS norm error [mg] (time-contiguous folds:
     with a temperature ramp a fold is a temperature range the fit has not seen)."""
-    from .extended import extended_residuals_g, fit_extended, parameterization  # noqa: PLC0415
-
-    ref = _reference_start(base, start, lab)
+    ref = reference_start(base, start, lab)
     m = len(ws)
     var = norm_noise_var(ws, start, sigma_floor_g=sigma_floor_g)
     pars = {k: parameterization(k, ref.sensitivity, ref.offset) for k in (base, model)}

@@ -118,7 +118,7 @@ class SixParameter(Parameterization):
         self.o_const = np.zeros(3)
 
 
-# -- in-use 9 / 12 (H-twelve; the argument is in docs/twelve-parameters.md) ------------------
+# -- in-use 9 / 12 (the argument is in docs/twelve-parameters.md) -------------------------------
 # From the gravity norm alone only K K^T and o are identifiable: |R K^-1 (r - o)| = |K^-1 (r - o)|
 # for every rotation R, so K is known only up to K -> K R^T. Writing K = S R0 (left polar
 # decomposition, S symmetric positive definite, R0 orthogonal), S (6) and o (3) are the 9

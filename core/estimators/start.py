@@ -22,7 +22,7 @@ from ..calibration import Calibration
 from ..detectors import MovingVarianceDetector, estimate_fs
 from ..model.datasheet import SENS_LIMITS, SENS_TYP
 from ..windows import WindowSet
-from .lotters import with_held_uncertainty
+from .consider import with_held_uncertainty
 
 MIN_WINDOWS = {False: 6, True: 9}  # unknowns of the axis-aligned / general quadric
 MIN_CAP_DEG = 20.0  # refuse when every window is within this angle of one direction (Lötters θ)
@@ -57,7 +57,7 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
     the fit is not an ellipsoid.
     Robustness: Huber weights for 3 iterations, then Tukey bisquare, on the norm residual
     [g] scaled by the MAD of all residuals (floored at 0.1 mg).
-    The result states its own uncertainty for fits that hold it (lotters.with_held_uncertainty,
+    The result states its own uncertainty for fits that hold it (consider.with_held_uncertainty,
     metadata["held_covariance"], raw units²): see _raw_parameter_covariance.
     """
     mean = np.asarray(ws.mean, dtype=float).reshape(-1, 3)
@@ -167,7 +167,7 @@ def _raw_parameter_covariance(coef, design, w, full, c0, r0) -> tuple[list[str],
     raw units (offset = c0 + r0 o_u, K = r0 K_u) through the central-difference Jacobian of the
     quadric -> ellipsoid map. Axis-aligned: s_x, s_y, s_z, o_x, o_y, o_z. General (full=True):
     the whole symmetric K as well, s_x, s_y, s_z (diagonal), s_xy, s_xz, s_yz (K[i, j] = K[j, i]),
-    then o_x, o_y, o_z: the names lotters.with_held_uncertainty understands.
+    then o_x, o_y, o_z: the names consider.with_held_uncertainty understands.
     """
     used = w > 0
     D, ww = design[used], w[used]

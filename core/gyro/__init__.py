@@ -1,4 +1,4 @@
-"""In-use gyro calibration (issue 7): bias from quasi-static windows, stillness confirmation,
+"""In-use gyro calibration: bias from quasi-static windows, stillness confirmation,
 pose-to-pose sensitivity, Scapellato's step-height search, and the board's high-pass inverse."""
 from .bias import GyroBiasEstimator, GyroStillnessGate, WindowBias, window_bias
 from .calibrate import GyroCalibration, OnlineGyroCalibrator, calibrate_gyro, gyro_report

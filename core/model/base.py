@@ -65,6 +65,17 @@ class Term(ABC):
     def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
         """Transform the signal of this term's stage."""
 
+    def at_rail(self, x: np.ndarray) -> np.ndarray | None:
+        """(N,) True where this channel-stage term clipped ``x`` (the sample says nothing beyond its
+        rail: flagged saturated); None for a term without rails."""
+        return None
+
+    @property
+    def tick_hz(self) -> float | None:
+        """The clock [Hz] a counts-stage term measures time with (the sample's ``tick`` field counts
+        it); None for other terms."""
+        return None
+
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "params": {k: v.tolist() for k, v in self.params.items()}}
 

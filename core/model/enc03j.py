@@ -5,8 +5,8 @@ convention: null voltage V0 ~ 1.35 V, scale factor Sv ~ 0.67 mV/(°/s)). On the 
 signal goes through an analog stage (Scapellato et al. 2005, sec. 2: "sent to an analog
 filtering stage"): a first-order high-pass that removes the null voltage and its drift, a
 non-inverting amplifier around Vref = Vsupply/2, and a first-order low-pass; then a 12-bit
-ADC ratiometric to the supply fills the ``gyro`` field. Issue 7 extends this path; every
-parameter is a term parameter so the extension adds terms rather than editing these.
+ADC ratiometric to the supply fills the ``gyro`` field. Every
+parameter is a term parameter: extending the path adds terms rather than editing these.
 """
 from __future__ import annotations
 

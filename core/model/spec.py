@@ -135,7 +135,9 @@ class TermSpec:
     timer oscillator a temperature coefficient); plant: (rng, scale) -> Term for a planted test
     effect, given the per-channel values drawn by ``planted_values`` (rng, values, scale), plant_scale its
     test magnitude; diagnosed_by: "windows" (residuals of window
-    means), "samples" (noise tests on static samples) or None; view: None for a simulation-only term.
+    means), "samples" (noise tests on static samples) or None; sample_test: which static-sample test
+    finds it ("allan": the Allan deviation beyond white noise, "lsb": a quantisation step; the tests
+    are core/diagnosis/noise.py's); view: None for a simulation-only term.
     """
 
     name: str
@@ -147,6 +149,7 @@ class TermSpec:
     plant: Callable[[np.random.Generator, np.ndarray, float], Term] | None = None
     plant_scale: float | None = None
     diagnosed_by: str | None = None
+    sample_test: str | None = None
     view: CalibrationView | None = None
     sensor_term: Callable[[dict[str, float]], dict[str, Any]] | None = None
 

@@ -56,5 +56,5 @@ class ColoredNoise(StatefulTerm):
         return np.ones(4), np.zeros(4)
 
 
-SPEC = TermSpec(name="colored_noise", forward=ColoredNoise, group="drift", diagnosed_by="samples",
+SPEC = TermSpec(name="colored_noise", forward=ColoredNoise, group="drift", diagnosed_by="samples", sample_test="allan",
                 prior=lambda rng: ColoredNoise(sigma_g=np.full(4, BIAS_INSTABILITY_G), tau_s=BIAS_TAU_S))

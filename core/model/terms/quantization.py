@@ -6,7 +6,7 @@ from typing import Any
 import numpy as np
 
 from ..adxl210 import T2_PER_RSET
-from ..base import Context, Term, register
+from ..base import Context, register
 from ..datasheet import RSET_OHM, RSET_TOL, T2_TEMPCO_PPM, TIMER_CLOCK_HZ
 from ..spec import TermSpec, column, signed
 from ..stateful import StatefulTerm
@@ -32,6 +32,10 @@ class Timer(StatefulTerm):
         super().__init__(rset_ohm=rset_ohm, clock_hz=clock_hz, tempco_ppm=tempco_ppm, t0_c=t0_c,
                          async_phase=async_phase, **params)
 
+    @property
+    def tick_hz(self) -> float:
+        return float(self.params["clock_hz"])
+
     def t2_seconds(self, temp: Any) -> np.ndarray:
         """(N, 2) PWM period of each chip [s]."""
         p = self.params
@@ -48,7 +52,7 @@ class Timer(StatefulTerm):
 
 
 SPEC = TermSpec(
-    name="timer", catalogue="quantization", forward=Timer, diagnosed_by="samples",
+    name="timer", catalogue="quantization", forward=Timer, diagnosed_by="samples", sample_test="lsb",
     prior=lambda rng: Timer(
         rset_ohm=np.full(2, RSET_OHM) if rng is None else RSET_OHM * (1 + rng.uniform(-RSET_TOL, RSET_TOL, 2)),
         clock_hz=TIMER_CLOCK_HZ, tempco_ppm=np.zeros(2)),

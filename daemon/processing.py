@@ -1,0 +1,313 @@
+"""gravcald's processing: detector -> online calibrator -> correction, for one stream of sample blocks.
+
+Wiring only: the quasi-static detector cuts windows from the sample blocks, the online calibrator
+(core/estimators/online.py, ``OnlineCalibrator.feed``) makes every decision from a window to an accepted
+calibration (core/estimators/online_policy.py), and this module publishes what comes back (a new
+revision of the calibration state, CALIB fields) and corrects the published samples with the accepted
+calibration. The gyro's own online calibration (core.gyro) runs beside it on the same windows.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from typing import Any, Callable
+
+import numpy as np
+
+from ..core.calibration import Calibration
+from ..core.estimators.online import OnlineCalibrator
+from ..core.estimators.online_policy import OnlineStep, online_candidates
+from ..core.samples import raw_triad
+from ..core.windows import Window
+from .config import Config
+from .persistence import CalibrationState
+from .protocol import STANDARD_GRAVITY, STATIC_UNKNOWN
+
+log = logging.getLogger("gravcal.gravcald")
+
+# ADXL210E datasheet: 50 % duty cycle at 0 g, 4 % per g (the T1/T2 output, see core/samples.py and
+# core/model/datasheet.py).
+NOMINAL_OFFSET = 0.5
+NOMINAL_SENSITIVITY = 0.04
+# A published sample's `static` is the detector's latest decision only while that decision is at most this much
+# sensor time older than the sample (null beyond): it is one analysis block old when the processing thread keeps
+# up, and the detection signal is itself a 0.5 Hz low-pass; a starved processing thread (a loaded host, a
+# time-lapse emulator) would otherwise label seconds of later motion with an old "still".
+STATIC_MAX_AGE_S = 2.0
+
+# The emulated/reference board's gyro path (docs/gyro.md, core/model/enc03j.py): ENC-03J on the
+# board's y axis, 0.3 Hz high-pass conditioning, ±300 °/s, 12-bit ADC. The start sensitivity is
+# the datasheet chain (0.67 mV/°/s x 7.5 gain on 12 bits at 3.3 V) when [gyro] gives none.
+GYRO_AXIS = (0.0, 1.0, 0.0)
+GYRO_HP_HZ = 0.3
+GYRO_RANGE_RAD_S = math.radians(300.0)
+GYRO_RAILS = (0, 4095)
+GYRO_NOMINAL_COUNTS_PER_RAD_S = 357.36
+
+
+def nominal_calibration(model: str = "6") -> Calibration:
+    cal = Calibration.nominal(np.full(3, NOMINAL_OFFSET), NOMINAL_SENSITIVITY, model=model)
+    cal.converged = False
+    cal.observable = False
+    return cal
+
+
+class Processor:
+    """Detector -> online calibrator -> correction for one stream of sample blocks.
+
+    ``start`` is the calibration state to start from, ``resumed`` whether it is a saved state the
+    estimator continues, ``lab`` the lab calibration when configured (its frame makes the full order
+    "12"). ``detector`` may be given by tests; it is built from the configuration otherwise.
+    ``window_sink`` receives each window before it is fed (``--record-windows``: an offline replay).
+    """
+
+    def __init__(self, cfg: Config, start: CalibrationState, *, resumed: bool, detector: Any = None,
+                 lab: Calibration | None = None, window_sink: Callable[[Window], None] | None = None):
+        self.cfg = cfg
+        self.state = start
+        self.lab = lab
+        self.window_sink = window_sink
+        # (seq of the last analysed sample, the detector's decision there): one tuple, swapped atomically, read by
+        # correct() in the acquisition thread; seq None before any analysis
+        self.analysed: tuple[int | None, bool] = (None, False)
+        self.applied = start.calibration  # what corrects the published samples until an update is accepted
+        saved_remount = start.extra.get("remount") if resumed else None
+        e = cfg.estimator
+        self.online = OnlineCalibrator.for_service(
+            start.calibration, model=e.model, extended_terms=e.extended_terms, lab=lab, resumed=resumed,
+            min_windows=e.min_windows, fs=cfg.device.fs_hz, process_noise=e.process_noise if e.process_noise > 0 else None,
+            windows_base=int(start.calibration.n_windows) if resumed else 0,
+            remount_events=list(saved_remount) if isinstance(saved_remount, list) else None)
+        self.policy = self.online.policy
+        self.detector = detector if detector is not None else self._make_detector()
+        self.detector.to_g = self.applied
+        self.changed = False
+        self._init_gyro(start.extra.get("gyro") if resumed else None)
+
+    # construction -------------------------------------------------------------------
+    def _make_detector(self) -> Any:
+        from ..core.detectors import MovingVarianceDetector, QuasiStaticDetector
+
+        d, fs = self.cfg.detector, self.cfg.device.fs_hz
+        if d.method == "variance":
+            return MovingVarianceDetector(fs, window_s=d.window_s, threshold_g=d.threshold_g,
+                                          min_duration_s=d.min_duration_s, max_duration_s=d.max_duration_s)
+        return QuasiStaticDetector(fs, hp_hz=d.hp_hz, lp_hz=d.lp_hz, threshold_g=d.threshold_g,
+                                   min_duration_s=d.min_duration_s, max_duration_s=d.max_duration_s)
+
+    def candidates(self) -> tuple[str, ...]:
+        """Orders the online estimator may choose: up to the configured one, plus the configured
+        extended terms on every order >= 6 (config [estimator] extended_terms)."""
+        return online_candidates(self.cfg.estimator.model, self.cfg.estimator.extended_terms)
+
+    @property
+    def estimator(self) -> Any:
+        """The running recursion (LottersRecursive) or None before the first seed."""
+        return self.online.recursive if self.policy.seeded or self.online.model != "none" else None
+
+    def _init_gyro(self, saved: Any) -> None:
+        """The online gyro calibration (core.gyro, docs/gyro.md §6). Start values (bias [ADC
+        counts], sensitivity [counts per rad/s]) are, in order: a resumed state's ``extra.gyro``,
+        the [gyro] configuration, none (the published rate is null until the estimator has both)."""
+        from ..core.gyro import OnlineGyroCalibrator
+
+        g = self.cfg.gyro
+        bias, sens = g.zero_counts, g.counts_per_rad_s
+        if isinstance(saved, dict):
+            try:
+                sb, ss = float(saved["bias"][0]), float(saved["sensitivity"][0][0])
+            except (KeyError, IndexError, TypeError, ValueError):
+                sb, ss = math.nan, math.nan  # no determined value saved
+            bias = sb if math.isfinite(sb) else bias
+            sens = ss if math.isfinite(ss) and ss != 0 else sens
+        self.gyro_start = (float(bias), float(sens))
+        self.gyro_cal = OnlineGyroCalibrator(
+            self.cfg.device.fs_hz, k=1, axis=GYRO_AXIS, hp_hz=GYRO_HP_HZ,
+            start_sensitivity=sens if math.isfinite(sens) and sens != 0 else GYRO_NOMINAL_COUNTS_PER_RAD_S,
+            range_rad_s=GYRO_RANGE_RAD_S, rails=GYRO_RAILS)
+        self.gyro_json: dict[str, Any] = self._gyro_json(self.gyro_cal.calibration)
+        # (bias [counts], sensitivity [counts per rad/s]) used by correct(): one tuple, swapped atomically
+        self._gyro_correction = self.gyro_start
+
+    def _gyro_json(self, cal: Any) -> dict[str, Any]:
+        """The ``gyro`` object of CALIB: the estimator's result plus what the published rate uses."""
+        out = cal.to_json_dict()
+        b, s = getattr(self, "_gyro_correction", self.gyro_start)
+        out["applied"] = {"bias": b if math.isfinite(b) else None, "sensitivity": s if math.isfinite(s) else None}
+        return out
+
+    def _gyro_window(self, w: Window) -> bool:
+        """Fold a quasi-static window into the gyro calibration; True when it changed. Only with
+        an accepted accelerometer calibration: the pose-to-pose sensitivity compares gravity
+        directions, which the datasheet start gets wrong by up to ~0.9 g of offset."""
+        est = self.gyro_cal
+        if not self.applied.converged:
+            return False
+        before = (est.n_windows, est.n_windows_rejected, est.pose.n_pairs)
+        try:
+            est.window(w, self.applied)
+        except (ValueError, np.linalg.LinAlgError) as exc:  # one window the gyro cannot use: never the rest of the block
+            log.warning("window skipped by the gyro estimator: %s", exc)
+            return False
+        if (est.n_windows, est.n_windows_rejected, est.pose.n_pairs) == before:
+            return False
+        self._gyro_apply(est.calibration)
+        return True
+
+    def _gyro_apply(self, cal: Any) -> None:
+        """The estimator's bias once it has a window, its sensitivity once determined; the start
+        values until then."""
+        bias, sens = self.gyro_start
+        if cal.n_windows > 0 and np.all(np.isfinite(cal.bias)):
+            bias = float(cal.bias[0])
+        if cal.sensitivity is not None:
+            sens = float(cal.sensitivity[0, 0])
+        self._gyro_correction = (bias, sens)
+        self.gyro_json = self._gyro_json(cal)
+
+    def reconfigure(self, cfg: Config) -> None:
+        """Live changes (SIGHUP): detector settings rebuild the detector."""
+        old = self.cfg
+        self.cfg = cfg
+        if cfg.detector != old.detector:
+            self.detector = self._make_detector()
+            self.detector.to_g = self.applied
+        self.policy.s.min_windows = cfg.estimator.min_windows
+        if cfg.gyro != old.gyro:  # new start values; estimated ones keep precedence
+            g = cfg.gyro
+            self.gyro_start = (float(g.zero_counts), float(g.counts_per_rad_s))
+            self._gyro_apply(self.gyro_cal.calibration)
+
+    # per block ------------------------------------------------------------------------
+    @property
+    def applied(self) -> Calibration:
+        """The accepted calibration that corrects the published samples."""
+        return self._applied
+
+    @applied.setter
+    def applied(self, cal: Calibration) -> None:
+        self._applied = cal
+        # A plain calibration: a = K^-1 (raw - o) as one matrix product per block, the inverse taken once here.
+        # An extended one applies its terms at each sample's covariates (Calibration.apply). One tuple, swapped
+        # atomically: correct() runs in the acquisition thread.
+        self._correction = (np.asarray(cal.offset, dtype=float),
+                            np.linalg.inv(np.asarray(cal.sensitivity, dtype=float)).T * STANDARD_GRAVITY,
+                            cal if cal.extended_terms else None)
+
+    @property
+    def static_now(self) -> bool:
+        """The detector's latest per-sample decision."""
+        return self.analysed[1]
+
+    def static_codes(self, seq: np.ndarray) -> np.ndarray:
+        """Each sample's ``static`` code (protocol.static_words): the detector's latest decision while it is at
+        most STATIC_MAX_AGE_S of sensor time older than the sample, else STATIC_UNKNOWN (null)."""
+        last, static = self.analysed
+        codes = np.full(seq.shape[0], STATIC_UNKNOWN, dtype=np.int8)
+        if last is not None:
+            fresh = (seq.astype(np.int64) - last) <= STATIC_MAX_AGE_S * self.cfg.device.fs_hz
+            codes[fresh] = int(static)
+        return codes
+
+    def correct(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The fast path, per block as it arrives: (acc [m/s²] (N, 3) corrected with the accepted
+        calibration, gyro [rad/s] (N,) NaN when not configured, static (N,) codes: the detector's
+        latest decision, or unknown when that is more than STATIC_MAX_AGE_S of data old)."""
+        offset, kinv_t, extended = self._correction
+        if extended is not None:  # a sample without a covariate its terms need (NaN) gets NaN
+            acc = extended.apply(raw_triad(block), temp=block["temp"].astype(float),
+                                 vsupply=block["vsupply"].astype(float),
+                                 t=block["seq"].astype(float) / self.cfg.device.fs_hz) * STANDARD_GRAVITY
+        else:
+            acc = (raw_triad(block) - offset) @ kinv_t
+        bias, sens = self._gyro_correction
+        gyro = (block["gyro"].astype(float) - bias) / sens  # NaN while either is unknown
+        return acc, gyro, self.static_codes(block["seq"])
+
+    def analyse(self, block: np.ndarray) -> np.ndarray:
+        """Detector and estimator over a block (in arrival order, any split); returns the
+        per-sample static decisions (N,) bool; sets ``self.changed`` when the calibration
+        state changed."""
+        raw = raw_triad(block)
+        self.gyro_cal.push(block["gyro"])  # the same samples as the detector: window indices match
+        # The detector runs on device time (unwrapped seq / fs), not on the host's reception
+        # stamps: USB latency jitter (or an emulator's time-lapse) would read as time gaps and
+        # cut every window, while lost samples still show as seq jumps.
+        t_device = block["seq"].astype(np.float64) / self.cfg.device.fs_hz
+        # the windows' aux channels, in AUX_COLUMNS order: temperature [°C], supply voltage [V]
+        aux = np.column_stack([block["temp"].astype(float), block["vsupply"].astype(float)])
+        windows = self.detector.update(t_device, raw, aux)
+        det = getattr(self.detector, "last_detection", None)
+        if det is not None and det.shape[0] == block.shape[0]:
+            static = det < self.detector.threshold_g
+        else:
+            static = np.zeros(block.shape[0], dtype=bool)
+        self.changed = False
+        for w in windows:
+            self._window(w)
+            if self._gyro_window(w):
+                extra = {**self.state.extra, "gyro": self.gyro_json}
+                self.state = dataclasses.replace(self.state, extra=extra)
+                self.changed = True
+        if static.shape[0]:
+            self.analysed = (int(block["seq"][-1]), bool(static[-1]))
+        return static
+
+    def process(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """correct() then analyse() on one block, with exact per-sample static flags."""
+        acc, gyro, _ = self.correct(block)
+        return acc, gyro, self.analyse(block)
+
+    def _window(self, w: Window) -> None:
+        """Feed one window to the online calibrator and publish what comes back."""
+        if self.window_sink is not None:
+            self.window_sink(w)
+        step = self.online.feed(w)
+        if step.remount is not None:
+            self.changed = True
+        if step.calibration is not None:
+            self._publish(step)
+
+    def _publish(self, step: OnlineStep) -> None:
+        """A new revision of the calibration state; an accepted one corrects the published samples."""
+        extra = dict(self.state.extra)
+        if self.policy.remount_events:
+            extra["remount"] = list(self.policy.remount_events)
+        self.state = CalibrationState(step.calibration, self.state.revision + 1, time.time(), step.accepted, extra)
+        if step.accepted:
+            self.applied = step.calibration
+            self.detector.to_g = step.calibration
+        self.changed = True
+
+    @property
+    def remount_events(self) -> list[dict[str, Any]]:
+        return self.policy.remount_events
+
+    def calib_extra(self) -> dict[str, Any]:
+        """CALIB fields beyond the calibration: the extended parameters (model name, names, values, per-term
+        magnitudes with std) when the calibration has extended terms, every extended candidate's status
+        (chosen / not warranted / not observable / untestable, with the reason), and the re-mount events."""
+        cal = self.state.calibration
+        # the sample the estimator had analysed up to when it made this revision (a client can tell which data a
+        # calibration rests on; it lags the published samples when the processing thread falls behind)
+        out: dict[str, Any] = {"remount": list(self.policy.remount_events), "data_through_seq": self.analysed[0]}
+        ext = cal.metadata.get("extended") if isinstance(cal.metadata, dict) else None
+        if ext:
+            params = cal.metadata.get("params") or {}
+            out["extended"] = {"model": cal.model, "terms": list(ext.get("terms", [])),
+                               "param_names": list(cal.param_names),
+                               "values": [params.get(n) for n in cal.param_names],
+                               "t_ref_c": ext.get("t_ref_c"), "t0_s": ext.get("t0_s"),
+                               "magnitudes": ext.get("magnitudes")}
+        terms = cal.metadata.get("extended_terms") if isinstance(cal.metadata, dict) else None
+        if terms:
+            out["extended_terms"] = {k: {"status": v.get("status"), "reason": v.get("reason")} for k, v in terms.items()}
+        return out
+
+    def online_status(self) -> dict[str, Any]:
+        st = self.online.stats()
+        return {"model": st["model"], "reason": st["reason"], "seeded": self.policy.seeded,
+                "refitting": self.policy.refitting, "stored_windows": st["stored"], "reseeds": st["n_reseeds"],
+                "extended_terms": st["extended_terms"]}

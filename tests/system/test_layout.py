@@ -1,0 +1,150 @@
+"""The architecture as the code has it: layers, no import cycles, small modules, one sensor model.
+
+Read from the source with ``ast`` (nothing is imported): every ``import`` of a gravcal module, at the top
+of a file or inside a function, is an edge of the module graph.
+"""
+from __future__ import annotations
+
+import ast
+import re
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from gravcal.core.model.terms import REGISTRY
+
+ROOT = Path(__file__).resolve().parents[2]
+LAYERS = {"core": "gravcal.core", "drivers": "gravcal.drivers", "daemon": "gravcal.daemon"}
+MAX_LINES = 600
+
+
+def modules() -> dict[str, Path]:
+    out = {}
+    for folder, package in LAYERS.items():
+        for path in (ROOT / folder).rglob("*.py"):
+            parts = path.relative_to(ROOT / folder).with_suffix("").parts
+            name = ".".join((package, *parts))
+            out[name.removesuffix(".__init__")] = path
+    return out
+
+
+def imports(name: str, path: Path, known: dict[str, Path]) -> set[str]:
+    """The gravcal modules ``name`` imports, anywhere in the file."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            candidates = [target] + [f"{target}.{a.name}" for a in node.names]
+        elif isinstance(node, ast.Import):
+            candidates = [a.name for a in node.names]
+        else:
+            continue
+        found |= {c for c in candidates if c in known and c != name}
+    return found
+
+
+@pytest.fixture(scope="module")
+def graph() -> dict[str, set[str]]:
+    known = modules()
+    return {m: imports(m, p, known) for m, p in known.items()}
+
+
+def test_no_import_cycles(graph):
+    """No cycle, lazy imports included (a function-level import does not make a cycle acceptable)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles = []
+
+    def visit(v: str) -> None:  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                cycles.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    assert not cycles, f"import cycles: {cycles}"
+
+
+def test_layers_point_one_way(graph):
+    """core imports neither drivers nor daemon; drivers never import daemon; the real drivers never
+    import their test rigs (drivers/rigs: emulator, fakes, HIL)."""
+    bad = []
+    for m, deps in graph.items():
+        for d in deps:
+            if m.startswith("gravcal.core") and not d.startswith("gravcal.core"):
+                bad.append((m, d))
+            if m.startswith("gravcal.drivers") and d.startswith("gravcal.daemon"):
+                bad.append((m, d))
+            if (m.startswith("gravcal.drivers") and not m.startswith("gravcal.drivers.rigs")
+                    and d.startswith("gravcal.drivers.rigs")):
+                bad.append((m, d))
+    assert not bad, bad
+
+
+def test_no_source_file_over_the_limit():
+    files = [p for folder in (*LAYERS, "bench", "tests") for p in (ROOT / folder).rglob("*.py")]
+    long = {str(p.relative_to(ROOT)): n for p in files if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert not long, f"over {MAX_LINES} lines: {long}"
+
+
+def test_every_package_is_installed():
+    """pyproject's package list holds every folder with an __init__.py (an editable install would hide
+    a missing one; a wheel would not)."""
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {m for m, p in modules().items() if p.name == "__init__.py"}
+    assert found == listed, (sorted(found - listed), sorted(listed - found))
+
+
+def test_no_code_outside_a_term_switches_on_its_name():
+    """A term's name appears as a string only in its own module (and the registry that lists it): every
+    other place enumerates the registry. The forward chain's geometry term ("axes") and the gyro model
+    (core/model/enc03j.py, which defines the gyro's terms) are the model's structure, not switches."""
+    names = {s.name for s in REGISTRY.values()} | {s.catalogue_name for s in REGISTRY.values()}
+    structural = {"axes"}
+    allowed_dirs = {ROOT / "core" / "model" / "terms"}
+    allowed_files = {ROOT / "core" / "model" / "enc03j.py"}
+    hits = []
+    for folder in LAYERS:
+        for path in (ROOT / folder).rglob("*.py"):
+            if path.parent in allowed_dirs or path in allowed_files:
+                continue
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in names - structural:
+                    hits.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.value!r}")
+    assert not hits, hits
+
+
+def test_no_comment_tells_the_project_history():
+    """Comments and docstrings say why, not which issue or helper wrote the code."""
+    pattern = re.compile(r"\b(issue \d+|H-(estimate|detect|twelve)|written in parallel|the previous behaviour)\b",
+                         re.IGNORECASE)
+    hits = []
+    for folder in LAYERS:
+        for path in (ROOT / folder).rglob("*.py"):
+            for i, line in enumerate(path.read_text().splitlines(), 1):
+                if pattern.search(line):
+                    hits.append(f"{path.relative_to(ROOT)}:{i}: {line.strip()[:80]}")
+    assert not hits, hits
