@@ -50,6 +50,7 @@ class MutatedStream:
         intact, intact_at, genuine = [], [], []
         counts = dict.fromkeys(FRAME_MUTATIONS + BETWEEN_MUTATIONS, 0)
         self.foreign = 0
+        self.rejectable = 0  # damaged frames whose header survived, not at the stream's end
         r_frame = rng.random(n_frames)
         r_between = rng.random(n_frames)
         kinds_f = rng.integers(0, len(FRAME_MUTATIONS), n_frames)
@@ -66,7 +67,10 @@ class MutatedStream:
             if r_frame[i] < p_frame:
                 kind = FRAME_MUTATIONS[kinds_f[i]]
                 counts[kind] += 1
-                out += self._damage(kind, f)
+                damaged = self._damage(kind, f)
+                # the decoder sees a candidate it must reject: sync and length byte intact, more bytes after
+                self.rejectable += damaged[:len(SYNC) + 1] == f[:len(SYNC) + 1] and i < n_frames - 1
+                out += damaged
             else:
                 intact.append(i)
                 intact_at.append(len(out))
