@@ -21,7 +21,10 @@ from gravcal.daemon.config import load_config
 from gravcal.daemon.processing import nominal_calibration
 from gravcal.daemon.window_log import WindowRecorder, read_windows
 
-DURATION_S = 600.0  # six_position: the order goes none -> 6 and the estimate is accepted within ~2 min
+# sagittal_postures (stand, sit, bend, kneel, lie, ...) from the datasheet start: provisional offsets that are
+# published but not accepted, the bootstrap seed fit, windows the 5 sigma gate rejects, then order 6 accepted
+DURATION_S = 900.0
+SCENARIO = "sagittal_postures"
 
 
 def replay(cfg, windows: list[Window]) -> list[tuple]:
@@ -41,7 +44,7 @@ def replay(cfg, windows: list[Window]) -> list[tuple]:
 def test_gravcald_and_an_offline_replay_make_the_same_decisions(tmp_path: Path):
     sock, windows_file = str(tmp_path / "g.sock"), tmp_path / "windows.jsonl"
     argv = [sys.executable, "-m", "gravcal.daemon.gravcald", "--emulate", "--bus", "i2c", "--speed", "max",
-            "--scenario", "six_position", "--duration", str(DURATION_S), "--seed", "0", "--socket", sock,
+            "--scenario", SCENARIO, "--duration", str(DURATION_S), "--seed", "0", "--socket", sock,
             "--state-dir", str(tmp_path / "state")]
     env = {k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "LISTEN_FDS")}
     effective = subprocess.run([*argv, "--print-config"], capture_output=True, text=True, env=env, check=True)
@@ -86,7 +89,8 @@ def test_gravcald_and_an_offline_replay_make_the_same_decisions(tmp_path: Path):
         log.close()
 
     revisions = replay(cfg, read_windows(windows_file))
-    assert len(revisions) >= 5 and any(acc for _, acc in revisions)
+    # the session exercises the decisions: revisions published without acceptance, and accepted ones
+    assert any(acc for _, acc in revisions) and any(not acc and cal.converged for cal, acc in revisions)
     assert max(published) == len(revisions), (sorted(published), len(revisions))
     compared = 0
     for r, msg in sorted(published.items()):
