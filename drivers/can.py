@@ -38,7 +38,6 @@ from ..core.samples import FLAG_GAP_BEFORE, FLAG_PARTIAL, SAMPLE_DTYPE
 from .base import PERMISSION_ERRNOS, Backoff, Driver, DriverError, DriverSpec, permission_hint, take_options
 from .codec import (
     ADC_MISSING,
-    MAX_U16,
     TICK_HZ,
     SeqUnwrapper,
     temp_from_raw,
