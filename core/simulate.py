@@ -1,7 +1,7 @@
 """The simulator: a motion scenario through the sensor model into SAMPLE_DTYPE rows.
 
     motion (specific force [g], omega [rad/s], temp, vsupply)
-      -> board stage (axes / misalignment)     -> channel g (N, 4)
+      -> board stage (the axis projection)     -> channel g (N, 4)
       -> channel stage (noise, drift, filter, saturation ...)
       -> duty stage (duty_cycle)               -> T1/T2
       -> counts stage (timer)                  -> t1 (N, 4), t2 (N, 2) counts
@@ -42,7 +42,7 @@ class _Forward:
 
     def __init__(self, model: SensorModel, rng: np.random.Generator, fs: float):
         self.model = SensorModel.from_dict(model.to_dict())  # private copy: fresh term state
-        projection_matrix(self.model)  # raises if both 'axes' and 'misalignment' are present
+        projection_matrix(self.model)  # raises if the model holds two axis projections
         for stage in ("duty", "counts"):
             if not self.model.stage_terms(stage):
                 which = " or ".join(n for n, spec in REGISTRY.items() if spec.forward.stage == stage)

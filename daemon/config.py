@@ -20,12 +20,18 @@ from dataclasses import dataclass, field, fields
 from typing import Any, get_type_hints
 
 from gravcal.core.estimators.observability import ORDER_LADDER
-from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
+from gravcal.core.model.terms import AUX_COLUMNS, CALIBRATION_TERMS, calibration_view
 
 from .errors import InputError
 
 ONLINE_TERMS = tuple(t for t in CALIBRATION_TERMS if calibration_view(t).acts_on != "cross")
 """Registered terms the online estimator may add (the cross-axis one is the order rule's: order 9)."""
+# The default: the offset terms whose covariate the board itself measures (a column of every sample). A
+# time-drift term is linear in time from its reference and would extrapolate for days in a long-running
+# service; drift is followed by the recursion (process_noise) and by re-seeds instead. Offline,
+# `gravcal calibrate --model auto` tests every term.
+DEFAULT_ONLINE_TERMS = ",".join(t for t in ONLINE_TERMS if calibration_view(t).acts_on == "offset"
+                                and calibration_view(t).covariate in AUX_COLUMNS)
 
 DEFAULT_CONFIG_PATH = "/etc/gravcal/gravcald.toml"
 
@@ -53,10 +59,7 @@ class EstimatorConfig:
     model: str = field(default="6", metadata=_meta("model order", choices=tuple(ORDER_LADDER)))
     min_windows: int = field(default=6, metadata=_meta("windows before a calibration may be accepted (the first batch fit also waits for 2 per parameter)", min=0))
     process_noise: float = field(default=0.0, metadata=_meta("random-walk variance of every parameter per second of sensor time added to P [raw²/s] (0: none; drifting sensors: e.g. 1e-12 tracks ~1 mg/h)", min=0.0))
-    # Default: the terms whose covariates the board itself measures. A time-drift term is linear in time from
-    # its reference and would extrapolate for days in a long-running service; drift is followed by the recursion
-    # (process_noise) and by re-seeds instead. Offline, `gravcal calibrate --model auto` tests every term.
-    extended_terms: str = field(default="temperature_offset,supply_offset", metadata=_meta(
+    extended_terms: str = field(default=DEFAULT_ONLINE_TERMS, metadata=_meta(
         f"extended terms the online estimator may add to orders >= 6, comma-separated ({', '.join(ONLINE_TERMS)}; "
         "\"\" for none); each is used only when the windows can test it (its covariate channel with a spread), "
         "determine it and the evidence warrants it"))

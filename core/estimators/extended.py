@@ -64,7 +64,7 @@ class ExtendedParameterization(Parameterization):
         self.names = list(self.base.names) + self.extra_names
         P = len(self.names)
         # at the reference (T = T_ref, t = t0, a0² = 0): the base, extras without effect, except the
-        # misalignment terms, whose derivative is constant
+        # cross-axis terms, whose derivative is constant
         self.dK, self.do = constant_rows(self.terms, nb, P)
         self.dK[:nb], self.do[:nb] = self.base.dK, self.base.do
         self.K_const, self.o_const = self.base.K_const, self.base.o_const

@@ -12,8 +12,8 @@ Signal flow through the stages (in this order)::
       -> projected on the four channel axes by the "axes" term (the stage change)
     channel   (N, 4)  acceleration along each ADXL210 channel axis [g]
       -> noise, nonlinearity, temperature terms, drift, saturation, analog low-pass
-    duty      (N, 4)  duty cycle T1/T2 of each channel (the "duty_cycle" term maps g -> duty)
-    counts    timer quantisation of T1 and T2 (the "timer" term) -> the sample layout
+    duty      (N, 4)  duty cycle T1/T2 of each channel (a duty-stage term maps g -> duty)
+    counts    timer quantisation of T1 and T2 (a counts-stage term with a clock, ``tick_hz``) -> the sample layout
     gyro      (N,)    the ENC-03J path: angular rate [rad/s] -> ADC counts
 
 Each term reads exogenous inputs (time, temperature, supply voltage) from a

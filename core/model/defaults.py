@@ -27,7 +27,7 @@ def default_model(rng: Any = None, *, nominal: bool = False, **switches: Any) ->
 
     rng: a Generator or seed (None: fresh entropy). nominal=True: datasheet typical values, no
     draws ("+-typ" effects get +typ/-typ alternating over channels so they still act).
-    ``switches``: a group name (``GROUPS``: misalignment, temperature, nonlinearity, drift, supply)
+    ``switches``: a group name of ``GROUPS`` (the registry's ``group`` of each term)
     switches on its terms (a Term or dict value for a group named like its one term overrides it);
     a term or catalogue name: False drops the term, True adds it, a dict replaces some of its
     params, a Term replaces it. Each term draws from its own seeded stream (registry order), so
@@ -117,7 +117,7 @@ def linear_channels(model: SensorModel, temp_c: float = 25.0, vsupply: float = V
 def triad_truth(model: SensorModel, temp_c: float = 25.0, vsupply: float = V_NOMINAL, t: float = 0.0) -> Calibration:
     """The effective raw = K a + o of the triad (duty cycles of ax, ay, az) at given conditions.
 
-    This is what an ideal estimator should find: K (3x3) [duty/g] includes misalignment
+    This is what an ideal estimator should find: K (3x3) [duty/g] includes the axis geometry
     (off-diagonal), temperature and supply at (temp_c [°C], vsupply [V]) and deterministic
     drift at time t [s]; o [duty]. Exact for the linear part of the model.
     """

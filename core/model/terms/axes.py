@@ -15,8 +15,8 @@ class Axes(Term):
     """Projection of the specific force (N, 3) [g, board] on the four channel axes (N, 4) [g].
 
     params: ``u`` (4, 3) sensitive-axis vectors of ax, ay, az, ax2 in the board frame. Any
-    misalignment and cross-axis sensitivity is in ``u``; the ``misalignment`` term builds the
-    same projection from physical mounting angles.
+    mounting error and cross-axis sensitivity is in ``u``; a subclass may build the same
+    projection from physical mounting angles (a model holds one projection).
     """
 
     name = "axes"
@@ -41,11 +41,11 @@ class Axes(Term):
 
 
 def projection_matrix(model: Any) -> np.ndarray:
-    """The (4, 3) channel axes of a model: its ``axes``/``misalignment`` term, else ideal."""
+    """The (4, 3) channel axes of a model: its one projection term (Axes or a subclass), else ideal."""
     proj = [t for t in model.stage_terms("board") if isinstance(t, Axes)]
     if len(proj) > 1:
-        raise ValueError(f"sensor model has {len(proj)} axis projections ({[t.name for t in proj]}); "
-                         "keep either 'axes' or 'misalignment'")
+        names = " or ".join(repr(t.name) for t in proj)
+        raise ValueError(f"sensor model has {len(proj)} axis projections; keep one of {names}")
     return proj[0].matrix if proj else IDEAL_AXES
 
 
