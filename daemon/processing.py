@@ -18,7 +18,7 @@ import numpy as np
 
 from ..core.calibration import Calibration
 from ..core.estimators.online import OnlineCalibrator
-from ..core.estimators.online_policy import OnlineStep, online_candidates
+from ..core.estimators.online_policy import OnlineStep
 from ..core.samples import raw_triad
 from ..core.windows import Window
 from .config import Config
@@ -97,16 +97,6 @@ class Processor:
         return QuasiStaticDetector(fs, hp_hz=d.hp_hz, lp_hz=d.lp_hz, threshold_g=d.threshold_g,
                                    min_duration_s=d.min_duration_s, max_duration_s=d.max_duration_s)
 
-    def candidates(self) -> tuple[str, ...]:
-        """Orders the online estimator may choose: up to the configured one, plus the configured
-        extended terms on every order >= 6 (config [estimator] extended_terms)."""
-        return online_candidates(self.cfg.estimator.model, self.cfg.estimator.extended_terms)
-
-    @property
-    def estimator(self) -> Any:
-        """The running recursion (LottersRecursive) or None before the first seed."""
-        return self.online.recursive if self.policy.seeded or self.online.model != "none" else None
-
     def _init_gyro(self, saved: Any) -> None:
         """The online gyro calibration (core.gyro, docs/gyro.md §6). Start values (bias [ADC
         counts], sensitivity [counts per rad/s]) are, in order: a resumed state's ``extra.gyro``,
@@ -139,33 +129,16 @@ class Processor:
         return out
 
     def _gyro_window(self, w: Window) -> bool:
-        """Fold a quasi-static window into the gyro calibration; True when it changed. Only with
-        an accepted accelerometer calibration: the pose-to-pose sensitivity compares gravity
-        directions, which the datasheet start gets wrong by up to ~0.9 g of offset."""
-        est = self.gyro_cal
-        if not self.applied.converged:
+        """One window to the gyro calibration (its rule: core.gyro ``OnlineGyroCalibrator.feed``); True when
+        it changed, and then the published rate's correction follows it."""
+        if not self.gyro_cal.feed(w, self.applied):
             return False
-        before = (est.n_windows, est.n_windows_rejected, est.pose.n_pairs)
-        try:
-            est.window(w, self.applied)
-        except (ValueError, np.linalg.LinAlgError) as exc:  # one window the gyro cannot use: never the rest of the block
-            log.warning("window skipped by the gyro estimator: %s", exc)
-            return False
-        if (est.n_windows, est.n_windows_rejected, est.pose.n_pairs) == before:
-            return False
-        self._gyro_apply(est.calibration)
+        self._gyro_apply()
         return True
 
-    def _gyro_apply(self, cal: Any) -> None:
-        """The estimator's bias once it has a window, its sensitivity once determined; the start
-        values until then."""
-        bias, sens = self.gyro_start
-        if cal.n_windows > 0 and np.all(np.isfinite(cal.bias)):
-            bias = float(cal.bias[0])
-        if cal.sensitivity is not None:
-            sens = float(cal.sensitivity[0, 0])
-        self._gyro_correction = (bias, sens)
-        self.gyro_json = self._gyro_json(cal)
+    def _gyro_apply(self) -> None:
+        self._gyro_correction = self.gyro_cal.correction(self.gyro_start)
+        self.gyro_json = self._gyro_json(self.gyro_cal.calibration)
 
     def reconfigure(self, cfg: Config) -> None:
         """Live changes (SIGHUP): detector settings rebuild the detector."""
@@ -178,7 +151,7 @@ class Processor:
         if cfg.gyro != old.gyro:  # new start values; estimated ones keep precedence
             g = cfg.gyro
             self.gyro_start = (float(g.zero_counts), float(g.counts_per_rad_s))
-            self._gyro_apply(self.gyro_cal.calibration)
+            self._gyro_apply()
 
     # per block ------------------------------------------------------------------------
     @property

@@ -16,6 +16,7 @@ conditioning stage's reference level, and omega from this formula is the high-pa
 """
 from __future__ import annotations
 
+import logging
 import math
 from collections import Counter
 from dataclasses import dataclass, field
@@ -29,6 +30,8 @@ from ..windows import Window, WindowSet
 from .bias import BIAS_FLOOR_RAD_S, GyroBiasEstimator, GyroStillnessGate, window_bias
 from .conditioning import detrend_from_rest, reconstruct
 from .pose import NO_ROTATION, TOO_LONG, Pair, PoseToPose
+
+log = logging.getLogger(__name__)
 
 SCHEMA = "gravcal.gyro/1"
 AXES = "xyz"
@@ -486,6 +489,32 @@ class OnlineGyroCalibrator:
         pair = make_pair(self._buf, ws, 0, 1, acc_calibration, bias=self.bias_est.bias, fs=self.fs,
                          hp_hz=self.hp_hz, rails=self.rails, offset=self._buf_start)
         self.pose.update(pair)
+
+    def feed(self, w: Window, acc_calibration: Calibration) -> bool:
+        """The service's rule for one window: used only under a converged accelerometer calibration (the
+        pose-to-pose sensitivity compares gravity directions, which a datasheet start gets wrong by up to
+        ~0.9 g of offset); a window the gyro cannot use is skipped, never the rest. True when it changed
+        the calibration."""
+        if not acc_calibration.converged:
+            return False
+        before = (self.n_windows, self.n_windows_rejected, self.pose.n_pairs)
+        try:
+            self.window(w, acc_calibration)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            log.warning("window skipped by the gyro estimator: %s", exc)
+            return False
+        return (self.n_windows, self.n_windows_rejected, self.pose.n_pairs) != before
+
+    def correction(self, start: tuple[float, float]) -> tuple[float, float]:
+        """(bias [counts], sensitivity [counts per rad/s]) to publish rates with (single axis): the
+        estimated bias once a window gave one, the sensitivity once determined, ``start``'s until then."""
+        cal = self.calibration
+        bias, sens = start
+        if cal.n_windows > 0 and np.all(np.isfinite(cal.bias)):
+            bias = float(cal.bias[0])
+        if cal.sensitivity is not None:
+            sens = float(cal.sensitivity[0, 0])
+        return bias, sens
 
     @property
     def calibration(self) -> GyroCalibration:
