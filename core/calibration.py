@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .model.effect import apply_terms, needed_covariates, references
-from .model.terms import COVARIATES, calibration_view
+from .model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 
 SCHEMA = "gravcal.calibration/1"
 
@@ -141,6 +141,9 @@ class Calibration:
             )
         except (KeyError, ValueError, TypeError) as exc:
             raise ValueError(f"malformed calibration: {exc}") from exc
+        unknown = [t for t in cal.model.split("+")[1:] if t not in CALIBRATION_TERMS]
+        if unknown:  # a file from another version, or edited by hand
+            raise ValueError(f"calibration model {cal.model!r}: unknown term(s) {unknown}; known: {list(CALIBRATION_TERMS)}")
         if not (np.all(np.isfinite(cal.offset)) and np.all(np.isfinite(cal.sensitivity))):
             raise ValueError("malformed calibration: non-finite offset or sensitivity")
         if abs(np.linalg.det(cal.sensitivity)) < 1e-300:

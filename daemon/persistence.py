@@ -27,7 +27,6 @@ import numpy as np
 
 from ..core.calibration import SCHEMA as CALIBRATION_SCHEMA
 from ..core.calibration import Calibration
-from ..core.estimators.extended import extended_class
 from .errors import InputError
 
 log = logging.getLogger("gravcal.persistence")
@@ -75,7 +74,7 @@ class CalibrationState:
         if d.get("schema") != STATE_SCHEMA:
             raise StateError(f"not a gravcal state file (schema {d.get('schema')!r}, expected {STATE_SCHEMA!r})")
         try:
-            cal = checked_model(Calibration.from_dict(d["calibration"]))
+            cal = Calibration.from_dict(d["calibration"])
         except KeyError:
             raise StateError("state has no 'calibration'") from None
         except (ValueError, TypeError) as exc:
@@ -88,14 +87,6 @@ class CalibrationState:
         if not isinstance(extra, dict):
             raise StateError("state 'extra' must be an object")
         return cls(cal, revision, None if updated is None else float(updated), bool(d.get("accepted", False)), extra)
-
-
-def checked_model(cal: Calibration) -> Calibration:
-    """``cal`` when its model names only registered terms ("6+temperature_offset"); ValueError listing the
-    registry's terms otherwise (a state or file from another version, or edited by hand)."""
-    if "+" in cal.model:
-        extended_class(cal.model)  # raises: unknown term(s) [...]; known: [...]
-    return cal
 
 
 def _jsonable(x: Any) -> Any:
@@ -173,18 +164,18 @@ def calibration_from_json_dict(d: Any, source: str) -> Calibration:
         raise InputError(f"{source}: expected a JSON object with a calibration")
     try:
         if d.get("schema") == CALIBRATION_SCHEMA:
-            return checked_model(Calibration.from_dict(d))
+            return Calibration.from_dict(d)
         if d.get("schema") == STATE_SCHEMA:
             return CalibrationState.from_dict(d).calibration
         inner = d.get("calibration")
         if isinstance(inner, dict) and inner.get("schema") == CALIBRATION_SCHEMA:
-            return checked_model(Calibration.from_dict(inner))
+            return Calibration.from_dict(inner)
         if {"model", "offset", "sensitivity"} <= d.keys():
             # A report without the embedded object: rebuild it, stds as a diagonal covariance.
             std = d.get("std") or {}
             names = list(std) if isinstance(std, dict) else []
             cov = np.diag([float(std[n]) ** 2 for n in names]) if names else np.zeros((0, 0))
-            return checked_model(Calibration.from_dict(
+            return Calibration.from_dict(
                 {
                     "schema": CALIBRATION_SCHEMA,
                     "model": d["model"],
@@ -198,7 +189,7 @@ def calibration_from_json_dict(d: Any, source: str) -> Calibration:
                     "message": d.get("message", ""),
                     "metadata": d.get("metadata", {}),
                 }
-            ))
+            )
     except (ValueError, TypeError, StateError) as exc:
         raise InputError(f"{source}: {exc}") from exc
     raise InputError(

@@ -146,8 +146,7 @@ class OnlineCalibrator:
                  capacity: int = STORE_CAPACITY, every: int = CHECK_EVERY, compare_every: int = COMPARE_EVERY,
                  sigma_floor_g: float | None = None, process_noise: float | np.ndarray | None = None,
                  gate_sigma: float = 5.0, candidates: tuple[str, ...] | None = None, tol_g: float = TOL_G,
-                 systematic_g: float = SYSTEMATIC_G, terms: tuple[str, ...] = (), policy: PolicySettings | None = None,
-                 policy_start: Calibration | None = None, policy_lab: Calibration | None = None):
+                 systematic_g: float = SYSTEMATIC_G, terms: tuple[str, ...] = ()):
         if not isinstance(start, Calibration):
             raise ValueError("OnlineCalibrator needs a start Calibration (datasheet nominal, saved state, or a fit)")
         self.lab = lab
@@ -184,8 +183,7 @@ class OnlineCalibrator:
             self.reason = f"resumed order {start.model} from the start calibration"
             self.recursive = self._recursion(self.start, start.model)
             self._seed_size = max(int(start.n_windows), self.every)  # the saved state's information: re-fit later
-        self.policy = OnlinePolicy(self, policy or PolicySettings(seeded=resume), policy_start or start,
-                                   policy_lab if policy is not None else lab)
+        self.policy = OnlinePolicy(self, PolicySettings(seeded=resume), start, lab)
 
     @classmethod
     def for_service(cls, start: Calibration, *, model: str, extended_terms: str | tuple[str, ...] = (),
@@ -204,9 +202,10 @@ class OnlineCalibrator:
                                   windows_base=windows_base, remount_events=list(remount_events or []))
         # a resumed or given 12-parameter calibration carries its frame
         frame = lab if lab is not None or model != "12" else start
-        return cls(est_start, lab=frame, resume=resumed, candidates=online_candidates(model, extended_terms),
-                   process_noise=process_noise, sigma_floor_g=SIGMA_FLOOR_G, policy=settings, policy_start=start,
-                   policy_lab=lab)
+        oc = cls(est_start, lab=frame, resume=resumed, candidates=online_candidates(model, extended_terms),
+                 process_noise=process_noise, sigma_floor_g=SIGMA_FLOOR_G)
+        oc.policy = OnlinePolicy(oc, settings, start, lab)  # the seed fit starts from the given values
+        return oc
 
     def feed(self, window: Window) -> OnlineStep:
         """Every decision from one window to an accepted calibration (core/estimators/online_policy.py):
@@ -493,7 +492,6 @@ class OnlineCalibrator:
             return LottersRecursive(cal, model, sigma_floor_g=floor, process_noise=self.process_noise,
                                     gate_sigma=self.gate_sigma)
         # an extended model: the parameterization carries the fit's reference (T_ref, t0)
-
         ext = cal.metadata.get("extended") or {}
         refs = references(ext)
         par = parameterization(model, cal.sensitivity, cal.offset, t_ref_c=refs["temp"], t0_s=refs["time"],

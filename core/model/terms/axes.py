@@ -45,7 +45,7 @@ def projection_matrix(model: Any) -> np.ndarray:
     proj = [t for t in model.stage_terms("board") if isinstance(t, Axes)]
     if len(proj) > 1:
         names = " or ".join(repr(t.name) for t in proj)
-        raise ValueError(f"sensor model has {len(proj)} axis projections; keep one of {names}")
+        raise ValueError(f"sensor model has {len(proj)} axis projections; keep either {names}")
     return proj[0].matrix if proj else IDEAL_AXES
 
 
