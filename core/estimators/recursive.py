@@ -156,20 +156,25 @@ class LottersRecursive:
              + g2 * (Cm[6] * g0 + Cm[7] * g1 + Cm[8] * g2)) + self.R_floor
         return h, B, R
 
+    def _bind(self, mean: np.ndarray, t: float | None, aux: np.ndarray | None) -> None:
+        """Bind the derivatives to this window's covariates (extended terms, extended.py); a no-op without them."""
+        if not self.par.covariates:
+            return
+        one = WindowSet(np.reshape(np.asarray(mean, dtype=float), (1, 3)), np.zeros((1, 3, 3)), np.ones(1),
+                        np.array([0.0 if t is None else float(t)]),
+                        np.reshape(np.zeros(0) if aux is None else np.asarray(aux, dtype=float), (1, -1)),
+                        np.zeros(1, dtype=np.int64), np.ones(1, dtype=np.int64))
+        pw = self.par.at_windows(one)
+        self._dK9 = self._dKg = np.ascontiguousarray(pw.dK.reshape(self._n, 9))
+        self._do = np.ascontiguousarray(pw.do)
+
     def step(self, mean: np.ndarray, cov_of_mean: np.ndarray, t: float | None = None, aux: np.ndarray | None = None) -> bool:
         """Process one window (mean and covariance of the mean in raw units, mid time t [s], aux means
         e.g. temperature [°C]). Returns True if accepted, False if gated out as an outlier."""
         m = tuple(float(x) for x in np.ravel(mean))
         if len(m) != 3 or not all(math.isfinite(x) for x in m):
             raise ValueError(f"window mean must be 3 finite values, got {mean!r}")
-        if self.par.covariates:  # derivatives depend on this window's covariates (extended.py)
-            one = WindowSet(np.reshape(np.asarray(mean, dtype=float), (1, 3)), np.zeros((1, 3, 3)), np.ones(1),
-                            np.array([0.0 if t is None else float(t)]),
-                            np.reshape(np.zeros(0) if aux is None else np.asarray(aux, dtype=float), (1, -1)),
-                            np.zeros(1, dtype=np.int64), np.ones(1, dtype=np.int64))
-            pw = self.par.at_windows(one)
-            self._dK9 = self._dKg = np.ascontiguousarray(pw.dK.reshape(self._n, 9))
-            self._do = np.ascontiguousarray(pw.do)
+        self._bind(mean, t, aux)
         Cm = np.ravel(cov_of_mean).tolist()
         if t is not None:
             if self.t_last is not None and t > self.t_last and self._has_Q:
