@@ -20,7 +20,7 @@ from gravcal.core.estimators.extended import apply_windows
 from gravcal.core.estimators.lotters import LottersBatch
 from gravcal.core.windows import WindowSet
 
-SCHEMES = ("contiguous", "halves", "oddeven")
+SCHEMES = ("contiguous", "halves")
 
 
 def norm_error_mg(cal: Calibration, ws: WindowSet) -> np.ndarray:
@@ -40,7 +40,8 @@ def fold_indices(t: np.ndarray, scheme: str = "contiguous", folds: int = 5) -> l
     """Held-out index sets (into the original order) for each fold.
 
     contiguous: ``folds`` blocks of consecutive windows in time; halves: first / second half in
-    time; oddeven: every other window in time (a deliberately leaky reference scheme).
+    time. Interleaved folds (every other window) are not offered: neighbours in time share posture and
+    temperature, so they leak.
     """
     t = np.asarray(t, dtype=float)
     order = np.argsort(t, kind="stable")
@@ -55,10 +56,6 @@ def fold_indices(t: np.ndarray, scheme: str = "contiguous", folds: int = 5) -> l
         if m < 2:
             raise ValueError(f"{m} windows cannot be split into halves")
         return [np.sort(b) for b in np.array_split(order, 2)]
-    if scheme == "oddeven":
-        if m < 2:
-            raise ValueError(f"{m} windows cannot be split into odd/even")
-        return [np.sort(order[0::2]), np.sort(order[1::2])]
     raise ValueError(f"unknown held-out scheme {scheme!r}; known: {', '.join(SCHEMES)}")
 
 

@@ -74,10 +74,12 @@ def summary(out: dict[str, Any], name: str) -> str:
                      f"{sim['simulated_mean']['rms_mg']:.3f} mg; disagrees on: {', '.join(sim['disagree']) or 'nothing'}")
     if out["findings"]:
         for f in out["findings"]:
-            v = f["magnitude"].get("value", {})
-            vals = ", ".join(f"{k} {x:.4g}" for k, x in v.items()) if isinstance(v, dict) else str(v)
-            lines.append(f"  FOUND {f['effect']}: {vals} [{f['magnitude'].get('unit', '')}] "
+            lines.append(f"  FOUND {f['effect']}: {magnitude_text(f['magnitude'])} "
                          f"(ΔBIC {f['evidence'].get('delta_bic')})")
+            for axis, why in f["magnitude"].get("undetermined", {}).items():
+                lines.append(f"    {axis} undetermined: {why}")
+            for note in f["magnitude"].get("notes", []):
+                lines.append(f"    note: {note}")
     else:
         lines.append("  no significant effect found")
     lines.append(f"  extended {e['model']}: held-out {fmt(e['heldout_rms_mg'])} mg (gain {fmt(e['heldout_gain_mg'])} mg)")
@@ -88,3 +90,17 @@ def summary(out: dict[str, Any], name: str) -> str:
     if out.get("report"):
         lines.append(f"  report: {out['report']}")
     return "\n".join(lines)
+
+
+def magnitude_text(mag: dict) -> str:
+    """Per axis value ± std in the report unit; an undetermined axis says so instead of printing a number."""
+    v, sd = mag.get("value", {}), mag.get("std", {}) or {}
+    if not isinstance(v, dict):
+        return str(v)
+    parts = []
+    for k, x in v.items():
+        if x is None:
+            parts.append(f"{k} undetermined")
+        else:
+            parts.append(f"{k} {x:.4g}" + (f" ± {sd[k]:.2g}" if sd.get(k) is not None else ""))
+    return ", ".join(parts) + f" [{mag.get('unit', '')}]"

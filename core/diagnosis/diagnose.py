@@ -28,11 +28,12 @@ from gravcal.core.estimators.lotters import LottersBatch
 from gravcal.core.estimators.observability import TOL_G, coverage, held_note, is_observable
 from gravcal.core.estimators.order import select_order
 from gravcal.core.model.terms import CATALOGUE as TERM_CATALOGUE
-from gravcal.core.model.terms import REGISTRY, term_spec
+from gravcal.core.model.terms import REGISTRY, calibration_view, term_spec
 from gravcal.core.windows import WindowSet
 
 from .compare import Comparison, simulate_compare
 from .noise import AllanResult, colored_noise_test, flat_stretches, pooled_allan, quantization_test
+from .held import channel_slopes, held_contributions, one_posture_partner
 from .terms import TermSelector, TermTest, select_terms
 
 log = logging.getLogger(__name__)
@@ -72,6 +73,8 @@ class Diagnosis:
     has_temp: bool = False
     white_g: np.ndarray | None = None
     observability: dict[str, Any] | None = None  # the offsets by order.is_observable, as `gravcal calibrate` judges them
+    nested: "NestedHeldout | None" = None  # the held-out errors above: folds the selection never saw
+    selection_heldout_mg: tuple[float | None, float | None] | None = None  # the selection's own inner folds
 
     @property
     def heldout_gain_mg(self) -> float | None:
@@ -90,6 +93,9 @@ class Diagnosis:
             "extended": {"model": self.extended_model, "heldout_rms_mg": r(self.extended_heldout_mg),
                          "insample_rms_mg": r(self.extended_insample_mg),
                          "heldout_gain_mg": r(self.heldout_gain_mg),
+                         "heldout_scheme": None if self.nested is None else self.nested.to_dict(),
+                         "selection_heldout_rms_mg": None if self.selection_heldout_mg is None else
+                         [r(x) for x in self.selection_heldout_mg],
                          "calibration": self.extended_cal.to_dict(),
                          "simulation": None if self.compare_extended is None else self.compare_extended.to_dict()},
             "untestable": self.untestable,
@@ -155,10 +161,15 @@ def given_held(start: Calibration) -> Calibration:
 
 def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candidates: tuple[str, ...] = CATALOGUE,
                      replicas: int = 40, folds: int = 5, seed: int = 0, base: str | None = None,
-                     simulate: bool = True) -> Diagnosis:
+                     simulate: bool = True, nested: bool = True,
+                     held_uncertainty: dict[str, Any] | None = None) -> Diagnosis:
     """Steps a-e on quasi-static windows alone (no sample-level noise tests: colored_noise and
-    quantization are reported untestable)."""
+    quantization are reported untestable). ``nested`` False skips the held-out gain on folds the
+    selection never saw (the selection itself is unchanged; for repeated statistical runs).
+    ``held_uncertainty``: the held covariance (consider.HELD_KEY) of the start's held sensitivities when
+    ``start`` no longer states it; it widens the findings' std (held.py), never the tests."""
     notes: list[str] = []
+    held_meta = start.metadata.get(HELD_KEY, held_uncertainty) if isinstance(start.metadata, dict) else held_uncertainty
     if HELD_KEY in start.metadata:
         start = given_held(start)
         notes.append(GIVEN_HELD_NOTE)
@@ -185,6 +196,7 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
                      f"{OUTLIER_SIGMA:g} robust std ({OUTLIER_SIGMA * mad * 1e3:.3g} mg) from the term tests")
         ws = ws.subset(np.flatnonzero(~out))
         base_cal = LottersBatch(base).fit(ws, base_cal)
+    ws_base = ws
     if base == "offsets":
         # sensitivities unobservable: windows at rare postures carry the scale error of the held K, which no
         # offset-type term can explain; test the terms where an offsets-only baseline is valid
@@ -203,8 +215,15 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
     p_max = sel.par(tuple(t.effect for t in tests if t.status != "untestable")).n_params
     par_b, fit_b = sel.fit((), {})
     par_e, fit_e = sel.fit(chosen, held)
-    ho_b = sel.heldout_mg((), {}, p_max)
-    ho_e = sel.heldout_mg(chosen, held, p_max) if chosen else ho_b
+    sel_ho = (sel.heldout_mg((), {}, p_max), sel.heldout_mg(chosen, held, p_max) if chosen else None)
+    outer = nested_heldout(ws, base, base_cal, has_temp=has_temp, candidates=candidates,
+                           spread_deg=cov["spread_deg"], folds=folds, held_base=sel.held_base) if nested else None
+    if outer is None:
+        ho_b = ho_e = None
+        if nested:
+            notes.append(f"{len(ws)} windows are too few for a held-out gain on folds the selection never saw")
+    else:
+        ho_b, ho_e = outer.baseline_mg, outer.extended_mg
     res_b = extended_residuals_g(par_b, fit_b.p, ws)
     res_e = extended_residuals_g(par_e, fit_e.p, ws)
     cmp_b = cmp_e = None
@@ -213,18 +232,106 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
         cmp_e = simulate_compare(par_e, fit_e.p, ws, sel.var0 + 0.0, res_e, has_temp=has_temp, replicas=replicas,
                                  seed=seed + 1, free=sel.free_mask(sel.par(chosen), held)) if chosen else cmp_b
     ext_cal = fit_e.calibration(len(ws))
+    held_sd, held_sources = held_contributions(sel, chosen, held, base=base, base_cal=base_cal, ws_base=ws_base,
+                                               start=start, held_meta=held_meta)
     findings = []
     for t in tests:
         if t.status == "found":
+            honest_magnitude(t, held_sd.get(t.effect), held_sources, one_posture=base == "offsets", ws=ws)
             ev = t.evidence()
             term = sensor_model_term(t.effect, t.magnitude)
             if term:
                 ev["sensor_model_term"] = term
             findings.append({"effect": t.effect, "magnitude": t.magnitude, "evidence": ev})
+            for partner in t.magnitude.get("confounded_with", []):
+                notes.append(f"{t.effect} and {partner} cannot be told apart on this recording (one posture): "
+                             f"{t.effect} is reported, the change along gravity may be either")
     untestable = [{"effect": t.effect, "why": t.why} for t in tests if t.status == "untestable"]
-    return Diagnosis(base, ext_cal.model, len(ws), ho_b, ho_e, float(np.sqrt(np.mean(res_b**2)) * 1e3),
-                     float(np.sqrt(np.mean(res_e**2)) * 1e3), findings, untestable, tests, base_cal, ext_cal,
-                     cmp_b, cmp_e, None, cov, sel.floor_g * 1e3, notes, ws, res_b, res_e, has_temp)
+    d = Diagnosis(base, ext_cal.model, len(ws), ho_b, ho_e, float(np.sqrt(np.mean(res_b**2)) * 1e3),
+                  float(np.sqrt(np.mean(res_e**2)) * 1e3), findings, untestable, tests, base_cal, ext_cal,
+                  cmp_b, cmp_e, None, cov, sel.floor_g * 1e3, notes, ws, res_b, res_e, has_temp)
+    d.nested = outer
+    d.selection_heldout_mg = sel_ho
+    return d
+
+
+def honest_magnitude(tt: TermTest, held_sd: np.ndarray | None, sources: list[str], *, one_posture: bool,
+                     ws: WindowSet) -> None:
+    """Fold the held quantities' contribution into a found term's stated std (report and raw units), and in
+    one posture name the term it cannot be told from and give the raw channel slopes an independent fit sees."""
+    mag = tt.magnitude
+    keys = list(mag.get("value", {}))
+    if held_sd is not None and sources:
+        mag["std_noise"] = dict(mag.get("std", {}))
+        mag["std_held"] = {k: (None if mag["value"][k] is None else float(held_sd[i])) for i, k in enumerate(keys)}
+        for std_key, off in (("std", 0), ("raw_std", 3)):
+            d = mag.get(std_key, {})
+            for i, k in enumerate(keys):
+                if d.get(k) is not None:
+                    d[k] = float(np.hypot(d[k], held_sd[off + i]))
+        mag["held"] = list(sources)
+    if one_posture:
+        partner = one_posture_partner(tt.effect)
+        if partner is not None:
+            mag["confounded_with"] = [partner]
+            cov = calibration_view(tt.effect).covariate
+            slopes = channel_slopes(ws, cov)
+            if slopes is not None:
+                mag["raw_channel_slopes"] = slopes
+            mag.setdefault("notes", []).append(
+                f"one posture: an offset change and a sensitivity change along gravity ({partner}) read alike; "
+                f"the value is their sum along gravity, and the axes across gravity are not determined")
+
+
+@dataclass
+class NestedHeldout:
+    """Held-out error on folds the selection never saw: per contiguous outer fold, the whole selection
+    (forward and backward, its own inner folds) runs on the other folds; baseline and selected model are
+    fitted there and scored on the outer fold."""
+
+    baseline_mg: float
+    extended_mg: float
+    folds: int
+    selected: list[list[str]]  # the terms selected on each outer training set
+
+    @property
+    def gain_mg(self) -> float:
+        return self.baseline_mg - self.extended_mg
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"baseline_rms_mg": round(self.baseline_mg, 4), "extended_rms_mg": round(self.extended_mg, 4),
+                "gain_mg": round(self.gain_mg, 4), "folds": self.folds, "selected_per_fold": self.selected,
+                "scheme": "contiguous time blocks; selection re-run on each training set"}
+
+
+def nested_heldout(ws: WindowSet, base: str, base_cal: Calibration, *, has_temp: bool, candidates: tuple[str, ...],
+                   spread_deg: float, folds: int = 5, held_base: list[int] | None = None) -> NestedHeldout | None:
+    """The held-out gain of the selection procedure itself (NestedHeldout); None when the training sets are too
+    small for the inner folds. The base parameters are refitted on each training set from ``base_cal``, except
+    ``held_base``, the ones the whole recording does not determine (kept at base_cal's values, as in the
+    selection: left free on a subset they would turn the direction and absorb a trend)."""
+    k = min(folds, len(ws) // MIN_WINDOWS)
+    if k < 2:
+        return None
+    order = np.argsort(ws.t, kind="stable")
+    res_b, res_e = np.empty(len(ws)), np.empty(len(ws))
+    selected = []
+    for test in np.array_split(order, k):
+        train = np.setdiff1d(order, test)
+        wtr = ws.subset(train)
+        try:
+            sel = TermSelector(wtr, base, base_cal, has_temp=has_temp, folds=folds, held_base=held_base)
+            chosen, held, _ = select_terms(sel, tuple(c for c in candidates if c in EXTRA_TERMS), spread_deg)
+            par_b, f_b = sel.fit((), {})
+            par_e, f_e = sel.fit(chosen, held)
+        except (ValueError, np.linalg.LinAlgError):
+            return None
+        wte = ws.subset(test)
+        res_b[test] = extended_residuals_g(par_b, f_b.p, wte)
+        res_e[test] = extended_residuals_g(par_e, f_e.p, wte)
+        selected.append(list(chosen))
+    rms = lambda r: float(np.sqrt(np.mean(r * r)) * 1e3)  # noqa: E731
+    return NestedHeldout(rms(res_b), rms(res_e), k, selected)
 
 
 def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, vsupply: np.ndarray | None = None,
@@ -269,16 +376,23 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
     ws = rep.windows
     has_temp = temp is not None and np.ptp(temp) > 0
     d = diagnose_windows(ws, rep.start or rep.calibration, has_temp=has_temp, candidates=candidates,
-                         replicas=replicas, folds=folds, seed=seed, simulate=simulate)
+                         replicas=replicas, folds=folds, seed=seed, simulate=simulate,
+                         held_uncertainty=held_start.metadata.get(HELD_KEY))
     d.observability = offsets_observability(ws, held_start)
     if not d.observability["determined"]:
         notes.append(d.observability["reason"])
     d.notes = notes + d.notes
-    # noise tests on static stretches (samples in g through the diagonal of the baseline K)
+    # noise tests on static stretches, on the residual after the deterministic terms: each sample corrected by
+    # the extended calibration at its own temperature, supply and time (a temperature or drift term left in
+    # the samples would read as colored noise), the stretch mean removed
     scale = np.abs(np.diag(d.baseline_cal.sensitivity))
     stretches = _static_stretches(ws, max_gap=int(0.5 * fs))
     parts_raw = [raw[a:b] for a, b in stretches]
-    parts_g = [(p - p.mean(axis=0)) / scale for p in parts_raw]
+    parts_g = []
+    for a, b in stretches:
+        g = d.extended_cal.apply(raw[a:b], temp=None if temp is None else temp[a:b], t=t[a:b],
+                                 vsupply=None if vsupply is None else np.asarray(vsupply)[a:b])
+        parts_g.append(g - g.mean(axis=0))
     longest = max((p.shape[0] for p in parts_g), default=0) / fs
     extra_tests: list[TermTest] = []
     for spec in REGISTRY.values():
@@ -305,17 +419,19 @@ def _allan_test(name: str, parts_raw: list, parts_g: list, scale: np.ndarray, fs
     if longest < MIN_ALLAN_STRETCH_S:
         return TermTest(name, "untestable", f"the longest static stretch is {longest:.1f} s "
                                             f"(need >= {MIN_ALLAN_STRETCH_S:g} s for the Allan deviation)")
-    if len(parts_g) >= 2:
-        train, test = parts_g[0::2], parts_g[1::2]
-    else:
-        h = parts_g[0].shape[0] // 2
-        train, test = [parts_g[0][:h]], [parts_g[0][h:]]
+    train, test = time_halves(parts_g)
     tr, te = pooled_allan(train, fs), pooled_allan(test, fs)
     res = colored_noise_test(tr, te) if tr is not None else {"found": False}
     tt = TermTest(name, "found" if res["found"] else "not_found",
                   "" if res["found"] else "Allan deviation explained by white noise (ΔBIC <= 10 or no "
-                  "held-out gain)", res.get("delta_bic"))
-    tt.magnitude = {"unit": "mg", "value": dict(zip("xyz", res.get("bias_instability_mg", [0, 0, 0])))}
+                  "held-out gain on the later half of the stretches)", res.get("delta_bic"))
+    bi, rw = res.get("bias_instability_mg", [0.0] * 3), res.get("random_walk_mg_per_sqrt_s", [0.0] * 3)
+    white_only = "white noise alone on this axis (no flicker floor or random walk fitted)"
+    tt.magnitude = {"unit": "mg", "value": {a: (bi[i] or None) if (bi[i] or rw[i]) else None for i, a in enumerate("xyz")},
+                    "random_walk_mg_per_sqrt_s": {a: rw[i] if (bi[i] or rw[i]) else None for i, a in enumerate("xyz")},
+                    "undetermined": {a: white_only for i, a in enumerate("xyz") if not (bi[i] or rw[i])}}
+    if tt.status == "found" and not any(bi[i] or rw[i] for i in range(3)):
+        tt.status, tt.why = "not_found", "the colored model's extra components fitted to zero on every axis"
     tt._extra = res  # type: ignore[attr-defined]
     tt._allan = pooled_allan(parts_g, fs)  # type: ignore[attr-defined]
     return tt
@@ -329,10 +445,23 @@ def _lsb_test(name: str, parts_raw: list, parts_g: list, scale: np.ndarray, fs: 
     tt = TermTest(name, "found" if res["found"] else "not_found",
                   "" if res["found"] else "samples look continuous at the noise level (ΔBIC <= 10 or no "
                   "held-out gain)", res.get("delta_bic"))
-    tt.magnitude = {"unit": "mg_per_lsb", "value": {a: r.get("lsb_mg", 0.0) for a, r in zip("xyz", res["axes"])},
-                    "noise_std_lsb": {a: r.get("noise_std_lsb") for a, r in zip("xyz", res["axes"])}}
+    tt.magnitude = {"unit": "mg_per_lsb", "value": {a: r.get("lsb_mg") or None for a, r in zip("xyz", res["axes"])},
+                    "noise_std_lsb": {a: r.get("noise_std_lsb") for a, r in zip("xyz", res["axes"])},
+                    "undetermined": {a: "samples on no grid (continuous)" for a, r in zip("xyz", res["axes"])
+                                     if not r.get("lsb_mg")}}
     tt._extra = res  # type: ignore[attr-defined]
     return tt
+
+
+def time_halves(parts: list[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Static stretches (in time order) split into an earlier and a later half by sample count: contiguous
+    in time, so a held-out score on the later half is not flattered by neighbours of the training half."""
+    if len(parts) == 1:
+        h = parts[0].shape[0] // 2
+        return [parts[0][:h]], [parts[0][h:]]
+    n = np.cumsum([p.shape[0] for p in parts])
+    cut = int(np.clip(np.searchsorted(n, n[-1] / 2), 1, len(parts) - 1))
+    return parts[:cut], parts[cut:]
 
 
 SAMPLE_TESTS = {"allan": _allan_test, "lsb": _lsb_test}  # TermSpec.sample_test -> the static-sample test

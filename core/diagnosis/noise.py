@@ -94,6 +94,7 @@ def colored_noise_test(train: AllanResult, test: AllanResult | None) -> dict[str
     d_bic_tot, held_white, held_col = 0.0, 0.0, 0.0
     n_tot = 0
     bias_inst = np.zeros(3)
+    rate_walk = np.zeros(3)
     for ax in range(3):
         y = train.adev_g[:, ax] ** 2
         w = train.n_clusters / 2.0 / np.maximum(y, 1e-30) ** 2  # var(AVAR_hat) ~ 2 AVAR² / n
@@ -109,6 +110,7 @@ def colored_noise_test(train: AllanResult, test: AllanResult | None) -> dict[str
         n_tot += n
         c_col = fits[True][0]
         bias_inst[ax] = math.sqrt(max(c_col[1], 0.0) * math.pi / (2 * math.log(2)))  # B from the flat AVAR part
+        rate_walk[ax] = math.sqrt(max(c_col[2], 0.0) * 3.0)  # K from AVAR = K² tau / 3
         if test is not None and len(test.tau_s):
             yt = test.adev_g[:, ax] ** 2
             wt = test.n_clusters / 2.0 / np.maximum(yt, 1e-30) ** 2
@@ -119,13 +121,15 @@ def colored_noise_test(train: AllanResult, test: AllanResult | None) -> dict[str
                     held_col += e
                 else:
                     held_white += e
-        out["axes"].append({"delta_bic": round(d_bic, 2), "bias_instability_mg": round(bias_inst[ax] * 1e3, 5)})
+        out["axes"].append({"delta_bic": round(d_bic, 2), "bias_instability_mg": round(bias_inst[ax] * 1e3, 5),
+                            "random_walk_mg_per_sqrt_s": round(rate_walk[ax] * 1e3, 6)})
     out["delta_bic"] = round(d_bic_tot, 2)
     out["heldout_chi2_white"] = round(held_white, 3) if test is not None else None
     out["heldout_chi2_colored"] = round(held_col, 3) if test is not None else None
     better_held = test is not None and held_col < held_white
     out["found"] = bool(d_bic_tot > DELTA_BIC and better_held)
     out["bias_instability_mg"] = (bias_inst * 1e3).round(5).tolist()
+    out["random_walk_mg_per_sqrt_s"] = (rate_walk * 1e3).round(6).tolist()
     return out
 
 
@@ -150,7 +154,7 @@ def quantization_test(stretches_raw: list[np.ndarray], scale: np.ndarray) -> dic
 
     Model A: x continuous N(mu, s²) (density x lsb as the bin probability); model B: x = Q(y),
     y ~ N(mu, s²), bin probability Phi((x + lsb/2 - mu)/s) - Phi((x - lsb/2 - mu)/s). B has one
-    more parameter (lsb); BIC decides, held-out: B fitted on even stretches scored on odd ones.
+    more parameter (lsb); BIC decides, held-out: B fitted on the earlier half of the stretches, scored on the later.
     ``scale`` (3,) raw units per g, to report the step in mg.
     """
     res: dict[str, Any] = {"axes": [], "found": False}
@@ -189,11 +193,12 @@ def quantization_test(stretches_raw: list[np.ndarray], scale: np.ndarray) -> dic
         _, lb = loglik(parts, s_b)
         n = allv.size
         d_bic = 2 * (lb - la) - math.log(n)
-        even, odd = parts[0::2], parts[1::2]
-        if odd:
-            sa_e, sb_e = best_s(even)
-            la_o, _ = loglik(odd, sa_e)
-            _, lb_o = loglik(odd, sb_e)
+        half = len(parts) // 2  # earlier stretches fit, later ones judge (contiguous in time)
+        early, late = parts[:half], parts[half:]
+        if early:
+            sa_e, sb_e = best_s(early)
+            la_o, _ = loglik(late, sa_e)
+            _, lb_o = loglik(late, sb_e)
             held = lb_o - la_o
         else:
             held = 0.0

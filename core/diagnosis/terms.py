@@ -9,9 +9,12 @@ current model,
    chi² with the SAME per-window variances for every model (window noise + one quasi-static floor);
 3. it lowers the held-out RMS norm error (time-contiguous folds: windows not used for the fit).
 
-Terms are added forward-stepwise (the best ΔBIC first, then the rest re-tested given it), so of two
-terms that explain the same residual only the better one is named; a term whose columns the current
-model already spans is reported untestable ("indistinguishable from ...").
+Selection is joint: forward, every remaining candidate is re-tested against the current extended
+model and the strongest passing one enters; backward, each chosen term is re-tested given all the
+others and leaves when it no longer passes. So of two terms that explain the same residual only the
+better one is named, and a term that entered early but is explained by later ones is dropped. A term
+whose columns the current model already spans is reported untestable ("indistinguishable from ...").
+Axes a term cannot determine are null in its magnitude, with the reason, never 0.
 """
 from __future__ import annotations
 
@@ -28,7 +31,7 @@ from gravcal.core.estimators.extended import (EXTRA_TERMS, ExtendedParameterizat
                                               extended_residuals_g, fit_extended, model_name)
 from gravcal.core.estimators.observability import TOL_G
 from gravcal.core.estimators.order import term_testability
-from gravcal.core.model.terms import calibration_view
+from gravcal.core.model.terms import COVARIATES, calibration_view
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 from gravcal.core.windows import WindowSet
 
@@ -73,7 +76,7 @@ class TermSelector:
     """Fits and held-out scores of base + terms on one WindowSet with fixed weights."""
 
     def __init__(self, ws: WindowSet, base: str, base_cal: Calibration, *, has_temp: bool, folds: int = 5,
-                 t_ref_c: float | None = None, t0_s: float | None = None):
+                 t_ref_c: float | None = None, t0_s: float | None = None, held_base: list[int] | None = None):
         self.ws, self.base, self.base_cal, self.has_temp = ws, base, base_cal, has_temp
         self.m = len(ws)
         self.t_ref_c = float(np.median(ws.aux[:, 0])) if (has_temp and t_ref_c is None) else (t_ref_c or 25.0)
@@ -84,13 +87,15 @@ class TermSelector:
         self.var = self.var0
         self.order = np.argsort(ws.t, kind="stable")
         self.folds = folds
+        self._heldout_memo: dict[tuple, float | None] = {}
+        self._fit_memo: dict[tuple, tuple] = {}
         # base parameters these windows do not determine (e.g. the offsets across the axis of a single
         # posture) stay at base_cal: left free, they would let the fit turn the direction and hide a trend
-        self.held_base: list[int] = []
+        self.held_base: list[int] = list(held_base or [])
         par, f = self.fit((), {})
         self.var = self.var0 + floor_for(f.resid_g, self.var0, self.m - par.n_params) ** 2  # provisional floor
         s = float(np.mean(np.abs(np.diag(base_cal.sensitivity))))
-        while len(self.held_base) < par.n_params:  # hold the worst-determined one at a time (a single posture
+        while held_base is None and len(self.held_base) < par.n_params:  # hold the worst-determined one at a time (a single posture
             _, f = self.fit((), {})                  # determines one combination of the offsets: keep that one)
             rel = np.where(np.isin(np.arange(par.n_params), self.held_base), 0.0, f.std / s)
             if rel.max() <= TOL_G:
@@ -118,6 +123,15 @@ class TermSelector:
         return free
 
     def fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None = None):
+        if idx is None:  # the same model on all windows is asked for by every candidate's test: fitted once
+            key = (terms, tuple(sorted((t, tuple(v)) for t, v in held.items() if t in terms)),
+                   tuple(self.held_base), float(self.var.sum()))
+            if key not in self._fit_memo:
+                self._fit_memo[key] = self._fit(terms, held, None)
+            return self._fit_memo[key]
+        return self._fit(terms, held, idx)
+
+    def _fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None):
         par = self.par(terms)
         ws = self.ws if idx is None else self.ws.subset(idx)
         var = self.var if idx is None else self.var[idx]
@@ -129,6 +143,13 @@ class TermSelector:
 
     def heldout_mg(self, terms: tuple[str, ...], held: dict[str, list[int]], n_params_max: int) -> float | None:
         """RMS 1 - |a| [mg] over time-contiguous held-out folds (None: too few windows for 2 folds)."""
+        key = (terms, tuple(sorted((t, tuple(v)) for t, v in held.items() if t in terms)), n_params_max,
+               float(self.var.sum()))
+        if key not in self._heldout_memo:
+            self._heldout_memo[key] = self._heldout_mg(terms, held, n_params_max)
+        return self._heldout_memo[key]
+
+    def _heldout_mg(self, terms: tuple[str, ...], held: dict[str, list[int]], n_params_max: int) -> float | None:
         k = self.n_folds(n_params_max)
         if k < 2:
             return None
@@ -193,9 +214,91 @@ def untestable_reason(term: str, sel: TermSelector, spread_deg: float) -> str | 
     return None
 
 
+def _axis_reasons(sel: TermSelector, chosen: tuple[str, ...], term: str, unobservable: list[int],
+                  confounded: list[int]) -> dict[str, str]:
+    """Why each undetermined axis of ``term`` is not estimated (what it is held at: no effect)."""
+    view = calibration_view(term)
+    what = COVARIATES[view.covariate].label if view.covariate in COVARIATES else "these windows"
+    out = {}
+    keys = view.keys
+    for i in unobservable:
+        out[keys[i]] = (f"not observable: its effect std exceeds {TOL_G * 1e3:.0f} mg over the covered {what} range "
+                        f"(for one posture: the norm does not depend on an axis across gravity to first order)")
+    for i in confounded:
+        if keys[i] not in out:
+            out[keys[i]] = ("indistinguishable from " + (", ".join(chosen) if chosen else "the base parameters")
+                            + " with these windows (orientations / covariates)")
+    return out
+
+
+def _raw_unit(term: str) -> str:
+    view = calibration_view(term)
+    if view.acts_on == "cross":
+        return "raw/g"
+    per = {"temp": "°C", "vsupply": "V", "time": "h", "accel": "g²"}.get(view.covariate or "", "")
+    return f"raw{'/g' if view.acts_on == 'sensitivity' else ''}/{per}" if per else "raw"
+
+
+def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, list[int]], term: str,
+                  unobservable: list[int], p_max: int) -> TermTest:
+    """``term`` added to the model ``chosen`` (held axes ``held``): ΔBIC, held-out error with and without,
+    magnitudes on the determined axes (undetermined ones null, with the reason)."""
+    conf = sel.confounded(chosen, held, term)
+    h = sorted(set(unobservable) | set(conf))
+    reasons = _axis_reasons(sel, chosen, term, unobservable, conf)
+    if len(h) == 3:
+        return TermTest(term, "untestable", "indistinguishable from " + (", ".join(chosen) if chosen else
+                        "the base parameters") + " with these windows (orientations / covariates)",
+                        undetermined_axes=list("xyz"), magnitude={"undetermined": reasons})
+    hh = {**held, term: h}
+    par_m, f_m = sel.fit(chosen, held)
+    par_t, f_t = sel.fit(chosen + (term,), hh)
+    d_bic = (f_m.chi2 - f_t.chi2) - (3 - len(h)) * math.log(sel.m)
+    ho_m = sel.heldout_mg(chosen, held, p_max)
+    ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
+    mag = par_t.magnitudes(f_t.p, f_t.std)[term]
+    keys = calibration_view(term).keys
+    k = par_t.base.n_params + 3 * list(par_t.terms).index(term)
+    mag["raw_value"] = {key: (None if i in h else float(f_t.p[k + i])) for i, key in enumerate(keys)}
+    mag["raw_std"] = {key: (None if i in h else float(f_t.std[k + i])) for i, key in enumerate(keys)}
+    mag["raw_unit"] = _raw_unit(term)
+    for i in h:
+        mag["value"][keys[i]] = None
+        mag.get("std", {})[keys[i]] = None
+    if reasons:
+        mag["undetermined"] = reasons
+    tt = TermTest(term, "not_found", "", round(d_bic, 2), _r(ho_m), _r(ho_t), mag, ["xyz"[i] for i in h])
+    given = f" given {', '.join(chosen)}" if chosen else ""
+    if ho_m is None or ho_t is None:
+        tt.status = "untestable"
+        tt.why = (f"{sel.m} windows are too few for held-out folds of the {p_max}-parameter model "
+                  f"(need >= {2 * p_max}); ΔBIC alone {d_bic:.1f} is not enough by the rule")
+    elif d_bic <= DELTA_BIC:
+        tt.why = f"ΔBIC {d_bic:.1f} <= {DELTA_BIC:g}{given}"
+    elif not ho_t < ho_m:
+        tt.why = f"does not lower the held-out error{given} ({ho_m:.3f} -> {ho_t:.3f} mg)"
+    return tt
+
+
+def passes(tt: TermTest) -> bool:
+    """The rule (module docstring): testable, ΔBIC > 10 and a lower held-out error."""
+    return (tt.status != "untestable" and tt.delta_bic is not None and tt.delta_bic > DELTA_BIC
+            and tt.heldout_before_mg is not None and tt.heldout_after_mg is not None
+            and tt.heldout_after_mg < tt.heldout_before_mg)
+
+
+def _without(chosen: tuple[str, ...], held: dict[str, list[int]], term: str):
+    return tuple(c for c in chosen if c != term), {k: v for k, v in held.items() if k != term}
+
+
 def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: float
                  ) -> tuple[tuple[str, ...], dict[str, list[int]], list[TermTest]]:
-    """Forward-stepwise selection (module docstring). Returns (terms found, held axes, one TermTest per candidate)."""
+    """Joint stepwise selection (module docstring). Returns (terms found, held axes, one TermTest per candidate).
+
+    Forward: every remaining candidate is re-tested against the current model and the strongest passing one
+    enters; backward: every chosen term is re-tested given all the others and leaves if it no longer passes.
+    The final TermTests are those against the selected model: a found term given the other found terms,
+    a term not found added to all of them."""
     tests: dict[str, TermTest] = {}
     testable = []
     for term in candidates:
@@ -233,49 +336,37 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
 
     chosen: tuple[str, ...] = ()
     held: dict[str, list[int]] = {}
-    remaining = list(live)
-    while remaining:
-        par_m, f_m = sel.fit(chosen, held)
-        ho_m = sel.heldout_mg(chosen, held, p_max)
-        best = None
-        for term in remaining:
-            conf = sel.confounded(chosen, held, term)
-            h = sorted(set(held_all[term]) | set(conf))
-            if len(h) == 3:
-                tests[term] = TermTest(term, "untestable", "indistinguishable from " + (", ".join(chosen) if chosen
-                                       else "the base parameters") + " with these windows (orientations / covariates)",
-                                       undetermined_axes=list("xyz"))
-                continue
-            hh = {**held, term: h}
-            par_t, f_t = sel.fit(chosen + (term,), hh)
-            k_free = 3 - len(h)
-            d_bic = (f_m.chi2 - f_t.chi2) - k_free * math.log(sel.m)
-            ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
-            better = ho_m is not None and ho_t is not None and ho_t < ho_m
-            mag = par_t.magnitudes(f_t.p, f_t.std)[term] if isinstance(par_t, ExtendedParameterization) else {}
-            for i in h:
-                key = list(mag.get("value", {}))[i] if mag else None
-                if key is not None:
-                    mag["value"][key] = 0.0
-            tt = TermTest(term, "not_found", "", round(d_bic, 2), _r(ho_m), _r(ho_t), mag, ["xyz"[i] for i in h])
-            if ho_m is None or ho_t is None:
-                tt.status = "untestable"
-                tt.why = (f"{sel.m} windows are too few for held-out folds of the {p_max}-parameter model "
-                          f"(need >= {2 * p_max}); ΔBIC alone {d_bic:.1f} is not enough by the rule")
-            elif d_bic <= DELTA_BIC:
-                tt.why = f"ΔBIC {d_bic:.1f} <= {DELTA_BIC:g}"
-            elif not better:
-                tt.why = "does not lower the held-out error"
-            tests[term] = tt
-            if d_bic > DELTA_BIC and better and (best is None or d_bic > tests[best].delta_bic):
-                best = term
-        remaining = [t for t in remaining if tests[t].status != "untestable"]
-        if best is None:
+    seen = {chosen}
+    dropped: set[str] = set()
+    for _ in range(2 * len(live) + 2):
+        trials = {t: evaluate_term(sel, chosen, held, t, held_all[t], p_max) for t in live if t not in chosen}
+        ok = [t for t, tt in trials.items() if passes(tt)]
+        changed = False
+        if ok:
+            best = max(ok, key=lambda t: trials[t].delta_bic)
+            chosen, held = chosen + (best,), {**held, best: ["xyz".index(a) for a in trials[best].undetermined_axes]}
+            changed = True
+        for term in list(chosen):  # backward: each chosen term must still earn its place given the others
+            others, held_o = _without(chosen, held, term)
+            if not passes(evaluate_term(sel, others, held_o, term, held_all[term], p_max)):
+                chosen, held = others, held_o
+                dropped.add(term)
+                changed = True
+        if not changed or chosen in seen:
             break
-        tests[best].status, tests[best].why = "found", ""
-        chosen = chosen + (best,)
-        held[best] = ["xyz".index(a) for a in tests[best].undetermined_axes]
-        remaining.remove(best)
+        seen.add(chosen)
+    for term in live:
+        if term in chosen:
+            others, held_o = _without(chosen, held, term)
+            tt = evaluate_term(sel, others, held_o, term, held_all[term], p_max)
+            tt.status, tt.why = "found", ""
+        else:
+            tt = evaluate_term(sel, chosen, held, term, held_all[term], p_max)
+            if tt.status != "untestable" and term in dropped:
+                tt.why = "left in the backward pass: " + (tt.why or "no longer earns its place given the others")
+            elif tt.status != "untestable" and passes(tt):
+                tt.why = "not selected: the selection stopped before it (it passes only given this final model)"
+        tests[term] = tt
     ordered = [tests[t] for t in candidates if t in tests]
     return chosen, held, ordered
 

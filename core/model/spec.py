@@ -178,7 +178,7 @@ def planted_values(rng: np.random.Generator, scale: float, n: int = 4) -> np.nda
 
 def channels_from_axes(values: dict[str, float], factor: float) -> list[float]:
     """Per-axis report values -> the four channels (ax, ay, az, ax2 = x, y, z, x), times ``factor``."""
-    return [factor * float(values.get(a, 0.0)) for a in ("x", "y", "z", "x")]
+    return [factor * float(values.get(a) or 0.0) for a in ("x", "y", "z", "x")]  # undetermined (None): no effect
 
 
 def column(v: Any) -> np.ndarray:

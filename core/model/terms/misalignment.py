@@ -78,7 +78,9 @@ SPEC = TermSpec(
     name="misalignment", forward=Misalignment, prior=_prior, group="misalignment",
     plant=_plant, plant_scale=np.deg2rad(1.0),  # rad per in-die axis error (datasheet +-1°)
     diagnosed_by="windows",
-    # m_ij [raw/g] / sqrt(s_i s_j) is the angle [rad] the two axes lean toward each other (small angles)
-    view=CalibrationView(prefix="m", acts_on="cross", covariate=None, unit="deg", rank=0,
-                         report_factor=lambda s: np.degrees(1.0) / np.sqrt([s[i] * s[j] for i, j in CROSS_PAIRS])),
+    # Reported: the deviation of the angle between axes i and j from 90° [deg], positive when they are closer
+    # than 90°. Axis i leaning by a_ij toward j gives K_ij = s_i a_ij; the norm sees only the symmetric part
+    # m_ij = (K_ij + K_ji) / 2, and 90° - angle(i, j) = a_ij + a_ji = 2 m_ij / sqrt(s_i s_j) (small angles).
+    view=CalibrationView(prefix="m", acts_on="cross", covariate=None, unit="deg_from_orthogonal", rank=0,
+                         report_factor=lambda s: 2.0 * np.degrees(1.0) / np.sqrt([s[i] * s[j] for i, j in CROSS_PAIRS])),
 )

@@ -1,0 +1,114 @@
+"""What a finding's magnitude owes to what the fit held, and what one posture cannot separate.
+
+A term is tested given the baseline (diagnose.given_held): with the sensitivities unobservable the
+baseline holds them at the start's values, and parameters the windows do not determine (the offsets
+across gravity in one posture) stay at the baseline's all-window values. The magnitude's statistical
+std ignores both. Here each held quantity is moved by its own std (the start's stated held covariance;
+the all-window fit's std of a held base parameter) and the whole chain refitted: baseline on all
+windows, then the selected terms. Half the difference of the +/- refits is that quantity's
+contribution to the magnitude (report units, which also carry the unobservable counts-per-g scale);
+the stated std is the root sum of squares with the statistical one (a consider / uncertain-parameter
+analysis, done by finite differences so it includes the scale conversion).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from gravcal.core.calibration import Calibration
+from gravcal.core.estimators.lotters import LottersBatch
+from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
+from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
+from gravcal.core.windows import WindowSet
+
+from .terms import TermSelector
+
+
+def _magnitudes(sel: TermSelector, base_cal: Calibration, chosen: tuple[str, ...], held: dict[str, list[int]]
+                ) -> dict[str, np.ndarray]:
+    """Per chosen term: (report values (3,), raw values (3,)) refitted with ``base_cal`` as the held baseline."""
+    k_sel = TermSelector(sel.ws, sel.base, base_cal, has_temp=sel.has_temp, folds=sel.folds, t_ref_c=sel.t_ref_c,
+                         t0_s=sel.t0_s, held_base=sel.held_base)
+    k_sel.var = sel.var
+    par, f = k_sel.fit(chosen, held)
+    mags = par.magnitudes(f.p)
+    out, k = {}, par.base.n_params
+    for term in par.terms:
+        out[term] = np.concatenate([[mags[term]["value"][key] for key in calibration_view(term).keys], f.p[k:k + 3]])
+        k += 3
+    return out
+
+
+def _perturbed_base(base: str, cal: Calibration, j: int, step: float) -> Calibration:
+    par = PARAMETERIZATIONS[base](cal.sensitivity, cal.offset)
+    p = par.pack(cal.sensitivity, cal.offset)
+    p[j] += step
+    K, o = par.unpack(p)
+    return dataclasses.replace(cal, offset=o, sensitivity=K)
+
+
+def held_contributions(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, list[int]], *, base: str,
+                       base_cal: Calibration, ws_base: WindowSet, start: Calibration,
+                       held_meta: dict[str, Any] | None) -> tuple[dict[str, np.ndarray], list[str]]:
+    """Per chosen term the (6,) std contribution (report units x3, raw units x3) of everything held, and the
+    list of what was propagated. ``ws_base``: the windows the baseline is fitted on; ``held_meta``: the start's
+    stated held covariance (consider.HELD_KEY), None when it states none."""
+    if not chosen:
+        return {}, []
+    var: dict[str, np.ndarray] = {t: np.zeros(6) for t in chosen}
+    sources: list[str] = []
+
+    def add(label: str, plus: dict[str, np.ndarray], minus: dict[str, np.ndarray]) -> None:
+        sources.append(label)
+        for t in chosen:
+            var[t] += ((plus[t] - minus[t]) / 2.0) ** 2
+
+    if held_meta and base == "offsets":  # the sensitivities the baseline holds, as uncertain as the start says
+        names, cov = held_meta.get("names", []), np.asarray(held_meta.get("cov", []), dtype=float)
+        for n, name in enumerate(names):
+            if name not in ("s_x", "s_y", "s_z"):
+                continue
+            i, sd = "xyz".index(name[2]), float(np.sqrt(cov[n, n]))
+            fits = []
+            for sign in (1.0, -1.0):
+                K = start.sensitivity.copy()
+                K[i, i] += sign * sd
+                bc = LottersBatch(base).fit(ws_base, dataclasses.replace(start, sensitivity=K))
+                fits.append(_magnitudes(sel, bc, chosen, held))
+            add(f"{name} ± {sd:.4g} raw/g ({held_meta.get('source', 'stated held uncertainty')})", *fits)
+    names = PARAMETERIZATIONS[base](base_cal.sensitivity, base_cal.offset).names
+    for j in sel.held_base:  # base parameters these windows do not determine, held at the all-window fit
+        sd = float(np.sqrt(max(base_cal.covariance[j, j], 0.0))) if base_cal.covariance.shape[0] > j else 0.0
+        if sd > 0:
+            add(f"{names[j]} ± {sd:.4g} (held at the all-window baseline)",
+                _magnitudes(sel, _perturbed_base(base, base_cal, j, sd), chosen, held),
+                _magnitudes(sel, _perturbed_base(base, base_cal, j, -sd), chosen, held))
+    return {t: np.sqrt(v) for t, v in var.items()}, sources
+
+
+def one_posture_partner(term: str) -> str | None:
+    """The term one posture cannot tell ``term`` from: an offset term and the sensitivity term on the same
+    covariate change the reading along gravity alike (o(c) vs s(c) x 1 g)."""
+    view = calibration_view(term)
+    if view.acts_on != "offset" or view.covariate not in COVARIATES or view.covariate == "accel":
+        return None
+    return next((t for t in CALIBRATION_TERMS if calibration_view(t).acts_on == "sensitivity"
+                 and calibration_view(t).covariate == view.covariate), None)
+
+
+def channel_slopes(ws: WindowSet, covariate: str) -> dict[str, Any] | None:
+    """Each raw channel's mean regressed on a covariate over the windows: slope and std [raw per unit].
+    Needs no offsets, sensitivities or direction: what an independent least-squares fit sees."""
+    x = ws.covariate(covariate) if covariate != "time" else ws.t / 3600.0
+    if x is None or np.ptp(x) == 0 or len(ws) < 3:
+        return None
+    A = np.column_stack([np.ones_like(x), x - x.mean()])
+    coef, res, *_ = np.linalg.lstsq(A, ws.mean, rcond=None)
+    dof = max(len(ws) - 2, 1)
+    resid = ws.mean - A @ coef
+    s2 = (resid ** 2).sum(axis=0) / dof
+    sd = np.sqrt(s2 / np.sum((x - x.mean()) ** 2))
+    unit = COVARIATES[covariate].unit
+    return {"unit": f"raw/{unit}", "value": dict(zip("xyz", coef[1].tolist())), "std": dict(zip("xyz", sd.tolist()))}
