@@ -36,7 +36,7 @@ from gravcal.core.reproduce_config import KEYS, PAPER_THRESHOLDS_DEG, ReproduceC
 from gravcal.core.windows import WindowSet
 
 __all__ = ["KEYS", "PAPER_THRESHOLDS_DEG", "ReproduceConfig", "ReproduceResult", "cap_directions",
-           "first_theta_staying_below", "make_figure", "reproduce_loetters", "simulate_run"]
+           "first_theta_staying_below", "make_figure", "reproduce_cases", "reproduce_loetters", "simulate_run"]
 
 STANDING = {1: np.array([0.0, 0.0, 1.0]), 2: np.ones(3) / np.sqrt(3.0)}
 TRUE_SENSITIVITY = np.array([1.02, 0.97, 1.01])  # arbitrary units per g (errors are relative)
@@ -177,10 +177,19 @@ def reproduce_loetters(cfg: ReproduceConfig | None = None, **overrides: Any) -> 
             raise ValueError(f"unknown reproduce option {k!r}")
         setattr(cfg, k, v)
     cfg.validate()
+    return reproduce_cases(KEYS, cfg)
+
+
+def reproduce_cases(keys: tuple[str, ...], cfg: ReproduceConfig) -> ReproduceResult:
+    """The Monte-Carlo for some of KEYS only (the same runs, seed for seed, as in the full table)."""
+    cfg.validate()
+    unknown = [k for k in keys if k not in KEYS]
+    if unknown:
+        raise ValueError(f"unknown case(s) {', '.join(unknown)}; known: {', '.join(KEYS)}")
     theta = np.asarray(cfg.theta_deg, dtype=float)
     runs_s: dict[str, np.ndarray] = {}
     runs_o: dict[str, np.ndarray] = {}
-    for key in KEYS:
+    for key in keys:
         orientation = int(key[1])
         model = "6" if key.endswith("_all") else "offsets"
         runs = [[simulate_run(th, orientation, model, seed, cfg) for seed in range(cfg.seeds)] for th in theta]
