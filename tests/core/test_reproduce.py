@@ -58,3 +58,10 @@ def test_thresholds_order_as_in_the_paper():
     assert d["config"]["sigma_mu_g"] == pytest.approx(0.05)
     fig = make_figure(res)
     assert len(fig.axes) == 4
+
+
+@pytest.mark.parametrize("setting, value", [("criterion", "median"), ("spread", "ring"), ("held_sensitivity_error", -0.1),
+                                            ("theta_deg", np.array([30.0, 15.0]))])
+def test_bad_settings_are_named(setting, value):
+    with pytest.raises(ValueError, match=setting):
+        reproduce_loetters(**{setting: value})
