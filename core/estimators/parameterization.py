@@ -72,8 +72,10 @@ class Parameterization(ABC):
         Kinv = np.linalg.inv(K)
         a = (np.asarray(raw, dtype=float) - o) @ Kinv.T  # (M, 3)
         # dK/dp_m a + do/dp_m  for every window and parameter: (M, 3, P)
-        inner = np.einsum("pij,mj->mip", self.dK, a) + self.do.T[None, :, :]
-        J = -np.einsum("ij,mjp->mip", Kinv, inner)
+        # (M, 3) @ (3, 3P) and a broadcast (3, 3) @ (M, 3, P): BLAS, ~3x faster than the einsums
+        P = self.dK.shape[0]
+        inner = (a @ self.dK.transpose(2, 1, 0).reshape(3, 3 * P)).reshape(-1, 3, P) + self.do.T[None, :, :]
+        J = np.matmul(-Kinv, inner)
         return a, J
 
     def norm_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
