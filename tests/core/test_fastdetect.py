@@ -204,3 +204,24 @@ def test_block_calibration_does_not_import_scipy_signal(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out[0] == "False", "the block detector imported scipy.signal"
     assert int(out[1]) > 0 and out[2] == "True"
+
+
+def test_calibration_runs_blas_single_threaded(monkeypatch):
+    """Every BLAS product of a calibration is small: OpenBLAS threads only spin (the week's fit 2.6x slower)."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    import gravcal.core.pipeline as pipeline
+
+    seen = []
+    fit = pipeline._fit_order
+
+    def spy(*args, **kwargs):
+        seen.extend(p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas")
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "_fit_order", spy)
+    sim = simulate("six_position", seed=3, duration=600.0)
+    before = [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+    report = calibrate_recording(sim.samples["t"], raw_triad(sim.samples), detection="blocks")
+    assert report.calibration.converged
+    assert seen and all(n == 1 for n in seen), seen
+    assert [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"] == before
