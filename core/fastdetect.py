@@ -41,11 +41,10 @@ from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import numpy as np
-from scipy import signal
 
 from .calibration import Calibration
 from .detectors import estimate_fs
-from .detectors.windowing import _filter_rows
+from .detectors.windowing import _filter_rows, _sosfilt_inplace
 from .windows import WindowSet
 
 BLOCK_S = 0.1  # block length [s]: 10 Hz detection, boundaries to 0.1 s
@@ -226,9 +225,38 @@ def _axis_var_g(bs: BlockStats, kinv: np.ndarray, lo: int = 0, hi: int | None = 
     return out
 
 
+def butter_sos(order: int, corner_hz: float, kind: str, fs: float) -> np.ndarray:
+    """signal.butter(order, corner_hz, kind, fs=fs, output="sos") as a C-contiguous (sections, 6)
+    array. Order 2 (the detector's) in closed form, the bilinear transform with the corner
+    prewarped, so that running the detector does not import scipy.signal (~0.3 s)."""
+    if order != 2:
+        from scipy import signal
+
+        return np.ascontiguousarray(signal.butter(order, corner_hz, kind, fs=fs, output="sos"))
+    k = math.tan(math.pi * corner_hz / fs)
+    norm = 1.0 / (1.0 + math.sqrt(2.0) * k + k * k)
+    a = [1.0, 2.0 * (k * k - 1.0) * norm, (1.0 - math.sqrt(2.0) * k + k * k) * norm]
+    b = [k * k * norm, 2.0 * k * k * norm, k * k * norm] if kind == "lowpass" else [norm, -2.0 * norm, norm]
+    return np.array([b + a])
+
+
+def sos_rest_state(sos: np.ndarray) -> np.ndarray:
+    """signal.sosfilt_zi: the (sections, 2) transposed-direct-form-II state at rest for a unit input."""
+    zi = np.empty((sos.shape[0], 2))
+    gain = 1.0
+    for s, (b0, b1, b2, _, a1, a2) in enumerate(sos):
+        h = (b0 + b1 + b2) / (1.0 + a1 + a2)  # the section's DC gain
+        zi[s, 1] = gain * (b2 - a2 * h)
+        zi[s, 0] = gain * (b1 - a1 * h) + zi[s, 1]
+        gain *= h
+    return zi
+
+
 def _settle_blocks(sos: np.ndarray, final: float, corner_hz: float, fs_b: float, tol: float = 0.01) -> int:
     n = int(round(20.0 / corner_hz * fs_b))
-    y = signal.sosfilt(sos, np.ones(n))
+    y = np.ones((1, n))
+    _sosfilt_inplace(sos, y, np.zeros((1, sos.shape[0], 2)))
+    y = y[0]
     bad = np.flatnonzero(np.abs(y - final) > tol)
     return int(bad[-1] + 1) if bad.shape[0] else 0
 
@@ -251,8 +279,8 @@ def lotters_still(bs: BlockStats, to_g: Calibration | None = None, *, hp_hz: flo
         return still
     b0 = int(np.argmax(bs.usable))  # the first usable block
     chans = 4 if per_axis else 1
-    sos_hp = np.ascontiguousarray(signal.butter(order, hp_hz, "highpass", fs=fs_b, output="sos"))
-    sos_lp = np.ascontiguousarray(signal.butter(order, lp_hz, "lowpass", fs=fs_b, output="sos"))
+    sos_hp = butter_sos(order, hp_hz, "highpass", fs_b)
+    sos_lp = butter_sos(order, lp_hz, "lowpass", fs_b)
     settle = (int(round(settle_s * fs_b)) if settle_s is not None
               else _settle_blocks(sos_hp, 0.0, hp_hz, fs_b) + _settle_blocks(sos_lp, 1.0, lp_hz, fs_b))
     zi_hp = zi_lp = None
@@ -281,7 +309,7 @@ def lotters_still(bs: BlockStats, to_g: Calibration | None = None, *, hp_hz: flo
             np.sqrt(u[0], out=u[0])  # eq. 1
             v = u[:chans]
             if zi_hp is None:  # high-pass at rest for the first block (core.detectors: the first finite sample)
-                zi_hp = signal.sosfilt_zi(sos_hp)[None] * v[:, 0, None, None]  # (chans, sections, 2)
+                zi_hp = sos_rest_state(sos_hp)[None] * v[:, 0, None, None]  # (chans, sections, 2)
                 zi_lp = np.zeros((chans, sos_lp.shape[0], 2))
             if pool is not None:  # two channels each in two threads (the SciPy kernel releases the GIL)
                 job = pool.submit(_filter_rows, sos_hp, sos_lp, v[2:], zi_hp[2:], zi_lp[2:])

@@ -43,7 +43,9 @@ def _version() -> str:
         return "unknown"
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; with ``argv`` naming a subcommand, only that subcommand's module is imported
+    (importing all of them costs the numerics' imports of every command; --help imports all)."""
     parser = argparse.ArgumentParser(
         prog="gravcal",
         description="In-use calibration of body-worn accelerometers from quasi-static moments (Lötters et al. 1998).",
@@ -53,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)")
     parser.add_argument("--debug", action="store_true", help="show the traceback of any error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in _command_names():
+    for name in _command_names(argv):
         try:
             module = importlib.import_module(f"gravcal.daemon.cmd_{name}")
         except ImportError as exc:
@@ -67,10 +69,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _command_names() -> list[str]:
+def _command_names(argv: Sequence[str] | None = None) -> list[str]:
     here = Path(__file__).resolve().parent
     found = sorted(m.name[4:] for m in pkgutil.iter_modules([str(here)]) if m.name.startswith("cmd_"))
-    return [c for c in COMMANDS if c in found] + [c for c in found if c not in COMMANDS]
+    names = [c for c in COMMANDS if c in found] + [c for c in found if c not in COMMANDS]
+    words = [a for a in (argv or ()) if not a.startswith("-")]
+    if words and words[0] in names and not {"-h", "--help"} & set(argv or ()):
+        return [words[0]]
+    return names
 
 
 def _setup_logging(verbosity: int) -> None:
@@ -95,7 +101,8 @@ def _error(msg: str) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point (``gravcal``). Returns the exit status instead of raising SystemExit
     for the program's own outcomes; argparse usage errors still exit with status 2."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
     for name, why in _UNAVAILABLE.items():

@@ -4,7 +4,6 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from scipy import signal
 
 from ..windows import Window
 from .windowing import (
@@ -86,6 +85,8 @@ class QuasiStaticDetector(_Windower):
         if not threshold_g > 0:
             raise ValueError(f"threshold_g must be > 0, got {threshold_g}")
         self.hp_hz, self.lp_hz, self.threshold_g = hp_hz, lp_hz, float(threshold_g)
+        from scipy import signal  # heavy (~0.3 s): imported by the detectors that filter, when built
+
         self.sos_hp = signal.butter(order, hp_hz, "highpass", fs=fs, output="sos")
         self.sos_lp = signal.butter(order, lp_hz, "lowpass", fs=fs, output="sos")
         self.settle_n = (int(round(settle_s * fs)) if settle_s is not None

