@@ -90,6 +90,12 @@ class SocketConfig:
     max_clients: int = field(default=64, metadata=_meta("clients served at once", positive=True))
     queue_messages: int = field(default=4096, metadata=_meta("per-client queue [messages]; a slow client loses the oldest", positive=True))
     stall_timeout_s: float = field(default=10.0, metadata=_meta("disconnect a client that reads nothing for this long with output pending [s]", positive=True))
+    queue_bytes: int = field(default=8 << 20, metadata=_meta("per-client queue [bytes]; a slow client loses the oldest (max_clients x queue_bytes bounds the queued memory)", positive=True))
+    idle_timeout_s: float = field(default=60.0, metadata=_meta("disconnect a client that is not watching and sends no request for this long [s]", positive=True))
+    request_rate_hz: float = field(default=50.0, metadata=_meta("requests per client and second; more are refused with an ERROR and the client's reading paused", positive=True))
+    request_burst: int = field(default=100, metadata=_meta("requests a client may send at once before request_rate_hz applies", positive=True))
+    flood_timeout_s: float = field(default=10.0, metadata=_meta("disconnect a client that stays over its request rate for this long [s]", positive=True))
+    status_cache_s: float = field(default=0.2, metadata=_meta("?STATUS answers are built at most this often [s]", min=0.0))
     max_request_bytes: int = field(default=1024, metadata=_meta("longest request line [bytes]", positive=True))
 
 

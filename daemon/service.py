@@ -124,8 +124,7 @@ class Gravcald:
 
     def _open_server(self) -> SocketServer:
         s = self.cfg.socket
-        scfg = ServerConfig(max_clients=s.max_clients, queue_messages=s.queue_messages,
-                            stall_timeout_s=s.stall_timeout_s, max_request_bytes=s.max_request_bytes)
+        scfg = ServerConfig.from_section(s)
         sock = activated_socket(s.activation_name, environ=self.environ)
         if sock is not None:
             log.info("using the socket passed by systemd (%s)", s.activation_name)
@@ -346,10 +345,7 @@ class Gravcald:
         logging.getLogger("gravcal").setLevel(new.daemon.log_level.upper())
         self.saver.min_interval_s = new.state.save_interval_s
         s = new.socket
-        self.server.config.max_clients = s.max_clients
-        self.server.config.queue_messages = s.queue_messages
-        self.server.config.stall_timeout_s = s.stall_timeout_s
-        self.server.config.max_request_bytes = s.max_request_bytes
+        self.server.reconfigure(s)
         self.processor.reconfigure(new)  # the processing thread reads it at the next block
         self.cfg = new
         self.reloads += 1
