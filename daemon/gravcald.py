@@ -19,6 +19,7 @@ from typing import Any, Sequence
 from ..core.estimators.observability import ORDER_LADDER
 from ..drivers.rigs.options import disconnect_arg, speed_arg
 from . import config as config_mod
+from .closed_pipe import write_or_stop
 from .config import ConfigError
 from .emulation import EmulatedBus, announce_emulation, emulation_defaults
 from .socket_activation import SocketPathError
@@ -124,7 +125,7 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
         print(f"gravcald: error: {exc}", file=sys.stderr)
         return 2
     if args.print_config:
-        print(config_mod.example_toml(cfg))
+        write_or_stop(config_mod.example_toml(cfg))
         return 0
     _setup_logging(cfg.daemon.log_level, env)
     emulator = None

@@ -244,6 +244,22 @@ class StateStore:
         if not os.access(self.directory, os.W_OK | os.X_OK):
             raise InputError(f"state directory {self.directory}: not writable by this user")
 
+    def check_directory(self) -> None:
+        """Fail now if the directory could not be written, without creating it: a start that fails
+        later (no device, socket in use) leaves nothing behind; the first save creates it."""
+        path = os.path.abspath(self.directory)
+        if os.path.isdir(path):
+            if not os.access(path, os.W_OK | os.X_OK):
+                raise InputError(f"state directory {self.directory}: not writable by this user")
+            return
+        parent = path
+        while not os.path.exists(parent):
+            parent = os.path.dirname(parent)
+        if not os.path.isdir(parent):
+            raise InputError(f"state directory {self.directory}: cannot create it: {parent} is not a directory")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise InputError(f"state directory {self.directory}: cannot create it: {parent} is not writable by this user")
+
     def _remove_leftover_temps(self) -> None:
         prefix = "." + os.path.basename(self.path) + "."
         try:
@@ -292,6 +308,7 @@ class StateStore:
         return target
 
     def save(self, state: CalibrationState) -> None:
+        self.ensure_directory()
         write_state(self.path, state)
 
 

@@ -96,7 +96,7 @@ class Gravcald:
 
     # -- start ---------------------------------------------------------------------------
     def _initial_state(self) -> tuple[CalibrationState, bool]:
-        self.store.ensure_directory()
+        self.store.check_directory()
         loaded = self.store.load()
         self.notes += loaded.notes
         for note in loaded.notes:
