@@ -235,8 +235,10 @@ class StateStore:
     def __init__(self, directory: str | os.PathLike, filename: str = STATE_FILENAME):
         self.directory = os.fspath(directory)
         self.path = os.path.join(self.directory, filename)
+        self._create_on_save = False
 
     def ensure_directory(self) -> None:
+        self._create_on_save = False
         try:
             os.makedirs(self.directory, mode=0o750, exist_ok=True)
         except OSError as exc:
@@ -248,6 +250,7 @@ class StateStore:
         """Fail now if the directory could not be written, without creating it: a start that fails
         later (no device, socket in use) leaves nothing behind; the first save creates it."""
         path = os.path.abspath(self.directory)
+        self._create_on_save = not os.path.isdir(path)
         if os.path.isdir(path):
             if not os.access(path, os.W_OK | os.X_OK):
                 raise InputError(f"state directory {self.directory}: not writable by this user")
@@ -308,7 +311,9 @@ class StateStore:
         return target
 
     def save(self, state: CalibrationState) -> None:
-        self.ensure_directory()
+        if self._create_on_save:  # checked at start, created now; one that vanishes later is an error
+            self.ensure_directory()
+            self._create_on_save = False
         write_state(self.path, state)
 
 

@@ -64,6 +64,7 @@ class SocketServer:
         sock: socket.socket | None = None,
         config: ServerConfig | None = None,
         socket_mode: int | None = 0o660,
+        socket_group: str = "",
         status_provider: Callable[[], dict[str, Any]] | None = None,
     ):
         if (path is None) == (sock is None):
@@ -72,7 +73,7 @@ class SocketServer:
         self.status_provider = status_provider
         self._owned_path: str | None = None
         if sock is None:
-            sock = bind_unix_socket(path, mode=socket_mode)
+            sock = bind_unix_socket(path, mode=socket_mode, group=socket_group)
             self._owned_path = os.fspath(path)
             self._owned_ino = os.stat(self._owned_path).st_ino
         sock.setblocking(False)
@@ -136,6 +137,8 @@ class SocketServer:
                     os.unlink(self._owned_path)
             except FileNotFoundError:
                 pass
+            except OSError as exc:  # e.g. privileges dropped since binding it in a root-owned directory
+                log.warning("cannot remove socket %s: %s", self._owned_path, exc.strerror or exc)
 
     def reconfigure(self, section: Any) -> None:
         """New bounds from a reloaded [socket] section; queues of connected clients keep theirs."""

@@ -31,6 +31,7 @@ from ..core.ringbuffer import RingBuffer
 from ..core.samples import SAMPLE_DTYPE
 from . import config as config_mod
 from .config import Config, ConfigError
+from . import privileges
 from .emulation import EmulatedBus
 from .persistence import CalibrationState, RateLimitedSaver, StateStore, load_lab_calibration
 from .processing import Processor, nominal_calibration
@@ -48,8 +49,9 @@ ANALYSIS_BLOCK_S = 0.05  # samples collected before the detector and estimator r
 RESTART_KEYS = {
     "device": ("spec", "fs_hz", "ring_capacity"),
     "estimator": ("model", "extended_terms"),
-    "socket": ("path", "mode", "activation_name"),
+    "socket": ("path", "mode", "group", "activation_name"),
     "state": ("directory", "lab_calibration"),
+    "daemon": ("user", "group", "allow_root"),
 }
 
 
@@ -59,8 +61,9 @@ class Gravcald:
     def __init__(self, cfg: Config, *, driver: Any = None, notifier: Notifier | None = None,
                  environ: dict[str, str] | None = None, detector: Any = None, config_path: str | None = None,
                  overrides: dict[str, Any] | None = None, emulator: EmulatedBus | None = None,
-                 window_sink: Any = None):
+                 window_sink: Any = None, identity: Any = None):
         self.cfg = cfg
+        self.identity = identity  # privileges.Identity to become once the device and socket are open
         self.window_sink = window_sink  # each window fed to the calibrator (daemon/window_log.py)
         self.emulator = emulator
         self.config_path = config_path
@@ -129,7 +132,7 @@ class Gravcald:
         if sock is not None:
             log.info("using the socket passed by systemd (%s)", s.activation_name)
             return SocketServer(sock=sock, config=scfg, status_provider=self.status)
-        return SocketServer(s.path, config=scfg, socket_mode=s.mode, status_provider=self.status)
+        return SocketServer(s.path, config=scfg, socket_mode=s.mode, socket_group=s.group, status_provider=self.status)
 
     def _open_driver(self) -> Any:
         if self._driver is not None:
@@ -151,6 +154,9 @@ class Gravcald:
         self.server.start()
         self.server.set_calibration(self._calib_message())
         self.driver = self._open_driver()
+        if self.identity is not None:  # root until here: the device and socket are open
+            self.store.ensure_directory()
+            privileges.drop(self.identity, hand_over=[self.store.directory])
         for name, target in (("gravcal-acquisition", self._acquire), ("gravcal-processing", self._process)):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()

@@ -29,7 +29,7 @@ def test_print_config_into_head_keeps_the_first_lines():
 def test_a_failed_start_creates_no_state_directory_and_no_socket(tmp_path):
     state = tmp_path / "var" / "lib" / "gravcal"
     sock = tmp_path / "g.sock"
-    p = subprocess.run([sys.executable, "-m", "gravcal.daemon.gravcald", "--device",
+    p = subprocess.run([sys.executable, "-m", "gravcal.daemon.gravcald", "--allow-root", "--device",
                         f"serial://{tmp_path}/no-such-tty?baudrate=460800", "--state-dir", str(state),
                         "--socket", str(sock)], capture_output=True, text=True, timeout=60)
     assert p.returncode != 0 and "no-such-tty" in p.stderr, p.stderr
