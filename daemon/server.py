@@ -8,17 +8,14 @@ Design (why it looks like this):
 - The acquisition side calls :meth:`SocketServer.publish` (thread-safe, non-blocking: it
   appends to a bounded inbox and pokes a wake-up socketpair). If the server thread itself
   falls behind, the inbox drops its oldest blocks and counts them (``inbox_overruns``).
-- Every client has a bounded queue of encoded lines (``collections.deque(maxlen=...)``: C
-  speed, oldest discarded). What a slow client loses is counted and announced to it with a
-  ``DROPPED`` message before its next data. Queues are bounded in messages and in bytes. A
+- Every client has a queue of encoded lines bounded in messages and bytes (output_queue.py).
+  What a slow client loses is counted and announced to it (``DROPPED``) before its next data. A
   client with output pending that makes no read progress for ``stall_timeout_s`` is disconnected.
-- Requests cost a token of a per-client budget (client_limits.RequestBudget); what exceeds it is
-  discarded with one ERROR and the client's reading is paused, so a flood costs a bounded amount
-  of work; a client that keeps flooding for ``flood_timeout_s`` is disconnected. ?STATUS is
-  answered from a status cached for ``status_cache_s``: floods never reach the service's counters.
-- Non-watching clients idle for ``idle_timeout_s`` are disconnected (gpsd does the same), and the
-  longest-idle of them makes room when the table is full; clients whose peer has hung up are
-  closed even while no data flows to reveal it.
+- Requests spend a per-client budget (client_limits.RequestBudget); the excess is discarded with
+  one ERROR and reading paused, so a flood costs bounded work; ``flood_timeout_s`` of it
+  disconnects. ?STATUS comes from a status cached for ``status_cache_s``.
+- Non-watchers idle for ``idle_timeout_s`` are disconnected (as gpsd does) and the longest-idle
+  makes room in a full table; clients whose peer hung up are closed even while no data flows.
 - IMU lines are encoded once per block and encoding (plain / raw) and shared by all clients.
 
 The listening socket is bound or inherited from systemd by socket_activation.py.
@@ -107,6 +104,7 @@ class SocketServer:
         self.dropped_total = 0
         self._status_cache: tuple[float, bytes] | None = None
         self._trim_due = False
+        self._next_check = 0.0
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> "SocketServer":
@@ -246,7 +244,9 @@ class SocketServer:
                         if mask & selectors.EVENT_WRITE and c.id in self._clients:
                             self._flush(c)
                 self._drain_inbox()
-                self._check_clients()
+                if time.monotonic() >= self._next_check:  # not per published block: 10 times a second
+                    self._next_check = time.monotonic() + 0.1
+                    self._check_clients()
         except Exception:  # never die silently: the daemon watches is_alive()
             log.exception("socket server thread crashed")
             raise
