@@ -30,8 +30,8 @@ from ..core.estimators.online_policy import online_candidates
 from ..core.ringbuffer import RingBuffer
 from ..core.samples import SAMPLE_DTYPE
 from . import config as config_mod
-from .config import Config, ConfigError
 from . import privileges
+from .config import Config, ConfigError
 from .emulation import EmulatedBus
 from .persistence import CalibrationState, RateLimitedSaver, StateStore, load_lab_calibration
 from .processing import Processor, nominal_calibration
