@@ -135,6 +135,7 @@ def main(argv=None) -> int:
     # Every client gets every sample: queues deep enough for the whole run (the encoded lines
     # are shared by all queues, so this costs the run's size once, not per client).
     cfg.socket.queue_messages = args.samples + 1000 if args.rate == 0 else 1 << 16
+    cfg.socket.queue_bytes = 400 * cfg.socket.queue_messages  # bytes too (a raw line is ~260 B)
     cfg.state.directory = os.path.join(tmp, "state")
     cfg.daemon.log_level = "warning"
     driver = ReplayDriver(args.samples)

@@ -8,6 +8,7 @@ import sys
 from typing import Any, TextIO
 
 from .client import Client, default_socket_path
+from .closed_pipe import write_or_stop
 from .errors import InputError
 from .protocol import STANDARD_GRAVITY
 
@@ -70,15 +71,18 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
     with Client(args.socket, timeout=args.timeout) as client:
         for msg in client.watch(rate=args.rate, raw=args.raw):
             cls = msg.get("class")
+            text = None
             if args.json:
-                print(json.dumps(msg, separators=(",", ":")), file=out, flush=True)
+                text = json.dumps(msg, separators=(",", ":"))
             elif cls == "IMU":
-                print(format_imu(msg, args.raw), file=out, flush=True)
+                text = format_imu(msg, args.raw)
             elif cls == "CALIB":
-                print(format_calib(msg), file=out, flush=True)
+                text = format_calib(msg)
             elif cls == "DROPPED":
-                print(f"DROPPED {msg.get('count')} messages (too slow; {msg.get('total')} in total)", file=out, flush=True)
-            elif cls == "ERROR":
+                text = f"DROPPED {msg.get('count')} messages (too slow; {msg.get('total')} in total)"
+            if text is not None and not write_or_stop(text, out):
+                return 0  # the reader closed the pipe (| head): done
+            if cls == "ERROR" and not args.json:
                 print(f"ERROR {msg.get('message')}", file=sys.stderr, flush=True)
             if cls == "IMU":
                 seen += 1

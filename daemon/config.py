@@ -86,10 +86,17 @@ class GyroConfig:
 class SocketConfig:
     path: str = field(default="/run/gravcal.sock", metadata=_meta("Unix socket path (when not socket-activated)"))
     mode: int = field(default=0o660, metadata=_meta("permission bits of a socket the daemon binds itself (e.g. 0o660)", min=0))
+    group: str = field(default="", metadata=_meta("group owning a socket the daemon binds itself (with mode 0o660: only its members connect; \"\": unchanged)"))
     activation_name: str = field(default="gravcal", metadata=_meta("FileDescriptorName= of the activated socket"))
     max_clients: int = field(default=64, metadata=_meta("clients served at once", positive=True))
     queue_messages: int = field(default=4096, metadata=_meta("per-client queue [messages]; a slow client loses the oldest", positive=True))
     stall_timeout_s: float = field(default=10.0, metadata=_meta("disconnect a client that reads nothing for this long with output pending [s]", positive=True))
+    queue_bytes: int = field(default=8 << 20, metadata=_meta("per-client queue [bytes]; a slow client loses the oldest (max_clients x queue_bytes bounds the queued memory)", positive=True))
+    idle_timeout_s: float = field(default=60.0, metadata=_meta("disconnect a client that is not watching and sends no request for this long [s]", positive=True))
+    request_rate_hz: float = field(default=50.0, metadata=_meta("requests per client and second; more are refused with an ERROR and the client's reading paused", positive=True))
+    request_burst: int = field(default=100, metadata=_meta("requests a client may send at once before request_rate_hz applies", positive=True))
+    flood_timeout_s: float = field(default=10.0, metadata=_meta("disconnect a client that stays over its request rate for this long [s]", positive=True))
+    status_cache_s: float = field(default=0.2, metadata=_meta("?STATUS answers are built at most this often [s]", min=0.0))
     max_request_bytes: int = field(default=1024, metadata=_meta("longest request line [bytes]", positive=True))
 
 
@@ -104,6 +111,9 @@ class StateConfig:
 class DaemonConfig:
     log_level: str = field(default="info", metadata=_meta("log level", choices=("debug", "info", "warning", "error")))
     status_interval_s: float = field(default=5.0, metadata=_meta("STATUS= text update period for systemd [s]", positive=True))
+    user: str = field(default="", metadata=_meta("started as root: the user to become once the device and socket are open (\"\": none)"))
+    group: str = field(default="", metadata=_meta("... and its group (\"\": the user's own); the user's other groups (dialout, i2c) are kept"))
+    allow_root: bool = field(default=False, metadata=_meta("started as root without a user: run as root anyway (otherwise the start is refused)"))
 
 
 @dataclass

@@ -19,7 +19,10 @@ from typing import Any, Sequence
 from ..core.estimators.observability import ORDER_LADDER
 from ..drivers.rigs.options import disconnect_arg, speed_arg
 from . import config as config_mod
+from . import privileges
+from .closed_pipe import write_or_stop
 from .config import ConfigError
+from .errors import InputError
 from .emulation import EmulatedBus, announce_emulation, emulation_defaults
 from .socket_activation import SocketPathError
 from .service import Gravcald
@@ -40,6 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record-windows", metavar="FILE",
                    help="append each quasi-static window fed to the calibrator to FILE (JSON lines) for an offline "
                         "replay of the service's decisions")
+    p.add_argument("--allow-root", action="store_true",
+                   help="run as root without dropping privileges (default: refused unless [daemon] user is set)")
     p.add_argument("--print-config", action="store_true", help="print the effective configuration as TOML and exit")
     e = p.add_argument_group(
         "emulation", "--emulate runs the daemon against the built-in logger emulator instead of hardware: a sensor "
@@ -124,9 +129,17 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
         print(f"gravcald: error: {exc}", file=sys.stderr)
         return 2
     if args.print_config:
-        print(config_mod.example_toml(cfg))
+        write_or_stop(config_mod.example_toml(cfg))
         return 0
     _setup_logging(cfg.daemon.log_level, env)
+    d = cfg.daemon
+    # the emulator and an injected driver (tests) open no hardware: root is only warned about there
+    meant = d.allow_root or args.allow_root or args.emulate or driver is not None
+    try:
+        identity = privileges.check_start(os.geteuid(), d.user, d.group, meant)
+    except InputError as exc:
+        print(f"gravcald: error: {exc}", file=sys.stderr)
+        return 2
     emulator = None
     if args.emulate and driver is None:
         try:
@@ -146,7 +159,7 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
             print(f"gravcald: error: --record-windows {args.record_windows}: {exc.strerror or exc}", file=sys.stderr)
             return 2
     daemon = Gravcald(cfg, driver=driver, environ=env, config_path=config_path, overrides=overrides,
-                      emulator=emulator, window_sink=recorder)
+                      emulator=emulator, window_sink=recorder, identity=identity)
     signal.signal(signal.SIGTERM, daemon.request_stop)
     signal.signal(signal.SIGINT, daemon.request_stop)
     signal.signal(signal.SIGHUP, daemon.request_reload)

@@ -5,46 +5,63 @@ import collections
 
 
 class OutputQueue:
-    """A client's bounded output queue, in messages; the oldest are dropped beyond ``limit``.
+    """A client's output queue, bounded in messages and in bytes; the oldest are dropped beyond either.
 
-    Entries are runs of encoded lines ``[lines, start, joined]``: a block's IMU lines are
+    Entries are runs of encoded lines ``[lines, start, joined, nbytes]``: a block's IMU lines are
     encoded once and the same list (and, for full-rate clients, the same pre-joined bytes) is
     queued for every client, so queueing and sending cost one C-level join per block and
-    client, never a Python step per line. Dropping a part of a run advances ``start``.
+    client, never a Python step per line. Dropping a part of a run advances ``start``. The byte
+    count is what this queue would hold on its own (shared lines are counted for every client), so
+    ``max_clients * max_bytes`` bounds the daemon's queued memory.
     """
 
-    __slots__ = ("entries", "size", "limit")
+    __slots__ = ("entries", "size", "nbytes", "limit", "max_bytes")
 
-    def __init__(self, limit: int):
+    def __init__(self, limit: int, max_bytes: int | None = None):
         self.entries: collections.deque = collections.deque()
         self.size = 0  # messages queued
+        self.nbytes = 0  # bytes queued
         self.limit = int(limit)
+        self.max_bytes = int(max_bytes) if max_bytes is not None else None
 
     def __len__(self) -> int:
         return self.size
 
+    def _over(self) -> tuple[int, int]:
+        """(messages, bytes) above the limits."""
+        extra_bytes = self.nbytes - self.max_bytes if self.max_bytes is not None else 0
+        return max(0, self.size - self.limit), max(0, extra_bytes)
+
     def put(self, lines: list[bytes], joined: bytes | None = None) -> int:
         """Queue ``lines`` (``joined`` = b"".join(lines) if already at hand); returns how many
-        of the oldest queued messages were dropped to stay within the limit."""
+        of the oldest queued messages were dropped to stay within the limits."""
         n = len(lines)
         if n == 0:
             return 0
-        self.entries.append([lines, 0, joined])
+        size = len(joined) if joined is not None else sum(map(len, lines))
+        self.entries.append([lines, 0, joined, size])
         self.size += n
+        self.nbytes += size
         lost = 0
-        while self.size > self.limit:
+        excess_msgs, excess_bytes = self._over()
+        while excess_msgs or excess_bytes:
             e = self.entries[0]
             avail = len(e[0]) - e[1]
-            excess = self.size - self.limit
-            if avail <= excess:
+            if avail <= excess_msgs or e[3] <= excess_bytes:
                 self.entries.popleft()
-                self.size -= avail
-                lost += avail
-            else:
-                e[1] += excess
+                drop, drop_bytes = avail, e[3]
+            else:  # part of the oldest run: enough of its first lines to cover both excesses
+                drop, drop_bytes = excess_msgs, sum(map(len, e[0][e[1]:e[1] + excess_msgs]))
+                while drop_bytes < excess_bytes:
+                    drop_bytes += len(e[0][e[1] + drop])
+                    drop += 1
+                e[1] += drop
                 e[2] = None
-                self.size -= excess
-                lost += excess
+                e[3] -= drop_bytes
+            self.size -= drop
+            self.nbytes -= drop_bytes
+            lost += drop
+            excess_msgs, excess_bytes = self._over()
         return lost
 
     def take(self, max_bytes: int) -> tuple[list[bytes], int]:
@@ -53,10 +70,11 @@ class OutputQueue:
         n = size = 0
         entries = self.entries
         while entries and size < max_bytes:
-            lines, start, joined = entries.popleft()
+            lines, start, joined, _ = entries.popleft()
             data = joined if joined is not None else b"".join(lines[start:] if start else lines)
             out.append(data)
             n += len(lines) - start
             size += len(data)
         self.size -= n
+        self.nbytes -= size
         return out, n

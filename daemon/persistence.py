@@ -235,14 +235,33 @@ class StateStore:
     def __init__(self, directory: str | os.PathLike, filename: str = STATE_FILENAME):
         self.directory = os.fspath(directory)
         self.path = os.path.join(self.directory, filename)
+        self._create_on_save = False
 
     def ensure_directory(self) -> None:
+        self._create_on_save = False
         try:
             os.makedirs(self.directory, mode=0o750, exist_ok=True)
         except OSError as exc:
             raise InputError(f"state directory {self.directory}: cannot create it: {exc.strerror or exc}") from exc
         if not os.access(self.directory, os.W_OK | os.X_OK):
             raise InputError(f"state directory {self.directory}: not writable by this user")
+
+    def check_directory(self) -> None:
+        """Fail now if the directory could not be written, without creating it: a start that fails
+        later (no device, socket in use) leaves nothing behind; the first save creates it."""
+        path = os.path.abspath(self.directory)
+        self._create_on_save = not os.path.isdir(path)
+        if os.path.isdir(path):
+            if not os.access(path, os.W_OK | os.X_OK):
+                raise InputError(f"state directory {self.directory}: not writable by this user")
+            return
+        parent = path
+        while not os.path.exists(parent):
+            parent = os.path.dirname(parent)
+        if not os.path.isdir(parent):
+            raise InputError(f"state directory {self.directory}: cannot create it: {parent} is not a directory")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise InputError(f"state directory {self.directory}: cannot create it: {parent} is not writable by this user")
 
     def _remove_leftover_temps(self) -> None:
         prefix = "." + os.path.basename(self.path) + "."
@@ -292,6 +311,9 @@ class StateStore:
         return target
 
     def save(self, state: CalibrationState) -> None:
+        if self._create_on_save:  # checked at start, created now; one that vanishes later is an error
+            self.ensure_directory()
+            self._create_on_save = False
         write_state(self.path, state)
 
 

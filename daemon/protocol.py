@@ -314,23 +314,32 @@ def encode_imu(
     return encode_imu_joined(samples, acc_ms2, gyro_rads, static, raw=raw).splitlines(keepends=True)
 
 
+REWIND_S = 2.0  # sample time stepping back further than this is a restart, which resets decimation
+
+
 def decimation_mask(t: np.ndarray, rate: float, last_bucket: float) -> tuple[np.ndarray, float]:
     """Which samples a client with ``rate`` [Hz] receives, and its new last bucket.
 
-    Sample time is cut into buckets of 1/rate s; the first sample of each new bucket is
-    sent, so at most ``rate`` messages per second of sample time go out, and every bucket
-    that holds a sample yields one (no beat pattern with the sampling rate).
+    Sample time is cut into buckets of 1/rate s; the first sample of each bucket later than the
+    last one sent goes out, so at most ``rate`` messages per second of sample time go out, and
+    every bucket that holds a sample yields one (no beat pattern with the sampling rate). Time
+    that jitters backwards cannot reopen a bucket already sent; a step back of more than
+    max(REWIND_S, 1/rate) (a replay or device restarting) starts afresh instead of silencing the client.
     """
     if rate <= 0 or t.size == 0:
         return np.ones(t.shape[0], dtype=bool), last_bucket
     buckets = np.floor(np.asarray(t, dtype=float) * rate)
-    prev = np.empty_like(buckets)
-    prev[0] = last_bucket
-    prev[1:] = buckets[:-1]
-    mask = buckets > prev
-    # Non-monotonic time (e.g. a replay restarting) must not silence the client.
-    mask |= buckets < prev
-    return mask, float(buckets[-1])
+    rewind = max(REWIND_S * rate, 1.0)
+    if np.all(np.diff(buckets) >= 0) and not buckets[0] < last_bucket - rewind:
+        high = np.maximum.accumulate(np.concatenate(([last_bucket], buckets)))
+        mask = buckets > high[:-1]
+        return mask, float(high[-1])
+    mask = np.zeros(buckets.shape[0], dtype=bool)
+    for i, b in enumerate(buckets.tolist()):  # rare: time went backwards inside the block
+        if b > last_bucket or b < last_bucket - rewind:
+            mask[i] = True
+            last_bucket = b
+    return mask, float(last_bucket)
 
 
 @dataclass

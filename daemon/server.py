@@ -8,10 +8,14 @@ Design (why it looks like this):
 - The acquisition side calls :meth:`SocketServer.publish` (thread-safe, non-blocking: it
   appends to a bounded inbox and pokes a wake-up socketpair). If the server thread itself
   falls behind, the inbox drops its oldest blocks and counts them (``inbox_overruns``).
-- Every client has a bounded queue of encoded lines (``collections.deque(maxlen=...)``: C
-  speed, oldest discarded). What a slow client loses is counted and announced to it with a
-  ``DROPPED`` message before its next data. A client with output pending that makes no read
-  progress for ``stall_timeout_s`` is disconnected.
+- Every client has a queue of encoded lines bounded in messages and bytes (output_queue.py).
+  What a slow client loses is counted and announced to it (``DROPPED``) before its next data. A
+  client with output pending that makes no read progress for ``stall_timeout_s`` is disconnected.
+- Requests spend a per-client budget (client_limits.RequestBudget); the excess is discarded with
+  one ERROR and reading paused, so a flood costs bounded work; ``flood_timeout_s`` of it
+  disconnects. ?STATUS comes from a status cached for ``status_cache_s``.
+- Non-watchers idle for ``idle_timeout_s`` are disconnected (as gpsd does) and the longest-idle
+  makes room in a full table; clients whose peer hung up are closed even while no data flows.
 - IMU lines are encoded once per block and encoding (plain / raw) and shared by all clients.
 
 The listening socket is bound or inherited from systemd by socket_activation.py.
@@ -26,56 +30,21 @@ import selectors
 import socket
 import threading
 import time
-from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 
 from . import protocol
+from .client_limits import ClientState as _Client
+from .client_limits import RequestBudget, ServerConfig, hung_up, return_memory_to_os
 from .output_queue import OutputQueue
 from .protocol import ImuBlock, ProtocolError, WatchPolicy
 from .socket_activation import bind_unix_socket
 
 log = logging.getLogger("gravcal.server")
 
-
-@dataclass
-class _Client:
-    id: int
-    sock: socket.socket
-    queue: OutputQueue
-    connected: float
-    watch: WatchPolicy = field(default_factory=WatchPolicy)
-    inbuf: bytearray = field(default_factory=bytearray)
-    discarding: bool = False  # inside an oversized request: skip to the next newline
-    oversize_count: int = 0
-    out: memoryview | None = None
-    last_progress: float = 0.0
-    last_bucket: float = -np.inf
-    dropped_total: int = 0
-    dropped_unreported: int = 0
-    sent_messages: int = 0
-    sent_bytes: int = 0
-    read_closed: bool = False
-    close_when_flushed: bool = False
-    want_write: bool = False
-    errors: int = 0
-
-    def pending(self) -> bool:
-        return bool(self.out) or bool(self.queue) or self.dropped_unreported > 0
-
-
-@dataclass
-class ServerConfig:
-    """Bounds that protect the daemon (units in the names)."""
-
-    max_clients: int = 64
-    queue_messages: int = 4096  # per client, oldest dropped beyond
-    stall_timeout_s: float = 10.0  # pending output and no read progress for this long -> disconnect
-    max_request_bytes: int = protocol.MAX_REQUEST_BYTES
-    max_oversize: int = 3  # oversized requests tolerated before disconnecting
-    inbox_blocks: int = 1024  # publish() blocks held for the server thread
-    send_chunk_bytes: int = 256 * 1024
+ROOM_IDLE_S = 5.0  # a full table closes the longest-idle non-watcher idle at least this long
+TRIM_AFTER_BYTES = 1 << 20  # a client leaving with this much queued hands the memory back
 
 
 class SocketServer:
@@ -92,6 +61,7 @@ class SocketServer:
         sock: socket.socket | None = None,
         config: ServerConfig | None = None,
         socket_mode: int | None = 0o660,
+        socket_group: str = "",
         status_provider: Callable[[], dict[str, Any]] | None = None,
     ):
         if (path is None) == (sock is None):
@@ -100,7 +70,7 @@ class SocketServer:
         self.status_provider = status_provider
         self._owned_path: str | None = None
         if sock is None:
-            sock = bind_unix_socket(path, mode=socket_mode)
+            sock = bind_unix_socket(path, mode=socket_mode, group=socket_group)
             self._owned_path = os.fspath(path)
             self._owned_ino = os.stat(self._owned_path).st_ino
         sock.setblocking(False)
@@ -127,7 +97,14 @@ class SocketServer:
         self.clients_total = 0
         self.clients_rejected = 0
         self.clients_stalled = 0
+        self.clients_idle = 0  # closed for idling (timeout or to make room)
+        self.clients_hung_up = 0  # closed because the peer had gone
+        self.clients_flooding = 0  # closed for flooding requests
+        self.requests_refused = 0  # requests over a client's budget, discarded
         self.dropped_total = 0
+        self._status_cache: tuple[float, bytes] | None = None
+        self._trim_due = False
+        self._next_check = 0.0
 
     # -- lifecycle -------------------------------------------------------------------
     def start(self) -> "SocketServer":
@@ -158,6 +135,12 @@ class SocketServer:
                     os.unlink(self._owned_path)
             except FileNotFoundError:
                 pass
+            except OSError as exc:  # e.g. privileges dropped since binding it in a root-owned directory
+                log.warning("cannot remove socket %s: %s", self._owned_path, exc.strerror or exc)
+
+    def reconfigure(self, section: Any) -> None:
+        """New bounds from a reloaded [socket] section; queues of connected clients keep theirs."""
+        self.config = ServerConfig.from_section(section)
 
     def __enter__(self) -> "SocketServer":
         return self.start()
@@ -221,24 +204,17 @@ class SocketServer:
         return len(self._clients)
 
     def stats(self) -> dict[str, Any]:
-        clients = [
-            {
-                "id": c.id,
-                "watching": c.watch.enable,
-                "raw": c.watch.raw,
-                "rate": c.watch.rate,
-                "queued": len(c.queue),
-                "sent": c.sent_messages,
-                "dropped": c.dropped_total,
-                "connected_s": round(time.monotonic() - c.connected, 3),
-            }
-            for c in list(self._clients.values())
-        ]
+        now = time.monotonic()
+        clients = [c.stats(now) for c in list(self._clients.values())]
         return {
             "clients": len(clients),
             "clients_total": self.clients_total,
             "clients_rejected": self.clients_rejected,
             "clients_stalled": self.clients_stalled,
+            "clients_idle": self.clients_idle,
+            "clients_hung_up": self.clients_hung_up,
+            "clients_flooding": self.clients_flooding,
+            "requests_refused": self.requests_refused,
             "published_samples": self.published_samples,
             "inbox_overruns": self.inbox_overruns,
             "dropped_messages": self.dropped_total,
@@ -268,7 +244,9 @@ class SocketServer:
                         if mask & selectors.EVENT_WRITE and c.id in self._clients:
                             self._flush(c)
                 self._drain_inbox()
-                self._check_stalls()
+                if time.monotonic() >= self._next_check:  # not per published block: 10 times a second
+                    self._next_check = time.monotonic() + 0.1
+                    self._check_clients()
         except Exception:  # never die silently: the daemon watches is_alive()
             log.exception("socket server thread crashed")
             raise
@@ -288,6 +266,8 @@ class SocketServer:
                 return
             conn.setblocking(False)
             if len(self._clients) >= self.config.max_clients:
+                self._make_room()
+            if len(self._clients) >= self.config.max_clients:
                 self.clients_rejected += 1
                 try:
                     conn.send(protocol.encode(protocol.error_message(f"too many clients (limit {self.config.max_clients})")))
@@ -299,14 +279,17 @@ class SocketServer:
             c = _Client(
                 id=self._next_id,
                 sock=conn,
-                queue=OutputQueue(self.config.queue_messages),
+                queue=OutputQueue(self.config.queue_messages, self.config.queue_bytes),
                 connected=now,
                 last_progress=now,
+                budget=RequestBudget(self.config.request_rate_hz, self.config.request_burst, now),
+                last_request=now,
             )
             self._next_id += 1
             self.clients_total += 1
             self._clients[c.id] = c
             self._sel.register(conn, selectors.EVENT_READ, c)
+            c.events = selectors.EVENT_READ
             log.debug("client %d connected", c.id)
             self._enqueue(c, [protocol.encode(protocol.version_message())])
             self._flush(c)
@@ -321,6 +304,19 @@ class SocketServer:
         except (KeyError, ValueError, OSError):
             pass
         c.sock.close()
+        if c.queue.nbytes + (len(c.out) if c.out else 0) >= TRIM_AFTER_BYTES:
+            self._trim_due = True
+        c.queue.entries.clear()
+        c.out = None
+
+    def _make_room(self) -> None:
+        now = time.monotonic()
+        idle = [c for c in self._clients.values() if not c.watch.enable and not c.pending()
+                and now - c.last_request >= ROOM_IDLE_S]
+        if idle:
+            oldest = min(idle, key=lambda c: c.last_request)
+            self.clients_idle += 1
+            self._close(oldest, f"idle for {now - oldest.last_request:.0f} s, room made for a new client")
 
     # -- requests --------------------------------------------------------------------
     def _on_readable(self, c: _Client) -> None:
@@ -354,6 +350,9 @@ class SocketServer:
                     buf.clear()
                     c.discarding = True
                 return
+            if not c.budget.take(1, time.monotonic()):
+                self._throttle(c)
+                return
             line = bytes(buf[:nl])
             del buf[: nl + 1]
             if len(line) > limit:
@@ -361,9 +360,33 @@ class SocketServer:
                 if c.id not in self._clients:
                     return
                 continue
+            c.last_request = time.monotonic()
             self._handle_line(c, line)
             if c.id not in self._clients:
                 return
+        c.flood_since = None
+
+    def _throttle(self, c: _Client) -> None:
+        """Over the request budget: discard what is buffered, say so once, stop reading for a while."""
+        now = time.monotonic()
+        buf = c.inbuf
+        refused = buf.count(b"\n") + (0 if buf.endswith(b"\n") else 1)
+        c.discarding = not buf.endswith(b"\n")
+        buf.clear()
+        c.refused += refused
+        self.requests_refused += refused
+        if c.flood_since is None:
+            c.flood_since = now
+            log.warning("client %d: more than %g requests/s; refusing and pausing its reads",
+                        c.id, self.config.request_rate_hz)
+        elif now - c.flood_since > self.config.flood_timeout_s:
+            self.clients_flooding += 1
+            self._close(c, f"flooding requests for {now - c.flood_since:.0f} s ({c.refused} refused)")
+            return
+        self._reply(c, protocol.error_message(
+            f"too many requests (limit {self.config.request_rate_hz:g}/s): {refused} discarded", None), flush=False)
+        c.paused_until = now + max(c.budget.wait_for_one(now), 0.25)
+        self._flush(c)
 
     def _oversized(self, c: _Client) -> None:
         c.oversize_count += 1
@@ -422,9 +445,19 @@ class SocketServer:
                         {"class": "CALIB", "revision": 0, "accepted": False, "model": None,
                          "message": "no calibration yet"})
         elif req.command == "STATUS":
-            self._reply(c, self._status_message())
+            self._enqueue(c, [self._status_line()])
+            self._flush(c)
         elif req.command == "VERSION":
             self._reply(c, protocol.version_message())
+
+    def _status_line(self) -> bytes:
+        """The encoded STATUS, rebuilt at most every ``status_cache_s``: however many clients ask,
+        the service's counters are read a bounded number of times."""
+        now = time.monotonic()
+        cached = self._status_cache
+        if cached is None or now - cached[0] >= self.config.status_cache_s:
+            cached = self._status_cache = (now, protocol.encode(self._status_message()))
+        return cached[1]
 
     def _status_message(self) -> dict[str, Any]:
         msg: dict[str, Any] = {"class": "STATUS", "uptime_s": round(time.monotonic() - self.started, 3)}
@@ -528,24 +561,40 @@ class SocketServer:
         self._update_interest(c)
 
     def _update_interest(self, c: _Client) -> None:
-        want_write = c.pending()
-        if want_write == c.want_write and not c.read_closed:
+        c.want_write = c.pending()
+        reading = not c.read_closed and c.paused_until <= time.monotonic()
+        events = (selectors.EVENT_READ if reading else 0) | (selectors.EVENT_WRITE if c.want_write else 0)
+        if events == c.events:
             return
-        events = (0 if c.read_closed else selectors.EVENT_READ) | (selectors.EVENT_WRITE if want_write else 0)
-        c.want_write = want_write
         try:
-            if events:
+            if not events:
+                self._sel.unregister(c.sock)
+            elif c.events:
                 self._sel.modify(c.sock, events, c)
             else:
-                self._sel.unregister(c.sock)
-        except (KeyError, ValueError):
-            if events:
                 self._sel.register(c.sock, events, c)
+        except (KeyError, ValueError, OSError) as exc:
+            log.debug("client %d: selector update failed: %s", c.id, exc)
+        c.events = events
 
-    def _check_stalls(self) -> None:
+    def _check_clients(self) -> None:
+        """Stalled, idle and hung-up clients leave; paused readers resume; freed memory goes back."""
         now = time.monotonic()
-        limit = self.config.stall_timeout_s
+        cfg = self.config
         for c in list(self._clients.values()):
-            if c.pending() and now - c.last_progress > limit:
+            if c.pending() and now - c.last_progress > cfg.stall_timeout_s:
                 self.clients_stalled += 1
                 self._close(c, f"stalled: no reads for {now - c.last_progress:.1f} s with output pending")
+            elif not c.watch.enable and not c.pending() and now - c.last_request > cfg.idle_timeout_s:
+                self.clients_idle += 1
+                self._close(c, f"idle: no request for {now - c.last_request:.0f} s and not watching")
+            elif c.paused_until and c.paused_until <= now:
+                c.paused_until = 0.0
+                self._update_interest(c)
+        for sock in hung_up(c.sock for c in self._clients.values() if c.read_closed or c.paused_until):
+            c = next(c for c in self._clients.values() if c.sock is sock)
+            self.clients_hung_up += 1
+            self._close(c, "hung up")
+        if self._trim_due:
+            self._trim_due = False
+            return_memory_to_os()

@@ -30,6 +30,7 @@ from ..core.estimators.online_policy import online_candidates
 from ..core.ringbuffer import RingBuffer
 from ..core.samples import SAMPLE_DTYPE
 from . import config as config_mod
+from . import privileges
 from .config import Config, ConfigError
 from .emulation import EmulatedBus
 from .persistence import CalibrationState, RateLimitedSaver, StateStore, load_lab_calibration
@@ -48,8 +49,9 @@ ANALYSIS_BLOCK_S = 0.05  # samples collected before the detector and estimator r
 RESTART_KEYS = {
     "device": ("spec", "fs_hz", "ring_capacity"),
     "estimator": ("model", "extended_terms"),
-    "socket": ("path", "mode", "activation_name"),
+    "socket": ("path", "mode", "group", "activation_name"),
     "state": ("directory", "lab_calibration"),
+    "daemon": ("user", "group", "allow_root"),
 }
 
 
@@ -59,8 +61,9 @@ class Gravcald:
     def __init__(self, cfg: Config, *, driver: Any = None, notifier: Notifier | None = None,
                  environ: dict[str, str] | None = None, detector: Any = None, config_path: str | None = None,
                  overrides: dict[str, Any] | None = None, emulator: EmulatedBus | None = None,
-                 window_sink: Any = None):
+                 window_sink: Any = None, identity: Any = None):
         self.cfg = cfg
+        self.identity = identity  # privileges.Identity to become once the device and socket are open
         self.window_sink = window_sink  # each window fed to the calibrator (daemon/window_log.py)
         self.emulator = emulator
         self.config_path = config_path
@@ -96,7 +99,7 @@ class Gravcald:
 
     # -- start ---------------------------------------------------------------------------
     def _initial_state(self) -> tuple[CalibrationState, bool]:
-        self.store.ensure_directory()
+        self.store.check_directory()
         loaded = self.store.load()
         self.notes += loaded.notes
         for note in loaded.notes:
@@ -124,13 +127,12 @@ class Gravcald:
 
     def _open_server(self) -> SocketServer:
         s = self.cfg.socket
-        scfg = ServerConfig(max_clients=s.max_clients, queue_messages=s.queue_messages,
-                            stall_timeout_s=s.stall_timeout_s, max_request_bytes=s.max_request_bytes)
+        scfg = ServerConfig.from_section(s)
         sock = activated_socket(s.activation_name, environ=self.environ)
         if sock is not None:
             log.info("using the socket passed by systemd (%s)", s.activation_name)
             return SocketServer(sock=sock, config=scfg, status_provider=self.status)
-        return SocketServer(s.path, config=scfg, socket_mode=s.mode, status_provider=self.status)
+        return SocketServer(s.path, config=scfg, socket_mode=s.mode, socket_group=s.group, status_provider=self.status)
 
     def _open_driver(self) -> Any:
         if self._driver is not None:
@@ -152,6 +154,9 @@ class Gravcald:
         self.server.start()
         self.server.set_calibration(self._calib_message())
         self.driver = self._open_driver()
+        if self.identity is not None:  # root until here: the device and socket are open
+            self.store.ensure_directory()
+            privileges.drop(self.identity, hand_over=[self.store.directory])
         for name, target in (("gravcal-acquisition", self._acquire), ("gravcal-processing", self._process)):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -346,10 +351,7 @@ class Gravcald:
         logging.getLogger("gravcal").setLevel(new.daemon.log_level.upper())
         self.saver.min_interval_s = new.state.save_interval_s
         s = new.socket
-        self.server.config.max_clients = s.max_clients
-        self.server.config.queue_messages = s.queue_messages
-        self.server.config.stall_timeout_s = s.stall_timeout_s
-        self.server.config.max_request_bytes = s.max_request_bytes
+        self.server.reconfigure(s)
         self.processor.reconfigure(new)  # the processing thread reads it at the next block
         self.cfg = new
         self.reloads += 1

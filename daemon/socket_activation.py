@@ -25,7 +25,8 @@ class SocketPathError(OSError):
 # -- socket path and activation ------------------------------------------------------
 
 
-def bind_unix_socket(path: str, *, mode: int | None = 0o660, backlog: int = socket.SOMAXCONN) -> socket.socket:
+def bind_unix_socket(path: str, *, mode: int | None = 0o660, group: str = "",
+                     backlog: int = socket.SOMAXCONN) -> socket.socket:
     """A listening, non-blocking AF_UNIX stream socket bound at ``path``.
 
     The backlog is the system maximum, far above ServerConfig.max_clients: a burst of clients
@@ -34,9 +35,18 @@ def bind_unix_socket(path: str, *, mode: int | None = 0o660, backlog: int = sock
 
     An existing path that is a live socket -> SocketPathError("another gravcald is running
     on PATH"); a socket nobody listens on (stale, left by a crash) is removed and rebound;
-    an existing non-socket is never removed: SocketPathError naming it.
+    an existing non-socket is never removed: SocketPathError naming it. ``group`` (a name) owns
+    the socket, so that mode 0660 lets exactly its members connect.
     """
     path = os.fspath(path)
+    gid = -1
+    if group:
+        import grp
+
+        try:
+            gid = grp.getgrnam(group).gr_gid
+        except KeyError:
+            raise SocketPathError(f"[socket] group {group!r}: no such group (create it: groupadd --system {group})") from None
     parent = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(parent):
         raise SocketPathError(f"cannot create socket {path}: directory {parent} does not exist")
@@ -68,6 +78,8 @@ def bind_unix_socket(path: str, *, mode: int | None = 0o660, backlog: int = sock
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         sock.bind(path)
+        if gid >= 0:
+            os.chown(path, -1, gid)
         if mode is not None:
             os.chmod(path, mode)
         sock.listen(backlog)

@@ -16,6 +16,7 @@ import pytest
 
 UNITS = Path(__file__).resolve().parents[2] / "systemd"
 EXPOSURE_MAX = 2.5  # systemd's scale 0 (locked down) .. 10 (exposed); "OK" is < 5.0 there
+SHIPPED_EXEC = "/usr/local/bin/gravcald"
 
 analyze = shutil.which("systemd-analyze")
 MISSING = "systemd-analyze not installed (apt-get install systemd)"
@@ -30,16 +31,20 @@ def _fail_without_analyze():
     pytest.fail(MISSING + "; GRAVCAL_REQUIRE_SYSTEMD=1 makes this a failure")
 
 
-def staged_units(tmp_path: Path) -> Path:
-    """Copies of the units with ExecStart= pointing at an existing binary.
+INSTALLED = Path(sys.executable).parent / "gravcald"  # the console script pip installed beside this Python
 
-    verify checks that the ExecStart= program exists and is executable; /usr/bin/gravcald
-    exists only once the package is installed, so the copy runs this Python instead. Nothing
-    else changes: the directives under test are the shipped ones.
+
+def staged_units(tmp_path: Path) -> Path:
+    """Copies of the units with ExecStart= pointing at the installed console script.
+
+    verify checks that the ExecStart= program exists and is executable; the shipped path
+    (/usr/local/bin/gravcald, a system pip install) is replaced by this install's script, as the
+    venv drop-in does. Nothing else changes: the directives under test are the shipped ones.
     """
+    assert INSTALLED.exists(), f"{INSTALLED}: gravcal not installed in this environment (pip install -e .)"
     for unit in ("gravcald.service", "gravcald.socket"):
         text = (UNITS / unit).read_text()
-        text = text.replace("ExecStart=/usr/bin/gravcald", f"ExecStart={sys.executable} -m gravcal.daemon.gravcald")
+        text = text.replace(f"ExecStart={SHIPPED_EXEC}", f"ExecStart={INSTALLED}")
         (tmp_path / unit).write_text(text)
     return tmp_path
 
@@ -87,7 +92,7 @@ def test_security_exposure_below_threshold(tmp_path):
 def test_service_has_the_required_settings():
     svc = unit_sections(UNITS / "gravcald.service")["Service"]
     assert svc["Type"] == "notify" and svc["NotifyAccess"] == "main"
-    assert svc["ExecStart"].startswith("/usr/bin/gravcald ")
+    assert svc["ExecStart"].startswith(SHIPPED_EXEC + " ")
     assert svc["ExecReload"] == "/bin/kill -HUP $MAINPID"
     assert svc["DynamicUser"] == "yes" and svc["StateDirectory"] == "gravcal" and svc["ConfigurationDirectory"] == "gravcal"
     assert set(svc["SupplementaryGroups"].split()) == {"dialout", "i2c"}
@@ -122,3 +127,15 @@ def test_udev_rule_gives_symlink_and_keeps_modemmanager_away():
     from gravcal.daemon.config import Config
 
     assert "/dev/gravcal-logger" in Config().device.spec  # the default device is the symlink
+
+
+def test_socket_is_group_only_and_the_venv_drop_in_replaces_exec_start():
+    sock = unit_sections(UNITS / "gravcald.socket")["Socket"]
+    assert sock["SocketMode"] == "0660" and sock["SocketGroup"] == "gravcal"
+    svc = unit_sections(UNITS / "gravcald.service")["Service"]
+    assert svc["DynamicUser"] == "yes" and svc.get("User") is None  # never root
+    drop_in = (UNITS / "gravcald-venv.conf").read_text().splitlines()
+    execs = [line for line in drop_in if line.startswith("ExecStart=")]
+    assert execs[0] == "ExecStart=" and execs[1].startswith("ExecStart=/opt/gravcal/bin/gravcald ")
+    assert execs[1].split(" ", 1)[1] == svc["ExecStart"].split(" ", 1)[1]  # same arguments as the unit
+
