@@ -231,3 +231,17 @@ def test_random_walk_bias_is_not_attributed_to_a_covariate():
         if set(names) - {"offset_drift"}:
             wrong.append((seed, names))
     assert len(wrong) <= max_count(N_MISSPECIFIED, 0.05), f"misattributed in {len(wrong)}/{N_MISSPECIFIED}: {wrong}"
+
+
+def test_the_selection_rule_decides_every_term():
+    """Found <=> ΔBIC > 10 and a lower held-out error, on sessions chosen (fixed seeds) where each half of the
+    rule alone decides a term: a ΔBIC in (2, 10] with a held-out gain, and a ΔBIC > 10 the held-out error vetoes
+    (random-walk bias sessions: slow excursions a covariate can follow in-sample)."""
+    tests = [t for seed in (2, 4) for t in diagnose_session(misspecified("random_walk", seed)[0]).tests
+             if t.delta_bic is not None and t.heldout_before_mg is not None and t.heldout_after_mg is not None]
+    for t in tests:
+        rule = t.delta_bic > 10.0 and t.heldout_after_mg < t.heldout_before_mg
+        assert (t.status == "found") == rule, (t.effect, t.status, t.delta_bic, t.heldout_before_mg, t.heldout_after_mg)
+    assert {t.evidence()["delta_bic_threshold"] for t in tests} == {10.0}
+    assert any(2.0 < t.delta_bic <= 10.0 and t.heldout_after_mg < t.heldout_before_mg for t in tests)
+    assert any(t.delta_bic > 10.0 and t.heldout_after_mg >= t.heldout_before_mg for t in tests)
