@@ -245,3 +245,20 @@ def test_the_selection_rule_decides_every_term():
     assert {t.evidence()["delta_bic_threshold"] for t in tests} == {10.0}
     assert any(2.0 < t.delta_bic <= 10.0 and t.heldout_after_mg < t.heldout_before_mg for t in tests)
     assert any(t.delta_bic > 10.0 and t.heldout_after_mg >= t.heldout_before_mg for t in tests)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "measured: the simulated holds carry trunk sway (0.2-0.6 Hz, ~2 mg); the Allan deviation of the static "
+    "stretches peaks at 0.3-1 s and decays as 1/tau, and the white + flicker + random-walk model takes the tail for "
+    "a 0.15-0.25 mg bias instability (ΔBIC ~ 3000): motion is named as a sensor noise term"))
+def test_sway_in_static_stretches_is_not_colored_sensor_noise():
+    """Required answer on a sample-level control (white sensor noise, no planted effect, body sway in the holds):
+    no colored_noise finding."""
+    from gravcal.core.diagnosis import diagnose
+    from gravcal.core.model.defaults import default_model
+    from gravcal.core.samples import raw_triad
+    from gravcal.core.simulate import simulate
+
+    sim = simulate("six_position", default_model(3), seed=3, duration=1800.0, temp_profile="body", hold_s=(40.0, 60.0))
+    d = diagnose(sim.samples["t"], raw_triad(sim.samples), temp=sim.samples["temp"], replicas=3, simulate=False)
+    assert "colored_noise" not in [f["effect"] for f in d.findings]
