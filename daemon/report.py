@@ -134,7 +134,8 @@ def _findings(j: dict[str, Any]) -> list[str]:
     L.append("")
     for x in j["findings"]:
         mag, ev = x["magnitude"], x["evidence"]
-        L.append(f"- **{x['effect']}**: ΔBIC {num(ev.get('delta_bic'), 4)} (threshold {num(ev.get('delta_bic_threshold'))}); "
+        L.append(f"- **{x['effect']}**: ΔBIC {num(ev.get('delta_bic'), 4)} "
+                 f"(threshold {num(ev.get('delta_bic_threshold'))}); "
                  f"held-out RMS {num(ev.get('heldout_rms_mg_without'))} → {num(ev.get('heldout_rms_mg_with'))} mg")
         if mag.get("convention"):
             L.append(f"  - convention: {mag['convention']}")

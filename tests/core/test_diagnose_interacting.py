@@ -214,7 +214,8 @@ def test_misspecified_temperature_dependence(kind):
         names = [f["effect"] for f in d.findings]
         bad = [] if names == ["temperature_offset"] else [f"named {names}"]
         if "temperature_offset" in names:
-            bad += magnitude_errors(d.findings[names.index("temperature_offset")], linear_temperature_slope_mg(s.ws, off))
+            found = d.findings[names.index("temperature_offset")]
+            bad += magnitude_errors(found, linear_temperature_slope_mg(s.ws, off))
         ok += not bad
         report += [(seed, bad)] if bad else []
     assert ok >= min_count(N_MISSPECIFIED, 0.9), f"{kind}: required answer in {ok}/{N_MISSPECIFIED}: {report}"
