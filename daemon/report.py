@@ -2,7 +2,10 @@
 
 Plots (matplotlib, optional: without it the page says so and keeps the numbers): residual vs
 orientation, vs temperature, vs time; measured vs simulated norm-error distributions; Allan
-deviation of static stretches against the white-noise line the baseline simulation predicts.
+deviation of static stretches against the white-noise line. Every plot has a title and labelled
+axes; the baseline and the extended model keep one colour each on every plot, and each axis x/y/z
+one colour (measured and its white-noise line alike). The page shows numbers and tables, never a
+Python dict.
 """
 from __future__ import annotations
 
@@ -12,6 +15,10 @@ from typing import Any
 
 import numpy as np
 
+BASELINE_COLOR, EXTENDED_COLOR, SIMULATED_COLOR = "tab:blue", "tab:orange", "tab:gray"
+AXIS_COLORS = {"x": "tab:red", "y": "tab:green", "z": "tab:purple"}
+NORM_LABEL = "1 g − |a| [mg]"
+
 
 def _have_matplotlib() -> bool:
     try:
@@ -19,6 +26,15 @@ def _have_matplotlib() -> bool:
     except ImportError:
         return False
     return True
+
+
+def num(x: Any, digits: int = 3) -> str:
+    """A number for the page: 3 significant digits, n/a for None / non-finite."""
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    if isinstance(x, (int, np.integer)) and not isinstance(x, bool):
+        return str(int(x))
+    return f"{float(x):.{digits}g}"
 
 
 def _plots(d: Any, out: Path) -> list[tuple[str, str]]:
@@ -32,59 +48,116 @@ def _plots(d: Any, out: Path) -> list[tuple[str, str]]:
     a = d.baseline_cal.apply(ws.mean)
     u = a / np.linalg.norm(a, axis=1, keepdims=True)
     made: list[tuple[str, str]] = []
+    base_lab, ext_lab = f"baseline ({d.base_model})", f"extended ({d.extended_model})"
 
     def save(fig, name: str, title: str) -> None:
+        fig.suptitle(title) if len(fig.axes) > 1 else fig.axes[0].set_title(title)
         fig.tight_layout()
         fig.savefig(out / name, dpi=90)
         plt.close(fig)
         made.append((name, title))
 
-    fig, ax = plt.subplots(1, 3, figsize=(11, 3.2), sharey=True)
+    def residuals(ax, x) -> None:
+        ax.plot(x, rb, ".", ms=3, color=BASELINE_COLOR, label=base_lab)
+        ax.plot(x, re_, ".", ms=3, color=EXTENDED_COLOR, label=ext_lab)
+        ax.axhline(0.0, color="k", lw=0.5)
+
+    fig, ax = plt.subplots(1, 3, figsize=(11, 3.4), sharey=True)
     for k, lab in enumerate("xyz"):
-        ax[k].plot(u[:, k], rb, ".", ms=3, label="baseline")
-        ax[k].plot(u[:, k], re_, ".", ms=3, label="extended")
-        ax[k].set_xlabel(f"direction u_{lab}")
-    ax[0].set_ylabel("1 g - |a| [mg]")
-    ax[0].legend()
-    save(fig, "residual_vs_orientation.png", "Norm residual vs orientation")
+        residuals(ax[k], u[:, k])
+        ax[k].set_xlabel(f"gravity direction component u_{lab} [-]")
+    ax[0].set_ylabel(NORM_LABEL)
+    ax[0].legend(fontsize=7)
+    save(fig, "residual_vs_orientation.png", "Window norm residual vs orientation")
     if d.has_temp:
-        fig, ax = plt.subplots(figsize=(6, 3.2))
-        ax.plot(ws.aux[:, 0], rb, ".", ms=3, label="baseline")
-        ax.plot(ws.aux[:, 0], re_, ".", ms=3, label="extended")
+        fig, ax = plt.subplots(figsize=(6, 3.4))
+        residuals(ax, ws.aux[:, 0])
         ax.set_xlabel("temperature [°C]")
-        ax.set_ylabel("1 g - |a| [mg]")
-        ax.legend()
-        save(fig, "residual_vs_temperature.png", "Norm residual vs temperature")
-    fig, ax = plt.subplots(figsize=(6, 3.2))
-    ax.plot(ws.t / 60, rb, ".", ms=3, label="baseline")
-    ax.plot(ws.t / 60, re_, ".", ms=3, label="extended")
+        ax.set_ylabel(NORM_LABEL)
+        ax.legend(fontsize=7)
+        save(fig, "residual_vs_temperature.png", "Window norm residual vs temperature")
+    fig, ax = plt.subplots(figsize=(6, 3.4))
+    residuals(ax, ws.t / 60)
     ax.set_xlabel("time [min]")
-    ax.set_ylabel("1 g - |a| [mg]")
-    ax.legend()
-    save(fig, "residual_vs_time.png", "Norm residual vs time")
+    ax.set_ylabel(NORM_LABEL)
+    ax.legend(fontsize=7)
+    save(fig, "residual_vs_time.png", "Window norm residual vs time")
     if d.compare_baseline is not None:
-        fig, ax = plt.subplots(figsize=(6, 3.2))
+        fig, ax = plt.subplots(figsize=(6, 3.4))
         bins = np.linspace(min(rb.min(), -1e-3), max(rb.max(), 1e-3), 40)
-        ax.hist(rb, bins=bins, density=True, alpha=0.6, label="measured (baseline fit)")
-        ax.hist(d.compare_baseline.sim_residuals_g * 1e3, bins=bins, density=True, alpha=0.6,
-                label="simulated with the baseline")
+        ax.hist(rb, bins=bins, density=True, alpha=0.6, color=BASELINE_COLOR, label=f"measured, {base_lab} fit")
+        ax.hist(d.compare_baseline.sim_residuals_g * 1e3, bins=bins, density=True, alpha=0.5, color=SIMULATED_COLOR,
+                label=f"simulated with the {base_lab}")
         if d.compare_extended is not None and d.compare_extended is not d.compare_baseline:
-            ax.hist(d.compare_extended.sim_residuals_g * 1e3, bins=bins, density=True, histtype="step",
-                    label="simulated with the extended model")
-        ax.set_xlabel("1 g - |a| [mg]")
+            ax.hist(d.compare_extended.sim_residuals_g * 1e3, bins=bins, density=True, histtype="step", lw=1.5,
+                    color=EXTENDED_COLOR, label=f"simulated with the {ext_lab}")
+        ax.set_xlabel(NORM_LABEL)
+        ax.set_ylabel("density [1/mg]")
         ax.legend(fontsize=7)
         save(fig, "distribution_measured_vs_simulated.png", "Window norm errors: measured vs simulated")
     if d.allan is not None:
-        fig, ax = plt.subplots(figsize=(6, 3.5))
+        fig, ax = plt.subplots(figsize=(6, 3.6))
         for k, lab in enumerate("xyz"):
-            ax.loglog(d.allan.tau_s, d.allan.adev_g[:, k] * 1e3, "o-", ms=3, label=f"measured {lab}")
+            c = AXIS_COLORS[lab]
+            ax.loglog(d.allan.tau_s, d.allan.adev_g[:, k] * 1e3, "o-", ms=3, color=c, label=f"measured {lab}")
             ax.loglog(d.allan.tau_s, d.allan.white_g[k] * 1e3 / np.sqrt(d.allan.tau_s / d.allan.tau_s[0]), "--",
-                      lw=0.8, label=f"white only {lab}")
-        ax.set_xlabel("tau [s]")
+                      lw=0.8, color=c, label=f"white noise only {lab}")
+        ax.set_xlabel("averaging time tau [s]")
         ax.set_ylabel("Allan deviation [mg]")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, ncol=2)
         save(fig, "allan_deviation.png", "Allan deviation of static stretches vs white noise")
     return made
+
+
+def _finding_rows(x: dict[str, Any]) -> list[str]:
+    """One table row per reported axis: value ± std [unit], raw-unit value, or why it is undetermined."""
+    mag = x["magnitude"]
+    und = mag.get("undetermined", {})
+    rows = []
+    for k, v in mag.get("value", {}).items():
+        sd = mag.get("std", {}).get(k)
+        raw, raw_sd = mag.get("raw_value", {}).get(k), mag.get("raw_std", {}).get(k)
+        if v is None:
+            rows.append(f"| {x['effect']} | {k} | undetermined: {und.get(k, 'not estimated')} | | |")
+            continue
+        raw_s = "" if raw is None else f"{num(raw)} ± {num(raw_sd)} {mag.get('raw_unit', '')}"
+        rows.append(f"| {x['effect']} | {k} | {num(v)} ± {num(sd)} | {mag.get('unit', '')} | {raw_s} |")
+    return rows
+
+
+def _findings(j: dict[str, Any]) -> list[str]:
+    if not j["findings"]:
+        return ["No significant effect (rule: observable, ΔBIC > 10 and lower held-out error)."]
+    L = ["| effect | axis | value ± std | unit | raw units |", "|---|---|---|---|---|"]
+    for x in j["findings"]:
+        L += _finding_rows(x)
+    L.append("")
+    for x in j["findings"]:
+        mag, ev = x["magnitude"], x["evidence"]
+        L.append(f"- **{x['effect']}**: ΔBIC {num(ev.get('delta_bic'), 4)} "
+                 f"(threshold {num(ev.get('delta_bic_threshold'))}); "
+                 f"held-out RMS {num(ev.get('heldout_rms_mg_without'))} → {num(ev.get('heldout_rms_mg_with'))} mg")
+        if mag.get("convention"):
+            L.append(f"  - convention: {mag['convention']}")
+        if mag.get("held"):
+            L.append(f"  - std includes what the fit held: {'; '.join(mag['held'])}")
+        if mag.get("confounded_with"):
+            L.append(f"  - cannot be told apart from {', '.join(mag['confounded_with'])} on this recording")
+        slopes = mag.get("raw_channel_slopes")
+        if slopes:
+            L.append("  - raw channel slopes (independent least squares): " + ", ".join(
+                f"{a} {num(slopes['value'][a])} ± {num(slopes['std'][a])}" for a in "xyz") + f" {slopes['unit']}")
+    return L
+
+
+def _simulation(name: str, sim: dict[str, Any]) -> list[str]:
+    keys = list(sim["measured"])
+    L = [f"**{name}** — disagrees on: {', '.join(sim['disagree']) or 'nothing'}; KS p = {num(sim['ks_p_value'])}", "",
+         "| statistic | measured | simulated mean | simulated 95 % | p |", "|---|---|---|---|---|"]
+    for k in keys:
+        L.append(f"| {k} | {num(sim['measured'].get(k))} | {num(sim['simulated_mean'].get(k))} | "
+                 f"{num(sim['simulated_p95'].get(k))} | {num(sim['p_value'].get(k))} |")
+    return L + [""]
 
 
 def write_report(d: Any, out_dir: str | Path, *, source: str = "") -> Path:
@@ -93,27 +166,22 @@ def write_report(d: Any, out_dir: str | Path, *, source: str = "") -> Path:
     out.mkdir(parents=True, exist_ok=True)
     j = d.to_json_dict()
     b, e = j["baseline"], j["extended"]
-    f = lambda x: "n/a" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.3f}"  # noqa: E731
+    cov = j["coverage"] or {}
+    cov_s = (f"{num(cov.get('distinct_postures'))} distinct postures, spread {num(cov.get('spread_deg'))}°, scatter "
+             f"eigenvalues {', '.join(num(v) for v in cov.get('scatter_eig', []))}")
     L = [f"# gravcal diagnose: {source}", "",
-         f"{j['n_windows']} quasi-static windows; coverage: {j['coverage']}.", "",
+         f"{j['n_windows']} quasi-static windows; coverage: {cov_s}.", "",
          "## Summary", "",
-         "| | model | held-out RMS 1 g - |a| [mg] | in-sample [mg] |", "|---|---|---|---|",
-         f"| baseline | {b['model']} | {f(b['heldout_rms_mg'])} | {f(b['insample_rms_mg'])} |",
-         f"| extended | {e['model']} | {f(e['heldout_rms_mg'])} | {f(e['insample_rms_mg'])} |", "",
-         f"Held-out gain: **{f(e['heldout_gain_mg'])} mg**.", "", "## Findings", ""]
-    if j["findings"]:
-        for x in j["findings"]:
-            L.append(f"- **{x['effect']}**: {x['magnitude'].get('value')} [{x['magnitude'].get('unit', '')}]; "
-                     f"ΔBIC {x['evidence'].get('delta_bic')}")
-    else:
-        L.append("No significant effect (rule: observable, ΔBIC > 10 and lower held-out error).")
+         "| | model | held-out RMS 1 g − \\|a\\| [mg] | in-sample [mg] |", "|---|---|---|---|",
+         f"| baseline | {b['model']} | {num(b['heldout_rms_mg'])} | {num(b['insample_rms_mg'])} |",
+         f"| extended | {e['model']} | {num(e['heldout_rms_mg'])} | {num(e['insample_rms_mg'])} |", "",
+         f"Held-out gain: **{num(e['heldout_gain_mg'])} mg** (folds the selection never saw: contiguous time blocks).",
+         "", "## Findings", ""]
+    L += _findings(j)
     L += ["", "## What the baseline simulation gets wrong", ""]
     for name, sim in (("baseline", b.get("simulation")), ("extended", e.get("simulation"))):
-        if not sim:
-            continue
-        L.append(f"- {name}: disagrees on {', '.join(sim['disagree']) or 'nothing'} "
-                 f"(measured RMS {sim['measured']['rms_mg']:.3f} mg, simulated {sim['simulated_mean']['rms_mg']:.3f} mg; "
-                 f"p-values {sim['p_value']}, KS p {sim['ks_p_value']})")
+        if sim:
+            L += _simulation(name, sim)
     L += ["", "## Untestable", ""]
     L += [f"- {u['effect']}: {u['why']}" for u in j["untestable"]] or ["(none)"]
     L += ["", "## Tested, not found", ""]

@@ -414,8 +414,8 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
 
 
 def _allan_test(name: str, parts_raw: list, parts_g: list, scale: np.ndarray, fs: float, longest: float) -> TermTest:
-    """Colored noise on static stretches: the Allan deviation beyond white noise (fitted on alternate stretches,
-    judged on the others)."""
+    """Colored noise on static stretches: the Allan deviation beyond white noise (fitted on the earlier half of
+    the stretches in time, judged on the later half)."""
     if longest < MIN_ALLAN_STRETCH_S:
         return TermTest(name, "untestable", f"the longest static stretch is {longest:.1f} s "
                                             f"(need >= {MIN_ALLAN_STRETCH_S:g} s for the Allan deviation)")

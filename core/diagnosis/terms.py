@@ -262,6 +262,8 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     mag["raw_value"] = {key: (None if i in h else float(f_t.p[k + i])) for i, key in enumerate(keys)}
     mag["raw_std"] = {key: (None if i in h else float(f_t.std[k + i])) for i, key in enumerate(keys)}
     mag["raw_unit"] = _raw_unit(term)
+    if calibration_view(term).convention:
+        mag["convention"] = calibration_view(term).convention
     for i in h:
         mag["value"][keys[i]] = None
         mag.get("std", {})[keys[i]] = None

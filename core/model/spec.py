@@ -61,7 +61,8 @@ class CalibrationView:
     prefix: parameter names are ``<prefix>_x`` ... (``m_xy`` ... for "cross"); rank: canonical
     position in extended model names; unit / report_factor: magnitudes in report units, per axis,
     from raw-unit parameters and the diagonal sensitivities s [raw/g]; min_span: the smallest spread
-    (5-95 %) of the covariate, in its unit, at which the windows can test the term (None: always).
+    (5-95 %) of the covariate, in its unit, at which the windows can test the term (None: always);
+    convention: the definition of the reported value, copied into every finding's magnitude.
     """
 
     prefix: str
@@ -72,6 +73,7 @@ class CalibrationView:
     report_factor: Callable[[np.ndarray], np.ndarray]
     min_span: float | None = None
     span_reason: str = ""
+    convention: str = ""  # how the reported value is defined, when the unit alone does not say it
 
     @property
     def keys(self) -> list[str]:

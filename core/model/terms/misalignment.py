@@ -82,5 +82,7 @@ SPEC = TermSpec(
     # than 90°. Axis i leaning by a_ij toward j gives K_ij = s_i a_ij; the norm sees only the symmetric part
     # m_ij = (K_ij + K_ji) / 2, and 90° - angle(i, j) = a_ij + a_ji = 2 m_ij / sqrt(s_i s_j) (small angles).
     view=CalibrationView(prefix="m", acts_on="cross", covariate=None, unit="deg_from_orthogonal", rank=0,
+                         convention="90° minus the angle between the two calibrated axes [deg]; positive when the "
+                                    "axes are closer than 90°",
                          report_factor=lambda s: 2.0 * np.degrees(1.0) / np.sqrt([s[i] * s[j] for i, j in CROSS_PAIRS])),
 )

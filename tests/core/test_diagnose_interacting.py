@@ -1,0 +1,265 @@
+"""Diagnosis when effects interact, are small, or are not in the catalogue at all.
+
+Sessions: core/diagnosis/synthetic.py (an hour, 200 quasi-static windows, 24-34 °C, supply 3.05-3.3 V,
+1 mg quasi-static floor); diagnose_windows on all registered window-mean terms, without the nested
+held-out gain (the selection and its magnitudes are what is judged here; the nested gain is tested in
+test_diagnose_hidden.py and test_diagnose.py).
+
+Rates: a claimed rate p over n sessions is asserted as "count >= binom.ppf(RISK, n, p)" (detections) or
+"count <= binom.ppf(1 - RISK, n, p)" (false findings): a true rate at the claim fails the assertion with
+probability below RISK; seeds are fixed, so the runs are deterministic.
+Magnitudes: |estimate - truth| <= 4 reported std + 15 % of the truth (linearisation at the reference, 1 %
+start error); an estimate at half the truth fails it whenever the std is below 9 % of the truth.
+"""
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from scipy.stats import binom
+
+from gravcal.core.diagnosis import diagnose_windows
+from gravcal.core.diagnosis.synthetic import PLANT, window_session
+from gravcal.core.model import datasheet as DS
+from gravcal.core.model.spec import CROSS_PAIRS
+from gravcal.core.model.terms import CALIBRATION_TERMS
+from gravcal.core.samples import TRIAD
+
+RISK = 0.02
+# planted parameter and its factor from report units to the model's units, per catalogue effect
+PARAM = {"temperature_offset": ("coef_g_per_c", 1e-3), "temperature_sensitivity": ("coef_per_c", 1e-2),
+         "offset_drift": ("rate_g_per_h", 1e-3), "sensitivity_drift": ("rate_per_h", 1e-2),
+         "nonlinearity": ("c2", 1.0), "supply_offset": ("coef_g_per_v", 1e-3)}
+# docs/measured-data.md, "The magnitude floor": fraction of PLANT detected in >= 90 % of one-hour sessions
+FLOOR = {"misalignment": 0.25, "nonlinearity": 0.5, "temperature_offset": 0.125, "temperature_sensitivity": 0.25,
+         "offset_drift": 0.5, "sensitivity_drift": 0.5}
+# datasheet values (core/model/datasheet.py) as planting scales (per channel: 1-2 x the scale, random sign)
+DATASHEET = {"temperature_offset": DS.TEMP_OFFSET_G_PER_C, "temperature_sensitivity": DS.TEMP_SENS_PER_C,
+             "nonlinearity": DS.NONLIN_PCT_FS / 100 * DS.RANGE_G / DS.RANGE_G ** 2,  # 0.2 % of 10 g at 10 g
+             "offset_drift": DS.OFFSET_RATE_G_PER_H, "sensitivity_drift": DS.SENS_RATE_PER_H,
+             "supply_offset": DS.SUPPLY_OFFSET_G_PER_V, "misalignment": np.deg2rad(DS.ALIGN_DEG)}
+
+
+def min_count(n: int, p: float) -> int:
+    return int(binom.ppf(RISK, n, p))
+
+
+def max_count(n: int, p: float) -> int:
+    return int(binom.ppf(1 - RISK, n, p))
+
+
+def diagnose_session(s):
+    return diagnose_windows(s.ws, s.start, has_temp=True, candidates=CALIBRATION_TERMS, simulate=False, nested=False)
+
+
+def misalignment_truth(s) -> dict[str, float]:
+    """90° minus the angle between each pair of the planted channel axes [deg] (rotation-free: what the norm sees)."""
+    term = next(t for t in s.model.terms if t.name == "misalignment")
+    u = term.matrix[list(TRIAD)]
+    return {"xyz"[i] + "xyz"[j]: 90.0 - float(np.degrees(np.arccos(u[i] @ u[j]))) for i, j in CROSS_PAIRS}
+
+
+def truth_of(s, effect: str) -> dict[str, float]:
+    """The planted magnitude in report units, per reported key."""
+    if effect == "misalignment":
+        return misalignment_truth(s)
+    key, unit = PARAM[effect]
+    return dict(zip("xyz", (np.asarray(s.planted[effect][key])[:3] / unit).tolist()))
+
+
+def magnitude_errors(finding: dict, truth: dict[str, float]) -> list[str]:
+    """Determined axes outside 4 std + 15 % of the truth, and any zero magnitude (a finding never has one)."""
+    mag, bad = finding["magnitude"], []
+    vals = {k: v for k, v in mag["value"].items() if v is not None}
+    if not vals or any(v == 0 for v in vals.values()):
+        bad.append(f"{finding['effect']}: zero or no magnitude {mag['value']}")
+    for k, v in vals.items():
+        if abs(v - truth[k]) > 4 * mag["std"][k] + 0.15 * abs(truth[k]):
+            bad.append(f"{finding['effect']} {k}: {v:.4g} vs planted {truth[k]:.4g} (std {mag['std'][k]:.2g})")
+    return bad
+
+
+def test_misalignment_is_the_deviation_from_orthogonality():
+    """The stated convention (JSON and docs/sensor-model.md) is the one measured: 90° minus the angle between axes."""
+    for seed in range(3):
+        s = window_session(31_000 + seed, {"misalignment": PLANT["misalignment"]})
+        d = diagnose_session(s)
+        assert [f["effect"] for f in d.findings] == ["misalignment"]
+        mag = d.findings[0]["magnitude"]
+        assert mag["unit"] == "deg_from_orthogonal" and "90° minus the angle between" in mag["convention"]
+        truth = misalignment_truth(s)
+        assert max(abs(v) for v in truth.values()) > 0.3  # a test of the scale needs angles well above the std
+        assert magnitude_errors(d.findings[0], truth) == []
+        for k, v in mag["value"].items():  # tighter than the generic rule: no 15 % allowance on an angle
+            assert abs(v - truth[k]) <= 4 * mag["std"][k] + 0.02, (seed, k, v, truth[k], mag["std"][k])
+
+
+@pytest.mark.slow
+def test_every_pair_of_catalogue_effects():
+    """Two planted effects: both named, nothing else, each magnitude right given the other."""
+    pairs = list(itertools.combinations(sorted(PLANT), 2))
+    exact, errors = 0, []
+    for k, pair in enumerate(pairs):
+        s = window_session(71_000 + k, {e: PLANT[e] for e in pair})
+        d = diagnose_session(s)
+        names = sorted(f["effect"] for f in d.findings)
+        exact += names == sorted(pair)
+        errors += [e for f in d.findings if f["effect"] in pair for e in magnitude_errors(f, truth_of(s, f["effect"]))]
+    n = len(pairs)
+    assert exact >= min_count(n, 0.95), f"both and only the pair named in {exact}/{n}"
+    assert len(errors) <= max_count(2 * n, 0.02), errors  # per finding: outside the tolerance in <= 2 %
+
+
+@pytest.mark.slow
+def test_smallest_documented_magnitudes_are_found():
+    """The floor docs/measured-data.md claims for an hour (>= 90 % detection), with magnitudes."""
+    n, errors = 6, []
+    for effect, frac in FLOOR.items():
+        found = 0
+        for seed in range(n):
+            s = window_session(81_000 + 100 * CALIBRATION_TERMS.index(effect) + seed, {effect: frac * PLANT[effect]})
+            d = diagnose_session(s)
+            f = [x for x in d.findings if x["effect"] == effect]
+            found += bool(f)
+            errors += magnitude_errors(f[0], truth_of(s, effect)) if f else []
+        assert found >= min_count(n, 0.9), f"{effect} at {frac} x PLANT: found in {found}/{n}"
+    assert len(errors) <= max_count(n * len(FLOOR), 0.02), errors
+
+
+@pytest.mark.slow
+def test_datasheet_scale_effects():
+    """Each effect at its datasheet value: found when the documented floor is below it, and never replaced by
+    another term (an effect too small to resolve must give no finding rather than a wrong one)."""
+    n, wrong, errors, refused = 3, [], [], []
+    for effect, scale in DATASHEET.items():
+        above_floor = scale >= FLOOR.get(effect, 1.0) * PLANT[effect]
+        found = 0
+        for seed in range(n):
+            s = window_session(91_000 + 100 * CALIBRATION_TERMS.index(effect) + seed, {effect: scale})
+            try:
+                d = diagnose_session(s)
+            except ValueError as e:  # refused with a reason (a baseline that does not converge): no wrong finding
+                refused.append((effect, seed, str(e)[:80]))
+                continue
+            names = [f["effect"] for f in d.findings]
+            found += effect in names
+            wrong += [(effect, seed, x) for x in names if x != effect]
+            errors += [e for f in d.findings if f["effect"] == effect for e in magnitude_errors(f, truth_of(s, effect))]
+        if above_floor:
+            assert found >= min_count(n, 0.9), f"{effect} at the datasheet value: found in {found}/{n} ({refused})"
+    total = n * len(DATASHEET)
+    assert len(wrong) <= max_count(total, 0.02), f"another term named in {len(wrong)}/{total}: {wrong}"
+    assert len(errors) <= max_count(total, 0.02), errors
+    assert len(refused) <= max_count(total, 0.02), refused
+
+
+# -- misspecified controls: effects outside the catalogue, with the answer required of diagnose ----------------
+def _lagged(t: np.ndarray, temp: np.ndarray, tau_s: float) -> np.ndarray:
+    """First-order lag of the window temperatures (in time order) with time constant tau_s."""
+    out, order = np.empty_like(temp), np.argsort(t)
+    y, tp = temp[order[0]], t[order[0]]
+    for i in order:
+        a = np.exp(-(t[i] - tp) / tau_s)
+        y, tp = a * y + (1 - a) * temp[i], t[i]
+        out[i] = y
+    return out
+
+
+def misspecified(kind: str, seed: int):
+    """A control session plus an offset [g] the catalogue has no term for; returns (session, offset (m, 3))."""
+    s = window_session(61_000 + seed, {})
+    rng = np.random.default_rng([seed, 13])
+    ws, temp = s.ws, s.ws.aux[:, 0]
+    c1 = np.where(rng.random(3) < 0.5, -1, 1) * DS.TEMP_OFFSET_G_PER_C / 2 * rng.uniform(1, 2, 3)
+    if kind == "quadratic_temperature":  # 0.1 mg/°C² curvature: 2.5 mg at the ends of a 10 °C range
+        off = np.outer(temp - 29.0, c1) + 1e-4 * (temp - 29.0)[:, None] ** 2
+    elif kind == "thermal_lag":  # the die follows the temperature channel with a 5 min time constant
+        off = np.outer(_lagged(ws.t, temp, 300.0) - 29.0, c1)
+    else:  # random-walk bias at the datasheet-scale 2 mg/sqrt(h)
+        dt_h = np.diff(np.r_[0.0, np.sort(ws.t)]) / 3600.0
+        walk = np.cumsum(rng.normal(0, 1, (len(ws), 3)) * np.sqrt(dt_h)[:, None] * DS.OFFSET_WALK_G_PER_SQRT_H, axis=0)
+        off = np.empty_like(walk)
+        off[np.argsort(ws.t)] = walk
+    ws.mean[:] = ws.mean + off * DS.SENS_TYP
+    return s, off
+
+
+def linear_temperature_slope_mg(ws, off: np.ndarray) -> dict[str, float]:
+    """The best a linear temperature term can say: the least-squares slope of the planted offset on the recorded
+    temperature over the windows [mg/°C]."""
+    A = np.column_stack([np.ones(len(ws)), ws.aux[:, 0]])
+    return dict(zip("xyz", (np.linalg.lstsq(A, off, rcond=None)[0][1] * 1e3).tolist()))
+
+
+N_MISSPECIFIED = 6
+
+
+LAG_SHORTFALL = pytest.mark.xfail(strict=True, reason=(
+    "measured: the linear temperature term leaves the lag's remainder (~ -c tau dT/dt), smooth in time, and "
+    "offset_drift / supply_offset pass BIC and the held-out test on it (required answer in 0/6); the catalogue "
+    "has no thermal-lag term"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["quadratic_temperature", pytest.param("thermal_lag", marks=LAG_SHORTFALL)])
+def test_misspecified_temperature_dependence(kind):
+    """Required answer: temperature_offset, with the least-squares linear slope on the recorded temperature
+    (within the magnitude tolerance), and no other term: the curvature / lag is a remainder of the temperature
+    dependence, not a supply, drift or sensitivity effect."""
+    ok, report = 0, []
+    for seed in range(N_MISSPECIFIED):
+        s, off = misspecified(kind, seed)
+        d = diagnose_session(s)
+        names = [f["effect"] for f in d.findings]
+        bad = [] if names == ["temperature_offset"] else [f"named {names}"]
+        if "temperature_offset" in names:
+            found = d.findings[names.index("temperature_offset")]
+            bad += magnitude_errors(found, linear_temperature_slope_mg(s.ws, off))
+        ok += not bad
+        report += [(seed, bad)] if bad else []
+    assert ok >= min_count(N_MISSPECIFIED, 0.9), f"{kind}: required answer in {ok}/{N_MISSPECIFIED}: {report}"
+
+
+@pytest.mark.slow
+def test_random_walk_bias_is_not_attributed_to_a_covariate():
+    """Required answer for a 2 mg/sqrt(h) random-walk bias: nothing, or offset_drift (its trend over the hour);
+    never a temperature, supply, sensitivity or nonlinearity term."""
+    wrong = []
+    for seed in range(N_MISSPECIFIED):
+        s, _ = misspecified("random_walk", seed)
+        names = [f["effect"] for f in diagnose_session(s).findings]
+        if set(names) - {"offset_drift"}:
+            wrong.append((seed, names))
+    assert len(wrong) <= max_count(N_MISSPECIFIED, 0.05), f"misattributed in {len(wrong)}/{N_MISSPECIFIED}: {wrong}"
+
+
+def test_the_selection_rule_decides_every_term():
+    """Found <=> ΔBIC > 10 and a lower held-out error, on sessions chosen (fixed seeds) where each half of the
+    rule alone decides a term: a ΔBIC in (2, 10] with a held-out gain, and a ΔBIC > 10 the held-out error vetoes
+    (random-walk bias sessions: slow excursions a covariate can follow in-sample)."""
+    tests = [t for seed in (2, 4) for t in diagnose_session(misspecified("random_walk", seed)[0]).tests
+             if t.delta_bic is not None and t.heldout_before_mg is not None and t.heldout_after_mg is not None]
+    for t in tests:
+        rule = t.delta_bic > 10.0 and t.heldout_after_mg < t.heldout_before_mg
+        assert (t.status == "found") == rule, (t.effect, t.status, t.delta_bic, t.heldout_before_mg, t.heldout_after_mg)
+    assert {t.evidence()["delta_bic_threshold"] for t in tests} == {10.0}
+    assert any(2.0 < t.delta_bic <= 10.0 and t.heldout_after_mg < t.heldout_before_mg for t in tests)
+    assert any(t.delta_bic > 10.0 and t.heldout_after_mg >= t.heldout_before_mg for t in tests)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "measured: the simulated holds carry trunk sway (0.2-0.6 Hz, ~2 mg); the Allan deviation of the static "
+    "stretches peaks at 0.3-1 s and decays as 1/tau, and the white + flicker + random-walk model takes the tail for "
+    "a 0.15-0.25 mg bias instability (ΔBIC ~ 3000): motion is named as a sensor noise term"))
+def test_sway_in_static_stretches_is_not_colored_sensor_noise():
+    """Required answer on a sample-level control (white sensor noise, no planted effect, body sway in the holds):
+    no colored_noise finding."""
+    from gravcal.core.diagnosis import diagnose
+    from gravcal.core.model.defaults import default_model
+    from gravcal.core.samples import raw_triad
+    from gravcal.core.simulate import simulate
+
+    sim = simulate("six_position", default_model(3), seed=3, duration=1800.0, temp_profile="body", hold_s=(40.0, 60.0))
+    d = diagnose(sim.samples["t"], raw_triad(sim.samples), temp=sim.samples["temp"], replicas=3, simulate=False)
+    assert "colored_noise" not in [f["effect"] for f in d.findings]
