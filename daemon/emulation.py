@@ -62,11 +62,11 @@ class EmulatedBus:
 
         return TICK_HZ * self.speed if math.isfinite(self.speed) else 0.0  # 0: stamp blocks at reception
 
-    def open(self) -> Any:
-        """Start the emulator and return the opened driver."""
+    def open(self, *, latency_budget_s: float = 0.0) -> Any:
+        """Start the emulator and return the opened driver (``latency_budget_s``: the driver's)."""
         self.truth = emulated_truth(self.scenario, self.seed)
         if self.bus == "i2c":
-            return self._open_i2c()
+            return self._open_i2c(latency_budget_s)
         from ..drivers.base import open_driver
 
         args = ["--bus", self.bus, "--scenario", self.scenario, "--seed", str(self.seed),
@@ -85,7 +85,10 @@ class EmulatedBus:
         self.spec = proc.spec + ("&" if "?" in proc.spec else "?") + f"tick_hz={self._tick_hz():.0f}"
         if self.driver_options:
             self.spec += "&" + self.driver_options
-        return open_driver(self.spec)
+        driver = open_driver(self.spec, open=False)
+        if "latency_budget_s=" not in self.driver_options:
+            driver.latency_budget_s = latency_budget_s
+        return driver.open()
 
     def _open_i2c(self) -> Any:
         from ..drivers.rigs.emulator import Faults

@@ -104,6 +104,11 @@ class Driver(ABC):
         self._flag_reconnect = False
         self._lost_at: float | None = None
         self._rate = _RateEstimate()
+        self._last_t = -np.inf  # host time of the newest sample stamped
+        # The longest a sample may wait in the driver so later ones go out with it [s]; 0: each
+        # sample is returned as soon as it has arrived (set before open(): I2C derives its FIFO
+        # watermark from it).
+        self.latency_budget_s = 0.0
         self.counters: dict[str, Any] = {
             "samples": 0,
             "disconnects": 0,
@@ -259,13 +264,18 @@ class Driver(ABC):
         return False
 
     def _stamp(self, block: np.ndarray, t_recv: float) -> None:
-        """Host time [s, time.monotonic]: the newest sample at reception, earlier ones by tick."""
+        """Host time [s, time.monotonic]: the newest sample at reception, earlier ones by tick,
+        never before a sample stamped earlier (reception jitter, a device reset or a wrong tick
+        rate must not make ``t`` run backwards)."""
         if self.tick_hz:
             back = (int(block["tick"][-1]) - block["tick"].astype(np.int64)) & 0xFFFFFFFF
             back = np.where(back > 0x7FFFFFFF, 0, back)  # ticks going backwards: device reset
-            block["t"] = t_recv - back / float(self.tick_hz)
+            t = t_recv - back / float(self.tick_hz)
         else:
-            block["t"] = t_recv
+            t = np.full(block.shape[0], t_recv)
+        t[0] = max(t[0], self._last_t)
+        block["t"] = np.maximum.accumulate(t)
+        self._last_t = float(block["t"][-1])
         self._rate.update(block, t_recv)
 
 
