@@ -90,7 +90,7 @@ class EmulatedBus:
             driver.latency_budget_s = latency_budget_s
         return driver.open()
 
-    def _open_i2c(self) -> Any:
+    def _open_i2c(self, latency_budget_s: float) -> Any:
         from ..drivers.rigs.emulator import Faults
         from ..drivers.rigs.fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec
         from ..drivers.rigs.sources import scenario_source
@@ -100,8 +100,8 @@ class EmulatedBus:
         depth = 255  # the deepest FIFO the register map allows: room for the host's scheduling jitter
         self.device = device = FakeI2CDevice(source.blocks, source.fs, speed=speed, fifo_depth=depth,
                                              faults=Faults(disconnects=self.disconnects, seed=self.seed))
-        poll_s = max(0.001, depth / (source.fs * speed) / 4)  # a quarter of the FIFO's fill time
-        driver = FakeI2CDriver(device, poll_s=poll_s, tick_hz=self._tick_hz())
+        # the device samples in real time and raises DRDY; the driver sleeps on that line
+        driver = FakeI2CDriver(device, tick_hz=self._tick_hz(), latency_budget_s=latency_budget_s)
         self.spec = fake_i2c_spec(device, scenario=self.scenario, seed=self.seed, fs=self.fs)
         return driver.open()
 
