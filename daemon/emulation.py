@@ -92,7 +92,7 @@ class EmulatedBus:
 
     def _open_i2c(self, latency_budget_s: float) -> Any:
         from ..drivers.rigs.emulator import Faults
-        from ..drivers.rigs.fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec
+        from ..drivers.rigs.fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec, realtime_options
         from ..drivers.rigs.sources import scenario_source
 
         speed = self.speed if math.isfinite(self.speed) else 100.0  # a FIFO fills at a finite pace
@@ -101,7 +101,8 @@ class EmulatedBus:
         self.device = device = FakeI2CDevice(source.blocks, source.fs, speed=speed, fifo_depth=depth,
                                              faults=Faults(disconnects=self.disconnects, seed=self.seed))
         # the device samples in real time and raises DRDY; the driver sleeps on that line
-        driver = FakeI2CDriver(device, tick_hz=self._tick_hz(), latency_budget_s=latency_budget_s)
+        driver = FakeI2CDriver(device, tick_hz=self._tick_hz(), latency_budget_s=latency_budget_s,
+                               **realtime_options(device))
         self.spec = fake_i2c_spec(device, scenario=self.scenario, seed=self.seed, fs=self.fs)
         return driver.open()
 

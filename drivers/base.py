@@ -277,8 +277,9 @@ class Driver(ABC):
             self._after_reconnect()
             unwrapper = self._unwrapper()
             rate = self._rate.rate_hz
-            if unwrapper is not None and rate and self._lost_at is not None:
-                unwrapper.expect_advance((time.monotonic() - self._lost_at) * rate)
+            if unwrapper is not None:  # what the host clock says went by (None: unknown yet)
+                known = rate and self._lost_at is not None
+                unwrapper.expect_advance((time.monotonic() - self._lost_at) * rate if known else None)
             log.info("%s %s reconnected", self.bus, self.description)
             return True
         return False

@@ -176,7 +176,7 @@ def records_to_samples(rec: np.ndarray, unwrapper: SeqUnwrapper) -> np.ndarray:
     out["temp"] = temp_from_raw(rec["temp_raw"])
     out["vsupply"] = vsupply_from_raw(rec["vsupply_raw"])
     out["flags"][rec["present"] != _ALL] |= FLAG_PARTIAL
-    keep, seq, gap = unwrapper.unwrap(rec["seq"])
+    keep, seq, gap = unwrapper.unwrap(rec["seq"], rec["tick"])
     out = out[keep]
     out["seq"] = seq
     out["flags"][gap] |= FLAG_GAP_BEFORE
@@ -282,6 +282,7 @@ class CanDriver(Driver):
     def _codec_stats(self):
         out = dict(self.assembler.counters)
         out.update(frames=out["can_frames"], gaps=self.unwrapper.gaps, missing=self.unwrapper.missing,
+                   restarts=self.unwrapper.restarts,
                    duplicates=self.unwrapper.duplicates, strays=self.unwrapper.strays)
         return out
 
