@@ -288,6 +288,10 @@ class Driver(ABC):
         """Host time [s, time.monotonic]: the newest sample at reception, earlier ones by tick,
         never before a sample stamped earlier (reception jitter, a device reset or a wrong tick
         rate must not make ``t`` run backwards)."""
+        if block.shape[0] == 1:  # the event-driven common case, without array arithmetic
+            self._last_t = block["t"][0] = max(t_recv, self._last_t)
+            self._rate.update(block, t_recv)
+            return
         if self.tick_hz:
             back = (int(block["tick"][-1]) - block["tick"].astype(np.int64)) & 0xFFFFFFFF
             back = np.where(back > 0x7FFFFFFF, 0, back)  # ticks going backwards: device reset

@@ -158,6 +158,11 @@ class SampleAssembler(can.Listener):
                 self.counters["partial"] += 1
             self._ready.append((p[0], p[1], p[2], p[3:7], p[7:9], p[9], p[10], p[11]))
 
+    @property
+    def ready(self) -> bool:
+        """Some sample is assembled and waiting for ``take()``."""
+        return bool(self._ready)
+
     def take(self) -> np.ndarray:
         """Assembled records so far (raw fields + ``present`` bit mask), oldest first."""
         out = np.array(self._ready, dtype=_RECORD) if self._ready else np.zeros(0, _RECORD)
@@ -305,8 +310,11 @@ class CanDriver(Driver):
         if msg is not None:
             asm.on_message_received(msg)
             hold = time.monotonic() + self.latency_budget_s  # frames within the budget go out together
+            buffered = getattr(self._bus, "has_buffered_line", None)
             try:
                 for _ in range(4096):  # drain what is already there, bounded
+                    if asm.ready and time.monotonic() >= hold and buffered is not None and not buffered():
+                        break  # a sample is complete: publish it rather than read on while more arrives
                     msg = self._recv(max(0.0, hold - time.monotonic()))
                     if msg is None:
                         break

@@ -77,6 +77,10 @@ class BufferedSlcanBus(slcanBus):
                 return None
         return self._lines.popleft().decode("ascii")
 
+    def has_buffered_line(self) -> bool:
+        """A complete line is already in memory (recv(0) returns it without reading the port)."""
+        return bool(self._lines)
+
     def flush(self) -> None:
         self._lines.clear()
         self._partial.clear()

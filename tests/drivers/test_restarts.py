@@ -94,3 +94,15 @@ def test_serial_device_restarted_during_an_unplug(tmp_path):
     assert k.shape == (1,) and k[0] == 200 and got["flags"][200] & FLAG_GAP_BEFORE
     assert got["seq"][200] - got["seq"][199] == 26
     assert st["restarts"] == 1 and st["missing"] == 25 and st["gaps"] == 1
+
+
+@pytest.mark.parametrize("hint", [None, 100.0, 400.0], ids=["no-host-clock", "noticed-late", "noticed-early"])
+def test_a_young_session_continuing_after_an_outage_is_not_a_restart(hint):
+    # seq and tick both still count from the device's boot (under 65536 samples): every frame looks like a
+    # fresh boot by itself; the tick continuing the stream decides, whatever the host's estimate
+    u = SeqUnwrapper()
+    _session(u, np.arange(0, 3000))
+    u.expect_advance(hint)
+    keep, seq, gap = _session(u, 3000 + 350 + np.arange(5))
+    np.testing.assert_array_equal(seq, 3350 + np.arange(5))
+    assert u.restarts == 0 and u.missing == 350 and gap[0]
