@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 import threading
 import time
 from typing import Any
@@ -44,9 +43,6 @@ log = logging.getLogger("gravcal.gravcald")
 
 REOPEN_AFTER_READ_ERRORS = 3  # a driver whose read() keeps raising is closed and reopened
 ANALYSIS_BLOCK_S = 0.05  # samples collected before the detector and estimator run [s of data]
-# The longest a thread holds the GIL while another waits for it [s] (Python's default 5 ms): the acquisition
-# thread wakes for every sample and must not queue behind the estimator's pure-Python stretches.
-GIL_SWITCH_INTERVAL_S = 0.0005
 
 # Settings that only take effect at start (SIGHUP says so instead of half-applying them).
 RESTART_KEYS = {
@@ -159,7 +155,6 @@ class Gravcald:
         self.server.start()
         self.server.set_calibration(self._calib_message())
         self.driver = self._open_driver()
-        sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_INTERVAL_S))
         for name, target in (("gravcal-acquisition", self._acquire), ("gravcal-processing", self._process)):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
