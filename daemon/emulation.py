@@ -15,6 +15,10 @@ from ..drivers.rigs.hil import EmulatorProcess
 
 log = logging.getLogger("gravcal.gravcald")
 
+# A time-lapse feeds the daemon `speed` times its real rate; latency is not what it exercises, and a wake-up per
+# sample at thousands of samples per second would outrun a loaded host. Frames are then read in groups of this.
+TIME_LAPSE_LATENCY_BUDGET_S = 0.02
+
 
 def emulated_truth(scenario: str, seed: int) -> Calibration | None:
     """The calibration an ideal estimator should find for the emulator's sensor (raw = K a + o,
@@ -65,6 +69,8 @@ class EmulatedBus:
     def open(self, *, latency_budget_s: float = 0.0) -> Any:
         """Start the emulator and return the opened driver (``latency_budget_s``: the driver's)."""
         self.truth = emulated_truth(self.scenario, self.seed)
+        if self.speed > 1:
+            latency_budget_s = max(latency_budget_s, TIME_LAPSE_LATENCY_BUDGET_S)
         if self.bus == "i2c":
             return self._open_i2c(latency_budget_s)
         from ..drivers.base import open_driver
