@@ -25,6 +25,7 @@ the next byte, so garbage, bit errors and truncated frames never hide the next g
 from __future__ import annotations
 
 import binascii
+import math
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -149,8 +150,19 @@ def encode_frames(samples: np.ndarray) -> bytes:
     return to_wire(samples).tobytes()
 
 
+def _volts(code: int) -> float:
+    """_adc_volts for one code, the same float64 operations in Python."""
+    return code * (ADC_VREF_V / (1 << ADC_BITS)) if code <= ADC_FULL_SCALE else math.nan
+
+
 def wire_to_samples(rec: np.ndarray) -> np.ndarray:
     """SAMPLE_DTYPE block from wire records: seq is the raw 16-bit counter, t is NaN, flags 0."""
+    if rec.shape[0] == 1:  # one frame per wake-up is the common case: one record assignment, no array passes
+        _, _, seq, tick, t1, t2, gyro, temp_raw, vsupply_raw, _ = rec[0].item()
+        out = np.zeros(1, dtype=SAMPLE_DTYPE)
+        out[0] = (math.nan, seq, tick, t1, t2, gyro, (_volts(temp_raw) - TEMP_OFFSET_V) / TEMP_SLOPE_V_PER_C,
+                  _volts(vsupply_raw) * VSUPPLY_DIVIDER, 0)
+        return out
     out = np.zeros(rec.shape[0], dtype=SAMPLE_DTYPE)
     out["t"] = np.nan
     out["seq"] = rec["seq"]
