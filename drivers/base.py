@@ -15,8 +15,9 @@ production install nothing and the real drivers never import the rigs.
 ``read`` never raises for transient bus trouble (a cable pulled, a bus-off, a NACK): the
 driver counts it, reopens the device with exponential backoff inside later ``read`` calls,
 and flags the first sample produced after the outage with FLAG_RECONNECT (and FLAG_GAP_BEFORE
-from the sequence counter; samples a device FIFO held from before the outage come first, unflagged). Only ``open`` raises :class:`DriverError`, with a message naming the
-problem (missing device, missing group membership, wrong device at the address).
+from the sequence counter; samples a device FIFO held from before the outage come first,
+unflagged). Only ``open`` raises :class:`DriverError`, with a message naming the problem
+(missing device, missing group membership, wrong device at the address).
 """
 from __future__ import annotations
 

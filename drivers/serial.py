@@ -4,9 +4,9 @@ Opens a device path (``/dev/ttyUSB0``, a pty slave from ``gravcal emulate``) or 
 URL (``loop://``, ``spy://``, ``socket://``) via ``serial.serial_for_url``. Wakes on data
 (select on the port's file descriptor) and returns everything that has arrived, so each frame
 is published as soon as it is decoded; ``latency_budget_s`` > 0 lets frames that arrive within
-that time after the first go out together (fewer wake-ups at high rates). It reopens the port by path after SerialException/OSError, so a USB cable
-pulled and plugged back in (or an emulator recreating its pty behind a stable symlink) is
-survived.
+that time after the first go out together (fewer wake-ups at high rates). It reopens the port
+by path after SerialException/OSError, so a USB cable pulled and plugged back in (or an
+emulator recreating its pty behind a stable symlink) is survived.
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import serial
 
 from ..core.samples import SAMPLE_DTYPE
 from .base import PERMISSION_ERRNOS, Backoff, DriverError, DriverSpec, FramedStreamDriver, permission_hint, take_options
-from .codec import FRAME_LEN, TICK_HZ, FrameDecoder
+from .codec import TICK_HZ, FrameDecoder
 
 DEFAULT_BAUDRATE = 460800
 

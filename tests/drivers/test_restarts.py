@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from gravcal.core.samples import FLAG_GAP_BEFORE, FLAG_RECONNECT, SAMPLE_DTYPE
+from gravcal.core.samples import FLAG_GAP_BEFORE, FLAG_RECONNECT
 from gravcal.drivers import open_driver
 from gravcal.drivers.codec import TICK_HZ, SeqUnwrapper, encode_frames
 from gravcal.drivers.rigs.emulator import PtyLink
