@@ -334,8 +334,7 @@ class SeqUnwrapper:
         restarted = after and t is not None and self._restarted(int(s[0]), int(t[0]), hint)
         if restarted:
             self._rebase(int(s[0]))
-            hint = None
-        keep, seq, gap = self._unwrap(s, hint)
+        keep, seq, gap = self._unwrap(s, None if restarted else hint)
         if restarted and keep[0] and s[0] > 0:
             gap[0] = True
         if t is not None:
@@ -356,7 +355,7 @@ class SeqUnwrapper:
         tp, last_tick = self._tick_period, self._tick_last
         if self.last is None or not tp or last_tick is None:
             return False
-        if abs(tick / tp - raw) > 2 + 0.01 * raw:
+        if abs(tick / tp - raw) > 2 + 0.01 * raw:  # not both counting from a boot
             return False
         advance = ((tick - last_tick) & 0xFFFFFFFF) / tp  # samples elapsed if the device ran on
         step = (raw - self.last) & MAX_U16
