@@ -1,6 +1,6 @@
 """gravcald at its real rate: latency, CPU, memory (not a test).
 
-    python bench/bench_daemon.py latency [--seconds 60] [--batch-frames 16] [--watch-rate 0] [--clients 1] [--json PATH]
+    python bench/bench_daemon.py latency [--seconds 60] [--latency-budget-s 0] [--watch-rate 0] [--clients 1] [--json PATH]
     python bench/bench_daemon.py memory  [--samples 20000000] [--json PATH]
 
 latency: `gravcald --emulate --bus serial --fs 200 --speed 1` as a subprocess (the emulator in
@@ -8,8 +8,9 @@ its own child process on a real pty, the daemon opening it like a USB adapter), 
 watching every sample with raw fields. Per sample the client computes recv time - ``t``
 (CLOCK_MONOTONIC on both sides). Two figures:
   - wire -> client: every sample; ``t`` is the driver's stamp (reception time of the newest
-    sample of a read, earlier ones back-dated by device ticks), so this includes the serial
-    driver's batching (``batch_frames`` frames per wake-up; default 16 = 80 ms at 200 Hz);
+    sample of a read, earlier ones back-dated by device ticks), so this includes what the serial
+    driver holds back under ``--latency-budget-s`` (default 0: every frame as it arrives; 0.08
+    is the former 16-frame batching at 200 Hz);
   - read -> client: the newest sample of each driver read only (its ``t`` IS the moment the
     driver returned it): acquisition -> processing -> server -> socket write -> client wake.
 CPU: utime+stime of the gravcald process (not the emulator) over the run, % of one core.
@@ -34,7 +35,7 @@ import time
 
 import numpy as np
 
-TICK_HZ = 1_000_000  # drivers.codec.TICK_HZ (device ticks at --speed 1)
+TICK_HZ = 1_000_000  # drivers.codec.TICK_HZ (device ticks at --speed 1, every scenario)
 
 
 def _cpu_s(pid: int) -> float:
@@ -63,7 +64,7 @@ def latency(args) -> dict:
 
     tmp = tempfile.mkdtemp(prefix="bench-daemon-")
     sock = os.path.join(tmp, "g.sock")
-    opts = ["--driver-options", f"batch_frames={args.batch_frames}"]
+    opts = ["--driver-options", f"latency_budget_s={args.latency_budget_s}"]
     cmd = [sys.executable, "-m", "gravcal.daemon.gravcald", "--emulate", "--bus", "serial", "--fs", "200",
            "--speed", "1", "--scenario", "six_position", "--duration", str(args.seconds + 120), "--socket", sock,
            "--state-dir", os.path.join(tmp, "state"), "--log-level", "warning", *opts]
@@ -117,7 +118,7 @@ def latency(args) -> dict:
     key = np.round((a[:, 1] - a[:, 2] / TICK_HZ) * 1e7)
     newest = np.r_[key[1:] != key[:-1], True]
     lat_read = lat_all[newest]
-    print(f"gravcald --emulate --bus serial --fs 200 --speed 1, batch_frames={args.batch_frames}, {args.clients} "
+    print(f"gravcald --emulate --bus serial --fs 200 --speed 1, latency_budget_s={args.latency_budget_s}, {args.clients} "
           f"client(s): {a.shape[0]} samples in {wall:.1f} s ({a.shape[0] / wall:.1f}/s), {int(newest.sum())} driver reads")
     for name, x in (("wire -> client (all samples)", lat_all), ("read -> client (newest of each read)", lat_read)):
         print(f"  latency {name:38s} p50 {np.percentile(x, 50):7.2f} ms  p99 {np.percentile(x, 99):7.2f} ms  "
@@ -126,7 +127,7 @@ def latency(args) -> dict:
           f"({args.clients} client(s) watching {'every sample' if args.watch_rate == 0 else f'at {args.watch_rate:g} Hz'}, raw fields)")
     pct = lambda x, q: float(np.percentile(x, q))  # noqa: E731
     return {"what": "latency", "fs_hz": 200.0, "bus": "serial (pty emulator, --speed 1)", "clients": args.clients,
-            "batch_frames": args.batch_frames, "watch_rate_hz": args.watch_rate, "seconds": wall,
+            "latency_budget_s": args.latency_budget_s, "watch_rate_hz": args.watch_rate, "seconds": wall,
             "samples": int(a.shape[0]), "samples_per_s": a.shape[0] / wall, "driver_reads": int(newest.sum()),
             "wire_to_client_ms": {"p50": pct(lat_all, 50), "p99": pct(lat_all, 99), "max": float(lat_all.max())},
             "read_to_client_ms": {"p50": pct(lat_read, 50), "p99": pct(lat_read, 99), "max": float(lat_read.max())},
@@ -207,7 +208,7 @@ def main(argv=None) -> int:
     sub = ap.add_subparsers(dest="what", required=True)
     lat = sub.add_parser("latency")
     lat.add_argument("--seconds", type=float, default=60.0)
-    lat.add_argument("--batch-frames", type=int, default=16)
+    lat.add_argument("--latency-budget-s", type=float, default=0.0, help="the serial driver's latency budget [s]")
     lat.add_argument("--watch-rate", type=float, default=0.0,
                      help="the client's ?WATCH rate [Hz] (0: every sample; 10: like `gravcal watch`, for the CPU figure)")
     lat.add_argument("--clients", type=int, default=1, help="clients connected, all watching every sample (default 1)")

@@ -51,6 +51,10 @@ class DeviceConfig:
     fs_hz: float = field(default=200.0, metadata=_meta("nominal sample rate [Hz]", positive=True))
     read_block: int = field(default=256, metadata=_meta("max samples per driver read", positive=True))
     read_timeout_s: float = field(default=0.1, metadata=_meta("driver read timeout [s]", positive=True))
+    latency_budget_s: float = field(default=0.0, metadata=_meta(
+        "longest a sample may wait in the driver so that later ones are published with it [s] (0: each sample as "
+        "soon as it arrives; e.g. 0.005 at 800 Hz wakes once per 4 samples); I2C sets its FIFO watermark from it",
+        min=0.0))
     ring_capacity: int = field(default=65536, metadata=_meta("ring buffer between acquisition and processing [samples]", positive=True))
 
 

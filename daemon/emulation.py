@@ -15,6 +15,10 @@ from ..drivers.rigs.hil import EmulatorProcess
 
 log = logging.getLogger("gravcal.gravcald")
 
+# A time-lapse feeds the daemon `speed` times its real rate; latency is not what it exercises, and a wake-up per
+# sample at thousands of samples per second would outrun a loaded host. Frames are then read in groups of this.
+TIME_LAPSE_LATENCY_BUDGET_S = 0.02
+
 
 def emulated_truth(scenario: str, seed: int) -> Calibration | None:
     """The calibration an ideal estimator should find for the emulator's sensor (raw = K a + o,
@@ -62,11 +66,13 @@ class EmulatedBus:
 
         return TICK_HZ * self.speed if math.isfinite(self.speed) else 0.0  # 0: stamp blocks at reception
 
-    def open(self) -> Any:
-        """Start the emulator and return the opened driver."""
+    def open(self, *, latency_budget_s: float = 0.0) -> Any:
+        """Start the emulator and return the opened driver (``latency_budget_s``: the driver's)."""
         self.truth = emulated_truth(self.scenario, self.seed)
+        if self.speed > 1:
+            latency_budget_s = max(latency_budget_s, TIME_LAPSE_LATENCY_BUDGET_S)
         if self.bus == "i2c":
-            return self._open_i2c()
+            return self._open_i2c(latency_budget_s)
         from ..drivers.base import open_driver
 
         args = ["--bus", self.bus, "--scenario", self.scenario, "--seed", str(self.seed),
@@ -85,11 +91,14 @@ class EmulatedBus:
         self.spec = proc.spec + ("&" if "?" in proc.spec else "?") + f"tick_hz={self._tick_hz():.0f}"
         if self.driver_options:
             self.spec += "&" + self.driver_options
-        return open_driver(self.spec)
+        driver = open_driver(self.spec, open=False)
+        if "latency_budget_s=" not in self.driver_options:
+            driver.latency_budget_s = latency_budget_s
+        return driver.open()
 
-    def _open_i2c(self) -> Any:
+    def _open_i2c(self, latency_budget_s: float) -> Any:
         from ..drivers.rigs.emulator import Faults
-        from ..drivers.rigs.fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec
+        from ..drivers.rigs.fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec, realtime_options
         from ..drivers.rigs.sources import scenario_source
 
         speed = self.speed if math.isfinite(self.speed) else 100.0  # a FIFO fills at a finite pace
@@ -97,8 +106,9 @@ class EmulatedBus:
         depth = 255  # the deepest FIFO the register map allows: room for the host's scheduling jitter
         self.device = device = FakeI2CDevice(source.blocks, source.fs, speed=speed, fifo_depth=depth,
                                              faults=Faults(disconnects=self.disconnects, seed=self.seed))
-        poll_s = max(0.001, depth / (source.fs * speed) / 4)  # a quarter of the FIFO's fill time
-        driver = FakeI2CDriver(device, poll_s=poll_s, tick_hz=self._tick_hz())
+        # the device samples in real time and raises DRDY; the driver sleeps on that line
+        driver = FakeI2CDriver(device, tick_hz=self._tick_hz(), latency_budget_s=latency_budget_s,
+                               **realtime_options(device))
         self.spec = fake_i2c_spec(device, scenario=self.scenario, seed=self.seed, fs=self.fs)
         return driver.open()
 

@@ -62,8 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="emulated stream length [s of sensor time] (default 86400, a day; the motion is planned "
                         "ahead, so longer takes longer to start); then the bus goes silent")
     e.add_argument("--driver-options", default="", metavar="K=V&...",
-                   help="serial/can: extra options for the driver's spec, e.g. batch_frames=1 (serial: a wake-up per "
-                        "frame, lowest latency, more CPU; default 16 frames per wake-up)")
+                   help="serial/can: extra options for the driver's spec, e.g. latency_budget_s=0.02 (frames "
+                        "arriving within 20 ms go out together: fewer wake-ups, more latency; default 0)")
     e.add_argument("--disconnect-at", type=disconnect_arg, action="append", default=[], metavar="T:DUR",
                    help="unplug the emulated device at sensor time T for DUR seconds (repeatable)")
     return p

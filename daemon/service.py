@@ -47,7 +47,7 @@ ANALYSIS_BLOCK_S = 0.05  # samples collected before the detector and estimator r
 
 # Settings that only take effect at start (SIGHUP says so instead of half-applying them).
 RESTART_KEYS = {
-    "device": ("spec", "fs_hz", "ring_capacity"),
+    "device": ("spec", "fs_hz", "ring_capacity", "latency_budget_s"),
     "estimator": ("model", "extended_terms"),
     "socket": ("path", "mode", "group", "activation_name"),
     "state": ("directory", "lab_calibration"),
@@ -137,13 +137,16 @@ class Gravcald:
     def _open_driver(self) -> Any:
         if self._driver is not None:
             return self._driver
+        budget = self.cfg.device.latency_budget_s
         if self.emulator is not None:
-            driver = self.emulator.open()
+            driver = self.emulator.open(latency_budget_s=budget)
             self.cfg.device.spec = self.overrides["device.spec"] = self.emulator.spec  # SIGHUP keeps it
             return driver
         from ..drivers.base import open_driver  # lazy: the drivers are a separate layer
 
-        return open_driver(self.cfg.device.spec)  # opened; DriverError names a missing device / group
+        driver = open_driver(self.cfg.device.spec, open=False)
+        driver.latency_budget_s = budget
+        return driver.open()  # DriverError names a missing device / group
 
     def start(self) -> None:
         self.server = self._open_server()  # first: a socket in use fails fast, before any numerics load

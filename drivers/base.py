@@ -14,9 +14,10 @@ production install nothing and the real drivers never import the rigs.
 
 ``read`` never raises for transient bus trouble (a cable pulled, a bus-off, a NACK): the
 driver counts it, reopens the device with exponential backoff inside later ``read`` calls,
-and flags the first sample after the outage with FLAG_RECONNECT (and FLAG_GAP_BEFORE from the
-sequence counter). Only ``open`` raises :class:`DriverError`, with a message naming the
-problem (missing device, missing group membership, wrong device at the address).
+and flags the first sample produced after the outage with FLAG_RECONNECT (and FLAG_GAP_BEFORE
+from the sequence counter; samples a device FIFO held from before the outage come first,
+unflagged). Only ``open`` raises :class:`DriverError`, with a message naming the problem
+(missing device, missing group membership, wrong device at the address).
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ from urllib.parse import parse_qsl
 
 import numpy as np
 
-from ..core.samples import FLAG_RECONNECT, SAMPLE_DTYPE
+from ..core.samples import FLAG_GAP_BEFORE, FLAG_RECONNECT, SAMPLE_DTYPE
 from .codec import TICK_HZ
 
 log = logging.getLogger(__name__)
@@ -102,8 +103,14 @@ class Driver(ABC):
         self._closing = threading.Event()
         self._pending = np.zeros(0, dtype=SAMPLE_DTYPE)
         self._flag_reconnect = False
+        self._held_left = 0
         self._lost_at: float | None = None
         self._rate = _RateEstimate()
+        self._last_t = -np.inf  # host time of the newest sample stamped
+        # The longest a sample may wait in the driver so later ones go out with it [s]; 0: each
+        # sample is returned as soon as it has arrived (set before open(): I2C derives its FIFO
+        # watermark from it).
+        self.latency_budget_s = 0.0
         self.counters: dict[str, Any] = {
             "samples": 0,
             "disconnects": 0,
@@ -170,8 +177,7 @@ class Driver(ABC):
             if block.shape[0]:
                 self._stamp(block, time.monotonic())
                 if self._flag_reconnect:
-                    block["flags"][0] |= FLAG_RECONNECT
-                    self._flag_reconnect = False
+                    self._mark_reconnect(block)
                 self._pending = block
                 return self._take(max_samples)
             if time.monotonic() >= deadline:
@@ -213,6 +219,25 @@ class Driver(ABC):
         self.counters["samples"] += out.shape[0]
         return out
 
+    def _mark_reconnect(self, block: np.ndarray) -> None:
+        """FLAG_RECONNECT on the first sample produced after the outage: after the samples a device
+        FIFO still held from before it (``_held_at_reconnect``), at the first sequence gap among them."""
+        held = self._held_left
+        gaps = np.flatnonzero(block["flags"][: held + 1] & FLAG_GAP_BEFORE)
+        if gaps.shape[0]:
+            i = int(gaps[0])
+        elif block.shape[0] > held:
+            i = held
+        else:  # all of it held from before the outage
+            self._held_left -= block.shape[0]
+            return
+        block["flags"][i] |= FLAG_RECONNECT
+        self._flag_reconnect = False
+
+    def _held_at_reconnect(self) -> int:
+        """Samples the device may still hold from before an outage (a FIFO's count at reconnect)."""
+        return 0
+
     def _lost(self, exc: BaseException) -> None:
         self.counters["disconnects"] += 1
         self.counters["last_error"] = f"{type(exc).__name__}: {exc}"
@@ -248,24 +273,35 @@ class Driver(ABC):
             self._connected = True
             self.counters["reconnects"] += 1
             self._flag_reconnect = True
+            self._held_left = self._held_at_reconnect()
             self.backoff.reset()
             self._after_reconnect()
             unwrapper = self._unwrapper()
             rate = self._rate.rate_hz
-            if unwrapper is not None and rate and self._lost_at is not None:
-                unwrapper.expect_advance((time.monotonic() - self._lost_at) * rate)
+            if unwrapper is not None:  # what the host clock says went by (None: unknown yet)
+                known = rate and self._lost_at is not None
+                unwrapper.expect_advance((time.monotonic() - self._lost_at) * rate if known else None)
             log.info("%s %s reconnected", self.bus, self.description)
             return True
         return False
 
     def _stamp(self, block: np.ndarray, t_recv: float) -> None:
-        """Host time [s, time.monotonic]: the newest sample at reception, earlier ones by tick."""
+        """Host time [s, time.monotonic]: the newest sample at reception, earlier ones by tick,
+        never before a sample stamped earlier (reception jitter, a device reset or a wrong tick
+        rate must not make ``t`` run backwards)."""
+        if block.shape[0] == 1:  # the event-driven common case, without array arithmetic
+            self._last_t = block["t"][0] = max(t_recv, self._last_t)
+            self._rate.update(block, t_recv)
+            return
         if self.tick_hz:
             back = (int(block["tick"][-1]) - block["tick"].astype(np.int64)) & 0xFFFFFFFF
             back = np.where(back > 0x7FFFFFFF, 0, back)  # ticks going backwards: device reset
-            block["t"] = t_recv - back / float(self.tick_hz)
+            t = t_recv - back / float(self.tick_hz)
         else:
-            block["t"] = t_recv
+            t = np.full(block.shape[0], t_recv)
+        t[0] = max(t[0], self._last_t)
+        block["t"] = np.maximum.accumulate(t)
+        self._last_t = float(block["t"][-1])
         self._rate.update(block, t_recv)
 
 

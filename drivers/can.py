@@ -17,15 +17,15 @@ when some are lost. Missing frames:
 - CHIP_A / CHIP_B / HOUSEKEEPING lost: the sample is delivered with FLAG_PARTIAL; the missing
   T1/T2 are 0 (so ``duty_ratios`` gives NaN) and a missing temp/vsupply is NaN.
 
-Any python-can interface works: ``socketcan`` on real hardware, ``slcan`` for USB-serial
-adapters (also over the emulator's pty), ``virtual`` in-process. The bit errors of a real bus
+Any python-can interface works: ``socketcan`` on real hardware (the production path), ``slcan``
+for USB-serial adapters (also over the emulator's pty; served by drivers/slcan.py, python-can's
+slcan bus with a burst read path), ``virtual`` in-process. The bit errors of a real bus
 never reach the host (the controller's CRC rejects the frame), so only whole frames go missing.
 """
 from __future__ import annotations
 
 import errno
 import os
-import re
 import struct
 import time
 from typing import Any
@@ -36,6 +36,7 @@ import serial
 
 from ..core.samples import FLAG_GAP_BEFORE, FLAG_PARTIAL, SAMPLE_DTYPE
 from .base import PERMISSION_ERRNOS, Backoff, Driver, DriverError, DriverSpec, permission_hint, take_options
+from .slcan import BufferedSlcanBus
 from .codec import (
     ADC_MISSING,
     TICK_HZ,
@@ -157,6 +158,11 @@ class SampleAssembler(can.Listener):
                 self.counters["partial"] += 1
             self._ready.append((p[0], p[1], p[2], p[3:7], p[7:9], p[9], p[10], p[11]))
 
+    @property
+    def ready(self) -> bool:
+        """Some sample is assembled and waiting for ``take()``."""
+        return bool(self._ready)
+
     def take(self) -> np.ndarray:
         """Assembled records so far (raw fields + ``present`` bit mask), oldest first."""
         out = np.array(self._ready, dtype=_RECORD) if self._ready else np.zeros(0, _RECORD)
@@ -175,7 +181,7 @@ def records_to_samples(rec: np.ndarray, unwrapper: SeqUnwrapper) -> np.ndarray:
     out["temp"] = temp_from_raw(rec["temp_raw"])
     out["vsupply"] = vsupply_from_raw(rec["vsupply_raw"])
     out["flags"][rec["present"] != _ALL] |= FLAG_PARTIAL
-    keep, seq, gap = unwrapper.unwrap(rec["seq"])
+    keep, seq, gap = unwrapper.unwrap(rec["seq"], rec["tick"])
     out = out[keep]
     out["seq"] = seq
     out["flags"][gap] |= FLAG_GAP_BEFORE
@@ -196,11 +202,15 @@ class CanDriver(Driver):
         bitrate: int | None = None,
         base_id: int = DEFAULT_BASE_ID,
         partial_timeout: float = 0.05,
+        latency_budget_s: float = 0.0,
         tick_hz: float | None = TICK_HZ,
         backoff: Backoff | None = None,
         **bus_kwargs: Any,
     ):
         super().__init__(tick_hz=tick_hz, backoff=backoff)
+        if not latency_budget_s >= 0:
+            raise DriverError(f"latency_budget_s must be >= 0, got {latency_budget_s}")
+        self.latency_budget_s = float(latency_budget_s)
         if not interface or not channel:
             raise DriverError("CAN driver needs an interface and a channel, e.g. can://socketcan/can0")
         if not 0 <= base_id <= 0x7FF - 3:
@@ -212,7 +222,8 @@ class CanDriver(Driver):
         self.bus_kwargs = bus_kwargs
         if interface == "slcan":
             # python-can sleeps 2 s after opening for Arduino-style resets; USB adapters and the
-            # emulator's pty need none. Its serial read timeout sets recv's polling granularity.
+            # emulator's pty need none. Reads wait on the port's descriptor (drivers/slcan.py); the
+            # serial timeout only paces ports without one (pyserial URLs).
             self.bus_kwargs.setdefault("sleep_after_open", 0.0)
             self.bus_kwargs.setdefault("timeout", 0.01)
         self.assembler = SampleAssembler(base_id, partial_timeout=partial_timeout)
@@ -224,7 +235,7 @@ class CanDriver(Driver):
     def from_spec(cls, spec: DriverSpec) -> "CanDriver":
         opts = take_options(
             spec,
-            {"bitrate": int, "base_id": lambda v: int(v, 0), "partial_timeout": float,
+            {"bitrate": int, "base_id": lambda v: int(v, 0), "partial_timeout": float, "latency_budget_s": float,
              "tick_hz": float, "tty_baudrate": int, "sleep_after_open": float, "timeout": float},
         )
         interface = spec.host
@@ -243,16 +254,12 @@ class CanDriver(Driver):
         if self.bitrate is not None:
             kwargs["bitrate"] = self.bitrate
         try:
-            bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
+            if self.interface == "slcan":  # python-can's slcan with a read path that does not cost a call per byte
+                bus = BufferedSlcanBus(channel=self.channel, **kwargs)
+            else:
+                bus = can.Bus(interface=self.interface, channel=self.channel, **kwargs)
         except (can.CanError, OSError, serial.SerialException, ValueError) as exc:
             raise _open_error(self.interface, self.channel, exc) from None
-        port = getattr(bus, "serialPortOrig", None)
-        if port is not None:  # slcan: python-can reads its port one byte per call
-            bus.serialPortOrig = buffered = _BufferedPort(port)
-            if callable(getattr(bus, "_read", None)):
-                # ... and assembles each line in a Python loop per byte: most of the daemon's CPU
-                # at 200 Hz, and the lag that loses what the adapter still holds at an unplug.
-                bus._read = buffered.read_line
         try:
             bus.set_filters([{"can_id": self.base_id, "can_mask": 0x7FC, "extended": False}])
         except (can.CanError, NotImplementedError):
@@ -280,6 +287,7 @@ class CanDriver(Driver):
     def _codec_stats(self):
         out = dict(self.assembler.counters)
         out.update(frames=out["can_frames"], gaps=self.unwrapper.gaps, missing=self.unwrapper.missing,
+                   restarts=self.unwrapper.restarts,
                    duplicates=self.unwrapper.duplicates, strays=self.unwrapper.strays)
         return out
 
@@ -301,9 +309,13 @@ class CanDriver(Driver):
         msg = self._recv(max(0.0, deadline - time.monotonic()))
         if msg is not None:
             asm.on_message_received(msg)
+            hold = time.monotonic() + self.latency_budget_s  # frames within the budget go out together
+            buffered = getattr(self._bus, "has_buffered_line", None)
             try:
                 for _ in range(4096):  # drain what is already there, bounded
-                    msg = self._recv(0.0)
+                    if asm.ready and time.monotonic() >= hold and buffered is not None and not buffered():
+                        break  # a sample is complete: publish it rather than read on while more arrives
+                    msg = self._recv(max(0.0, hold - time.monotonic()))
                     if msg is None:
                         break
                     asm.on_message_received(msg)
@@ -314,60 +326,6 @@ class CanDriver(Driver):
         asm.poll()
         rec = asm.take()
         return records_to_samples(rec, self.unwrapper)
-
-
-_SLCAN_LINE_END = re.compile(b"[\r\a]")  # CR ends a line, BELL is an error reply
-
-
-class _BufferedPort:
-    """Wraps the pyserial port of python-can's slcan bus so its byte-at-a-time ``read(1)``
-    is served from memory: one system call per burst instead of one per byte (the slcan
-    driver's CPU drops several-fold at 200 Hz), and ``read_line`` stands in for the bus's
-    per-byte line assembly. Everything else is delegated."""
-
-    def __init__(self, port):
-        self._port = port
-        self._buf = bytearray()
-
-    @property
-    def in_waiting(self) -> int:
-        return len(self._buf) + self._port.in_waiting
-
-    def read_line(self, timeout: float | None) -> str | None:
-        """python-can ``slcanBus._read``: the next line including its CR (or BELL), or None once
-        ``timeout`` [s] (None: forever) passed. Non-ASCII bytes raise UnicodeDecodeError (a
-        ValueError) after the line is consumed, like python-can's own reader."""
-        end = None if timeout is None else time.monotonic() + timeout
-        while True:
-            m = _SLCAN_LINE_END.search(self._buf)
-            if m is not None:
-                line = bytes(self._buf[: m.end()])
-                del self._buf[: m.end()]
-                return line.decode("ascii")
-            # blocks at most the port's read timeout when nothing is waiting
-            self._buf += self._port.read(max(1, self._port.in_waiting))
-            if end is not None and time.monotonic() >= end and _SLCAN_LINE_END.search(self._buf) is None:
-                return None
-
-    def read(self, size: int = 1) -> bytes:
-        if not self._buf:
-            self._buf += self._port.read(max(size, self._port.in_waiting))
-        out = bytes(self._buf[:size])
-        del self._buf[:size]
-        return out
-
-    def reset_input_buffer(self) -> None:
-        self._buf.clear()
-        self._port.reset_input_buffer()
-
-    def __getattr__(self, name):
-        return getattr(self._port, name)
-
-    def __setattr__(self, name, value):
-        if name in ("_port", "_buf"):
-            object.__setattr__(self, name, value)
-        else:
-            setattr(self._port, name, value)
 
 
 def _check_device_path(path: str) -> None:

@@ -25,6 +25,7 @@ the next byte, so garbage, bit errors and truncated frames never hide the next g
 from __future__ import annotations
 
 import binascii
+import math
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -149,8 +150,19 @@ def encode_frames(samples: np.ndarray) -> bytes:
     return to_wire(samples).tobytes()
 
 
+def _volts(code: int) -> float:
+    """_adc_volts for one code, the same float64 operations in Python."""
+    return code * (ADC_VREF_V / (1 << ADC_BITS)) if code <= ADC_FULL_SCALE else math.nan
+
+
 def wire_to_samples(rec: np.ndarray) -> np.ndarray:
     """SAMPLE_DTYPE block from wire records: seq is the raw 16-bit counter, t is NaN, flags 0."""
+    if rec.shape[0] == 1:  # one frame per wake-up is the common case: one record assignment, no array passes
+        _, _, seq, tick, t1, t2, gyro, temp_raw, vsupply_raw, _ = rec[0].item()
+        out = np.zeros(1, dtype=SAMPLE_DTYPE)
+        out[0] = (math.nan, seq, tick, t1, t2, gyro, (_volts(temp_raw) - TEMP_OFFSET_V) / TEMP_SLOPE_V_PER_C,
+                  _volts(vsupply_raw) * VSUPPLY_DIVIDER, 0)
+        return out
     out = np.zeros(rec.shape[0], dtype=SAMPLE_DTYPE)
     out["t"] = np.nan
     out["seq"] = rec["seq"]
@@ -270,7 +282,8 @@ class SeqUnwrapper:
          (the jump was a stray, e.g. two that continued each other), delivered at once;
          believed after R in a row, which takes the jump back (its frames were strays);
        - *held*: anywhere else behind the head (an old frame), held back; R in a row are
-         believed: the device restarted its counter (one gap).
+         believed: the device restarted its counter (one gap of the samples since the restart,
+         not of a 16-bit wrap; the output seq continues after them, ``restarts`` counts it).
 
     A stray found in the read it came with is removed from it; one delivered with an earlier
     read is counted in ``strays_delivered``. Unwrapped values start at the raw value of the
@@ -298,26 +311,83 @@ class SeqUnwrapper:
         self.duplicates = 0
         self.strays = 0  # frames dropped as strays, or found to be strays after delivery
         self.strays_delivered = 0  # of which already delivered with an earlier read
+        self.restarts = 0  # the device's counter started again from 0 (its missed samples are in `missing`)
+        self.offset = 0  # output seq - internal value: restarts keep the output continuous
+        self._after_outage = False
+        self._tick_period: float | None = None  # device ticks per sample
+        self._tick_last: int | None = None
 
-    def expect_advance(self, samples: float) -> None:
-        """Hint for the next step after an outage: about ``samples`` samples went by."""
-        self._expected = float(samples)
+    def expect_advance(self, samples: float | None) -> None:
+        """After an outage: about ``samples`` samples went by (None: unknown)."""
+        self._expected = None if samples is None else float(samples)
+        self._after_outage = True
 
-    def unwrap(self, seq_raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(keep mask, unwrapped seq of kept frames, gap-before flag of kept frames)."""
+    def unwrap(self, seq_raw: np.ndarray, ticks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(keep mask, unwrapped seq of kept frames, gap-before flag of kept frames); ``ticks`` (the
+        frames' device ticks) let a device restart behind an outage be told from a long loss."""
         s = np.asarray(seq_raw).astype(np.int64)
-        n = s.shape[0]
+        if s.shape[0] == 0:
+            return np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0, bool)
+        t = None if ticks is None else np.asarray(ticks).astype(np.int64)
         hint, self._expected = self._expected, None
+        after, self._after_outage = self._after_outage, False
+        restarted = after and t is not None and self._restarted(int(s[0]), int(t[0]), hint)
+        if restarted:
+            self._rebase(int(s[0]))
+        keep, seq, gap = self._unwrap(s, None if restarted else hint)
+        if restarted and keep[0] and s[0] > 0:
+            gap[0] = True
+        if t is not None:
+            self._learn_ticks(s, t, keep)
+        return keep, seq, gap
+
+    # -------------------------------------------------------- device restarts (sequence and tick from 0)
+    def _learn_ticks(self, s: np.ndarray, t: np.ndarray, keep: np.ndarray) -> None:
+        if s.shape[0] >= 2 and bool((((s[1:] - s[:-1]) & MAX_U16) == 1).all()):
+            self._tick_period = ((int(t[-1]) - int(t[0])) & 0xFFFFFFFF) / (s.shape[0] - 1)
+        kept = np.flatnonzero(keep)
+        if kept.shape[0]:
+            self._tick_last = int(t[kept[-1]])
+
+    def _restarted(self, raw: int, tick: int, hint: float | None) -> bool:
+        """The first frame after an outage is a restarted device's: its seq and tick both count from a
+        recent boot, and its tick does not continue the stream's (by seq, and by the host's clock)."""
+        tp, last_tick = self._tick_period, self._tick_last
+        if self.last is None or not tp or last_tick is None:
+            return False
+        if abs(tick / tp - raw) > 2 + 0.01 * raw:  # not both counting from a boot
+            return False
+        advance = ((tick - last_tick) & 0xFFFFFFFF) / tp  # samples elapsed if the device ran on
+        step = (raw - self.last) & MAX_U16
+        k = max(0, round((advance - step) / 65536.0))
+        if abs(advance - step - 65536 * k) > 2 + 1e-3 * advance:  # one crystal paces ticks and samples
+            return True
+        # ticks that continue by coincidence (a short session before and after): fewer samples than the
+        # host saw go by between noticing the outage and reopening (which lies inside the true interval)
+        return hint is not None and advance < 0.5 * hint - 50
+
+    def _rebase(self, raw: int) -> None:
+        """A restart: ``raw`` samples of the new session were missed; the output continues after them."""
+        step = (raw - self.last) & MAX_U16 or 65536
+        value = self.last + step  # the internal value of the frame (same residue mod 2**16)
+        self.offset += self.last + 1 + raw - value
+        self._head = self.last = value - 1  # the frame then continues the stream (rule 2)
+        self._pending, self._fallback, self._jumped = [], None, []
+        self.restarts += 1
+        if raw > 0:
+            self.gaps += 1
+            self.missing += raw
+
+    def _unwrap(self, s: np.ndarray, hint: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = s.shape[0]
         if hint is not None and self.last is None:
             hint = None  # nothing delivered yet: nothing to advance from
-        if n == 0:
-            return np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0, bool)
         # Fast path, the common case: no open question and a block that continues itself.
         if not self._pending and bool((((s[1:] - s[:-1]) & MAX_U16) == 1).all()):
             if self._head is None and n >= 2:  # a first read: rule 3 at start-up
                 seq = int(s[0]) + np.arange(n, dtype=np.int64)
                 self._head = self.last = int(seq[-1])
-                return np.ones(n, bool), seq, np.zeros(n, bool)
+                return np.ones(n, bool), seq + self.offset, np.zeros(n, bool)
             if self._head is not None:
                 step = (int(s[0]) - self._head) & MAX_U16
                 if hint is not None:
@@ -331,7 +401,7 @@ class SeqUnwrapper:
                     jump = n == 1 and step > 1 and hint is None
                     self._fallback, self._jumped = (self._head, [[-1, step - 1]]) if jump else (None, [])
                     self._head = self.last = int(seq[-1])
-                    return np.ones(n, bool), seq, gap
+                    return np.ones(n, bool), seq + self.offset, gap
         return self._unwrap_frames(s.tolist(), hint)
 
     # -------------------------------------------------------- frame by frame: the rules
@@ -422,11 +492,14 @@ class SeqUnwrapper:
             self._drop_pending()
             self._fallback, self._jumped = None, []
             self._believe(i, p.value, d - 1)
-        elif p.kind == _Pending.HELD:  # the counter restarted: the held-back frames are in its gap
+        elif p.kind == _Pending.HELD:  # the counter restarted from 0: the held-back frames are in its gap
             self.strays -= p.run - 1
             self._drop_pending()
             self._fallback, self._jumped = None, []
-            self._believe(i, p.value, p.value - head - 1)
+            raw = p.value & MAX_U16  # samples since the restart not delivered (not a wrap's 2**16)
+            self.offset += self.last + 1 + raw - p.value
+            self.restarts += 1
+            self._believe(i, p.value, raw)
         else:  # a long loss (or the start): can still be taken back while nothing follows it
             self._drop_pending()
             if head is not None:
@@ -441,7 +514,7 @@ class SeqUnwrapper:
         self._deliver(i, value, missing)
 
     def _deliver(self, i: int, value: int, missing: int, gap: bool | None = None) -> None:
-        self._keep[i], self._seq[i] = True, value
+        self._keep[i], self._seq[i] = True, value + self.offset
         self._gap[i] = missing > 0 if gap is None else gap
         if missing > 0:
             self.gaps += 1
@@ -507,7 +580,7 @@ class FrameDecoder:
         if ngood == 0:
             return np.zeros(0, dtype=SAMPLE_DTYPE)
         samples = wire_to_samples(gather(buf, res.starts))
-        keep, seq, gap = self.unwrapper.unwrap(samples["seq"])
+        keep, seq, gap = self.unwrapper.unwrap(samples["seq"], samples["tick"])
         samples = samples[keep]
         samples["seq"] = seq
         samples["flags"][gap] |= FLAG_GAP_BEFORE
@@ -524,4 +597,4 @@ class FrameDecoder:
         u = self.unwrapper
         st.gaps, st.missing, st.duplicates, st.strays, st.strays_delivered = (
             u.gaps, u.missing, u.duplicates, u.strays, u.strays_delivered)
-        return st.as_dict()
+        return {**st.as_dict(), "restarts": u.restarts}

@@ -11,17 +11,23 @@ Register map (8-bit registers; multi-byte reads auto-increment, except FIFO_DATA
     0x04 FIFO_DEPTH  r   FIFO capacity in frames (32 on the logger)
     0x05 ODR         rw  output data rate code: rate = 25 Hz * 2**code (0..5: 25..800 Hz)
     0x06 CTRL        rw  bit0 FIFO_RESET (self-clearing), bit1 ENABLE
+    0x07 WATERMARK   rw  the DRDY output is high while FIFO_COUNT >= WATERMARK (1..FIFO_DEPTH; 1 at reset)
     0x10 FIFO_DATA   r   burst read: whole frames, oldest first; bytes past the FIFO's
                          content read as 0x00
 
 When the FIFO is full the newest sample is discarded (the FIFO content stays contiguous), so
 an overflow always shows as a sequence gap right after the entries that were in the FIFO.
-The driver polls STATUS+FIFO_COUNT in one two-byte read and drains the FIFO with
-``i2c_rdwr`` bursts of up to ``burst_frames`` frames.
+With the DRDY line wired to a GPIO (``drdy=/sys/class/gpio/gpioN/value``, edge "rising"), the
+driver sleeps on the line and wakes when the FIFO reaches the watermark (set from the latency
+budget: 1 sample by default, so each sample is read as soon as it is in the FIFO). Without it,
+the driver polls STATUS+FIFO_COUNT (one two-byte read) every ``poll_s``. Either way it drains
+the FIFO with ``i2c_rdwr`` bursts of up to ``burst_frames`` frames.
 """
 from __future__ import annotations
 
 import errno
+import os
+import select
 import time
 from typing import Any, Callable
 
@@ -43,6 +49,7 @@ REG_FIFO_COUNT = 0x03
 REG_FIFO_DEPTH = 0x04
 REG_ODR = 0x05
 REG_CTRL = 0x06
+REG_WATERMARK = 0x07
 REG_FIFO_DATA = 0x10
 
 STATUS_DATA_READY = 1 << 0
@@ -62,6 +69,8 @@ def odr_code(rate_hz: float) -> int:
             return code
     raise ValueError(f"output rate {rate_hz} Hz not supported; choose one of {sorted(ODR_CODES.values())}")
 
+
+DRDY_RECHECK_S = 0.1  # with a DRDY line, STATUS is still read this often (a missed edge costs no more)
 
 _NACK_ERRNOS = (errno.ENXIO, errno.EREMOTEIO, errno.EIO, errno.ETIMEDOUT, errno.EAGAIN)
 
@@ -83,6 +92,8 @@ class I2CDriver(FramedStreamDriver):
         rate: float | None = None,
         burst_frames: int = 16,
         poll_s: float | None = None,
+        data_ready: Any = None,
+        latency_budget_s: float = 0.0,
         reset_fifo: bool = True,
         smbus_factory: Callable[[Any], Any] = SMBus,
         tick_hz: float | None = TICK_HZ,
@@ -101,17 +112,25 @@ class I2CDriver(FramedStreamDriver):
         self.rate = rate
         self.burst_frames = max(1, int(burst_frames))
         self.poll_s = poll_s
+        self.data_ready = data_ready  # the DRDY line: fileno() and wait(timeout) -> bool
+        if not latency_budget_s >= 0:
+            raise DriverError(f"latency_budget_s must be >= 0, got {latency_budget_s}")
+        self.latency_budget_s = float(latency_budget_s)
         self.reset_fifo = reset_fifo
         self.smbus_factory = smbus_factory
         self.decoder = FrameDecoder()
         self._smbus = None
         self._overflow_pending = False
+        self._fifo_at_connect = 0
         self._poll = 0.02
         self.counters.update(fifo_overflows=0, polls=0, bursts=0)
 
     @classmethod
     def from_spec(cls, spec: DriverSpec) -> "I2CDriver":
-        opts = take_options(spec, {"rate": float, "burst_frames": int, "poll_s": float, "tick_hz": float})
+        opts = take_options(spec, {"rate": float, "burst_frames": int, "poll_s": float, "tick_hz": float,
+                                   "latency_budget_s": float, "drdy": str})
+        if "drdy" in opts:
+            opts["data_ready"] = SysfsDataReady(opts.pop("drdy"))
         try:
             bus: int | str = int(spec.host)
         except ValueError:
@@ -156,8 +175,11 @@ class I2CDriver(FramedStreamDriver):
             if self.rate is not None:
                 sm.write_byte_data(self.address, REG_ODR, odr_code(self.rate))
             rate = ODR_CODES.get(sm.read_byte_data(self.address, REG_ODR) & 0x07, 200.0)
+            self.watermark = max(1, min(depth // 2 or 1, round(self.latency_budget_s * rate)))
+            sm.write_byte_data(self.address, REG_WATERMARK, self.watermark)
             ctrl = CTRL_ENABLE | (CTRL_FIFO_RESET if first and self.reset_fifo else 0)
             sm.write_byte_data(self.address, REG_CTRL, ctrl)
+            self._fifo_at_connect = sm.read_byte_data(self.address, REG_FIFO_COUNT)
         except OSError as exc:
             sm.close()
             if exc.errno in _NACK_ERRNOS:
@@ -166,9 +188,18 @@ class I2CDriver(FramedStreamDriver):
         except DriverError:
             sm.close()
             raise
-        # Poll at a quarter of the FIFO's fill time: it never overflows while read() is called.
-        self._poll = self.poll_s if self.poll_s else min(0.05, max(0.002, depth / rate / 4 if depth else 0.01))
+        # Without DRDY: poll every half sample period (or the latency budget), never slower than a
+        # quarter of the FIFO's fill time, so it never overflows while read() is called.
+        fill = depth / rate / 4 if depth else 0.01
+        # Retry a NACKing device well within the FIFO's fill time: a logger back from an outage keeps
+        # sampling, and a reconnect after a long backoff would find its FIFO overflowed.
+        self.backoff.maximum_s = min(self.backoff.maximum_s, max(0.005, fill))
+        self.backoff.initial_s = min(self.backoff.initial_s, self.backoff.maximum_s)
+        self._poll = self.poll_s if self.poll_s else max(0.001, min(fill, max(self.latency_budget_s, 0.5 / rate)))
         self._smbus = sm
+
+    def _held_at_reconnect(self) -> int:
+        return self._fifo_at_connect
 
     def _disconnect(self) -> None:
         sm, self._smbus = self._smbus, None
@@ -192,6 +223,8 @@ class I2CDriver(FramedStreamDriver):
 
     def _read_block(self, deadline: float) -> np.ndarray:
         while True:
+            if self.data_ready is not None:  # sleep until the FIFO reaches the watermark
+                self.data_ready.wait(max(0.0, min(deadline - time.monotonic(), DRDY_RECHECK_S)))
             status, count = self._status()
             if status & STATUS_FIFO_OVERFLOW:
                 self.counters["fifo_overflows"] += 1
@@ -199,7 +232,9 @@ class I2CDriver(FramedStreamDriver):
             if count:
                 break
             remaining = deadline - time.monotonic()
-            if remaining <= 0 or self._closing.wait(min(self._poll, remaining)):
+            if remaining <= 0 or self._closing.is_set():
+                return np.zeros(0, SAMPLE_DTYPE)
+            if self.data_ready is None and self._closing.wait(min(self._poll, remaining)):
                 return np.zeros(0, SAMPLE_DTYPE)
         blocks = []
         while count > 0:
@@ -213,3 +248,31 @@ class I2CDriver(FramedStreamDriver):
                 samples["flags"][gaps[0]] |= FLAG_FIFO_OVERFLOW
                 self._overflow_pending = False
         return samples
+
+
+class SysfsDataReady:
+    """The logger's DRDY output on a GPIO, through sysfs (``/sys/class/gpio/gpioN/value`` with its
+    ``edge`` set to "rising"): ``wait`` returns at once while the line is high, else at the next
+    edge or after ``timeout``."""
+
+    def __init__(self, path: str):
+        try:
+            self._fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+        except OSError as exc:
+            if exc.errno in PERMISSION_ERRNOS:
+                raise DriverError(permission_hint(path, "gpio")) from None
+            raise DriverError(f"cannot open the DRDY line {path}: {exc.strerror}") from None
+        self.path = path
+        self._poll = select.poll()
+        self._poll.register(self._fd, select.POLLPRI | select.POLLERR)
+
+    def fileno(self) -> int:
+        return self._fd
+
+    def wait(self, timeout: float) -> bool:
+        if os.pread(self._fd, 1, 0) == b"1":
+            return True
+        return bool(self._poll.poll(max(0.0, timeout) * 1000.0))
+
+    def close(self) -> None:
+        os.close(self._fd)

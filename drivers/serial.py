@@ -1,15 +1,17 @@
 """Serial driver (pyserial): the logger's frames over a USB-serial port or a UART.
 
 Opens a device path (``/dev/ttyUSB0``, a pty slave from ``gravcal emulate``) or any pyserial
-URL (``loop://``, ``spy://``, ``socket://``) via ``serial.serial_for_url``. Reads in batches
-(at least ``batch_frames`` frames per wake-up unless the timeout expires first) to keep CPU
-low at 200 Hz, and reopens the port by path after SerialException/OSError, so a USB cable
-pulled and plugged back in (or an emulator recreating its pty behind a stable symlink) is
-survived.
+URL (``loop://``, ``spy://``, ``socket://``) via ``serial.serial_for_url``. Wakes on data
+(select on the port's file descriptor) and returns everything that has arrived, so each frame
+is published as soon as it is decoded; ``latency_budget_s`` > 0 lets frames that arrive within
+that time after the first go out together (fewer wake-ups at high rates). It reopens the port
+by path after SerialException/OSError, so a USB cable pulled and plugged back in (or an
+emulator recreating its pty behind a stable symlink) is survived.
 """
 from __future__ import annotations
 
 import errno
+import select
 import time
 
 import numpy as np
@@ -17,7 +19,7 @@ import serial
 
 from ..core.samples import SAMPLE_DTYPE
 from .base import PERMISSION_ERRNOS, Backoff, DriverError, DriverSpec, FramedStreamDriver, permission_hint, take_options
-from .codec import FRAME_LEN, TICK_HZ, FrameDecoder
+from .codec import TICK_HZ, FrameDecoder
 
 DEFAULT_BAUDRATE = 460800
 
@@ -33,7 +35,7 @@ class SerialDriver(FramedStreamDriver):
         port: str,
         *,
         baudrate: int = DEFAULT_BAUDRATE,
-        batch_frames: int = 16,
+        latency_budget_s: float = 0.0,
         exclusive: bool = True,
         tick_hz: float | None = TICK_HZ,
         backoff: Backoff | None = None,
@@ -41,21 +43,22 @@ class SerialDriver(FramedStreamDriver):
         super().__init__(tick_hz=tick_hz, backoff=backoff)
         if not port:
             raise DriverError("serial driver needs a port, e.g. serial:///dev/ttyUSB0")
-        if batch_frames < 1:
-            raise ValueError(f"batch_frames must be >= 1, got {batch_frames}")
+        if not latency_budget_s >= 0:
+            raise DriverError(f"latency_budget_s must be >= 0, got {latency_budget_s}")
         self.port = port
         self.baudrate = int(baudrate)
-        self.batch_bytes = FRAME_LEN * int(batch_frames)
+        self.latency_budget_s = float(latency_budget_s)
         self.exclusive = exclusive
         self.decoder = FrameDecoder()
         self._ser: serial.SerialBase | None = None
+        self._fd: int | None = None
         self._timeout: float | None = None
 
     @classmethod
     def from_spec(cls, spec: DriverSpec) -> "SerialDriver":
         opts = take_options(
             spec,
-            {"baudrate": int, "batch_frames": int, "tick_hz": float, "exclusive": _boolean},
+            {"baudrate": int, "latency_budget_s": float, "tick_hz": float, "exclusive": _boolean},
         )
         # serial:///dev/ttyUSB0 -> /dev/ttyUSB0; serial:loop:// -> pyserial URL loop://
         port = f"{spec.host}{spec.path}" if spec.host else spec.path
@@ -76,6 +79,11 @@ class SerialDriver(FramedStreamDriver):
             raise _open_error(self.port, exc) from None
         except ValueError as exc:  # bad baudrate or URL
             raise DriverError(f"cannot open serial port {self.port}: {exc}") from None
+        try:
+            self._fd = ser.fileno()
+            ser.timeout = 0  # select() waits for the data; read() then takes what has arrived
+        except (AttributeError, OSError, serial.SerialException):  # io.UnsupportedOperation is an OSError
+            self._fd = None
         self._ser = ser
         self._timeout = 0.1
 
@@ -86,30 +94,28 @@ class SerialDriver(FramedStreamDriver):
 
 
     def _read_block(self, deadline: float) -> np.ndarray:
-        ser = self._ser
-        waiting = ser.in_waiting
-        if waiting < self.batch_bytes and deadline > time.monotonic():
-            # Let a batch accumulate instead of waking for every frame the port delivers:
-            # one wake-up per ~batch_frames samples keeps the driver's CPU low at 200 Hz.
-            self._closing.wait(min(deadline - time.monotonic(), self._batch_wait_s()))
-            waiting = ser.in_waiting
-        if waiting:
-            data = ser.read(waiting)
-        else:  # nothing yet: block until the first byte or the deadline (one wake-up)
-            remaining = max(0.0, deadline - time.monotonic())
-            if self._timeout is None or abs(self._timeout - remaining) > 0.002:
-                ser.timeout = remaining  # pyserial reconfigures the port; only when it changes
-                self._timeout = remaining
-            data = ser.read(1)
-            if data:
-                data += ser.read(ser.in_waiting)
-        if not data:
-            return np.zeros(0, dtype=SAMPLE_DTYPE)
+        ser, fd = self._ser, self._fd
+        if fd is None:  # a pyserial URL without a file descriptor (loop://, socket://)
+            return self._read_block_url(ser, deadline)
+        if not ser.in_waiting:  # wake on data: the frame's bytes, not a timer
+            if not select.select([fd], [], [], max(0.0, deadline - time.monotonic()))[0]:
+                return np.zeros(0, dtype=SAMPLE_DTYPE)
+        data = ser.read(max(1, ser.in_waiting))  # everything that has arrived (timeout 0: never blocks)
+        if self.latency_budget_s > 0:  # frames arriving within the budget go out together
+            hold = time.monotonic() + self.latency_budget_s
+            while (left := hold - time.monotonic()) > 0 and select.select([fd], [], [], left)[0]:
+                data += ser.read(max(1, ser.in_waiting))
         return self.decoder.feed(data)
 
-    def _batch_wait_s(self) -> float:
-        rate = self._rate.rate_hz
-        return min(0.1, max(0.002, self.batch_bytes / FRAME_LEN / rate)) if rate else 0.02
+    def _read_block_url(self, ser, deadline: float) -> np.ndarray:
+        remaining = max(0.0, deadline - time.monotonic())
+        if self._timeout is None or abs(self._timeout - remaining) > 0.002:
+            ser.timeout = remaining  # pyserial reconfigures the port; only when it changes
+            self._timeout = remaining
+        data = ser.read(max(1, ser.in_waiting))
+        if data and ser.in_waiting:
+            data += ser.read(ser.in_waiting)
+        return self.decoder.feed(data) if data else np.zeros(0, dtype=SAMPLE_DTYPE)
 
 
 def _open_error(port: str, exc: serial.SerialException) -> DriverError:

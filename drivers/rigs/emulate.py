@@ -26,7 +26,7 @@ import numpy as np
 
 from .can_links import SlcanPtyLink
 from .emulator import Emulator, Faults, PtyLink, SentLog
-from .fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec
+from .fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec, realtime_options
 from .options import disconnect_arg, positive_arg, probability_arg, speed_arg
 from .sources import replay_source, scenario_source
 
@@ -107,9 +107,7 @@ def _run_i2c(args, source, faults, sent_log, stop) -> int:
     device = FakeI2CDevice(source.blocks, source.fs, speed=speed, fifo_depth=args.fifo_depth, faults=faults,
                            log=sent_log)
     _say(fake_i2c_spec(device, scenario=args.scenario, seed=args.seed, fs=source.fs))
-    # Poll at a quarter of the FIFO's fill time in wall seconds (the time-lapse shortens it).
-    poll_s = max(0.001, args.fifo_depth / (source.fs * speed) / 4)
-    driver = FakeI2CDriver(device, poll_s=poll_s)
+    driver = FakeI2CDriver(device, **realtime_options(device))
     received = 0
     with driver:
         while not stop.is_set():

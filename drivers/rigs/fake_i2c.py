@@ -12,6 +12,8 @@ from __future__ import annotations
 import ctypes
 import errno
 import math
+import os
+import select
 import threading
 import time
 from typing import Callable, Iterable, Iterator
@@ -35,6 +37,7 @@ from ..i2c import (
     REG_ODR,
     REG_STATUS,
     REG_VERSION,
+    REG_WATERMARK,
     REG_WHO_AM_I,
     STATUS_DATA_READY,
     STATUS_FIFO_OVERFLOW,
@@ -60,10 +63,42 @@ class ManualClock:
         self.t += seconds
 
 
+MIN_SAMPLING_INTERVAL_S = 0.002
+
+
+class DataReadyLine:
+    """The logger's DRDY output as the host sees it: a pipe that is readable while the line is high
+    (the device keeps one byte in it while asserted)."""
+
+    def __init__(self) -> None:
+        self._r, self._w = os.pipe()
+        os.set_blocking(self._r, False)
+        self.high = False
+
+    def fileno(self) -> int:
+        return self._r
+
+    def set(self, high: bool) -> None:
+        if high and not self.high:
+            os.write(self._w, b"1")
+        elif not high and self.high:
+            os.read(self._r, 16)
+        self.high = high
+
+    def wait(self, timeout: float) -> bool:
+        return bool(select.select([self._r], [], [], max(0.0, timeout))[0])
+
+    def close(self) -> None:
+        os.close(self._r)
+        os.close(self._w)
+
+
 class FakeI2CDevice:
     """The logger as an I2C target. Samples are produced at the ODR rate times ``speed``.
 
-    Samples are produced while ENABLE is set; the FIFO holds ``fifo_depth`` frames and drops
+    Samples are produced while ENABLE is set: on each bus access, and in real time by a sampling
+    thread once ``start_sampling()`` is called (as a real logger fills its FIFO whether or not the
+    host asks); ``data_ready`` is the DRDY line, high while the FIFO holds at least WATERMARK frames; the FIFO holds ``fifo_depth`` frames and drops
     the newest when full (STATUS.FIFO_OVERFLOW latches until STATUS is read). Every produced
     sample's fate goes to ``log`` (SentLog): SENT once in the FIFO, FIFO_FULL, DROPPED,
     OFFLINE; CORRUPTED when a burst carrying it was hit by a bit error.
@@ -103,6 +138,36 @@ class FakeI2CDevice:
         self._lock = threading.Lock()
         self.corrupted: list[int] = []  # sample indices hit by a bit error in a burst
         self.accesses = 0
+        self.watermark = 1
+        self.data_ready = DataReadyLine()
+        self._sampling: threading.Thread | None = None
+        self._stop_sampling = threading.Event()
+
+    # -- real-time sampling ----------------------------------------------------------
+    def start_sampling(self) -> None:
+        """Fill the FIFO in real time from a thread (and drive DRDY), not only on bus accesses."""
+        if self._sampling is None:
+            self._stop_sampling.clear()
+            self._sampling = threading.Thread(target=self._sample_loop, name="fake-i2c-device", daemon=True)
+            self._sampling.start()
+
+    def stop_sampling(self) -> None:
+        self._stop_sampling.set()
+        if self._sampling is not None:
+            self._sampling.join(2.0)
+            self._sampling = None
+
+    def _sample_loop(self) -> None:
+        while not self._stop_sampling.is_set():
+            with self._lock:
+                self._advance()
+                due = (self._t_enable + (self._produced + 1) / (self.rate * self.speed) if self._enabled
+                       else self.clock() + 0.01)
+            # each sample on time, but a time-lapse at most every MIN_SAMPLING_INTERVAL_S (in small batches)
+            self._stop_sampling.wait(max(MIN_SAMPLING_INTERVAL_S, due - self.clock()))
+
+    def _update_line(self) -> None:
+        self.data_ready.set(len(self._fifo_seq) >= self.watermark)
 
     # -- time ------------------------------------------------------------------------
     @property
@@ -158,6 +223,7 @@ class FakeI2CDevice:
             ok = ok[:free]
         self._fifo += encode_frames(samples[ok])
         self._fifo_seq.extend(idx[ok].tolist())
+        self._update_line()
         if self.log is not None:
             self.log.add(samples, status)
 
@@ -204,6 +270,8 @@ class FakeI2CDevice:
             return self._odr
         if reg == REG_CTRL:
             return CTRL_ENABLE if self._enabled else 0
+        if reg == REG_WATERMARK:
+            return self.watermark
         return 0
 
     def _write_reg(self, reg: int, value: int) -> None:
@@ -212,11 +280,15 @@ class FakeI2CDevice:
                 return  # ignored, like the MCU firmware
             self._t_enable = self.clock() - self._produced / (ODR_CODES[value] * self.speed)
             self._odr = value
+        elif reg == REG_WATERMARK:
+            self.watermark = min(max(1, value), self.depth)
+            self._update_line()
         elif reg == REG_CTRL:
             if value & CTRL_FIFO_RESET:
                 self._fifo.clear()
                 self._fifo_seq.clear()
                 self._overflow = False
+                self._update_line()
             enable = bool(value & CTRL_ENABLE)
             if enable and not self._enabled:
                 self._t_enable = self.clock() - self._produced / (self.rate * self.speed)
@@ -228,6 +300,7 @@ class FakeI2CDevice:
         taken = self._fifo_seq[:k]
         del self._fifo[: k * FRAME_LEN]
         del self._fifo_seq[:k]
+        self._update_line()
         data += bytes(n - len(data))  # past the content: zeros
         hit = self.faults.flip_bits(data)
         for frame in np.unique(hit // FRAME_LEN).tolist():
@@ -304,20 +377,36 @@ class FakeI2CDriver(I2CDriver):
     """The production I2C driver reading ``device`` through a :class:`FakeSMBus`.
 
     As a spec, ``fake-i2c://0x42?scenario=NAME&seed=N&speed=X&fs=HZ&duration=S&fifo_depth=N&drop=P&ber=P``
-    (plus the I2C driver's ``burst_frames``, ``poll_s``, ``tick_hz``): an in-process logger, the
-    HIL rig without a second process.
+    (plus the I2C driver's ``burst_frames``, ``poll_s``, ``tick_hz``, ``latency_budget_s``): an
+    in-process logger, the HIL rig without a second process. ``realtime`` (default): the device
+    samples in real time from its own thread while the driver is open and the driver sleeps on its
+    DRDY line; otherwise the FIFO fills only on bus accesses (tests with a manual clock) and the
+    driver polls.
     """
 
-    def __init__(self, device: FakeI2CDevice, **options):
+    def __init__(self, device: FakeI2CDevice, *, realtime: bool = True, **options):
+        if realtime:
+            options.setdefault("data_ready", device.data_ready)
         super().__init__("fake", device.address, smbus_factory=lambda bus: FakeSMBus(device, bus), **options)
         self.device = device
+        self.realtime = realtime
+
+    def open(self) -> "FakeI2CDriver":
+        super().open()
+        if self.realtime:
+            self.device.start_sampling()
+        return self
+
+    def close(self) -> None:
+        super().close()
+        self.device.stop_sampling()
 
     @classmethod
     def from_spec(cls, spec: DriverSpec) -> "FakeI2CDriver":
         opts = take_options(spec, {
             "scenario": str, "seed": int, "speed": float, "fs": float, "duration": float,
             "fifo_depth": int, "drop": float, "ber": float, "burst_frames": int, "poll_s": float,
-            "tick_hz": float,
+            "tick_hz": float, "latency_budget_s": float, "realtime": lambda v: v.strip().lower() in ("1", "true", "yes"),
         })
         address_text = (spec.host or spec.path).strip("/")
         try:
@@ -334,9 +423,20 @@ class FakeI2CDriver(I2CDriver):
                                                  seed=opts.pop("seed", 0)))
         except ValueError as exc:
             raise DriverError(f"fake I2C device: {exc}") from None
-        # A quarter of the FIFO's fill time in wall seconds: it never overflows while read() runs.
-        opts.setdefault("poll_s", max(0.001, device.depth / (device.rate * device.speed) / 4))
-        return cls(device, **opts)
+        return cls(device, **{**realtime_options(device), **opts})
+
+
+REALTIME_MIN_FILL_S = 0.1
+
+
+def realtime_options(device: FakeI2CDevice) -> dict:
+    """FakeI2CDriver options for ``device``: real-time sampling with DRDY unless its FIFO fills in less than
+    REALTIME_MIN_FILL_S (a time-lapse outruns a loaded host's thread scheduling); then it fills on access
+    and the driver polls at a quarter of the fill time."""
+    fill = device.depth / (device.rate * device.speed)
+    if fill >= REALTIME_MIN_FILL_S:
+        return {}
+    return {"realtime": False, "poll_s": max(0.001, fill / 4)}
 
 
 def fake_i2c_spec(device: FakeI2CDevice, *, scenario: str, seed: int, fs: float) -> str:

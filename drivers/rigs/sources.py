@@ -37,15 +37,20 @@ def scenario_source(name: str, *, seed: int = 0, fs: float = 100.0, duration: fl
     if name not in SCENARIOS:  # fail before the emulator announces a device, not at the first block
         raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)} or {PATTERN}")
     blocks = simulate_blocks(name, None, seed=seed, duration=duration, fs=fs, block=block, **scenario_kw)
-    return Source(_with_ticks(blocks, fs), fs, name)
+    return Source(_with_ticks(blocks), fs, name)
 
 
-def _with_ticks(blocks: Iterable[np.ndarray], fs: float) -> Iterator[np.ndarray]:
-    """Fill ``tick`` from ``t`` when the producer left it zero (device ticks at TICK_HZ)."""
+def device_ticks(t: np.ndarray) -> np.ndarray:
+    """The logger's 32-bit timer at ``t`` [s]: TICK_HZ, the rate every driver assumes."""
+    return (np.rint(np.asarray(t, dtype=np.float64) * TICK_HZ).astype(np.int64) & 0xFFFFFFFF).astype(np.uint32)
+
+
+def _with_ticks(blocks: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
+    """Stamp ``tick`` from ``t`` at the logger's TICK_HZ. The simulator's tick field counts at the
+    sensor model's duty-cycle timer (e.g. 4 MHz), which is not the clock the logger stamps frames with."""
     for b in blocks:
-        if b.shape[0] and not b["tick"].any():
-            b = b.copy()
-            b["tick"] = (np.rint(b["t"] * TICK_HZ).astype(np.int64) & 0xFFFFFFFF).astype(np.uint32)
+        b = b.copy()
+        b["tick"] = device_ticks(b["t"])
         yield b
 
 
@@ -65,7 +70,7 @@ def pattern_blocks(*, seed: int = 0, fs: float = 200.0, duration: float = 10.0,
         idx = np.arange(start, start + n)
         b["t"] = idx / fs
         b["seq"] = idx
-        b["tick"] = (np.rint(idx * (TICK_HZ / fs)).astype(np.int64) & 0xFFFFFFFF).astype(np.uint32)
+        b["tick"] = device_ticks(idx / fs)
         d = np.clip(duty + np.cumsum(rng.normal(0, 2e-3, (n, 4)), axis=0), 0.1, 0.9)
         duty = d[-1]
         tt2 = np.rint(t2 + rng.normal(0, 3, (n, 2)))
@@ -81,7 +86,7 @@ def pattern_blocks(*, seed: int = 0, fs: float = 200.0, duration: float = 10.0,
 
 def replay_source(path: str | Path, *, block: int = 256) -> Source:
     """A recording with timer counts (CSV/.npy as ``gravcal simulate`` writes them: columns t,
-    t1_ax..t1_ax2, t2_a, t2_b, and optionally gyro, temp, vsupply, seq, tick). Samples are
+    t1_ax..t1_ax2, t2_a, t2_b, and optionally gyro, temp, vsupply, seq; ticks are restamped from t). Samples are
     flagged FLAG_REPLAYED; seq is renumbered from 0 so gaps in the file are not replayed as gaps.
     """
     path = Path(path)
@@ -126,8 +131,7 @@ def replay_source(path: str | Path, *, block: int = 256) -> Source:
             b = np.zeros(e - s, SAMPLE_DTYPE)
             b["t"] = t[s:e] - t[0]
             b["seq"] = np.arange(s, e)
-            b["tick"] = (cols["tick"][s:e] if "tick" in cols
-                         else (np.rint(b["t"] * TICK_HZ).astype(np.int64) & 0xFFFFFFFF))
+            b["tick"] = device_ticks(b["t"])  # a recorded tick may count at another clock
             for i, c in enumerate(CHANNELS):
                 b["t1"][:, i] = cols[f"t1_{c}"][s:e]
             b["t2"][:, 0], b["t2"][:, 1] = cols["t2_a"][s:e], cols["t2_b"][s:e]

@@ -14,8 +14,7 @@ from support.gravcald_process import GravcaldProcess
 
 @pytest.fixture(scope="module")
 def daemon():
-    d = GravcaldProcess(None, "--bus", "serial", "--scenario", "pattern", "--speed", "1",
-                        "--driver-options", "batch_frames=1", fs=200.0)
+    d = GravcaldProcess(None, "--bus", "serial", "--scenario", "pattern", "--speed", "1", fs=200.0)
     try:
         d.wait_serving()
         with d.client() as c:  # past the emulator's start-up catch-up: samples at the device's pace

@@ -234,3 +234,18 @@ def test_seq_unwrapper_wraps_gaps_duplicates_and_long_outages():
     u.expect_advance(3 * 65536 + 10.4)
     _, seq, gap = u.unwrap(np.array([13], np.uint16))
     assert seq[0] == 65539 + 3 * 65536 + 10 and gap[0]
+
+
+def test_one_frame_decodes_exactly_as_in_a_block():
+    # the single-frame fast path (one frame per wake-up) must give the block path's values bit for bit
+    from gravcal.drivers.codec import to_wire, wire_to_samples
+    from gravcal.drivers.rigs.sources import pattern_blocks
+
+    b = np.concatenate(list(pattern_blocks(seed=7, fs=200, duration=2)))
+    b["temp"][3], b["vsupply"][5] = np.nan, np.nan  # missing ADC codes
+    w = to_wire(b)
+    block = wire_to_samples(w)
+    single = np.concatenate([wire_to_samples(w[i:i + 1]) for i in range(w.shape[0])])
+    for name in block.dtype.names:
+        np.testing.assert_array_equal(single[name], block[name], err_msg=name)
+    assert np.isnan(single["temp"][3]) and np.isnan(single["vsupply"][5])

@@ -112,10 +112,10 @@ def test_device_vanishes_and_comes_back():
     assert (status == OFFLINE).sum() == 100
     k = np.flatnonzero(got["flags"] & FLAG_RECONNECT)
     # The FIFO kept what it held when the device stopped answering (190..199, produced by the
-    # access that got the NACK): they come first after the reconnect, then the outage's gap.
-    assert k.shape == (1,) and seq[k[0]] == 190
-    j = np.flatnonzero(seq == 300)[0]
-    assert seq[j - 1] == 199 and got["flags"][j] & FLAG_GAP_BEFORE
+    # access that got the NACK): they come first after the reconnect, unflagged; the first sample
+    # produced after the outage carries both the reconnect and the gap.
+    assert k.shape == (1,) and seq[k[0]] == 300
+    assert seq[k[0] - 1] == 199 and got["flags"][k[0]] & FLAG_GAP_BEFORE
     assert st["disconnects"] == 1 and st["reconnects"] == 1
 
 
@@ -162,3 +162,30 @@ def test_fake_spec_in_process_and_empty_reads_do_not_hang():
         t0 = time.monotonic()
         out = drv.read(timeout=0.2)
         assert out.shape == (0,) and time.monotonic() - t0 < 1.5
+
+
+def test_realtime_device_wakes_the_driver_by_drdy_and_loses_only_the_outage():
+    """The device samples in real time (its own thread) and raises DRDY at the watermark; the driver
+    sleeps on the line. Across an unplug: no FIFO overflow, exactly the offline samples missing, and
+    the reconnect flagged on the first sample produced after it."""
+    from gravcal.drivers.rigs.fake_i2c import FakeI2CDriver
+
+    fs, log = 200.0, SentLog()
+    dev = FakeI2CDevice(pattern_blocks(seed=3, fs=fs, duration=60.0), fs, fifo_depth=64, log=log,
+                        faults=Faults(disconnects=[(0.5, 0.4)]))
+    drv = FakeI2CDriver(dev)
+    got = []
+    with drv:
+        while dev.stream_time < 1.6:
+            got.append(drv.read(max_samples=4096, timeout=0.5))
+        st = drv.stats()
+    got = np.concatenate(got)
+    status = log.arrays()["status"]
+    offline = np.flatnonzero(status == OFFLINE)
+    assert offline.shape[0] == round(0.4 * fs)
+    assert st["fifo_overflows"] == 0 and not (status == FIFO_FULL).any()
+    assert st["missing"] == offline.shape[0] and st["gaps"] == 1
+    k = np.flatnonzero(got["flags"] & FLAG_RECONNECT)
+    assert k.shape == (1,) and got["seq"][k[0]] == offline[-1] + 1 and got["flags"][k[0]] & FLAG_GAP_BEFORE
+    # woken by the line: about one STATUS read per sample (a 1 ms poll would take ~1600)
+    assert st["polls"] < 1.5 * got.shape[0] + 50, (st["polls"], got.shape[0])

@@ -125,7 +125,7 @@ def run_socket_abuse(*, seconds: float = 6.0, bad_commands: int = 2000, mb_lines
                      never_read: int = 4, garbage_bytes: int = 1 << 20, speed: float = 2.0, fs: float = 200.0) -> dict:
     """A well-behaved watcher before and during abuse of a running gravcald (emulated serial)."""
     d = GravcaldProcess(None, "--bus", "serial", "--scenario", "static", "--speed", str(speed), "--duration", "100000",
-                 "--driver-options", "batch_frames=1", fs=fs)
+                 fs=fs)
     tried = dict.fromkeys(["never_read_clients", "bad_commands", "megabyte_lines", "megabyte_lines_cut_off",
                            "garbage_bytes", "connections", "connections_refused", "crowd_accepted",
                            "crowd_told_too_many", "crowd_no_answer"], 0)

@@ -101,8 +101,7 @@ def _watch(c, seconds: float, arrivals: list, times: list, seqs: list, dropped: 
 
 def run_starvation(*, quiet_s: float = 3.0, abuse_s: float = 6.0, flooders: int = 8, slow_readers: int = 20,
                    fs: float = 200.0, after_s: float = 3.0, warmup_s: float = 3.0) -> dict:
-    d = GravcaldProcess(None, "--bus", "serial", "--scenario", "static", "--speed", "1", "--duration", "100000",
-                        "--driver-options", "batch_frames=1", fs=fs)
+    d = GravcaldProcess(None, "--bus", "serial", "--scenario", "static", "--speed", "1", "--duration", "100000", fs=fs)
     ctx = mp.get_context("spawn")
     result = ctx.Queue()
     try:

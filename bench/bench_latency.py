@@ -1,0 +1,181 @@
+"""gravcald frame-in -> line-out latency, CPU and RSS per bus at 200 Hz, with 1 and 32 clients (not a test).
+
+    python bench/bench_latency.py [--buses serial,can,i2c] [--clients 1,32] [--seconds 20] [--json PATH]
+                                  [--baseline-src DIR]
+
+Each run starts ``gravcald --emulate --bus BUS --fs 200 --speed 1 --scenario six_position`` (serial/can:
+the emulator in its own process on a pty / slcan pty; i2c: the fake device in the daemon's process, so
+its sampling thread counts in the daemon's CPU). One client watches every sample with raw fields; with
+N clients, N - 1 more processes watch every sample and discard it.
+
+Latency: the emulator sends sample ``seq`` at t0 + seq / fs (CLOCK_MONOTONIC, shared by the processes),
+so recv - seq / fs is the frame-in -> line-out delay plus a constant; reported as the spread above the
+run's best case (which holds the wire time, 0.63 ms for a 29-byte frame at 460800 baud): p50, p99, p99.9.
+CPU: utime + stime of the gravcald process over the measurement, % of one core. RSS: VmRSS of gravcald
+at the end and its peak (VmHWM).
+
+``--baseline-src DIR``: run the same measurement first with another source tree (a directory holding
+gravcal/core, gravcal/drivers, gravcal/daemon, e.g. an unpacked `git archive` of an older commit, put
+first on PYTHONPATH) and report the ratios, measured in the same session on the same loaded machine.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+FS = 200.0
+
+
+def _cpu_s(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _rss_mb(pid: int) -> tuple[float, float]:
+    out = {}
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            key, _, value = line.partition(":")
+            if key in ("VmRSS", "VmHWM"):
+                out[key] = int(value.split()[0]) / 1024
+    return out.get("VmRSS", float("nan")), out.get("VmHWM", float("nan"))
+
+
+def _watcher(path: str, stop) -> None:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.connect(path)
+    s.sendall(b'?WATCH={"enable":true,"raw":true};\n')
+    s.settimeout(0.2)
+    while not stop.is_set():
+        try:
+            if not s.recv(1 << 20):
+                break
+        except socket.timeout:
+            continue
+    s.close()
+
+
+def _lines(sock: socket.socket, seconds: float):
+    """(receive time, seq) of every IMU line for ``seconds``."""
+    buf, rows, t0 = b"", [], time.monotonic()
+    sock.settimeout(2.0)
+    while time.monotonic() - t0 < seconds:
+        try:
+            data = sock.recv(1 << 16)
+        except socket.timeout:
+            continue
+        now = time.monotonic()
+        if not data:
+            break
+        *lines, buf = (buf + data).split(b"\n")
+        for line in lines:
+            if b'"IMU"' in line:
+                rows.append((now, json.loads(line)["seq"]))
+    return rows
+
+
+def run(bus: str, clients: int, seconds: float, src: str | None) -> dict:
+    import multiprocessing as mp
+
+    tmp = tempfile.mkdtemp(prefix="bench-latency-")
+    path = os.path.join(tmp, "g.sock")
+    env = dict(os.environ)
+    if src:
+        env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
+    cmd = [sys.executable, "-m", "gravcal.daemon.gravcald", "--emulate", "--bus", bus, "--fs", str(FS), "--speed", "1",
+           "--scenario", "six_position", "--duration", str(seconds + 300), "--socket", path,
+           "--state-dir", os.path.join(tmp, "state"), "--log-level", "warning"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    ctx = mp.get_context("fork")
+    stop = ctx.Event()
+    extra = []
+    try:
+        deadline = time.monotonic() + 90
+        while not os.path.exists(path):
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise SystemExit(f"gravcald --bus {bus} did not start")
+            time.sleep(0.1)
+        extra = [ctx.Process(target=_watcher, args=(path, stop), daemon=True) for _ in range(clients - 1)]
+        for p in extra:
+            p.start()
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        s.connect(path)
+        s.sendall(b'?WATCH={"enable":true,"raw":true};\n')
+        _lines(s, 8.0)  # warm-up: imports, the emulator's start-up backlog, first windows
+        cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
+        rows = _lines(s, seconds)
+        wall = time.monotonic() - t0
+        cpu = _cpu_s(proc.pid) - cpu0
+        rss, hwm = _rss_mb(proc.pid)
+        s.close()
+    finally:
+        stop.set()
+        for p in extra:
+            p.join(5)
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    a = np.array(rows, dtype=float)
+    delay = a[:, 0] - a[:, 1] / FS
+    spread = (delay - delay.min()) * 1e3
+    pct = {f"p{q:g}": float(np.percentile(spread, q)) for q in (50, 99, 99.9)}
+    return {"bus": bus, "clients": clients, "samples": int(a.shape[0]), "seconds": wall,
+            "samples_per_s": a.shape[0] / wall, "latency_ms": pct, "cpu_percent": cpu / wall * 100,
+            "rss_mb": rss, "rss_peak_mb": hwm, "src": src or "this tree"}
+
+
+def _show(r: dict) -> str:
+    lat = r["latency_ms"]
+    return (f"{r['bus']:6s} {r['clients']:3d} client(s)  {r['samples_per_s']:6.1f}/s  latency p50 {lat['p50']:7.2f} "
+            f"p99 {lat['p99']:7.2f} p99.9 {lat['p99.9']:7.2f} ms  CPU {r['cpu_percent']:5.2f} %  "
+            f"RSS {r['rss_mb']:6.1f} MB (peak {r['rss_peak_mb']:.1f})")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--buses", default="serial,can,i2c")
+    ap.add_argument("--clients", default="1,32")
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--baseline-src", metavar="DIR", help="also measure this source tree and report ratios")
+    ap.add_argument("--json", metavar="PATH")
+    args = ap.parse_args(argv)
+    buses = [b for b in args.buses.split(",") if b]
+    counts = [int(c) for c in args.clients.split(",") if c]
+    results = []
+    for bus in buses:
+        for n in counts:
+            pair = {}
+            for label, src in (("baseline", args.baseline_src), ("this", None)):
+                if label == "baseline" and not src:
+                    continue
+                pair[label] = r = run(bus, n, args.seconds, src)
+                print(f"{label:8s} {_show(r)}", flush=True)
+            if "baseline" in pair:
+                b, t = pair["baseline"], pair["this"]
+                ratio = {"p99": t["latency_ms"]["p99"] / b["latency_ms"]["p99"],
+                         "p50": t["latency_ms"]["p50"] / max(b["latency_ms"]["p50"], 1e-9),
+                         "cpu": t["cpu_percent"] / b["cpu_percent"], "rss": t["rss_mb"] / b["rss_mb"]}
+                pair["ratio_this_to_baseline"] = ratio
+                print(f"{'ratio':8s} {bus:6s} {n:3d} client(s)  p50 x{ratio['p50']:.3f}  p99 x{ratio['p99']:.3f}  "
+                      f"CPU x{ratio['cpu']:.2f}  RSS x{ratio['rss']:.2f}", flush=True)
+            results.append(pair)
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump({"fs_hz": FS, "seconds": args.seconds, "runs": results}, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

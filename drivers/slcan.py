@@ -1,0 +1,87 @@
+"""python-can's slcan bus with a read path that costs one system call per burst, not per byte.
+
+python-can's ``slcanBus._read`` asks the port for one byte per call and assembles each ASCII
+line in a Python loop: at 200 Hz x 4 CAN frames that loop is most of the daemon's CPU.
+:class:`BufferedSlcanBus` keeps everything else of python-can (open/close commands, bitrate,
+frame parsing, ``recv``/``Notifier``/filters) and replaces only ``_read``: it waits on the
+port's file descriptor (select), takes every byte that has arrived in one read, and serves the
+complete lines from memory. ``recv(timeout=0)`` never blocks.
+
+For a service running for days, socketcan (``slcand`` or a native CAN controller,
+``can://socketcan/can0``) is the production path: the kernel assembles frames and python-can
+reads whole frames from a socket.
+"""
+from __future__ import annotations
+
+import re
+import select
+import time
+from collections import deque
+
+from can.interfaces.slcan import slcanBus
+
+_LINE_END = re.compile(rb"[\r\a]")  # CR ends a line, BELL is an error reply
+
+
+class BufferedSlcanBus(slcanBus):
+    """``can.interfaces.slcan.slcanBus`` reading its port in bursts (same arguments)."""
+
+    def __init__(self, channel, *args, **kwargs):
+        self._lines: deque[bytes] = deque()
+        self._partial = bytearray()
+        self._fd: int | None = None
+        super().__init__(channel, *args, **kwargs)
+
+    def _port_fd(self) -> int | None:
+        if self._fd is None:
+            try:
+                self._fd = self.serialPortOrig.fileno()
+            except (AttributeError, OSError, ValueError):  # a URL port without a descriptor
+                self._fd = -1
+        return self._fd if self._fd >= 0 else None
+
+    def _take_bytes(self, wait_s: float | None) -> bytes:
+        """What the port holds, waiting at most ``wait_s`` (None: forever) for the first byte."""
+        port = self.serialPortOrig
+        waiting = port.in_waiting
+        if waiting:
+            return port.read(waiting)
+        fd = self._port_fd()
+        if fd is None:  # blocks up to the port's own timeout
+            return port.read(1)
+        if wait_s is not None and wait_s <= 0:
+            return b""
+        if not select.select([fd], [], [], wait_s)[0]:
+            return b""
+        return port.read(max(1, port.in_waiting))  # readable but empty: pyserial raises (unplugged)
+
+    def _split(self, data: bytes) -> None:
+        self._partial += data
+        start = 0
+        for m in _LINE_END.finditer(self._partial):
+            self._lines.append(bytes(self._partial[start:m.end()]))
+            start = m.end()
+        if start:
+            del self._partial[:start]
+
+    def _read(self, timeout: float | None) -> str | None:
+        """The next line including its CR (or BELL), or None once ``timeout`` [s] passed. A non-ASCII
+        line raises UnicodeDecodeError (a ValueError) after it is consumed, as python-can's reader."""
+        end = None if timeout is None else time.monotonic() + timeout
+        while not self._lines:
+            wait = None if end is None else end - time.monotonic()
+            data = self._take_bytes(wait)
+            if data:
+                self._split(data)
+            elif end is not None and time.monotonic() >= end:
+                return None
+        return self._lines.popleft().decode("ascii")
+
+    def has_buffered_line(self) -> bool:
+        """A complete line is already in memory (recv(0) returns it without reading the port)."""
+        return bool(self._lines)
+
+    def flush(self) -> None:
+        self._lines.clear()
+        self._partial.clear()
+        super().flush()
