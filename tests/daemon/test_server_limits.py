@@ -183,6 +183,7 @@ def test_slow_reader_queue_stays_within_its_byte_bound(sockpath):
         slow.line()
         slow.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
         slow.send(b'?WATCH={"enable":true,"raw":true};\n')
+        assert slow.line()["class"] == "WATCH"  # watching before the burst starts
         publish(srv, 20_000, chunk=200)
         assert wait_until(lambda: srv.backlog == 0)
         per = srv.stats()["per_client"][0]
