@@ -135,6 +135,26 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
     return _without_filler(rec, min_samples) if exclude_filler else rec
 
 
+def recording_from_arrays(t: Any, acc: Any, *, temp: Any = None, vsupply: Any = None, min_samples: int = MIN_SAMPLES,
+                          check_saturation: bool = True, exclude_filler: bool = True) -> Recording:
+    """Validate arrays as a file's columns are: t (N,) [s], acc (N, 3) raw, optional temp/vsupply (N,)."""
+    t = np.asarray(t, dtype=np.float64)
+    acc = np.asarray(acc, dtype=np.float64)
+    if t.ndim != 1 or acc.shape != (t.shape[0], 3):
+        raise InputError(f"need t of shape (N,) and acc of shape (N, 3); got {t.shape} and {acc.shape}")
+    cols = {"t": t, "ax": acc[:, 0], "ay": acc[:, 1], "az": acc[:, 2], "_triad": acc}
+    for name, v in (("temp", temp), ("vsupply", vsupply)):
+        if v is not None:
+            v = np.asarray(v, dtype=np.float64)
+            if v.shape != t.shape:
+                raise InputError(f"{name} has shape {v.shape}; need one value per sample, shape {t.shape}")
+            cols[name] = v
+    rec = _validate(Path("<arrays>"), cols, Where(path=Path("<arrays>")), tuple(c for c in cols if c != "_triad"),
+                    min_samples=min_samples, check_saturation=check_saturation)
+    rec.metadata = {"format": "arrays"}
+    return _without_filler(rec, min_samples) if exclude_filler else rec
+
+
 def _without_filler(rec: Recording, min_samples: int) -> Recording:
     """Drop runs of exactly repeated triads (core.diagnosis.noise.flat_stretches decides); the first
     sample of each run is a real one and stays."""

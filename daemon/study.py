@@ -133,6 +133,20 @@ def _results(files: list[str], opts: Options, workers: int | None, scheduler: st
             cluster.close()
 
 
+def _progress(total: int, off: bool) -> Any:
+    """A tqdm bar on a terminal; without tqdm (or off) a bar that shows nothing."""
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        if not off:
+            log.info("no progress bar: pip install 'gravcal[study]' for one")
+        from contextlib import nullcontext
+        from types import SimpleNamespace
+
+        return nullcontext(SimpleNamespace(update=lambda n: None))
+    return tqdm(total=total, unit="file", disable=off)
+
+
 def run_study(paths: list[Path], out: Path, opts: Options, *, workers: int | None = None,
               scheduler: str | None = None, quiet: bool = False) -> int:
     """Calibrate every recording in ``paths`` into ``out``; returns the exit status (0 when every row ran,
@@ -145,11 +159,9 @@ def run_study(paths: list[Path], out: Path, opts: Options, *, workers: int | Non
     if done:
         log.warning("%s: %d of %d files already done, skipped", out, len(files) - len(todo), len(files))
     new = not out.exists() or out.stat().st_size == 0
-    from tqdm import tqdm
-
     counts: dict[str, int] = {}
     with open(out, "a", newline="", encoding="utf-8") as f, \
-            tqdm(total=len(todo), unit="file", disable=quiet or not sys.stderr.isatty()) as bar:
+            _progress(len(todo), quiet or not sys.stderr.isatty()) as bar:
         writer = csv.DictWriter(f, fieldnames=FIELDS, extrasaction="ignore")
         if new:
             writer.writeheader()
