@@ -32,6 +32,35 @@ def open_text(path: Path, gz: bool) -> IO[str]:
     return io.TextIOWrapper(raw, encoding="utf-8-sig", errors="replace", newline="")
 
 
+class _BoundedLines(io.TextIOBase):
+    """A text stream np.loadtxt reads through, refusing a line longer than MAX_LINE_CHARS before it
+    is held whole: without it one endless 'line' of garbage costs many times its size in memory."""
+
+    def __init__(self, f: IO[str], path: Path) -> None:
+        self._f, self._path, self._run = f, path, 0
+
+    def _refuse(self, start: str) -> InputError:
+        return InputError(f"{self._path}: a line is longer than {MAX_LINE_CHARS} characters (starts "
+                          f"{excerpt(start)}): not a CSV recording")
+
+    def readable(self) -> bool:
+        return True
+
+    def readline(self, size: int = -1) -> str:
+        line = self._f.readline(MAX_LINE_CHARS + 1)
+        if len(line) > MAX_LINE_CHARS:
+            raise self._refuse(line)
+        return line
+
+    def read(self, size: int = -1) -> str:
+        data = self._f.read(size if size and size > 0 else 1 << 20)
+        cut = data.rfind("\n")
+        self._run = self._run + len(data) if cut < 0 else len(data) - cut - 1
+        if self._run > MAX_LINE_CHARS:
+            raise self._refuse(data[cut + 1:] if cut >= 0 else data)
+        return data
+
+
 def parse_columns(spec: str | dict[str, str] | None) -> dict[str, str]:
     """``"t=t_unix,ax=x_counts"`` (or a dict) -> {gravcal name: the file's column name}."""
     if not spec:
@@ -139,8 +168,10 @@ def load_csv(path: Path, *, gz: bool = False, mapping: dict[str, str] | None = N
     try:
         with warnings.catch_warnings(), open_text(path, gz) as f:
             warnings.simplefilter("ignore")  # "input contained no data": handled below
-            data = np.loadtxt(f, delimiter=delim, skiprows=header_line, usecols=usecols, dtype=np.float64,
+            data = np.loadtxt(_BoundedLines(f, path), delimiter=delim, skiprows=header_line, usecols=usecols, dtype=np.float64,
                               ndmin=2, comments="#")
+    except InputError:
+        raise
     except ValueError:
         # Slow path only on trouble: locate the first bad line exactly (and accept empty
         # fields as missing values, which the NaN policy then handles).
