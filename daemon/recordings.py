@@ -20,9 +20,11 @@ printable excerpt. Validation runs in chunks so its temporaries stay small next 
 """
 from __future__ import annotations
 
+import gzip
 import json
 import logging
 import math
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -121,7 +123,10 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
     if found.kind == "npy":
         cols, where, names = _load_npy(path, mapping)
     elif found.kind in ("csv", "csv.gz"):
-        cols, where, names = load_csv(path, gz=found.kind == "csv.gz", mapping=mapping)
+        try:
+            cols, where, names = load_csv(path, gz=found.kind == "csv.gz", mapping=mapping)
+        except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
+            raise InputError(f"{path}: damaged gzip data ({type(exc).__name__}: {excerpt(str(exc), 60)})") from None
     elif found.kind in ("gt3x", "agdc", "cwa", "bin"):
         from .formats.wearables import read_wearable
 
