@@ -127,3 +127,14 @@ def test_the_daemon_never_imports_dask():
             "print([m for m in ('dask', 'distributed', 'tqdm') if m in sys.modules])")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == "[]", (r.stdout, r.stderr[-500:])
+
+
+def test_an_existing_scheduler_runs_the_study(study, tmp_path):
+    distributed = pytest.importorskip("dask.distributed")
+    seq, par = tmp_path / "seq.csv", tmp_path / "sched.csv"
+    files = [str(study / "s0.npy"), str(study / "broken.csv")]
+    assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 0
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        assert main(["calibrate", *files, "--out", str(par), "--scheduler", cluster.scheduler_address, "--quiet"]) == 0
+    key = (lambda r: r["file"])
+    assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
