@@ -87,7 +87,7 @@ def test_skdh_fixtures(name, kind, fs):
 
 
 def test_missing_reader_names_the_extra(monkeypatch, native):
-    monkeypatch.setitem(sys.modules, "pygt3x", None)  # import pygt3x now raises ImportError
+    monkeypatch.setitem(sys.modules, "pygt3x", None)  # makes `import pygt3x` raise ImportError
     with pytest.raises(InputError, match=r"ActiGraph \.gt3x file; reading it needs pygt3x: pip install 'gravcal\[formats\]'"):
         read_recording(native / "neo.gt3x")
     monkeypatch.setitem(sys.modules, "skdh", None)
