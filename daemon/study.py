@@ -125,8 +125,12 @@ def _results(files: list[str], opts: Options, workers: int | None, scheduler: st
         client = Client(cluster)
     try:
         futures = client.map(calibrate_file, files, opts=opts, pure=False)
+        file_of = {fut.key: f for fut, f in zip(futures, files)}
         for fut in as_completed(futures):
-            yield fut.result()
+            try:
+                yield fut.result()
+            except Exception as exc:  # noqa: BLE001 - a worker killed (e.g. out of memory) on one file
+                yield {"file": file_of[fut.key], "status": "error", "message": _one_line(f"{type(exc).__name__}: {exc}")}
     finally:
         client.close()
         if cluster is not None:

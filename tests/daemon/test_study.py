@@ -138,3 +138,24 @@ def test_an_existing_scheduler_runs_the_study(study, tmp_path):
         assert main(["calibrate", *files, "--out", str(par), "--scheduler", cluster.scheduler_address, "--quiet"]) == 0
     key = (lambda r: r["file"])
     assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
+
+
+def test_a_task_that_dies_is_an_error_row_not_the_end(study, tmp_path, monkeypatch):
+    distributed = pytest.importorskip("dask.distributed")
+    from gravcal.daemon import study as study_mod
+
+    real = study_mod.calibrate_file
+
+    def dies_on_s1(path, opts):
+        if path.endswith("s1.npy"):
+            raise MemoryError("worker ran out of memory")
+        return real(path, opts)
+
+    monkeypatch.setattr(study_mod, "calibrate_file", dies_on_s1)
+    out = tmp_path / "r.csv"
+    files = [str(study / f"s{i}.npy") for i in range(3)]
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        assert main(["calibrate", *files, "--out", str(out), "--scheduler", cluster.scheduler_address, "--quiet"]) == 0
+    status = {os.path.basename(r["file"]): (r["status"], r["message"]) for r in rows_of(out)}
+    assert status["s1.npy"] == ("error", "MemoryError: worker ran out of memory")
+    assert status["s0.npy"][0] == status["s2.npy"][0] == "ok"
