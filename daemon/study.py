@@ -118,7 +118,11 @@ def _results(files: list[str], opts: Options, workers: int | None, scheduler: st
         logging.getLogger("distributed").setLevel(logging.WARNING)
     cluster = None
     if scheduler:
-        client = Client(scheduler)
+        try:
+            client = Client(scheduler, timeout="15s")
+        except (OSError, TimeoutError, ValueError) as exc:
+            raise InputError(f"--scheduler {scheduler}: cannot reach a dask scheduler there "
+                             f"({type(exc).__name__}: {_one_line(exc, 120)})") from None
     else:
         n = workers or os.cpu_count() or 1
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
