@@ -124,8 +124,15 @@ def _results(files: list[str], opts: Options, workers: int | None, scheduler: st
             raise InputError(f"--scheduler {scheduler}: cannot reach a dask scheduler there "
                              f"({type(exc).__name__}: {_one_line(exc, 120)})") from None
     else:
+        import dask
+
         n = workers or os.cpu_count() or 1
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
+        # Dask's default MALLOC_TRIM_THRESHOLD_ fixes glibc's mmap threshold, so each large numpy
+        # temporary becomes a fresh mmap with its page faults: measured 2x the CPU per recording
+        environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", default={}).items()
+                   if k != "MALLOC_TRIM_THRESHOLD_"}
+        with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
         client = Client(cluster)
     try:
         futures = client.map(calibrate_file, files, opts=opts, pure=False)
