@@ -1,6 +1,6 @@
 """Device formats through their readers, recognised by content: the vendor's own ActiGraph files
 (../shared/data/actigraph_native, read by path), scikit-digital-health's own .cwa / .bin test fixtures
-(tests/daemon/fixtures, see SOURCE.txt), gzip CSV with mapped columns, and a missing reader naming its extra."""
+(tests/io/data of its source distribution, found through $GRAVCAL_SKDH_FIXTURES: they are not ours to commit), gzip CSV with mapped columns, and a missing reader naming its extra."""
 from __future__ import annotations
 
 import gzip
@@ -18,7 +18,15 @@ from gravcal.daemon.errors import InputError
 from gravcal.daemon.formats.sniff import sniff
 from gravcal.daemon.recordings import read_recording
 
-FIXTURES = os.path.join(os.path.dirname(__file__), "fixtures")
+FIXTURES = os.environ.get("GRAVCAL_SKDH_FIXTURES", "")
+
+
+def skdh_fixture(name: str) -> str:
+    path = os.path.join(FIXTURES, name)
+    if not (FIXTURES and os.path.isfile(path)):
+        pytest.skip(f"scikit-digital-health's test fixture {name} not found: set GRAVCAL_SKDH_FIXTURES to the "
+                    f"tests/io/data folder of its source distribution")
+    return path
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +85,7 @@ def test_calibrate_reports_the_filler(native, capsys):
 
 @pytest.mark.parametrize("name, kind, fs", [("ax3_sample.cwa", "cwa", 200.0), ("gnactv_sample.bin", "bin", 50.0)])
 def test_skdh_fixtures(name, kind, fs):
-    path = os.path.join(FIXTURES, name)
+    path = skdh_fixture(name)
     assert sniff(__import__("pathlib").Path(path)).kind == kind
     rec = read_recording(path, check_saturation=False)
     assert rec.metadata["format"] == kind and rec.units == "g"
@@ -90,9 +98,12 @@ def test_missing_reader_names_the_extra(monkeypatch, native):
     monkeypatch.setitem(sys.modules, "pygt3x", None)  # makes `import pygt3x` raise ImportError
     with pytest.raises(InputError, match=r"ActiGraph \.gt3x file; reading it needs pygt3x: pip install 'gravcal\[formats\]'"):
         read_recording(native / "neo.gt3x")
+
+
+def test_missing_skdh_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "skdh", None)
     with pytest.raises(InputError, match=r"Axivity \.cwa file; reading it needs skdh: pip install 'gravcal\[formats\]'"):
-        read_recording(os.path.join(FIXTURES, "ax3_sample.cwa"))
+        read_recording(skdh_fixture("ax3_sample.cwa"))
 
 
 def test_gzip_csv_with_mapped_columns(tmp_path, capsys):
