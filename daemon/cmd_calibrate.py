@@ -1,12 +1,15 @@
-"""``gravcal calibrate FILE.csv|FILE.npy``: offline in-use calibration of a recording.
+"""``gravcal calibrate FILE|DIR...``: offline in-use calibration of one recording or a whole study.
 
-Reads and validates the recording (daemon.recordings), runs
-gravcal.core.pipeline.calibrate_recording (detector -> start -> model order (``--model auto``,
-the default: order.select_order) -> Lötters batch estimator -> held-out error over contiguous
-folds of windows), or with ``--lab`` bragge.calibrate_lab (six faces, all 12 parameters), and
-prints a summary, or with ``--json`` exactly one JSON object (its "order" says which parameters
-were fitted and why; model "none" from auto is an error, exit 2). Exit 3 (with the JSON still printed) when the calibration is not
-converged or not observable.
+One file: reads and validates it (daemon.recordings, any format it recognises), runs
+gravcal.core.pipeline.calibrate_recording through daemon.offline (detector -> start -> model order
+(``--model auto``, the default: order.select_order) -> Lötters batch estimator -> held-out error over
+contiguous folds of windows), or with ``--lab`` bragge.calibrate_lab (six faces, all 12 parameters),
+and prints a summary, or with ``--json`` exactly one JSON object (its "order" says which parameters
+were fitted and why; model "none" from auto is an error, exit 2). Exit 3 (with the JSON still
+printed) when the calibration is not converged or not observable.
+
+Several files, a directory, or ``--out``: a study (daemon.study), one results row per file, on a
+dask.distributed cluster (``--workers``, ``--scheduler``).
 """
 from __future__ import annotations
 
@@ -15,7 +18,6 @@ import json
 import logging
 import math
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -52,12 +54,25 @@ def detector_choices() -> list[str]:
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "calibrate", help="calibrate a recording (CSV or .npy) from its quasi-static moments",
-        description="Offline in-use calibration of a recording. CSV: header row; columns t [s], ax, ay, az "
-                    "(raw units of any scale), optional gx, gy, gz, temp [°C], vsupply [V]; other columns ignored. "
-                    ".npy: a structured array with the same field names.",
+        "calibrate", help="calibrate a recording or a whole study from its quasi-static moments",
+        description="Offline in-use calibration of recordings. CSV (or .csv.gz): header row; columns t [s], ax, ay, "
+                    "az (raw units of any scale), optional gx, gy, gz, temp [°C], vsupply [V]; other columns ignored "
+                    "(or mapped with --columns). .npy: a structured array with the same field names. ActiGraph "
+                    ".gt3x/.agdc, Axivity .cwa, GENEActiv .bin: through their readers (pip install 'gravcal[formats]'). "
+                    "Exactly repeated filler (idle sleep) is excluded and reported.",
     )
-    p.add_argument("file", type=Path, help="recording: FILE.csv or FILE.npy")
+    p.add_argument("files", type=Path, nargs="+", metavar="FILE|DIR",
+                   help="recording(s): .csv, .csv.gz, .npy, .gt3x, .agdc, .cwa, .bin (recognised by content), or a "
+                        "directory of them; more than one, a directory, or --out: a study, one results row per file")
+    p.add_argument("--columns", metavar="t=NAME,ax=NAME,...",
+                   help="map the CSV's own column names, e.g. t=t_unix,ax=x_counts,ay=y_counts,az=z_counts")
+    p.add_argument("--out", type=Path, metavar="RESULTS.csv",
+                   help="study results, one row per file, written as each finishes; files already in it are skipped")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="study: local dask.distributed workers (default: the CPU count; 0: in this process, no Dask)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="study: an existing dask.distributed scheduler, e.g. "
+                                                          "tcp://head-node:8786, instead of a local cluster")
+    p.add_argument("--quiet", action="store_true", help="study: no progress bar")
     # No argparse choices: listing them would import the numerics (a second of scipy) for every
     # `gravcal --help`; run() validates and names the known values.
     from gravcal.core.estimators.parameterization import PARAMETERIZATIONS  # numpy only: cheap
@@ -122,72 +137,47 @@ def _load_lab(path: Path):
     return cal
 
 
-def run(args: argparse.Namespace) -> int:
-    from gravcal.core.pipeline import calibrate_recording
+def options(args: argparse.Namespace):
+    """The checked daemon.offline.Options of the command line."""
+    from .offline import Options, check_options
 
-    from .recordings import jsonable, read_recording
-
-    models = model_choices()
-    if "+" in args.model:
-        from gravcal.core.estimators.extended import extended_class
-
-        try:
-            extended_class(args.model)
-        except ValueError as exc:
-            raise InputError(f"--model: {exc}") from None
-    elif args.model not in models:
-        from gravcal.core.model.terms import CALIBRATION_TERMS
-
-        raise InputError(f"unknown --model {args.model!r}; choose one of {', '.join(m for m in models if '+' not in m)}, "
-                         f"or an order with registered terms, <order>+<term>[+<term>...], terms: "
-                         f"{', '.join(CALIBRATION_TERMS)}")
-    if args.lab and args.model not in ("auto", "12"):
-        raise InputError(f"--lab fits all 12 parameters from the six faces; --model {args.model} does not apply")
     if args.lab and args.lab_calibration:
         raise InputError("--lab computes a lab calibration; --lab-calibration gives one: use one of them")
-    lab = _load_lab(args.lab_calibration) if args.lab_calibration else None
-    detectors = detector_choices()
-    if args.detector not in detectors:
-        raise InputError(f"unknown --detector {args.detector!r}; choose one of {', '.join(detectors)}")
-    if args.folds < 2:
-        raise InputError(f"--folds must be at least 2 (held-out error needs windows left out), got {args.folds}")
-    start = _load_start(args.start) if args.start else None
-    t0, c0 = time.perf_counter(), time.process_time()
-    rec = read_recording(args.file, check_saturation=args.check_saturation)
-    t_read, c_read = time.perf_counter() - t0, time.process_time() - c0
+    opts = Options(model=args.model, detector=args.detector, folds=args.folds,
+                   start=_load_start(args.start) if args.start else None,
+                   lab=_load_lab(args.lab_calibration) if args.lab_calibration else None,
+                   lab_session=args.lab, columns=args.columns, check_saturation=args.check_saturation)
+    check_options(opts)
+    return opts
+
+
+def run(args: argparse.Namespace) -> int:
+    from .formats.csvtext import parse_columns
+
+    parse_columns(args.columns)  # a bad mapping is refused before anything is read
+    opts = options(args)
+    if len(args.files) > 1 or args.out or args.files[0].is_dir():
+        from .study import run_study
+
+        if args.save or args.json:
+            raise InputError("--save and --json are for one file; a study writes its rows to --out RESULTS.csv")
+        if not args.out:
+            raise InputError("several files or a directory: name the results file with --out RESULTS.csv")
+        return run_study(args.files, args.out, opts, workers=args.workers, scheduler=args.scheduler,
+                         quiet=args.quiet)
+    if args.workers is not None or args.scheduler:
+        raise InputError("--workers and --scheduler are for a study (several files or a directory with --out)")
+    return calibrate_one(args.files[0], opts, args)
+
+
+def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
+    from . import offline
+    from .recordings import jsonable
+
+    rec, t_read, c_read = offline.read(path, opts)
     log.info("read %s: %d samples, %.1f s at %.6g Hz in %.2f s", rec.source, rec.n_samples, rec.duration_s, rec.fs, t_read)
-    t0, c0 = time.perf_counter(), time.process_time()
-    if args.lab:
-        from gravcal.core.estimators.bragge import calibrate_lab
-
-        report = calibrate_lab(rec.t, rec.raw, fs=rec.fs, to_g=start)
-    else:
-        report = calibrate_recording(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, model=args.model, fs=rec.fs,
-                                     detector=args.detector, start=start, folds=args.folds, lab=lab)
-    t_cal, c_cal = time.perf_counter() - t0, time.process_time() - c0
+    report, out = offline.calibrate(rec, opts, (t_read, c_read))
     cal = report.calibration
-    out = dict(report.to_json_dict())
-    # The keys promised by the issue, whatever the report already holds.
-    out.setdefault("model", cal.model)
-    out.setdefault("offset", cal.offset.tolist())
-    out.setdefault("sensitivity", cal.sensitivity.tolist())
-    out.setdefault("std", cal.std)
-    out.setdefault("n_windows", int(cal.n_windows))
-    out.setdefault("heldout_rms_mg", getattr(report, "heldout_rms_mg", None))
-    out.setdefault("insample_rms_mg", getattr(report, "insample_rms_mg", None))
-    out.setdefault("converged", bool(cal.converged))
-    out.setdefault("observable", bool(cal.observable))
-    out.setdefault("message", cal.message)
-    out["input"] = {
-        "file": str(rec.source), "n_samples": rec.n_samples, "duration_s": rec.duration_s, "fs_hz": rec.fs,
-        "n_dropped_nonfinite": rec.n_dropped, "n_dropped_saturated": rec.n_saturated, "warnings": list(rec.warnings),
-    }
-    # wall and CPU (all threads) seconds: CPU is the figure that holds on a shared machine
-    out["timing_s"] = {"read": t_read, "calibrate": t_cal, "read_cpu": c_read, "calibrate_cpu": c_cal}
-    if rec.gyro is not None:  # gyro bias/sensitivity from the same quasi-static windows
-        from gravcal.core.gyro import gyro_report
-
-        out["gyro"] = gyro_report(rec.t, rec.gyro, report, fs=rec.fs)
     if args.save:
         args.save.write_text(cal.to_json(indent=2) + "\n", encoding="utf-8")
     trustworthy = bool(cal.converged and cal.observable)
@@ -220,7 +210,8 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     inp = out["input"]
     std = cal.std
     lines = [
-        f"recording   {inp['file']}: {inp['n_samples']} samples, {inp['duration_s']:.1f} s at {inp['fs_hz']:.6g} Hz",
+        f"recording   {inp['file']}: {inp['n_samples']} samples, {inp['duration_s']:.1f} s at {inp['fs_hz']:.6g} Hz"
+        + (f" ({inp['format']}, {inp['units']})" if inp.get("format") else ""),
     ]
     for w in inp["warnings"]:
         lines.append(f"warning     {w}")

@@ -1,27 +1,30 @@
 """Recordings on disk: read one for ``gravcal calibrate``, write one from ``gravcal simulate``.
 
-Two formats hold the same columns:
+The format is recognised by content (daemon.formats.sniff), never by the name alone:
 
-- CSV: a header row, then one sample per line. Columns ``t`` [s], ``ax``, ``ay``, ``az``
-  (raw units of any scale: counts, volts, duty cycle or g); optional ``gx``, ``gy``, ``gz``
-  (gyro, any unit), ``temp`` [°C] and ``vsupply`` [V]; any other column is ignored. Delimiter ``,`` (``;`` or
-  tab are recognised from the header), ``#`` starts a comment line.
+- CSV, plain or gzip-compressed: a header row, then one sample per line. Columns ``t`` [s], ``ax``,
+  ``ay``, ``az`` (raw units of any scale: counts, volts, duty cycle or g); optional ``gx``, ``gy``,
+  ``gz`` (gyro, any unit), ``temp`` [°C] and ``vsupply`` [V]; any other column is ignored; other
+  header names are mapped with ``columns`` (``--columns t=t_unix,ax=x_counts,...``). Delimiter ``,``
+  (``;`` or tab are recognised from the header), ``#`` starts a comment line.
 - ``.npy``: a structured array with the same field names, opened memory-mapped so a week at
   100 Hz (60 M samples) is not copied; ``t``, ``ax``, ``ay``, ``az`` come back as views.
+- ActiGraph .gt3x / .agdc, Axivity .cwa, GENEActiv .bin through their readers (the ``formats``
+  extra, daemon.formats.wearables); temperature comes through as ``temp``.
 
 Reading validates and says precisely what is wrong (:class:`~gravcal.daemon.errors.InputError`):
-missing file, empty file, no header, missing columns, text in numbers (line and column),
-NaN/inf (dropped with a warning when few, an error when most), clipped/saturated samples,
-time going backwards or repeated, too few samples. Validation runs in chunks so its
-temporaries stay small next to a memory-mapped week.
+missing file, empty file, binary or unknown content, no header, missing columns, text in numbers
+(line and column), NaN/inf (dropped with a warning when few, an error when most), clipped/saturated
+samples, time going backwards or repeated, too few samples. Messages quote the file only as a short
+printable excerpt. Validation runs in chunks so its temporaries stay small next to a memory-mapped week.
 """
 from __future__ import annotations
 
-import csv
+import gzip
 import json
 import logging
 import math
-import warnings
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -33,11 +36,11 @@ from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_tria
 from gravcal.core.fastdetect import release_mapped
 
 from .errors import InputError
+from .formats.csvtext import OPTIONAL, REQUIRED, Where, load_csv, missing_columns_error, parse_columns, shown_names
+from .formats.sniff import FORMATS, excerpt, sniff
 
 log = logging.getLogger(__name__)
 
-REQUIRED = ("t", "ax", "ay", "az")
-OPTIONAL = ("gx", "gy", "gz", "temp", "vsupply")
 VSUPPLY_RANGE_V = (0.5, 60.0)  # a supply-voltage reading outside this is not a supply [V]: handled like NaN
 MIN_SAMPLES = 50
 """Fewer samples than this cannot hold even one quasi-static window at any usual rate."""
@@ -61,9 +64,9 @@ SCAN_CHUNK = 1 << 16  # rows per chunk of the validation scan: small enough to s
 class Recording:
     """A validated recording in memory (or memory-mapped).
 
-    ``raw`` is (N, 3) in the file's raw units; ``t`` (N,) [s]; ``temp`` (N,) [°C] or None;
-    ``gyro`` (N, 3) in the file's gyro units or None; ``fs`` [Hz] estimated from ``t``;
-    ``vsupply`` (N,) [V] or None.
+    ``raw`` (also ``acc``) is (N, 3) in the file's raw units (``units``); ``t`` (N,) [s]; ``temp``
+    (N,) [°C] or None; ``gyro`` (N, 3) in the file's gyro units or None; ``fs`` [Hz] estimated from
+    ``t``; ``vsupply`` (N,) [V] or None; ``metadata``: format, reader and device notes.
     """
 
     t: np.ndarray
@@ -77,6 +80,13 @@ class Recording:
     n_saturated: int = 0  # rows dropped as saturated
     columns: tuple[str, ...] = ()  # every column/field name found in the file
     warnings: list[str] = field(default_factory=list)
+    units: str = "raw"
+    metadata: dict[str, Any] = field(default_factory=dict)
+    n_filler: int = 0  # rows excluded as exactly repeated filler (exclude_filler)
+
+    @property
+    def acc(self) -> np.ndarray:
+        return self.raw
 
     @property
     def n_samples(self) -> int:
@@ -90,143 +100,117 @@ class Recording:
 # ---------------------------------------------------------------------------------------
 # reading
 # ---------------------------------------------------------------------------------------
-def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_saturation: bool = True) -> Recording:
-    """Read and validate a CSV or ``.npy`` recording (format chosen by the extension)."""
+def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_saturation: bool = True,
+                   columns: str | dict[str, str] | None = None, exclude_filler: bool = False) -> Recording:
+    """Read and validate a recording of any format in ``FORMATS`` (recognised by content).
+
+    ``columns``: other CSV header names, ``"t=t_unix,ax=x_counts"`` or a dict. ``exclude_filler``:
+    drop runs of exactly repeated samples (idle-sleep filler, a frozen bus) and say so in ``warnings``.
+    """
     path = Path(path)
+    mapping = parse_columns(columns)
     if not path.exists():
         raise InputError(f"{path}: no such file")
     if path.is_dir():
-        raise InputError(f"{path}: is a directory, expected a .csv or .npy recording")
+        raise InputError(f"{path}: is a directory, expected a recording ({', '.join(FORMATS)})")
     if path.stat().st_size == 0:
         raise InputError(f"{path}: empty file (expected a header row t,ax,ay,az and samples)")
-    if path.suffix.lower() == ".npy":
-        cols, where, columns = _load_npy(path)
+    found = sniff(path)
+    named = path.suffix.lower().lstrip(".")
+    if named in ("npy", "gt3x", "agdc", "cwa", "bin") and found.kind != named:
+        raise InputError(f"{path}: not a readable .{named} file: its content is {found.what}")
+    units, meta = "raw", {"format": found.kind}
+    if found.kind == "npy":
+        cols, where, names = _load_npy(path, mapping)
+    elif found.kind in ("csv", "csv.gz"):
+        try:
+            cols, where, names = load_csv(path, gz=found.kind == "csv.gz", mapping=mapping)
+        except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
+            raise InputError(f"{path}: damaged gzip data ({type(exc).__name__}: {excerpt(str(exc), 60)})") from None
+    elif found.kind in ("gt3x", "agdc", "cwa", "bin"):
+        from .formats.wearables import read_wearable
+
+        cols, meta = read_wearable(path, found)
+        units = meta.pop("units")
+        where, names = Where(path=path), tuple(cols)
     else:
-        cols, where, columns = _load_csv(path)
-    return _validate(path, cols, where, columns, min_samples=min_samples, check_saturation=check_saturation)
+        raise InputError(f"{path}: {found.what}; not a recording gravcal reads ({', '.join(FORMATS)})")
+    rec = _validate(path, cols, where, names, min_samples=min_samples, check_saturation=check_saturation)
+    rec.units, rec.metadata = units, meta
+    return _without_filler(rec, min_samples) if exclude_filler else rec
 
 
-def _missing_columns_error(path: Path, found: list[str], what: str = "column") -> InputError:
-    missing = [c for c in REQUIRED if c not in found]
-    shown = ", ".join(found) if found else "(none)"
-    return InputError(
-        f"{path}: missing {what}{'s' if len(missing) > 1 else ''} {', '.join(missing)}; found: {shown} "
-        f"(need {', '.join(REQUIRED)}; optional {', '.join(OPTIONAL)})"
-    )
+def recording_from_arrays(t: Any, acc: Any, *, temp: Any = None, vsupply: Any = None, min_samples: int = MIN_SAMPLES,
+                          check_saturation: bool = True, exclude_filler: bool = True) -> Recording:
+    """Validate arrays as a file's columns are: t (N,) [s], acc (N, 3) raw, optional temp/vsupply (N,)."""
+    t = np.asarray(t, dtype=np.float64)
+    acc = np.asarray(acc, dtype=np.float64)
+    if t.ndim != 1 or acc.shape != (t.shape[0], 3):
+        raise InputError(f"need t of shape (N,) and acc of shape (N, 3); got {t.shape} and {acc.shape}")
+    cols = {"t": t, "ax": acc[:, 0], "ay": acc[:, 1], "az": acc[:, 2], "_triad": acc}
+    for name, v in (("temp", temp), ("vsupply", vsupply)):
+        if v is not None:
+            v = np.asarray(v, dtype=np.float64)
+            if v.shape != t.shape:
+                raise InputError(f"{name} has shape {v.shape}; need one value per sample, shape {t.shape}")
+            cols[name] = v
+    rec = _validate(Path("<arrays>"), cols, Where(path=Path("<arrays>")), tuple(c for c in cols if c != "_triad"),
+                    min_samples=min_samples, check_saturation=check_saturation)
+    rec.metadata = {"format": "arrays"}
+    return _without_filler(rec, min_samples) if exclude_filler else rec
 
 
-def _is_number(s: str) -> bool:
-    try:
-        float(s)
-    except ValueError:
-        return False
-    return True
+def _repeat_codes(raw: np.ndarray) -> np.ndarray:
+    """(N, 1) uint8 codes equal in consecutive rows exactly where the triad repeats: what flat_stretches
+    needs, built in chunks (N bytes instead of the 4N of its boolean temporaries on the triad, and a
+    mapped input released as the scan releases it)."""
+    n = raw.shape[0]
+    codes = np.empty(n, dtype=np.uint8)
+    last = np.uint8(0)
+    for s in _chunks(n, CHUNK):
+        lo = max(0, s.start - 1)
+        block = raw[lo:s.stop]
+        step = ~np.all(block[1:] == block[:-1], axis=1)
+        if s.start == 0:
+            step = np.concatenate([[False], step])
+        codes[s] = (last + np.cumsum(step, dtype=np.uint64)) % 256  # +1 per change: equal only on a repeat
+        last = codes[s.stop - 1]
+        release_mapped(raw, s.start, s.stop)
+    return codes[:, None]
 
 
-def _sniff_delimiter(header: str) -> str | None:
-    for d in (",", ";", "\t"):
-        if d in header:
-            return d
-    return None  # whitespace
+def _without_filler(rec: Recording, min_samples: int) -> Recording:
+    """Drop runs of exactly repeated triads (core.diagnosis.noise.flat_stretches decides); the first
+    sample of each run is a real one and stays."""
+    from gravcal.core.diagnosis.noise import flat_stretches
+
+    flats = flat_stretches(_repeat_codes(rec.raw))
+    if not flats.runs:
+        return rec
+    keep = np.ones(rec.n_samples, dtype=bool)
+    for a, b in flats.runs:
+        keep[a + 1:b] = False
+    n_out = int(rec.n_samples - keep.sum())
+    if keep.sum() < max(min_samples, 2):
+        raise InputError(f"{rec.source}: {n_out} of {rec.n_samples} samples are exactly repeated filler "
+                         f"(idle sleep or frozen output): too few real samples left")
+    note = (f"excluded {n_out} of {rec.n_samples} samples ({100.0 * n_out / rec.n_samples:.1f} %) as exactly repeated "
+            f"filler in {len(flats.runs)} run(s), longest {max(b - a for a, b in flats.runs)} samples "
+            f"(idle sleep / frozen output, not stillness)")
+    log.warning("%s: %s", rec.source, note)
+    sub = (lambda x: None if x is None else x[keep])
+    return Recording(t=rec.t[keep], raw=rec.raw[keep], temp=sub(rec.temp), gyro=sub(rec.gyro), fs=rec.fs,
+                     source=rec.source, vsupply=sub(rec.vsupply), n_dropped=rec.n_dropped, n_saturated=rec.n_saturated,
+                     columns=rec.columns, warnings=[*rec.warnings, note], units=rec.units, metadata=rec.metadata,
+                     n_filler=n_out)
 
 
-def _split(line: str, delim: str | None) -> list[str]:
-    if delim is None:
-        return line.split()
-    return next(csv.reader([line], delimiter=delim))
-
-
-def _load_csv(path: Path) -> tuple[dict[str, np.ndarray], "_Where", tuple[str, ...]]:
-    with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
-        header = f.readline()
-        while header and header.lstrip().startswith("#"):
-            header = f.readline()
-    if not header.strip():
-        raise InputError(f"{path}: no header row (the first line is empty; expected a header like t,ax,ay,az)")
-    delim = _sniff_delimiter(header)
-    names = [n.strip().strip('"').strip().lower() for n in _split(header.rstrip("\r\n"), delim)]
-    if names and all(_is_number(n) for n in names if n):
-        raise InputError(
-            f"{path}: no header row (the first line holds numbers: {header.strip()[:60]!r}); "
-            f"expected a header naming the columns, e.g. t,ax,ay,az"
-        )
-    if any(c not in names for c in REQUIRED):
-        raise _missing_columns_error(path, names)
-    wanted = [c for c in REQUIRED + OPTIONAL if c in names] + (["flags"] if "flags" in names else [])
-    dup = [c for c in wanted if names.count(c) > 1]
-    if dup:
-        raise InputError(f"{path}: column {dup[0]!r} appears {names.count(dup[0])} times in the header")
-    usecols = [names.index(c) for c in wanted]
-    header_line = _header_line_number(path)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # "input contained no data": handled below
-            data = np.loadtxt(
-                path, delimiter=delim, skiprows=header_line, usecols=usecols, dtype=np.float64,
-                ndmin=2, comments="#", encoding="utf-8-sig",
-            )
-    except ValueError:
-        # Slow path only on trouble: locate the first bad line exactly (and accept empty
-        # fields as missing values, which the NaN policy then handles).
-        data = _parse_csv_slow(path, delim, names, usecols, header_line)
-    if data.shape[0] == 0:
-        raise InputError(f"{path}: empty input: a header but no samples")
-    cols = {c: np.ascontiguousarray(data[:, i]) for i, c in enumerate(wanted)}
-    return cols, _Where(path=path, csv_header_line=header_line, csv_delim=delim), tuple(names)
-
-
-def _header_line_number(path: Path) -> int:
-    """1-based line number of the header (comment lines may precede it)."""
-    with open(path, encoding="utf-8-sig", errors="replace") as f:
-        for i, line in enumerate(f, start=1):
-            if not line.lstrip().startswith("#"):
-                return i
-    return 1
-
-
-def _data_lines(path: Path, header_line: int) -> Iterator[tuple[int, str]]:
-    """(line number, text) of each data line, skipping blank and comment lines like np.loadtxt."""
-    with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
-        for i, line in enumerate(f, start=1):
-            if i <= header_line:
-                continue
-            s = line.strip()
-            if not s or s.startswith("#"):
-                continue
-            yield i, line.rstrip("\r\n")
-
-
-def _parse_csv_slow(path: Path, delim: str | None, names: list[str], usecols: list[int], header_line: int) -> np.ndarray:
-    rows: list[list[float]] = []
-    for lineno, line in _data_lines(path, header_line):
-        fields = _split(line, delim)
-        if len(fields) <= max(usecols):
-            raise InputError(
-                f"{path}: line {lineno} has {len(fields)} fields, the header has {len(names)} "
-                f"(column {names[max(usecols)]!r} is missing on that line)"
-            )
-        row = []
-        for j in usecols:
-            s = fields[j].strip()
-            if s == "":
-                row.append(math.nan)  # a missing value: handled by the NaN/inf policy
-                continue
-            try:
-                row.append(float(s))
-            except ValueError:
-                raise InputError(
-                    f"{path}: line {lineno}, column {names[j]!r}: {s[:40]!r} is not a number"
-                ) from None
-        rows.append(row)
-    return np.array(rows, dtype=np.float64).reshape(len(rows), len(usecols))
-
-
-def _load_npy(path: Path) -> tuple[dict[str, np.ndarray], "_Where", tuple[str, ...]]:
+def _load_npy(path: Path, mapping: dict[str, str]) -> tuple[dict[str, np.ndarray], Where, tuple[str, ...]]:
     layout = "a structured array with fields t, ax, ay, az (optional gx, gy, gz, temp)"
     try:
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
-        raise InputError(f"{path}: not a readable .npy file ({exc}); expected {layout}") from None
+        raise InputError(f"{path}: not a readable .npy file ({excerpt(str(exc), 80)}); expected {layout}") from None
     if isinstance(arr, np.lib.npyio.NpzFile):  # pragma: no cover - np.load only returns this for .npz content
         raise InputError(f"{path}: is an .npz archive; expected a .npy file holding {layout}")
     names = arr.dtype.names
@@ -240,8 +224,12 @@ def _load_npy(path: Path) -> tuple[dict[str, np.ndarray], "_Where", tuple[str, .
     if len(arr) == 0:
         raise InputError(f"{path}: empty input: the array holds no samples")
     lower = {n.lower(): n for n in names}
+    for ours, theirs in mapping.items():
+        if theirs.lower() not in lower:
+            raise InputError(f"{path}: --columns {ours}={excerpt(theirs, 24)}: no such field; found: {shown_names(list(names))}")
+        lower[ours] = lower.pop(theirs.lower())
     if any(c not in lower for c in REQUIRED):
-        raise _missing_columns_error(path, list(lower), what="field")
+        raise missing_columns_error(path, list(lower), what="field")
     for c in REQUIRED + OPTIONAL:
         if c in lower and (arr.dtype[lower[c]].kind not in "fiu" or arr.dtype[lower[c]].shape != ()):
             raise InputError(f"{path}: field {c!r} has type {arr.dtype[lower[c]]}; expected a scalar number per sample")
@@ -251,7 +239,7 @@ def _load_npy(path: Path) -> tuple[dict[str, np.ndarray], "_Where", tuple[str, .
     triad = _triad_view(arr, [lower[c] for c in ("ax", "ay", "az")])
     if triad is not None:
         cols["_triad"] = triad
-    return cols, _Where(path=path), tuple(names)
+    return cols, Where(path=path), tuple(names)
 
 
 def _triad_view(arr: np.ndarray, fields: list[str]) -> np.ndarray | None:
@@ -264,23 +252,6 @@ def _triad_view(arr: np.ndarray, fields: list[str]) -> np.ndarray | None:
     if offs != [offs[0], offs[0] + size, offs[0] + 2 * size]:
         return None
     return np.ndarray(shape=(arr.shape[0], 3), dtype=dts[0], buffer=arr, offset=offs[0], strides=(arr.strides[0], size))
-
-
-@dataclass
-class _Where:
-    """Turns a row index into a place a user can find (CSV line number or .npy index)."""
-
-    path: Path
-    csv_header_line: int | None = None
-    csv_delim: str | None = None
-
-    def __call__(self, row: int) -> str:
-        if self.csv_header_line is None:
-            return f"row {row}"
-        for k, (lineno, _) in enumerate(_data_lines(self.path, self.csv_header_line)):
-            if k == row:
-                return f"line {lineno}"
-        return f"data row {row}"  # pragma: no cover
 
 
 def _chunks(n: int, size: int = CHUNK) -> Iterator[slice]:
@@ -339,7 +310,7 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
     return sc
 
 
-def _validate(path: Path, cols: dict[str, np.ndarray], where: _Where, columns: tuple[str, ...], *,
+def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tuple[str, ...], *,
               min_samples: int, check_saturation: bool) -> Recording:
     t = cols["t"]
     raw = cols.pop("_triad", None)
@@ -469,7 +440,7 @@ def _saturated_rows(raw: np.ndarray, flags: np.ndarray | None, keep: np.ndarray 
     return sat, "; ".join(details)
 
 
-def _check_time(path: Path, t: np.ndarray, where: _Where, orig_index: np.ndarray | None) -> None:
+def _check_time(path: Path, t: np.ndarray, where: Where, orig_index: np.ndarray | None) -> None:
     """Raise, naming the place, if time does not increase strictly."""
     n = int(t.shape[0])
     for s in _chunks(n):

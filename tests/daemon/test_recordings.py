@@ -272,3 +272,19 @@ def test_to_recording_array_fields():
     arr = to_recording_array(s)
     np.testing.assert_array_equal(arr["t1_ax2"], s["t1"][:, 3])
     np.testing.assert_array_equal(np.column_stack([arr["ax"], arr["ay"], arr["az"]]), raw_triad(s))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_filler_codes_find_what_flat_stretches_finds_on_the_triad(monkeypatch, seed):
+    """The chunked repeat codes give flat_stretches' own runs on the triad, runs across chunk borders included."""
+    from gravcal.core.diagnosis.noise import flat_stretches
+    from gravcal.daemon import recordings
+
+    monkeypatch.setattr(recordings, "CHUNK", 997)
+    rng = np.random.default_rng(seed)
+    raw = rng.integers(0, 40, size=(20_000, 3)).astype(np.float32)  # coarse: chance repeats happen
+    for start in rng.integers(0, 19_000, 6):
+        raw[start:start + rng.integers(20, 900)] = raw[start]
+    want = flat_stretches(raw)
+    got = flat_stretches(recordings._repeat_codes(raw))
+    assert want.runs and got.runs == want.runs and got.repeat_prob == want.repeat_prob

@@ -15,7 +15,7 @@ import pytest
 from gravcal.core.model.terms import REGISTRY
 
 ROOT = Path(__file__).resolve().parents[2]
-LAYERS = {"core": "gravcal.core", "drivers": "gravcal.drivers", "daemon": "gravcal.daemon"}
+LAYERS = {"core": "gravcal.core", "drivers": "gravcal.drivers", "daemon": "gravcal.daemon", "api": "gravcal"}
 MAX_LINES = 600
 
 
@@ -90,10 +90,15 @@ def test_no_import_cycles(graph):
 
 def test_layers_point_one_way(graph):
     """core imports neither drivers nor daemon; drivers never import daemon; the real drivers never
-    import their test rigs (drivers/rigs: emulator, fakes, HIL)."""
+    import their test rigs (drivers/rigs: emulator, fakes, HIL); nothing below the Python API (api/,
+    imported as gravcal) imports it."""
+    api = {"gravcal", *(m for m in graph if m.startswith("gravcal.") and not m.startswith(tuple(
+        f"{p}." for p in LAYERS.values() if p != "gravcal")) and m not in LAYERS.values())}
     bad = []
     for m, deps in graph.items():
         for d in deps:
+            if m not in api and d in api:
+                bad.append((m, d))
             if m.startswith("gravcal.core") and not d.startswith("gravcal.core"):
                 bad.append((m, d))
             if m.startswith("gravcal.drivers") and d.startswith("gravcal.daemon"):

@@ -1,0 +1,37 @@
+"""gravcal: in-use calibration of body-worn accelerometers from their quasi-static moments.
+
+The Python API (docs/python-api.md)::
+
+    import gravcal
+    rec = gravcal.read("subject01.gt3x")          # t, acc (N, 3 raw), temp, vsupply, fs, units, metadata
+    cal = gravcal.calibrate(rec)                  # offset (3), sensitivity (3x3), held-out error, report
+    g = cal.apply(rec.acc, temp=rec.temp)         # calibrated acceleration [g]
+
+Attributes load on first use, so ``import gravcal`` (and the daemon, which imports
+gravcal.daemon) pays for none of the numerics.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["__version__", "read", "calibrate", "Calibration", "Recording"]
+_API = {"read", "calibrate", "Calibration", "Recording"}
+
+
+def __getattr__(name: str) -> Any:
+    if name == "__version__":
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            return version("gravcal")
+        except PackageNotFoundError:  # pragma: no cover - a bare checkout, not installed
+            return "unknown"
+    if name in _API:
+        from . import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'gravcal' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

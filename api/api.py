@@ -1,0 +1,98 @@
+"""The functions ``gravcal.read`` and ``gravcal.calibrate`` and the ``gravcal.Calibration`` they give.
+
+They run exactly what ``gravcal calibrate`` runs (daemon.offline), so a notebook and the command
+line report the same numbers under the same keys.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from gravcal.core.calibration import Calibration as _CoreCalibration
+from gravcal.core.calibration import jsonable
+from gravcal.daemon import offline
+from gravcal.daemon.recordings import Recording, read_recording, recording_from_arrays
+
+__all__ = ["read", "calibrate", "Calibration", "Recording"]
+
+
+@dataclass
+class Calibration(_CoreCalibration):
+    """A calibration: ``offset`` (3,) [raw], ``sensitivity`` (3, 3) [raw per g], with
+    a [g] = sensitivity^-1 (raw - offset) (plus any terms the model carries).
+
+    ``apply(acc, temp=..., vsupply=...)`` -> g. ``report``: the ``gravcal calibrate --json`` object
+    (held-out error, order, windows, input notes); its keys read as attributes too, e.g.
+    ``cal.heldout_rms_mg``. ``to_json()`` writes the ``calibrate --save`` format with the report
+    added (``--start`` accepts it); ``Calibration.from_json()`` reads either back.
+    """
+
+    report: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    @property
+    def heldout_rms_mg(self) -> float | None:
+        """RMS of |a| - 1 g on windows not used for the fit (contiguous folds) [mg]."""
+        return self.report.get("heldout_rms_mg")
+
+    @property
+    def insample_rms_mg(self) -> float | None:
+        return self.report.get("insample_rms_mg")
+
+    def __getattr__(self, name: str) -> Any:
+        report = self.__dict__.get("report") or {}
+        if name in report:
+            return report[name]
+        raise AttributeError(f"'Calibration' has no attribute {name!r} (report keys: {', '.join(report) or 'none'})")
+
+    def to_dict(self) -> dict[str, Any]:
+        d = super().to_dict()
+        if self.report:
+            d["report"] = jsonable(self.report)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> "Calibration":
+        cal = super().from_dict(d)
+        cal.report = dict(d.get("report") or {})
+        return cal
+
+    @classmethod
+    def _from_core(cls, core: _CoreCalibration, report: dict[str, Any]) -> "Calibration":
+        return cls(**{f.name: getattr(core, f.name) for f in fields(_CoreCalibration)}, report=report)
+
+
+def read(path: str | Path, *, columns: str | dict[str, str] | None = None, exclude_filler: bool = True,
+         check_saturation: bool = True) -> Recording:
+    """Read and validate a recording (.csv, .csv.gz, .npy, .gt3x, .agdc, .cwa, .bin; recognised by content).
+
+    Returns a Recording: ``t`` (N,) [s], ``acc`` (N, 3) in the file's raw ``units``, ``temp`` [°C] and
+    ``vsupply`` [V] (None when absent), ``fs`` [Hz], ``metadata``, ``warnings``. ``columns`` maps other
+    CSV names, e.g. ``{"t": "t_unix", "ax": "x_counts"}``; ``exclude_filler`` drops exactly repeated
+    runs (idle sleep) and notes it in ``warnings``. Errors: ValueError with a one-line message.
+    """
+    return read_recording(path, columns=columns, exclude_filler=exclude_filler, check_saturation=check_saturation)
+
+
+def calibrate(data: Recording | str | Path | tuple, model: str = "auto", *, temp: Any = None, vsupply: Any = None,
+              detector: str = "lotters", folds: int = 5, start: _CoreCalibration | None = None,
+              columns: str | dict[str, str] | None = None) -> Calibration:
+    """Calibrate a recording (a Recording, a path, or a tuple ``(t, acc)`` with t [s], acc (N, 3) raw).
+
+    ``model``: "auto" (the largest order the windows determine), "offsets", "6", "9", "12" or an order
+    with terms ("6+temperature_offset" style names from the registry). Raises ValueError when the
+    recording holds no usable stillness (the message says why). Check ``converged`` and ``observable``
+    before using the result, as ``gravcal calibrate`` does (exit 3).
+    """
+    opts = offline.Options(model=model, detector=detector, folds=folds, start=start, columns=columns)
+    offline.check_options(opts)
+    if isinstance(data, (str, Path)):
+        rec = read(data, columns=columns)
+    elif isinstance(data, Recording):
+        rec = data
+    elif isinstance(data, tuple) and len(data) == 2:
+        rec = recording_from_arrays(data[0], data[1], temp=temp, vsupply=vsupply)
+    else:
+        raise TypeError(f"calibrate() takes a Recording, a path or a tuple (t, acc); got {type(data).__name__}")
+    report, out = offline.calibrate(rec, opts)
+    return Calibration._from_core(report.calibration, out)
