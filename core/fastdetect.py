@@ -146,11 +146,12 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(s1).all(axis=0) & np.isfinite(s2).all(axis=0)
         # time: the step into every sample of the block (the first one's from the previous sample)
-        lo = max(i - 1, 0)
-        tc = np.asarray(t[lo:j], dtype=np.float64)
-        dt = np.diff(tc)
+        dt = ws["dt"][:j - i]
         if i == 0:
-            dt = np.concatenate([[1.0 / fs], dt])
+            dt[0] = 1.0 / fs
+            np.subtract(t[1:j], t[:j - 1], out=dt[1:])
+        else:
+            np.subtract(t[i:j], t[i - 1:j - 1], out=dt)
         with np.errstate(invalid="ignore"):
             if not (dt.min() > 0 and dt.max() <= step):  # NaN fails this too
                 bad = ~((dt > 0) & (dt <= step))
@@ -165,7 +166,8 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
             release_mapped(arr, i, j)
 
     def workspace() -> dict[str, np.ndarray]:
-        return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32)}
+        return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32),
+                "dt": np.empty(chunk)}
 
     if threads > 1 and len(starts) > 1:
         spaces = [workspace() for _ in range(threads)]
@@ -420,12 +422,16 @@ def _window_sums(bs: BlockStats, ps: np.ndarray, pe: np.ndarray) -> tuple[np.nda
     any r; a nearby r (posture differences, not raw offsets) keeps the cancellation harmless."""
     m, B, k = ps.shape[0], bs.block_n, bs.aux.shape[0]
     mean, scat, aux = np.empty((3, m)), np.empty((6, m)), np.empty((k, m))
+    buf = np.empty((15 + k, 0))  # reused across batches: a fresh one per batch costs its page faults
     lo = 0
     while lo < m:
         hi = lo + 1 + int(np.searchsorted(pe[lo + 1:], ps[lo] + _SPAN_BLOCKS, side="right"))
         base, top = int(ps[lo]), int(pe[hi - 1])
         span = top - base
-        rows = np.zeros((15 + k, span + 1))
+        if buf.shape[1] < span + 1:
+            buf = np.empty((15 + k, span + 1))
+        rows = buf[:, :span + 1]
+        rows[:, span] = 0.0  # the last cut's (discarded) segment
         d = rows[:3, :span]
         np.subtract(bs.mean[:, base:top], bs.mean[:, base, None], out=d)
         for q in range(6):
