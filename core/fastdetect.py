@@ -146,12 +146,11 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
         with np.errstate(invalid="ignore"):
             ok = np.isfinite(s1).all(axis=0) & np.isfinite(s2).all(axis=0)
         # time: the step into every sample of the block (the first one's from the previous sample)
-        dt = ws["dt"][:j - i]
+        lo = max(i - 1, 0)
+        tc = np.asarray(t[lo:j], dtype=np.float64)
+        dt = np.diff(tc)
         if i == 0:
-            dt[0] = 1.0 / fs
-            np.subtract(t[1:j], t[:j - 1], out=dt[1:])
-        else:
-            np.subtract(t[i:j], t[i - 1:j - 1], out=dt)
+            dt = np.concatenate([[1.0 / fs], dt])
         with np.errstate(invalid="ignore"):
             if not (dt.min() > 0 and dt.max() <= step):  # NaN fails this too
                 bad = ~((dt > 0) & (dt <= step))
@@ -166,8 +165,7 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
             release_mapped(arr, i, j)
 
     def workspace() -> dict[str, np.ndarray]:
-        return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32),
-                "dt": np.empty(chunk)}
+        return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32)}
 
     if threads > 1 and len(starts) > 1:
         spaces = [workspace() for _ in range(threads)]
