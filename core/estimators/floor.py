@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-RTOL = 1e-10  # relative tolerance on f² (brentq's rtol as used before)
+RTOL = 1e-10  # relative tolerance on f²
 XTOL = 1e-18  # absolute tolerance on f² [g²]
 MAX_STEPS = 200
 
