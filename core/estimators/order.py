@@ -297,7 +297,7 @@ def fit_extended_floor(model: str, ws: WindowSet, start: Calibration, *, sigma_f
     """fit_extended (iterated eq. 11a) of ``model`` held at ``start``, with the quasi-static floor derived
     from the data as LottersBatch does (None: the floor that brings the reduced chi² to 1, if > 1).
     Returns (ExtendedFit, floor [g])."""
-    from scipy.optimize import brentq  # noqa: PLC0415
+    from .floor import quasi_static_floor  # noqa: PLC0415
 
     par = parameterization(model, start.sensitivity, start.offset)
     p0 = _extended_params(par, start) if p0 is None else p0
@@ -308,11 +308,7 @@ def fit_extended_floor(model: str, ws: WindowSet, start: Calibration, *, sigma_f
     if sigma_floor_g is None and dof > 0 and fit.chi2 / dof > 1.0:
         r2 = fit.resid_g ** 2
 
-        def excess(f2: float) -> float:
-            return float(np.sum(r2 / np.maximum(var0 + f2, 1e-14)) - dof)
-
-        hi = max(float(np.max(r2)), 1e-12) * 10
-        floor2 = brentq(excess, 0.0, hi, xtol=1e-18, rtol=1e-10) if excess(hi) < 0 else hi
+        floor2 = quasi_static_floor(r2, var0, dof, 1e-14)
         fit = fit_extended(par, ws, fit.p, var0 + floor2)
     return fit, math.sqrt(floor2)
 

@@ -133,10 +133,11 @@ SYMMETRIC_PAIRS = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
 
 def polar_frame(K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(S, R) with K = S @ R, S symmetric positive definite, R orthogonal (left polar decomposition)."""
-    from scipy.linalg import polar
-
-    R, S = polar(np.asarray(K, dtype=float).reshape(3, 3), side="left")
-    return 0.5 * (S + S.T), R
+    # scipy.linalg.polar's construction from the SVD K = U diag(s) Vᵀ: R = U Vᵀ, S = U diag(s) Uᵀ
+    # (numpy's SVD: the calibration path need not import scipy.linalg for one 3 x 3 matrix)
+    U, s, Vt = np.linalg.svd(np.asarray(K, dtype=float).reshape(3, 3))
+    S = (U * s) @ U.T
+    return 0.5 * (S + S.T), U @ Vt
 
 
 class _SymmetricInFrame(Parameterization):

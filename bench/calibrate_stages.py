@@ -1,0 +1,62 @@
+"""CPU seconds per stage of `gravcal calibrate` on one recording (all threads: process_time).
+
+    python bench/calibrate_stages.py FILE.npy [--repeat 1]
+
+Stages: imports (the CLI's calibrate imports), read (daemon.recordings.read_recording: mapping and
+validating), start (the bootstrap calibration), block pass (core.fastdetect.block_stats), detection
+(detectors on the block statistics, window statistics, screening), fit (order and extended-term
+selection, re-detection's refit included), held-out (the contiguous folds). CPU time rather than
+wall time because the machine these run on is shared: wall time there measures the neighbours.
+Prints one JSON object: seconds per stage, the total and the result (model, windows, held-out).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+C0 = time.process_time()
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("file")
+    args = ap.parse_args()
+    from gravcal.core import pipeline  # noqa: PLC0415
+    from gravcal.daemon import recordings  # noqa: PLC0415
+
+    spent = {"imports": time.process_time() - C0}
+
+    def timed(module, name, stage):
+        fn = getattr(module, name)
+
+        def run(*a, **k):
+            c = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                spent[stage] = spent.get(stage, 0.0) + time.process_time() - c
+
+        setattr(module, name, run)
+
+    timed(pipeline, "_bootstrap", "start")
+    timed(pipeline, "block_stats", "block pass")
+    timed(pipeline, "detect_blocks", "detection")
+    timed(pipeline, "screen_windows", "detection")
+    timed(pipeline, "_fit_order", "fit")
+    timed(pipeline, "heldout_error", "held-out")
+    c = time.process_time()
+    rec = recordings.read_recording(args.file)
+    spent["read"] = time.process_time() - c
+    c = time.process_time()
+    rep = pipeline.calibrate_recording(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, fs=rec.fs)
+    spent["other"] = time.process_time() - c - sum(v for k, v in spent.items() if k not in ("imports", "read"))
+    spent["total"] = time.process_time() - C0
+    print(json.dumps({"cpu_s": {k: round(v, 3) for k, v in spent.items()}, "model": rep.calibration.model, "windows": rep.n_windows,
+                      "heldout_rms_mg": rep.heldout_rms_mg, "python": sys.version.split()[0]}))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
