@@ -28,7 +28,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import brentq
 
 from ..calibration import Calibration
 from ..crlb import h_variance
@@ -352,6 +351,8 @@ class LottersBatch:
                 return float(np.sum(r2 / np.maximum(v0 + f2, _TINY_VAR_G2)) - dof)
 
             hi = max(float(np.max(r2)), 1e-12) * 10
+            from scipy.optimize import brentq  # noqa: PLC0415 (rarely run; ~1.2 s and tens of MB at import)
+
             floor2 = brentq(excess, 0.0, hi, xtol=1e-18, rtol=1e-10) if excess(hi) < 0 else hi
             floor_used = math.sqrt(floor2)
             sol2 = self._solve(par, sol.p, anchor, mean, cov_mean, floor2)
