@@ -6,6 +6,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..windows import Window
+from .butterworth import butter_sos, sos_rest_state
 from .windowing import (
     _KEEP_WORKSPACE,
     _THREAD_MIN_BLOCK,
@@ -85,9 +86,6 @@ class QuasiStaticDetector(_Windower):
         if not threshold_g > 0:
             raise ValueError(f"threshold_g must be > 0, got {threshold_g}")
         self.hp_hz, self.lp_hz, self.threshold_g = hp_hz, lp_hz, float(threshold_g)
-        # closed-form order-2 Butterworth and rest state: the daemon never imports scipy.signal (~76 MB)
-        from ..fastdetect import butter_sos, sos_rest_state  # noqa: PLC0415 (fastdetect imports this package)
-
         self.sos_hp = butter_sos(order, hp_hz, "highpass", fs)
         self.sos_lp = butter_sos(order, lp_hz, "lowpass", fs)
         self.settle_n = (int(round(settle_s * fs)) if settle_s is not None

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
+from gravcal.core import fastdetect
 from gravcal.core.detectors import QuasiStaticDetector
 from gravcal.core.gyro.conditioning import HighPassInverse, highpass_ba
 from tests.support.gravcald_process import GravcaldProcess
@@ -48,6 +49,9 @@ def test_daemon_detector_filters_equal_scipy_signal(fs, hp, lp):
     np.testing.assert_allclose(det.sos_hp, ref_hp, rtol=0, atol=1e-14)
     np.testing.assert_allclose(det.sos_lp, ref_lp, rtol=0, atol=1e-14)
     np.testing.assert_allclose(det._zi_hp_unit[0], signal.sosfilt_zi(ref_hp), rtol=1e-9, atol=1e-12)
+    # the block detector's coefficients, bit for bit: the daemon and `gravcal calibrate` filter alike
+    assert np.array_equal(det.sos_hp, fastdetect.butter_sos(2, hp, "highpass", fs))
+    assert np.array_equal(det.sos_lp, fastdetect.butter_sos(2, lp, "lowpass", fs))
 
     def settle(sos, final, corner):  # samples until the step response stays within 1 %, via scipy.signal
         y = signal.sosfilt(sos, np.ones(int(round(20.0 / corner * fs))))
