@@ -1,7 +1,7 @@
 """gravcald frame-in -> line-out latency, CPU and RSS per bus at 200 Hz, with 1 and 32 clients (not a test).
 
     python bench/bench_latency.py [--buses serial,can,i2c] [--clients 1,32] [--seconds 20] [--json PATH]
-                                  [--baseline-src DIR]
+                                  [--baseline-src DIR] [--latency-budget S]
 
 Each run starts ``gravcald --emulate --bus BUS --fs 200 --speed 1 --scenario six_position`` (serial/can:
 the emulator in its own process on a pty / slcan pty; i2c: the fake device in the daemon's process, so
@@ -84,17 +84,22 @@ def _lines(sock: socket.socket, seconds: float):
     return rows
 
 
-def run(bus: str, clients: int, seconds: float, src: str | None) -> dict:
+def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float | None = None) -> dict:
     import multiprocessing as mp
 
     tmp = tempfile.mkdtemp(prefix="bench-latency-")
     path = os.path.join(tmp, "g.sock")
+    config = []
+    if budget_s is not None:
+        with open(os.path.join(tmp, "gravcald.toml"), "w", encoding="utf-8") as fh:
+            fh.write(f"[device]\nlatency_budget_s = {budget_s!r}\n")
+        config = ["--config", os.path.join(tmp, "gravcald.toml")]
     env = dict(os.environ)
     if src:
         env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
     cmd = [sys.executable, "-m", "gravcal.daemon.gravcald", "--emulate", "--bus", bus, "--fs", str(FS), "--speed", "1",
            "--scenario", "six_position", "--duration", str(seconds + 300), "--socket", path,
-           "--state-dir", os.path.join(tmp, "state"), "--log-level", "warning"]
+           "--state-dir", os.path.join(tmp, "state"), "--log-level", "warning", *config]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     ctx = mp.get_context("fork")
     stop = ctx.Event()
@@ -133,12 +138,13 @@ def run(bus: str, clients: int, seconds: float, src: str | None) -> dict:
     pct = {f"p{q:g}": float(np.percentile(spread, q)) for q in (50, 99, 99.9)}
     return {"bus": bus, "clients": clients, "samples": int(a.shape[0]), "seconds": wall,
             "samples_per_s": a.shape[0] / wall, "latency_ms": pct, "cpu_percent": cpu / wall * 100,
-            "rss_mb": rss, "rss_peak_mb": hwm, "src": src or "this tree"}
+            "rss_mb": rss, "rss_peak_mb": hwm, "src": src or "this tree", "latency_budget_s": budget_s}
 
 
 def _show(r: dict) -> str:
     lat = r["latency_ms"]
-    return (f"{r['bus']:6s} {r['clients']:3d} client(s)  {r['samples_per_s']:6.1f}/s  latency p50 {lat['p50']:7.2f} "
+    budget = "" if r.get("latency_budget_s") is None else f"budget {r['latency_budget_s'] * 1e3:g} ms  "
+    return (f"{budget}{r['bus']:6s} {r['clients']:3d} client(s)  {r['samples_per_s']:6.1f}/s  latency p50 {lat['p50']:7.2f} "
             f"p99 {lat['p99']:7.2f} p99.9 {lat['p99.9']:7.2f} ms  CPU {r['cpu_percent']:5.2f} %  "
             f"RSS {r['rss_mb']:6.1f} MB (peak {r['rss_peak_mb']:.1f})")
 
@@ -150,6 +156,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--baseline-src", metavar="DIR", help="also measure this source tree and report ratios")
     ap.add_argument("--json", metavar="PATH")
+    ap.add_argument("--latency-budget", type=float, metavar="S",
+                    help="[device] latency_budget_s for both trees (default: the configured default)")
     args = ap.parse_args(argv)
     buses = [b for b in args.buses.split(",") if b]
     counts = [int(c) for c in args.clients.split(",") if c]
@@ -160,7 +168,7 @@ def main(argv=None) -> int:
             for label, src in (("baseline", args.baseline_src), ("this", None)):
                 if label == "baseline" and not src:
                     continue
-                pair[label] = r = run(bus, n, args.seconds, src)
+                pair[label] = r = run(bus, n, args.seconds, src, args.latency_budget)
                 print(f"{label:8s} {_show(r)}", flush=True)
             if "baseline" in pair:
                 b, t = pair["baseline"], pair["this"]

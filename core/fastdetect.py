@@ -44,6 +44,7 @@ import numpy as np
 
 from .calibration import Calibration
 from .detectors import estimate_fs
+from .detectors.butterworth import butter_sos, sos_rest_state
 from .detectors.windowing import _filter_rows, _sosfilt_inplace
 from .windows import WindowSet
 
@@ -223,33 +224,6 @@ def _axis_var_g(bs: BlockStats, kinv: np.ndarray, lo: int = 0, hi: int | None = 
             if c != 0.0:
                 out[i] += c * bs.scatter[q, lo:hi]
     return out
-
-
-def butter_sos(order: int, corner_hz: float, kind: str, fs: float) -> np.ndarray:
-    """signal.butter(order, corner_hz, kind, fs=fs, output="sos") as a C-contiguous (sections, 6)
-    array. Order 2 (the detector's) in closed form, the bilinear transform with the corner
-    prewarped, so that running the detector does not import scipy.signal (~0.3 s)."""
-    if order != 2:
-        from scipy import signal
-
-        return np.ascontiguousarray(signal.butter(order, corner_hz, kind, fs=fs, output="sos"))
-    k = math.tan(math.pi * corner_hz / fs)
-    norm = 1.0 / (1.0 + math.sqrt(2.0) * k + k * k)
-    a = [1.0, 2.0 * (k * k - 1.0) * norm, (1.0 - math.sqrt(2.0) * k + k * k) * norm]
-    b = [k * k * norm, 2.0 * k * k * norm, k * k * norm] if kind == "lowpass" else [norm, -2.0 * norm, norm]
-    return np.array([b + a])
-
-
-def sos_rest_state(sos: np.ndarray) -> np.ndarray:
-    """signal.sosfilt_zi: the (sections, 2) transposed-direct-form-II state at rest for a unit input."""
-    zi = np.empty((sos.shape[0], 2))
-    gain = 1.0
-    for s, (b0, b1, b2, _, a1, a2) in enumerate(sos):
-        h = (b0 + b1 + b2) / (1.0 + a1 + a2)  # the section's DC gain
-        zi[s, 1] = gain * (b2 - a2 * h)
-        zi[s, 0] = gain * (b1 - a1 * h) + zi[s, 1]
-        gain *= h
-    return zi
 
 
 def _settle_blocks(sos: np.ndarray, final: float, corner_hz: float, fs_b: float, tol: float = 0.01) -> int:

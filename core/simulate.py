@@ -25,6 +25,7 @@ from .model.base import Context
 from .model.defaults import default_model, triad_truth
 from .samples import FLAG_SATURATED, empty
 from .scenarios import Motion, MotionPlan, plan_motion
+from .seeding import seed_streams
 
 DEFAULT_BLOCK = 65536  # samples per block: bounds the float intermediates to a few MB
 
@@ -89,11 +90,6 @@ class _Forward:
         out["vsupply"] = motion.vsupply
         out["flags"] = np.where(saturated, FLAG_SATURATED, 0).astype(np.uint16)
         return out
-
-
-def seed_streams(seed: int) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
-    motion, model, sensor = np.random.SeedSequence(seed).spawn(3)
-    return np.random.default_rng(motion), np.random.default_rng(model), np.random.default_rng(sensor)
 
 
 def _source(scenario: str | Motion | MotionPlan, rng: np.random.Generator, duration: float, fs: float,

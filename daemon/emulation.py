@@ -27,7 +27,7 @@ def emulated_truth(scenario: str, seed: int) -> Calibration | None:
     if scenario == "pattern":
         return None
     from ..core.model.defaults import default_model, triad_truth
-    from ..core.simulate import seed_streams  # the seed -> (motion, model, sensor) split of the simulator
+    from ..core.seeding import seed_streams  # the simulator's seed split, without its motion scenarios
 
     return triad_truth(default_model(seed_streams(seed)[1]))
 

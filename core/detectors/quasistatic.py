@@ -6,6 +6,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..windows import Window
+from .butterworth import butter_sos, sos_rest_state
 from .windowing import (
     _KEEP_WORKSPACE,
     _THREAD_MIN_BLOCK,
@@ -85,16 +86,14 @@ class QuasiStaticDetector(_Windower):
         if not threshold_g > 0:
             raise ValueError(f"threshold_g must be > 0, got {threshold_g}")
         self.hp_hz, self.lp_hz, self.threshold_g = hp_hz, lp_hz, float(threshold_g)
-        from scipy import signal  # heavy (~0.3 s): imported by the detectors that filter, when built
-
-        self.sos_hp = signal.butter(order, hp_hz, "highpass", fs=fs, output="sos")
-        self.sos_lp = signal.butter(order, lp_hz, "lowpass", fs=fs, output="sos")
+        self.sos_hp = butter_sos(order, hp_hz, "highpass", fs)
+        self.sos_lp = butter_sos(order, lp_hz, "lowpass", fs)
         self.settle_n = (int(round(settle_s * fs)) if settle_s is not None
                          else _settle_samples(self.sos_hp, 0.0, fs, hp_hz) + _settle_samples(self.sos_lp, 1.0, fs, lp_hz))
         self._sos_hp = np.ascontiguousarray(self.sos_hp)
         self._sos_lp = np.ascontiguousarray(self.sos_lp)
         # high-pass state at rest for a unit input, (1, sections, 2): scaled by the first sample
-        self._zi_hp_unit = signal.sosfilt_zi(self.sos_hp)[None]
+        self._zi_hp_unit = sos_rest_state(self._sos_hp)[None]
         self._work = np.empty(0)
         # a second thread filters half the channels of large blocks (threads > 1; offline use)
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="gravcal-qsd") if threads > 1 and per_axis else None

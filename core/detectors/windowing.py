@@ -479,9 +479,9 @@ def _unsettled(still: np.ndarray, j0: int, start: int | None, settle_n: int) -> 
 
 def _settle_samples(sos: np.ndarray, final: float, fs: float, corner_hz: float, tol: float = 0.01) -> int:
     """Samples after which the filter's unit-step response stays within ``tol`` of ``final``."""
-    from scipy import signal
-
     n = int(round(20.0 / corner_hz * fs))
-    y = signal.sosfilt(sos, np.ones(n))
+    y = np.ones((1, n))
+    _sosfilt_inplace(np.ascontiguousarray(sos), y, np.zeros((1, sos.shape[0], 2)))
+    y = y[0]
     bad = np.flatnonzero(np.abs(y - final) > tol)
     return int(bad[-1] + 1) if bad.shape[0] else 0

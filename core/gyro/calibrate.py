@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import optimize
 
 from ..calibration import Calibration
 from ..windows import Window, WindowSet
@@ -211,6 +210,8 @@ def bootstrap_rate_scale(pairs: list[Pair], axis: np.ndarray | None) -> float:
         m = m0 * np.exp(log_m)
         x = np.array([m]) if axis is not None else (m * np.eye(3)).reshape(9)
         return float(np.median([pair_residual_deg(probe, x, p) for p in sub]))
+
+    from scipy import optimize  # noqa: PLC0415 (offline only: keeps scipy.optimize off the daemon's start)
 
     res = optimize.minimize_scalar(cost, bounds=(np.log(0.5), np.log(2.0)), method="bounded", options={"xatol": 1e-3})
     return m0 * float(np.exp(res.x))

@@ -21,16 +21,22 @@ worse in simulation: posture sway and ADC quantisation corrupt the shape. The lo
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
-from scipy import signal
+
+from ..detectors.windowing import _sosfilt_inplace
 
 
 def highpass_ba(hp_hz: float, fs: float) -> tuple[np.ndarray, np.ndarray]:
-    """The board's first-order high-pass as simulated (Butterworth, bilinear) at ``fs`` [Hz]."""
+    """The board's first-order high-pass as simulated (Butterworth, bilinear) at ``fs`` [Hz]:
+    signal.butter(1, hp_hz, "highpass", fs=fs) in closed form (the corner prewarped), so that the
+    daemon's online gyro calibration does not import scipy.signal (~76 MB resident)."""
     if not (0 < hp_hz < fs / 2):
         raise ValueError(f"high-pass corner must lie in (0, fs/2 = {fs / 2} Hz), got {hp_hz}")
-    b, a = signal.butter(1, float(hp_hz), "highpass", fs=fs)
-    return b, a
+    k = math.tan(math.pi * float(hp_hz) / fs)
+    b0 = 1.0 / (1.0 + k)
+    return np.array([b0, -b0]), np.array([1.0, (k - 1.0) / (1.0 + k)])
 
 
 class HighPassInverse:
@@ -49,6 +55,8 @@ class HighPassInverse:
             b, a = highpass_ba(hp_hz, fs)
             self.b = np.array([1.0, a[1]]) / b[0]  # numerator of 1/H(z)
             self.a = np.array([1.0, -1.0])  # denominator: the integrator
+            # the same filter as one second-order section, for SciPy's sosfilt kernel (same arithmetic as lfilter)
+            self._sos = np.array([[self.b[0], self.b[1], 0.0, 1.0, -1.0, 0.0]])
         self.zi: np.ndarray | None = None
 
     def reset(self) -> None:
@@ -60,8 +68,12 @@ class HighPassInverse:
             return y.copy()
         if self.zi is None:
             self.zi = np.zeros((1,) + y.shape[1:])
-        x, self.zi = signal.lfilter(self.b, self.a, y, axis=0, zi=self.zi)
-        return x
+        x = np.array(y.reshape(y.shape[0], -1).T, order="C")  # (signals, n), a copy: filtered in place
+        zi = np.zeros((x.shape[0], 1, 2))
+        zi[:, 0, 0] = self.zi.reshape(-1)
+        _sosfilt_inplace(self._sos, x, zi)
+        self.zi = zi[:, 0, 0].reshape(self.zi.shape)
+        return x.T.reshape(y.shape)
 
 
 def reconstruct(y: np.ndarray, hp_hz: float | None, fs: float) -> np.ndarray:

@@ -11,7 +11,6 @@ quaternion products (Hillis-Steele prefix scan).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -26,6 +25,9 @@ def quat_mul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def attitude(omega: np.ndarray, dt: float) -> np.ndarray:
     """C_k for k = 1..N (N, 3, 3) from body rates omega (N, 3) [rad/s] sampled every dt [s]."""
+    # imported here: scipy.spatial pulls in scipy.sparse/linalg/special, tens of MB the daemon's start avoids
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415
+
     omega = np.asarray(omega, dtype=float).reshape(-1, 3)
     p = Rotation.from_rotvec(omega * dt).as_quat()
     s = 1
