@@ -87,6 +87,8 @@ class TermSelector:
         self.var = self.var0
         self.order = np.argsort(ws.t, kind="stable")
         self.folds = folds
+        self.lag_tau_s: float | None = None  # a lagged term's time constant [s], set by profile_lag
+        self.lag_profile: dict[str, Any] = {}
         self._heldout_memo: dict[tuple, float | None] = {}
         self._fit_memo: dict[tuple, tuple] = {}
         # base parameters these windows do not determine (e.g. the offsets across the axis of a single
@@ -109,7 +111,7 @@ class TermSelector:
         if not terms:
             return PARAMETERIZATIONS[self.base](K0, o0)
         kw = {} if self.v_ref is None else {"v_ref": self.v_ref}
-        return extended_class(name)(K0, o0, t_ref_c=self.t_ref_c, t0_s=self.t0_s, **kw)
+        return extended_class(name)(K0, o0, t_ref_c=self.t_ref_c, t0_s=self.t0_s, lag_tau_s=self.lag_tau_s, **kw)
 
     def free_mask(self, par, held: dict[str, list[int]]) -> np.ndarray:
         free = np.ones(par.n_params, dtype=bool)
@@ -125,7 +127,7 @@ class TermSelector:
     def fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None = None):
         if idx is None:  # the same model on all windows is asked for by every candidate's test: fitted once
             key = (terms, tuple(sorted((t, tuple(v)) for t, v in held.items() if t in terms)),
-                   tuple(self.held_base), float(self.var.sum()))
+                   tuple(self.held_base), float(self.var.sum()), self.lag_tau_s)
             if key not in self._fit_memo:
                 self._fit_memo[key] = self._fit(terms, held, None)
             return self._fit_memo[key]
@@ -144,7 +146,7 @@ class TermSelector:
     def heldout_mg(self, terms: tuple[str, ...], held: dict[str, list[int]], n_params_max: int) -> float | None:
         """RMS 1 - |a| [mg] over time-contiguous held-out folds (None: too few windows for 2 folds)."""
         key = (terms, tuple(sorted((t, tuple(v)) for t, v in held.items() if t in terms)), n_params_max,
-               float(self.var.sum()))
+               float(self.var.sum()), self.lag_tau_s)
         if key not in self._heldout_memo:
             self._heldout_memo[key] = self._heldout_mg(terms, held, n_params_max)
         return self._heldout_memo[key]
@@ -253,7 +255,9 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     hh = {**held, term: h}
     par_m, f_m = sel.fit(chosen, held)
     par_t, f_t = sel.fit(chosen + (term,), hh)
-    d_bic = (f_m.chi2 - f_t.chi2) - (3 - len(h)) * math.log(sel.m)
+    # a profiled time constant is one more fitted parameter
+    k_extra = (3 - len(h)) + (calibration_view(term).profiled is not None)
+    d_bic = (f_m.chi2 - f_t.chi2) - k_extra * math.log(sel.m)
     ho_m = sel.heldout_mg(chosen, held, p_max)
     ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
     mag = par_t.magnitudes(f_t.p, f_t.std)[term]
@@ -264,6 +268,8 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     mag["raw_unit"] = _raw_unit(term)
     if calibration_view(term).convention:
         mag["convention"] = calibration_view(term).convention
+    if calibration_view(term).profiled is not None and sel.lag_profile:
+        mag["tau_s"] = dict(sel.lag_profile)
     for i in h:
         mag["value"][keys[i]] = None
         mag.get("std", {})[keys[i]] = None
@@ -280,6 +286,33 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     elif not ho_t < ho_m:
         tt.why = f"does not lower the held-out error{given} ({ho_m:.3f} -> {ho_t:.3f} mg)"
     return tt
+
+
+LAG_GRID_POINTS = 15  # log-spaced over datasheet.THERMAL_LAG_TAU_GRID_S: about 1.5 steps per factor 2
+
+
+def profile_lag(sel: TermSelector, term: str) -> None:
+    """Choose the lagged term's time constant: the grid value of least chi² of base + ``term`` (its
+    coefficients fitted linearly at each tau). The interval is the grid points within Δchi² = 1 of the
+    minimum (a profile-likelihood 68 % interval, at the grid's resolution)."""
+    from gravcal.core.model.datasheet import THERMAL_LAG_TAU_GRID_S
+
+    grid = np.geomspace(*THERMAL_LAG_TAU_GRID_S, LAG_GRID_POINTS)
+    chi2 = []
+    for tau in grid:
+        sel.lag_tau_s = float(tau)
+        try:
+            chi2.append(sel.fit((term,), {})[1].chi2)
+        except (ValueError, np.linalg.LinAlgError):
+            chi2.append(math.inf)
+    chi2 = np.asarray(chi2)
+    best = int(np.argmin(chi2))
+    inside = grid[chi2 <= chi2[best] + 1.0]
+    sel.lag_tau_s = float(grid[best])
+    sel.lag_profile = {"value": round(float(grid[best]), 1), "interval_68": [round(float(inside.min()), 1),
+                       round(float(inside.max()), 1)], "at_grid_edge": best in (0, len(grid) - 1),
+                       "method": f"profile over {len(grid)} log-spaced values {grid[0]:g}-{grid[-1]:g} s, "
+                                 f"interval Δchi² <= 1"}
 
 
 def passes(tt: TermTest) -> bool:
@@ -311,6 +344,9 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
             tests[term] = TermTest(term, "untestable", why)
         else:
             testable.append(term)
+    for term in testable:
+        if calibration_view(term).profiled is not None:
+            profile_lag(sel, term)
     # one floor for every model: from the largest model (base + all testable terms, determined axes)
     held_all: dict[str, list[int]] = {t: [] for t in testable}
     for term in testable:  # each term on its own with the base: hold its worst-determined axis until the rest are
