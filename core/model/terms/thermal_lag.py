@@ -64,7 +64,10 @@ class ThermalLag(StatefulTerm):
 SPEC = TermSpec(
     name="thermal_lag", forward=ThermalLag, group="drift",
     prior=lambda rng: ThermalLag(coef_g_per_c=np.zeros(4)),
-    diagnosed_by="windows",
+    # not in diagnose's default catalogue: on a one-posture recording (the ActiGraph chamber) it is preferred to
+    # the temperature offset, but without the held-sensitivity propagation that term's finding carries
+    # (core/diagnosis/held.py); diagnose_windows tests it when asked (candidates)
+    diagnosed_by=None,
     # acts on the offsets through the lagged temperature ("lagged_offset"); the spread rule is the temperature
     # term's: below 1 °C the lag is a constant the offsets absorb
     view=CalibrationView(prefix="oL", acts_on="lagged_offset", covariate="temp", unit="mg_per_C", rank=7,
