@@ -111,7 +111,9 @@ class TermSelector:
         if not terms:
             return PARAMETERIZATIONS[self.base](K0, o0)
         kw = {} if self.v_ref is None else {"v_ref": self.v_ref}
-        return extended_class(name)(K0, o0, t_ref_c=self.t_ref_c, t0_s=self.t0_s, lag_tau_s=self.lag_tau_s, **kw)
+        history = (self.ws.t, self.ws.aux[:, 0]) if self.has_temp else None
+        return extended_class(name)(K0, o0, t_ref_c=self.t_ref_c, t0_s=self.t0_s, lag_tau_s=self.lag_tau_s,
+                                    lag_history=history, **kw)
 
     def free_mask(self, par, held: dict[str, list[int]]) -> np.ndarray:
         free = np.ones(par.n_params, dtype=bool)

@@ -47,7 +47,8 @@ class ExtendedParameterization(Parameterization):
 
     Class attributes set by :func:`extended_class`; instances are built like any parameterization,
     ``cls(K0, o0)``, with optional keyword ``t_ref_c`` [°C], ``t0_s`` [s], ``temp_column``, ``lag_tau_s``
-    [s] (time constant of a lagged term: fixed here, profiled by diagnosis).
+    [s] (time constant of a lagged term: fixed here, profiled by diagnosis), ``lag_history`` (the
+    recording's window times and temperatures, so that held-out folds keep the lag's earlier history).
     """
 
     base_model: ClassVar[str] = "6"
@@ -56,8 +57,9 @@ class ExtendedParameterization(Parameterization):
 
     def __init__(self, K0: np.ndarray, o0: np.ndarray, *, t_ref_c: float = T_REF_C, t0_s: float = 0.0,
                  temp_column: int = 0, v_ref: float = COVARIATES["vsupply"].default_ref,
-                 lag_tau_s: float | None = None):
+                 lag_tau_s: float | None = None, lag_history: tuple[np.ndarray, np.ndarray] | None = None):
         super().__init__(K0, o0)
+        self.lag_history = lag_history  # (t [s], temperature [°C]) of the whole recording, for subsets
         self.lag_tau_s = default_lag_tau_s() if lag_tau_s is None else float(lag_tau_s)
         self.base = PARAMETERIZATIONS[self.base_model](K0, o0)
         self.t_ref_c, self.t0_s, self.temp_column = float(t_ref_c), float(t0_s), int(temp_column)
@@ -104,7 +106,7 @@ class ExtendedParameterization(Parameterization):
             accel_sq = self._diagK0 * a0 * a0
         covs = {calibration_view(t).covariate for t in self.terms} - {None}
         out = {c: covariate_deviation(c, values, self.refs, accel_sq, len(ws)) for c in covs}
-        out.update(lagged_deviations(self.terms, values, self.refs, len(ws)))
+        out.update(lagged_deviations(self.terms, values, self.refs, len(ws), self.lag_history))
         return out
 
     def at_windows(self, ws: WindowSet) -> "Parameterization":

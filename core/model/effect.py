@@ -38,9 +38,12 @@ def references(meta: dict[str, Any]) -> dict[str, float]:
 
 
 def lagged_deviations(terms: tuple[str, ...] | list[str], values: dict[str, np.ndarray | None],
-                      refs: dict[str, float], n: int) -> dict[str, np.ndarray]:
+                      refs: dict[str, float], n: int,
+                      history: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """(n, 3) deviation of each lagged covariate the terms use: the covariate through a first-order lag of
-    time constant refs[LAG_KEY] in time order (values["time"] [s]), minus its reference."""
+    time constant refs[LAG_KEY] in time order (values["time"] [s]), minus its reference. ``history``
+    (times [s], covariate values): a longer record the rows belong to, so that a subset of windows (a
+    held-out fold) carries the lag built up before its first row instead of restarting it."""
     out = {}
     for term in terms:
         view = calibration_view(term)
@@ -50,6 +53,14 @@ def lagged_deviations(terms: tuple[str, ...] | list[str], values: dict[str, np.n
         if v is None or t is None:
             raise ValueError(f"a lagged {COVARIATES[view.covariate].label} term needs the "
                              f"{COVARIATES[view.covariate].label} and the time of each row; not given")
+        if history is not None:
+            th, xh = (np.asarray(a, dtype=float).ravel() for a in history)
+            o = np.argsort(th, kind="stable")
+            lag = np.interp(np.broadcast_to(np.asarray(t, dtype=float), (n,)), th[o],
+                            first_order_lag(th, xh, refs[LAG_KEY])[o])
+            z = lag - refs.get(view.covariate, COVARIATES[view.covariate].default_ref)
+            out[view.deviation_key] = np.repeat(z[:, None], 3, axis=1)
+            continue
         if n < 2:
             raise ValueError(f"a lagged {COVARIATES[view.covariate].label} term needs the history of the rows, "
                              f"not one row at a time (offline only)")

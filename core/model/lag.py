@@ -6,8 +6,8 @@ import numpy as np
 
 
 def first_order_lag(t: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
-    """y with dy/dt = (x - y) / tau_s, y = x at the earliest time; x held over each interval
-    (exact for a piecewise-constant input). Rows in any order; the lag runs in time order."""
+    """y with dy/dt = (x - y) / tau_s, y = x at the earliest time; each x held over the interval ending
+    at its time (exact for a piecewise-constant input). Rows in any order; the lag runs in time order."""
     t, x = np.asarray(t, dtype=float).ravel(), np.asarray(x, dtype=float).ravel()
     if t.shape != x.shape:
         raise ValueError(f"lag needs one time per value: {t.size} times for {x.size} values")
