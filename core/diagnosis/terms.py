@@ -31,6 +31,7 @@ from gravcal.core.estimators.extended import (EXTRA_TERMS, ExtendedParameterizat
                                               extended_residuals_g, fit_extended, model_name)
 from gravcal.core.estimators.observability import TOL_G
 from gravcal.core.estimators.order import term_testability
+from gravcal.core.model.datasheet import THERMAL_LAG_TAU_GRID_S
 from gravcal.core.model.terms import COVARIATES, calibration_view
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 from gravcal.core.windows import WindowSet
@@ -158,14 +159,28 @@ class TermSelector:
         if k < 2:
             return None
         res = np.empty(self.m)
-        for test in np.array_split(self.order, k):
-            train = np.setdiff1d(self.order, test)
-            try:
-                par, f = self.fit(terms, held, train)
-            except (ValueError, np.linalg.LinAlgError):
-                return None
-            res[test] = extended_residuals_g(par, f.p, self.ws.subset(test))
+        profiled = any(calibration_view(t).profiled is not None for t in terms)
+        tau_all = self.lag_tau_s
+        try:
+            for test in np.array_split(self.order, k):
+                train = np.setdiff1d(self.order, test)
+                try:
+                    if profiled:  # the time constant is chosen on the training folds too: nothing seen of the test
+                        self.lag_tau_s = min(lag_grid(), key=lambda tau: self._fit_at(tau, terms, held, train).chi2)
+                    par, f = self.fit(terms, held, train)
+                except (ValueError, np.linalg.LinAlgError):
+                    return None
+                res[test] = extended_residuals_g(par, f.p, self.ws.subset(test))
+        finally:
+            self.lag_tau_s = tau_all
         return float(np.sqrt(np.mean(res * res)) * 1e3)
+
+    def _fit_at(self, tau: float, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray):
+        self.lag_tau_s = float(tau)
+        try:
+            return self.fit(terms, held, idx)[1]
+        except (ValueError, np.linalg.LinAlgError):
+            return type("Failed", (), {"chi2": math.inf})()
 
     # -- observability of one term's axes -----------------------------------------------------------
     def effect_std_g(self, par, f, term: str) -> np.ndarray:
@@ -257,9 +272,11 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     hh = {**held, term: h}
     par_m, f_m = sel.fit(chosen, held)
     par_t, f_t = sel.fit(chosen + (term,), hh)
-    # a profiled time constant is one more fitted parameter
-    k_extra = (3 - len(h)) + (calibration_view(term).profiled is not None)
-    d_bic = (f_m.chi2 - f_t.chi2) - k_extra * math.log(sel.m)
+    # a profiled time constant is one more fitted parameter, chosen among the grid's values: a uniform prior
+    # over them costs 2 ln(grid size) more (the search over the grid is a selection too)
+    profiled = calibration_view(term).profiled is not None
+    k_extra = (3 - len(h)) + profiled
+    d_bic = (f_m.chi2 - f_t.chi2) - k_extra * math.log(sel.m) - (2 * math.log(LAG_GRID_POINTS) if profiled else 0.0)
     ho_m = sel.heldout_mg(chosen, held, p_max)
     ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
     mag = par_t.magnitudes(f_t.p, f_t.std)[term]
@@ -293,13 +310,16 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
 LAG_GRID_POINTS = 15  # log-spaced over datasheet.THERMAL_LAG_TAU_GRID_S: about 1.5 steps per factor 2
 
 
+def lag_grid() -> np.ndarray:
+    """The time constants [s] a lagged term is profiled over."""
+    return np.geomspace(*THERMAL_LAG_TAU_GRID_S, LAG_GRID_POINTS)
+
+
 def profile_lag(sel: TermSelector, term: str) -> None:
     """Choose the lagged term's time constant: the grid value of least chi² of base + ``term`` (its
     coefficients fitted linearly at each tau). The interval is the grid points within Δchi² = 1 of the
     minimum (a profile-likelihood 68 % interval, at the grid's resolution)."""
-    from gravcal.core.model.datasheet import THERMAL_LAG_TAU_GRID_S
-
-    grid = np.geomspace(*THERMAL_LAG_TAU_GRID_S, LAG_GRID_POINTS)
+    grid = lag_grid()
     chi2 = []
     for tau in grid:
         sel.lag_tau_s = float(tau)
@@ -365,8 +385,11 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
             tests[term] = TermTest(term, "untestable", f"not observable: effect std > {TOL_G * 1e3:.0f} mg on every "
                                                        f"axis with these windows", undetermined_axes=list("xyz"))
     p_max = sel.par(tuple(live)).n_params
-    if live:
-        par, f = sel.fit(tuple(live), held_all)
+    # the floor comes from the terms linear in their parameters: a profiled term's time constant is chosen on
+    # these residuals, and adding it must not move every other term's verdict through the floor
+    linear = tuple(t for t in live if calibration_view(t).profiled is None)
+    if linear:
+        par, f = sel.fit(linear, held_all)
         floor = floor_for(f.resid_g, sel.var0, sel.m - int(sel.free_mask(par, held_all).sum()))
     else:
         par, f = sel.fit((), {})
