@@ -31,6 +31,7 @@ from gravcal.core.estimators.extended import (EXTRA_TERMS, ExtendedParameterizat
                                               extended_residuals_g, fit_extended, model_name)
 from gravcal.core.estimators.observability import TOL_G
 from gravcal.core.estimators.order import term_testability
+from gravcal.core.model.datasheet import THERMAL_LAG_TAU_GRID_S
 from gravcal.core.model.terms import COVARIATES, calibration_view
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 from gravcal.core.windows import WindowSet
@@ -87,6 +88,8 @@ class TermSelector:
         self.var = self.var0
         self.order = np.argsort(ws.t, kind="stable")
         self.folds = folds
+        self.lag_tau_s: float | None = None  # a lagged term's time constant [s], set by profile_lag
+        self.lag_profile: dict[str, Any] = {}
         self._heldout_memo: dict[tuple, float | None] = {}
         self._fit_memo: dict[tuple, tuple] = {}
         # base parameters these windows do not determine (e.g. the offsets across the axis of a single
@@ -109,7 +112,9 @@ class TermSelector:
         if not terms:
             return PARAMETERIZATIONS[self.base](K0, o0)
         kw = {} if self.v_ref is None else {"v_ref": self.v_ref}
-        return extended_class(name)(K0, o0, t_ref_c=self.t_ref_c, t0_s=self.t0_s, **kw)
+        history = (self.ws.t, self.ws.aux[:, 0]) if self.has_temp else None
+        return extended_class(name)(K0, o0, t_ref_c=self.t_ref_c, t0_s=self.t0_s, lag_tau_s=self.lag_tau_s,
+                                    lag_history=history, **kw)
 
     def free_mask(self, par, held: dict[str, list[int]]) -> np.ndarray:
         free = np.ones(par.n_params, dtype=bool)
@@ -125,7 +130,7 @@ class TermSelector:
     def fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None = None):
         if idx is None:  # the same model on all windows is asked for by every candidate's test: fitted once
             key = (terms, tuple(sorted((t, tuple(v)) for t, v in held.items() if t in terms)),
-                   tuple(self.held_base), float(self.var.sum()))
+                   tuple(self.held_base), float(self.var.sum()), self.lag_tau_s)
             if key not in self._fit_memo:
                 self._fit_memo[key] = self._fit(terms, held, None)
             return self._fit_memo[key]
@@ -144,7 +149,7 @@ class TermSelector:
     def heldout_mg(self, terms: tuple[str, ...], held: dict[str, list[int]], n_params_max: int) -> float | None:
         """RMS 1 - |a| [mg] over time-contiguous held-out folds (None: too few windows for 2 folds)."""
         key = (terms, tuple(sorted((t, tuple(v)) for t, v in held.items() if t in terms)), n_params_max,
-               float(self.var.sum()))
+               float(self.var.sum()), self.lag_tau_s)
         if key not in self._heldout_memo:
             self._heldout_memo[key] = self._heldout_mg(terms, held, n_params_max)
         return self._heldout_memo[key]
@@ -154,14 +159,28 @@ class TermSelector:
         if k < 2:
             return None
         res = np.empty(self.m)
-        for test in np.array_split(self.order, k):
-            train = np.setdiff1d(self.order, test)
-            try:
-                par, f = self.fit(terms, held, train)
-            except (ValueError, np.linalg.LinAlgError):
-                return None
-            res[test] = extended_residuals_g(par, f.p, self.ws.subset(test))
+        profiled = any(calibration_view(t).profiled is not None for t in terms)
+        tau_all = self.lag_tau_s
+        try:
+            for test in np.array_split(self.order, k):
+                train = np.setdiff1d(self.order, test)
+                try:
+                    if profiled:  # the time constant is chosen on the training folds too: nothing seen of the test
+                        self.lag_tau_s = min(lag_grid(), key=lambda tau: self._fit_at(tau, terms, held, train).chi2)
+                    par, f = self.fit(terms, held, train)
+                except (ValueError, np.linalg.LinAlgError):
+                    return None
+                res[test] = extended_residuals_g(par, f.p, self.ws.subset(test))
+        finally:
+            self.lag_tau_s = tau_all
         return float(np.sqrt(np.mean(res * res)) * 1e3)
+
+    def _fit_at(self, tau: float, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray):
+        self.lag_tau_s = float(tau)
+        try:
+            return self.fit(terms, held, idx)[1]
+        except (ValueError, np.linalg.LinAlgError):
+            return type("Failed", (), {"chi2": math.inf})()
 
     # -- observability of one term's axes -----------------------------------------------------------
     def effect_std_g(self, par, f, term: str) -> np.ndarray:
@@ -253,7 +272,11 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     hh = {**held, term: h}
     par_m, f_m = sel.fit(chosen, held)
     par_t, f_t = sel.fit(chosen + (term,), hh)
-    d_bic = (f_m.chi2 - f_t.chi2) - (3 - len(h)) * math.log(sel.m)
+    # a profiled time constant is one more fitted parameter, chosen among the grid's values: a uniform prior
+    # over them costs 2 ln(grid size) more (the search over the grid is a selection too)
+    profiled = calibration_view(term).profiled is not None
+    k_extra = (3 - len(h)) + profiled
+    d_bic = (f_m.chi2 - f_t.chi2) - k_extra * math.log(sel.m) - (2 * math.log(LAG_GRID_POINTS) if profiled else 0.0)
     ho_m = sel.heldout_mg(chosen, held, p_max)
     ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
     mag = par_t.magnitudes(f_t.p, f_t.std)[term]
@@ -264,6 +287,8 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     mag["raw_unit"] = _raw_unit(term)
     if calibration_view(term).convention:
         mag["convention"] = calibration_view(term).convention
+    if calibration_view(term).profiled is not None and sel.lag_profile:
+        mag["tau_s"] = dict(sel.lag_profile)
     for i in h:
         mag["value"][keys[i]] = None
         mag.get("std", {})[keys[i]] = None
@@ -280,6 +305,36 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     elif not ho_t < ho_m:
         tt.why = f"does not lower the held-out error{given} ({ho_m:.3f} -> {ho_t:.3f} mg)"
     return tt
+
+
+LAG_GRID_POINTS = 15  # log-spaced over datasheet.THERMAL_LAG_TAU_GRID_S: about 1.5 steps per factor 2
+
+
+def lag_grid() -> np.ndarray:
+    """The time constants [s] a lagged term is profiled over."""
+    return np.geomspace(*THERMAL_LAG_TAU_GRID_S, LAG_GRID_POINTS)
+
+
+def profile_lag(sel: TermSelector, term: str) -> None:
+    """Choose the lagged term's time constant: the grid value of least chi² of base + ``term`` (its
+    coefficients fitted linearly at each tau). The interval is the grid points within Δchi² = 1 of the
+    minimum (a profile-likelihood 68 % interval, at the grid's resolution)."""
+    grid = lag_grid()
+    chi2 = []
+    for tau in grid:
+        sel.lag_tau_s = float(tau)
+        try:
+            chi2.append(sel.fit((term,), {})[1].chi2)
+        except (ValueError, np.linalg.LinAlgError):
+            chi2.append(math.inf)
+    chi2 = np.asarray(chi2)
+    best = int(np.argmin(chi2))
+    inside = grid[chi2 <= chi2[best] + 1.0]
+    sel.lag_tau_s = float(grid[best])
+    sel.lag_profile = {"value": round(float(grid[best]), 1), "interval_68": [round(float(inside.min()), 1),
+                       round(float(inside.max()), 1)], "at_grid_edge": best in (0, len(grid) - 1),
+                       "method": f"profile over {len(grid)} log-spaced values {grid[0]:g}-{grid[-1]:g} s, "
+                                 f"interval Δchi² <= 1"}
 
 
 def passes(tt: TermTest) -> bool:
@@ -311,6 +366,9 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
             tests[term] = TermTest(term, "untestable", why)
         else:
             testable.append(term)
+    for term in testable:
+        if calibration_view(term).profiled is not None:
+            profile_lag(sel, term)
     # one floor for every model: from the largest model (base + all testable terms, determined axes)
     held_all: dict[str, list[int]] = {t: [] for t in testable}
     for term in testable:  # each term on its own with the base: hold its worst-determined axis until the rest are
@@ -327,8 +385,11 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
             tests[term] = TermTest(term, "untestable", f"not observable: effect std > {TOL_G * 1e3:.0f} mg on every "
                                                        f"axis with these windows", undetermined_axes=list("xyz"))
     p_max = sel.par(tuple(live)).n_params
-    if live:
-        par, f = sel.fit(tuple(live), held_all)
+    # the floor comes from the terms linear in their parameters: a profiled term's time constant is chosen on
+    # these residuals, and adding it must not move every other term's verdict through the floor
+    linear = tuple(t for t in live if calibration_view(t).profiled is None)
+    if linear:
+        par, f = sel.fit(linear, held_all)
         floor = floor_for(f.resid_g, sel.var0, sel.m - int(sel.free_mask(par, held_all).sum()))
     else:
         par, f = sel.fit((), {})

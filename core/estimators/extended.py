@@ -31,8 +31,8 @@ import numpy as np
 
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, Parameterization
-from gravcal.core.model.effect import (constant_rows, covariate_deviation, needed_covariates,
-                                       references, term_rows)
+from gravcal.core.model.effect import (LAG_KEY, constant_rows, covariate_deviation, default_lag_tau_s,
+                                       lagged_deviations, needed_covariates, references, term_rows)
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.windows import WindowSet
 
@@ -46,7 +46,9 @@ class ExtendedParameterization(Parameterization):
     """Base parameterization (``base_model``) plus the extra terms (``terms``); see module docstring.
 
     Class attributes set by :func:`extended_class`; instances are built like any parameterization,
-    ``cls(K0, o0)``, with optional keyword ``t_ref_c`` [°C], ``t0_s`` [s], ``temp_column``.
+    ``cls(K0, o0)``, with optional keyword ``t_ref_c`` [°C], ``t0_s`` [s], ``temp_column``, ``lag_tau_s``
+    [s] (time constant of a lagged term: fixed here, profiled by diagnosis), ``lag_history`` (the
+    recording's window times and temperatures, so that held-out folds keep the lag's earlier history).
     """
 
     base_model: ClassVar[str] = "6"
@@ -54,8 +56,11 @@ class ExtendedParameterization(Parameterization):
     covariates: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, K0: np.ndarray, o0: np.ndarray, *, t_ref_c: float = T_REF_C, t0_s: float = 0.0,
-                 temp_column: int = 0, v_ref: float = COVARIATES["vsupply"].default_ref):
+                 temp_column: int = 0, v_ref: float = COVARIATES["vsupply"].default_ref,
+                 lag_tau_s: float | None = None, lag_history: tuple[np.ndarray, np.ndarray] | None = None):
         super().__init__(K0, o0)
+        self.lag_history = lag_history  # (t [s], temperature [°C]) of the whole recording, for subsets
+        self.lag_tau_s = default_lag_tau_s() if lag_tau_s is None else float(lag_tau_s)
         self.base = PARAMETERIZATIONS[self.base_model](K0, o0)
         self.t_ref_c, self.t0_s, self.temp_column = float(t_ref_c), float(t0_s), int(temp_column)
         self.v_ref = float(v_ref)
@@ -79,7 +84,7 @@ class ExtendedParameterization(Parameterization):
     @property
     def refs(self) -> dict[str, float]:
         """Covariate references: temperature [°C], supply [V], time [s]."""
-        return {"temp": self.t_ref_c, "vsupply": self.v_ref, "time": self.t0_s}
+        return {"temp": self.t_ref_c, "vsupply": self.v_ref, "time": self.t0_s, LAG_KEY: self.lag_tau_s}
 
     def aux_column(self, covariate: str) -> int:
         return self.temp_column if covariate == "temp" else int(COVARIATES[covariate].aux_column)
@@ -100,7 +105,9 @@ class ExtendedParameterization(Parameterization):
             a0 = (ws.mean - self.o0) @ self._K0inv.T
             accel_sq = self._diagK0 * a0 * a0
         covs = {calibration_view(t).covariate for t in self.terms} - {None}
-        return {c: covariate_deviation(c, values, self.refs, accel_sq, len(ws)) for c in covs}
+        out = {c: covariate_deviation(c, values, self.refs, accel_sq, len(ws)) for c in covs}
+        out.update(lagged_deviations(self.terms, values, self.refs, len(ws), self.lag_history))
+        return out
 
     def at_windows(self, ws: WindowSet) -> "Parameterization":
         """This parameterization bound to the windows' covariates (per-row derivatives)."""
@@ -242,7 +249,8 @@ def extended_metadata(par: Parameterization, p: np.ndarray, std: np.ndarray | No
     meta: dict[str, Any] = {"params": dict(zip(par.names, p.tolist()))}
     if isinstance(par, ExtendedParameterization):
         meta["extended"] = {"terms": list(par.terms), "t_ref_c": par.t_ref_c, "t0_s": par.t0_s, "v_ref": par.v_ref,
-                            "temp_column": par.temp_column, "magnitudes": par.magnitudes(p, std)}
+                            "temp_column": par.temp_column, LAG_KEY: par.lag_tau_s,
+                            "magnitudes": par.magnitudes(p, std)}
     return meta
 
 
@@ -349,7 +357,8 @@ def _extended_parameters(cal: Calibration) -> tuple[ExtendedParameterization, np
         return None
     refs = references(ext)
     par = extended_class(cal.model)(cal.sensitivity, cal.offset, t_ref_c=refs["temp"], t0_s=refs["time"],
-                                    v_ref=refs["vsupply"], temp_column=ext.get("temp_column", 0))
+                                    v_ref=refs["vsupply"], temp_column=ext.get("temp_column", 0),
+                                    lag_tau_s=refs[LAG_KEY])
     missing = [n for n in par.names if not isinstance(params, dict) or n not in params]
     if missing:
         raise ValueError(f"calibration {cal.model!r}: metadata['params'] lacks {missing}: cannot apply its terms")

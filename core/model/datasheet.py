@@ -25,6 +25,11 @@ MOUNT_B_DEG = 2.0  # assumed: chip B's hand-soldered edge carrier
 TEMP_OFFSET_G_PER_C = 2e-3  # +-2 mg/°C zero-g drift; as recalled
 TEMP_SENS_PER_C = 1e-4  # +-0.01 %/°C (+-0.5 % over 25..75 °C); as recalled
 NONLIN_PCT_FS = 0.2  # +-0.2 % of full scale; as recalled
+# assumed (no ADXL210 figure): the die trails the board's temperature sensor through the package and the
+# PCB; plastic/ceramic packages on a small board in a housing give time constants of tens of seconds to
+# tens of minutes (package junction-to-board figures of tens of s, board plus housing minutes)
+THERMAL_LAG_TAU_S = 300.0
+THERMAL_LAG_TAU_GRID_S = (30.0, 3600.0)  # assumed range over which the lag is profiled, log-spaced
 T2_TEMPCO_PPM = 100.0  # assumed oscillator tempco; cancels in T1/T2
 # --- supply and drift (the supply offset as recalled, the rest assumed) ---------------------
 V_NOMINAL = 3.3  # V, reference supply of the board

@@ -15,13 +15,60 @@ from typing import Any
 
 import numpy as np
 
+from .lag import first_order_lag
 from .spec import COVARIATES, CROSS_PAIRS
-from .terms import calibration_view
+from .terms import CALIBRATION_TERMS, calibration_view
+
+LAG_KEY = "lag_tau_s"
+"""Metadata / references key of the time constant [s] of the lagged terms."""
+
+
+def default_lag_tau_s() -> float:
+    """The registered default time constant of the lagged terms [s]."""
+    return next((float(calibration_view(t).profiled) for t in CALIBRATION_TERMS
+                 if calibration_view(t).profiled is not None), 0.0)
 
 
 def references(meta: dict[str, Any]) -> dict[str, float]:
-    """Covariate references of an extended calibration's metadata (defaults where absent)."""
-    return {c.name: float(meta.get(c.ref_key, c.default_ref)) for c in COVARIATES.values() if c.ref_key}
+    """Covariate references of an extended calibration's metadata (defaults where absent), and the lag's
+    time constant."""
+    refs = {c.name: float(meta.get(c.ref_key, c.default_ref)) for c in COVARIATES.values() if c.ref_key}
+    refs[LAG_KEY] = float(meta.get(LAG_KEY, default_lag_tau_s()))
+    return refs
+
+
+def lagged_deviations(terms: tuple[str, ...] | list[str], values: dict[str, np.ndarray | None],
+                      refs: dict[str, float], n: int,
+                      history: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """(n, 3) deviation of each lagged covariate the terms use: the covariate through a first-order lag of
+    time constant refs[LAG_KEY] in time order (values["time"] [s]), minus its reference. ``history``
+    (times [s], covariate values): a longer record the rows belong to, so that a subset of windows (a
+    held-out fold) carries the lag built up before its first row instead of restarting it."""
+    out = {}
+    for term in terms:
+        view = calibration_view(term)
+        if view.acts_on != "lagged_offset" or view.deviation_key in out:
+            continue
+        v, t = values.get(view.covariate), values.get("time")
+        if v is None or t is None:
+            raise ValueError(f"a lagged {COVARIATES[view.covariate].label} term needs the "
+                             f"{COVARIATES[view.covariate].label} and the time of each row; not given")
+        if history is not None:
+            th, xh = (np.asarray(a, dtype=float).ravel() for a in history)
+            o = np.argsort(th, kind="stable")
+            lag = np.interp(np.broadcast_to(np.asarray(t, dtype=float), (n,)), th[o],
+                            first_order_lag(th, xh, refs[LAG_KEY])[o])
+            z = lag - refs.get(view.covariate, COVARIATES[view.covariate].default_ref)
+            out[view.deviation_key] = np.repeat(z[:, None], 3, axis=1)
+            continue
+        if n < 2:
+            raise ValueError(f"a lagged {COVARIATES[view.covariate].label} term needs the history of the rows, "
+                             f"not one row at a time (offline only)")
+        x = np.broadcast_to(np.asarray(v, dtype=float), (n,))
+        lag = first_order_lag(np.broadcast_to(np.asarray(t, dtype=float), (n,)), x, refs[LAG_KEY])
+        z = lag - refs.get(view.covariate, COVARIATES[view.covariate].default_ref)
+        out[view.deviation_key] = np.repeat(z[:, None], 3, axis=1)
+    return out
 
 
 def covariate_deviation(name: str, values: dict[str, np.ndarray | None], refs: dict[str, float],
@@ -48,6 +95,8 @@ def needed_covariates(terms: tuple[str, ...] | list[str]) -> tuple[str, ...]:
         c = calibration_view(t).covariate
         if c is not None and c != "accel" and c not in out:
             out.append(c)
+        if calibration_view(t).acts_on == "lagged_offset" and "time" not in out:
+            out.append("time")  # the lag runs over the rows' times
     return tuple(out)
 
 
@@ -71,9 +120,9 @@ def term_rows(terms: tuple[str, ...], n_base: int, dK: np.ndarray, do: np.ndarra
     for term in terms:
         view = calibration_view(term)
         if view.acts_on != "cross":
-            z = deviations[view.covariate]
+            z = deviations[view.deviation_key]
             for i in range(3):
-                if view.acts_on == "offset":
+                if view.on_offset:
                     do[:, k + i, i] = z[:, i]
                 else:
                     dK[:, k + i, i, i] = z[:, i]
@@ -97,6 +146,7 @@ def apply_terms(K: np.ndarray, o: np.ndarray, terms: tuple[str, ...], extra: np.
         accel_sq = np.abs(np.diag(K)) * a0 * a0
     devs = {c: covariate_deviation(c, covariates, refs, accel_sq, n)
             for c in {calibration_view(t).covariate for t in terms} - {None}}
+    devs.update(lagged_deviations(terms, covariates, refs, n))
     term_rows(tuple(terms), 0, dK, do, devs)
     Kc = K[None] + np.einsum("p,npij->nij", extra, dK)
     oc = o[None] + np.einsum("p,npi->ni", extra, do)

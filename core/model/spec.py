@@ -12,6 +12,8 @@ axis i a term with parameters p_i (one per axis) changes the reference K, o by
     acts_on "offset"       o_i  += p_i z_i
     acts_on "sensitivity"  K_ii += p_i z_i
     acts_on "cross"        K_ij = K_ji += p_ij   (constant: the symmetric cross-axis part)
+    acts_on "lagged_offset" o_i += p_i z_i, z the covariate through a first-order lag (time constant
+                           ``profiled``, chosen by diagnosis; needs the windows' history, so never online)
 
 and z is the deviation of the covariate from its reference: temperature [°C] from T_ref, supply
 [V] from V_ref, time [h] from t0, or the squared reference acceleration (diag K0 a0²) for a
@@ -62,11 +64,13 @@ class CalibrationView:
     position in extended model names; unit / report_factor: magnitudes in report units, per axis,
     from raw-unit parameters and the diagonal sensitivities s [raw/g]; min_span: the smallest spread
     (5-95 %) of the covariate, in its unit, at which the windows can test the term (None: always);
-    convention: the definition of the reported value, copied into every finding's magnitude.
+    convention: the definition of the reported value, copied into every finding's magnitude;
+    profiled: the default of a nonlinear time constant [s] (``lagged_offset``) that the fit profiles
+    instead of estimating linearly (None: the term is linear in its parameters).
     """
 
     prefix: str
-    acts_on: str  # "offset" | "sensitivity" | "cross"
+    acts_on: str  # "offset" | "sensitivity" | "cross" | "lagged_offset"
     covariate: str | None
     unit: str
     rank: int
@@ -74,6 +78,18 @@ class CalibrationView:
     min_span: float | None = None
     span_reason: str = ""
     convention: str = ""  # how the reported value is defined, when the unit alone does not say it
+    profiled: float | None = None
+
+    @property
+    def on_offset(self) -> bool:
+        return self.acts_on in ("offset", "lagged_offset")
+
+    @property
+    def deviation_key(self) -> str | None:
+        """Key of the per-window deviation this term's rows use: its covariate, or the lagged covariate."""
+        if self.covariate is None:
+            return None
+        return self.covariate + ("_lagged" if self.acts_on == "lagged_offset" else "")
 
     @property
     def keys(self) -> list[str]:

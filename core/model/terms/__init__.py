@@ -14,7 +14,7 @@ from ..enc03j import SPECS as GYRO_SPECS
 from ..spec import AUX_COLUMNS, COVARIATES, CalibrationView, Covariate, TermSpec
 from . import (analog_lowpass, axes, colored_noise, duty_cycle, misalignment, noise, nonlinearity, offset_drift,
                quantization, ratiometric_supply, saturation, sensitivity_drift, supply_offset, temperature_offset,
-               temperature_sensitivity)
+               temperature_sensitivity, thermal_lag)
 from .analog_lowpass import AnalogLowpass
 from .axes import Axes, projection_matrix
 from .colored_noise import ColoredNoise
@@ -30,6 +30,7 @@ from .sensitivity_drift import SensitivityDrift
 from .supply_offset import SupplyOffset
 from .temperature_offset import TemperatureOffset
 from .temperature_sensitivity import TemperatureSensitivity
+from .thermal_lag import ThermalLag
 
 REGISTRY: dict[str, TermSpec] = {spec.name: spec for spec in (
     axes.SPEC,
@@ -48,6 +49,7 @@ REGISTRY: dict[str, TermSpec] = {spec.name: spec for spec in (
     quantization.SPEC,
     *GYRO_SPECS,
     supply_offset.SPEC,
+    thermal_lag.SPEC,
 )}
 
 BASE_TERMS: tuple[str, ...] = ("axes", "noise", "analog_lowpass", "saturation", "duty_cycle", "timer",
@@ -89,4 +91,4 @@ __all__ = ["REGISTRY", "BASE_TERMS", "GROUPS", "CALIBRATION_TERMS", "CATALOGUE",
            "CalibrationView", "Covariate", "TermSpec", "term_spec", "calibration_view",
            "AnalogLowpass", "Axes", "ColoredNoise", "DutyCycle", "Misalignment", "Noise", "Nonlinearity", "OffsetDrift",
            "RatiometricSupply", "Saturation", "SensitivityDrift", "SupplyOffset", "TemperatureOffset",
-           "TemperatureSensitivity", "Timer", "misaligned_axes", "projection_matrix"]
+           "TemperatureSensitivity", "ThermalLag", "Timer", "misaligned_axes", "projection_matrix"]
