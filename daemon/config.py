@@ -24,8 +24,10 @@ from gravcal.core.model.terms import AUX_COLUMNS, CALIBRATION_TERMS, calibration
 
 from .errors import InputError
 
-ONLINE_TERMS = tuple(t for t in CALIBRATION_TERMS if calibration_view(t).acts_on != "cross")
-"""Registered terms the online estimator may add (the cross-axis one is the order rule's: order 9)."""
+ONLINE_TERMS = tuple(t for t in CALIBRATION_TERMS
+                     if calibration_view(t).acts_on != "cross" and calibration_view(t).per_window)
+"""Registered terms the online estimator may add (the cross-axis one is the order rule's: order 9; a term
+whose rows need the window history is offline only)."""
 # The default: the offset terms whose covariate the board itself measures (a column of every sample). A
 # time-drift term is linear in time from its reference and would extrapolate for days in a long-running
 # service; drift is followed by the recursion (process_noise) and by re-seeds instead. Offline,
@@ -197,7 +199,9 @@ def _validate_whole(cfg: Config, source: str) -> None:
     terms = [t.strip() for t in cfg.estimator.extended_terms.split(",") if t.strip()]
     bad = [t for t in terms if t not in ONLINE_TERMS]
     if bad:
-        raise ConfigError(f"{source}: [estimator] extended_terms: unknown term(s) {', '.join(map(repr, bad))}; "
+        offline = [t for t in bad if t in CALIBRATION_TERMS]
+        kind = "offline-only term(s) (they need the window history)" if offline == bad else "unknown term(s)"
+        raise ConfigError(f"{source}: [estimator] extended_terms: {kind} {', '.join(map(repr, bad))}; "
                           f"expected a comma-separated list of {', '.join(ONLINE_TERMS)} (or \"\" for none)")
     d = cfg.detector
     if d.max_duration_s < d.min_duration_s:

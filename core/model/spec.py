@@ -85,6 +85,11 @@ class CalibrationView:
         return self.acts_on in ("offset", "lagged_offset")
 
     @property
+    def per_window(self) -> bool:
+        """A window's rows need no other window: what the recursive (online) estimator requires."""
+        return self.acts_on != "lagged_offset"
+
+    @property
     def deviation_key(self) -> str | None:
         """Key of the per-window deviation this term's rows use: its covariate, or the lagged covariate."""
         if self.covariate is None:

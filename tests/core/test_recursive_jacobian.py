@@ -17,8 +17,9 @@ from gravcal.core.model.terms import calibration_view
 from gravcal.core.windows import WindowSet
 
 BASES = ("offsets", "6", "9", "12")
-MODELS = list(BASES) + [model_name("6", (t,)) for t in EXTRA_TERMS] + [
-    model_name("offsets", tuple(t for t in EXTRA_TERMS if not calibration_view(t).through_sensitivity))]
+RECURSIVE_TERMS = tuple(t for t in EXTRA_TERMS if calibration_view(t).per_window)  # the others are offline only
+MODELS = list(BASES) + [model_name("6", (t,)) for t in RECURSIVE_TERMS] + [
+    model_name("offsets", tuple(t for t in RECURSIVE_TERMS if not calibration_view(t).through_sensitivity))]
 
 
 def _start(rng: np.random.Generator) -> Calibration:

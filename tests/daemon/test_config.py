@@ -132,3 +132,14 @@ def test_gravcald_rejects_bad_config_with_one_line_and_status_2(tmp_path):
     assert r.returncode == 0
     printed = tomllib.loads(r.stdout)
     assert printed["socket"]["path"] == "/tmp/z.sock" and printed["estimator"]["model"] == "12"
+
+
+def test_offline_only_terms_are_refused_for_the_online_estimator(tmp_path):
+    """A term whose rows need the window history cannot run one window at a time: the service refuses it by name."""
+    from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
+
+    offline = [t for t in CALIBRATION_TERMS if not calibration_view(t).per_window]
+    assert offline, "the registry has no offline-only term to check"
+    for term in offline:
+        with pytest.raises(ConfigError, match=rf"offline-only term\(s\) \(they need the window history\) '{term}'"):
+            load_config(tmp_path / "missing.toml", {"estimator.extended_terms": term}, required=False)
