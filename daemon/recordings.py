@@ -27,7 +27,7 @@ import math
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -101,11 +101,13 @@ class Recording:
 # reading
 # ---------------------------------------------------------------------------------------
 def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_saturation: bool = True,
-                   columns: str | dict[str, str] | None = None, exclude_filler: bool = False) -> Recording:
+                   columns: str | dict[str, str] | None = None, exclude_filler: bool = False,
+                   progress: Callable[[int, int], None] | None = None) -> Recording:
     """Read and validate a recording of any format in ``FORMATS`` (recognised by content).
 
     ``columns``: other CSV header names, ``"t=t_unix,ax=x_counts"`` or a dict. ``exclude_filler``:
     drop runs of exactly repeated samples (idle-sleep filler, a frozen bus) and say so in ``warnings``.
+    ``progress(done, total)``: chunks of the validation pass done, as it goes.
     """
     path = Path(path)
     mapping = parse_columns(columns)
@@ -135,7 +137,8 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
         where, names = Where(path=path), tuple(cols)
     else:
         raise InputError(f"{path}: {found.what}; not a recording gravcal reads ({', '.join(FORMATS)})")
-    rec = _validate(path, cols, where, names, min_samples=min_samples, check_saturation=check_saturation)
+    rec = _validate(path, cols, where, names, min_samples=min_samples, check_saturation=check_saturation,
+                    progress=progress)
     rec.units, rec.metadata = units, meta
     return _without_filler(rec, min_samples) if exclude_filler else rec
 
@@ -273,8 +276,10 @@ class _Scan:
     n_flagged: int = 0  # samples flagged saturated by the logger
 
 
-def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None) -> _Scan:
+def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None,
+          progress: Callable[[int, int], None] | None = None) -> _Scan:
     n = int(t.shape[0])
+    n_chunks = -(-n // SCAN_CHUNK)
     sc = _Scan()
     prev_t: float | None = None
     for k, s in enumerate(_chunks(n, SCAN_CHUNK)):
@@ -307,11 +312,13 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
         for col in (t, raw, *extra, flags):
             if col is not None:
                 release_mapped(col, s.start, s.stop)
+        if progress is not None:
+            progress(k + 1, n_chunks)
     return sc
 
 
 def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tuple[str, ...], *,
-              min_samples: int, check_saturation: bool) -> Recording:
+              min_samples: int, check_saturation: bool, progress: Callable[[int, int], None] | None = None) -> Recording:
     t = cols["t"]
     raw = cols.pop("_triad", None)
     if raw is None:
@@ -327,7 +334,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
     notes: list[str] = []
     extra = ([v for v in (temp, vsupply) if v is not None]
              + ([gyro[:, i] for i in range(3)] if gyro is not None else []))
-    scan = _scan(t, raw, extra, flags)
+    scan = _scan(t, raw, extra, flags, progress)
 
     # 1. NaN / inf in any column we use: drop the rows (a copy; only when there are any).
     keep: np.ndarray | None = None
