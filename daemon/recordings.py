@@ -282,21 +282,41 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
     n_chunks = -(-n // SCAN_CHUNK)
     sc = _Scan()
     prev_t: float | None = None
+    # each chunk is copied once into reused contiguous buffers (the copy is where a mapped page is
+    # first touched); min/max then run at full speed and also tell finiteness (NaN propagates, inf
+    # is an extreme), so no separate isfinite pass over the triad or t
+    size = min(n, SCAN_CHUNK)
+    t_buf = np.empty(size + 1)
+    ch_buf = np.empty((3, size), dtype=raw.dtype if raw.dtype.kind == "f" else np.float64)
+    dt_buf = np.empty(size)
     for k, s in enumerate(_chunks(n, SCAN_CHUNK)):
-        tc = np.asarray(t[s], dtype=np.float64)
-        chans = [np.ascontiguousarray(raw[s, c]) for c in range(3)]  # contiguous: reductions run at full speed
-        if sc.finite and not (np.isfinite(tc).all() and all(np.isfinite(ch).all() for ch in chans)
+        m = s.stop - s.start
+        tc = t_buf[1:m + 1]
+        np.copyto(tc, t[s], casting="unsafe")
+        chans = ch_buf[:, :m]
+        np.copyto(chans, raw[s].T, casting="unsafe")
+        if prev_t is None:
+            dt = dt_buf[:m - 1]
+            np.subtract(tc[1:], tc[:-1], out=dt)
+        else:
+            t_buf[0] = prev_t
+            dt = dt_buf[:m]
+            np.subtract(t_buf[1:m + 1], t_buf[:m], out=dt)
+        prev_t = float(tc[-1])
+        with np.errstate(invalid="ignore"):
+            dmin, dmax = (float(dt.min()), float(dt.max())) if dt.size else (0.0, 0.0)
+            lo, hi = chans.min(axis=1), chans.max(axis=1)
+        if sc.finite and not (math.isfinite(tc[0]) and math.isfinite(dmin) and math.isfinite(dmax)
+                              and np.isfinite(lo).all() and np.isfinite(hi).all()
                               and all(np.isfinite(np.asarray(e[s], dtype=np.float64)).all() for e in extra)):
             sc.finite = False
             return sc  # the caller drops the bad rows and scans again
-        dt = np.diff(tc) if prev_t is None else np.diff(tc, prepend=prev_t)
-        prev_t = float(tc[-1])
         if dt.size:
-            sc.min_dt = min(sc.min_dt, float(dt.min()))
+            sc.min_dt = min(sc.min_dt, dmin)
             if k % 64 == 0:
                 sc.dt_medians.append(float(np.median(dt)))
         for c, ch in enumerate(chans):
-            cmin, cmax = ch.min(), ch.max()
+            cmin, cmax = lo[c], hi[c]
             if cmin <= sc.lo[c]:
                 nmin = int(np.count_nonzero(ch == cmin))
                 sc.n_lo[c] = nmin if cmin < sc.lo[c] else sc.n_lo[c] + nmin
