@@ -173,7 +173,9 @@ def _repeat_codes(raw: np.ndarray) -> np.ndarray:
     for s in _chunks(n, CHUNK):
         lo = max(0, s.start - 1)
         block = raw[lo:s.stop]
-        step = ~np.all(block[1:] == block[:-1], axis=1)
+        step = block[1:, 0] != block[:-1, 0]  # per column: a reduction along rows of 3 is slow
+        step |= block[1:, 1] != block[:-1, 1]
+        step |= block[1:, 2] != block[:-1, 2]
         if s.start == 0:
             step = np.concatenate([[False], step])
         codes[s] = (last + np.cumsum(step, dtype=np.uint64)) % 256  # +1 per change: equal only on a repeat

@@ -48,3 +48,16 @@ def test_any_non_finite_value_is_found(monkeypatch, where, bad, row):
         raw[row, {"ax": 0, "az": 2}[where]] = bad
     assert not recordings._scan(t, raw, [extra], None).finite
     assert recordings._scan(*_columns(0, 10_050, np.float32), [np.zeros(t.shape[0])], None).finite
+
+
+@pytest.mark.parametrize("min_run", [5, 10])
+def test_filler_runs_from_the_limit_on_and_none_shorter(min_run):
+    from gravcal.core.diagnosis.noise import flat_stretches
+
+    codes = np.arange(1000, dtype=np.float64)  # no repeat by chance: the limit is min_run
+    codes[100:100 + min_run + 1] = codes[100]  # min_run repeated steps: filler
+    codes[500:500 + min_run] = codes[500]  # one step fewer: kept
+    raw = np.column_stack([codes, codes + 1.0, -codes])
+    flats = flat_stretches(raw, min_run=min_run)
+    assert flats.runs == [(100, 100 + min_run + 1)]
+    assert flat_stretches(recordings._repeat_codes(raw), min_run=min_run).runs == flats.runs
