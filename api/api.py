@@ -63,36 +63,41 @@ class Calibration(_CoreCalibration):
 
 
 def read(path: str | Path, *, columns: str | dict[str, str] | None = None, exclude_filler: bool = True,
-         check_saturation: bool = True) -> Recording:
+         check_saturation: bool = True, progress: bool = False) -> Recording:
     """Read and validate a recording (.csv, .csv.gz, .npy, .gt3x, .agdc, .cwa, .bin; recognised by content).
 
     Returns a Recording: ``t`` (N,) [s], ``acc`` (N, 3) in the file's raw ``units``, ``temp`` [°C] and
     ``vsupply`` [V] (None when absent), ``fs`` [Hz], ``metadata``, ``warnings``. ``columns`` maps other
     CSV names, e.g. ``{"t": "t_unix", "ax": "x_counts"}``; ``exclude_filler`` drops exactly repeated
-    runs (idle sleep) and notes it in ``warnings``. Errors: ValueError with a one-line message.
+    runs (idle sleep) and notes it in ``warnings``; ``progress=True`` shows a tqdm bar of the
+    validation pass (tqdm installed: the ``study`` extra). Errors: ValueError with a one-line message.
     """
-    return read_recording(path, columns=columns, exclude_filler=exclude_filler, check_saturation=check_saturation)
+    with offline.progress_bar("reading", progress) as bar:
+        return read_recording(path, columns=columns, exclude_filler=exclude_filler, check_saturation=check_saturation,
+                              progress=bar)
 
 
 def calibrate(data: Recording | str | Path | tuple, model: str = "auto", *, temp: Any = None, vsupply: Any = None,
               detector: str = "lotters", folds: int = 5, start: _CoreCalibration | None = None,
-              columns: str | dict[str, str] | None = None) -> Calibration:
+              columns: str | dict[str, str] | None = None, progress: bool = False) -> Calibration:
     """Calibrate a recording (a Recording, a path, or a tuple ``(t, acc)`` with t [s], acc (N, 3) raw).
 
     ``model``: "auto" (the largest order the windows determine), "offsets", "6", "9", "12" or an order
     with terms ("6+temperature_offset" style names from the registry). Raises ValueError when the
     recording holds no usable stillness (the message says why). Check ``converged`` and ``observable``
-    before using the result, as ``gravcal calibrate`` does (exit 3).
+    before using the result, as ``gravcal calibrate`` does (exit 3). ``progress=True``: tqdm bars of
+    the reading and of the calibration's block pass and stages.
     """
     opts = offline.Options(model=model, detector=detector, folds=folds, start=start, columns=columns)
     offline.check_options(opts)
     if isinstance(data, (str, Path)):
-        rec = read(data, columns=columns)
+        rec = read(data, columns=columns, progress=progress)
     elif isinstance(data, Recording):
         rec = data
     elif isinstance(data, tuple) and len(data) == 2:
         rec = recording_from_arrays(data[0], data[1], temp=temp, vsupply=vsupply)
     else:
         raise TypeError(f"calibrate() takes a Recording, a path or a tuple (t, acc); got {type(data).__name__}")
-    report, out = offline.calibrate(rec, opts)
+    with offline.progress_bar("calibrating", progress) as bar:
+        report, out = offline.calibrate(rec, opts, progress=bar)
     return Calibration._from_core(report.calibration, out)

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import math
 import mmap
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
@@ -105,12 +106,20 @@ def block_length(fs: float, block_s: float = BLOCK_S) -> int:
     return max(1, int(round(block_s * fs)))
 
 
+def pass_chunks(n: int, block_n: int) -> int:
+    """Chunks of block_stats' pass over n samples in blocks of block_n (its progress total)."""
+    return -(-(n // block_n) // CHUNK_BLOCKS)
+
+
 def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n: int, fs: float, *,
                 aux: np.ndarray | None = None, block_n: int | None = None, threads: int = THREADS,
-                release: Sequence[np.ndarray] = ()) -> BlockStats:
+                release: Sequence[np.ndarray] = (),
+                progress: Callable[[int, int], None] | None = None) -> BlockStats:
     """One pass over a recording: ``channel(c, i, j)`` gives raw channel c (0..2) rows [i, j) as
     a 1-D array (any float dtype, any stride, e.g. a field of a memory-mapped .npy); t (n,) [s];
-    aux (n,) or (n, k) optional. ``release``: arrays whose mapped pages are dropped per chunk."""
+    aux (n,) or (n, k) optional. ``release``: arrays whose mapped pages are dropped per chunk.
+    ``progress(done, total)``: called after each chunk with chunks done so far (increasing, from
+    whichever thread finished it, one call at a time) and the chunk count."""
     if not (fs > 0 and math.isfinite(fs)):
         raise ValueError(f"sample rate fs must be a positive number of Hz, got {fs!r}")
     B = block_n or block_length(fs)
@@ -126,6 +135,8 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
     chunk = CHUNK_BLOCKS * B
     ones = np.ones(B, dtype=np.float32)
     starts = list(range(0, nb * B, chunk))
+    done = [0]
+    lock = threading.Lock()
 
     def work(i: int, ws: dict[str, np.ndarray]) -> None:
         j = min(i + chunk, nb * B)
@@ -164,6 +175,10 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
         usable[b0:b0 + m] = ok
         for arr in release:
             release_mapped(arr, i, j)
+        if progress is not None:
+            with lock:
+                done[0] += 1
+                progress(done[0], len(starts))
 
     def workspace() -> dict[str, np.ndarray]:
         return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32)}

@@ -23,7 +23,7 @@ import functools
 import logging
 import os
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -37,7 +37,7 @@ from gravcal.core.estimators.observability import N_PARAMS, SIGMA_FLOOR_G, TOL_G
 from gravcal.core.estimators.order import (compare_extended, extended_base, extended_terms, is_observable_extended,
                                            reference_start, select_order, term_testability)
 from gravcal.core.estimators.start import bootstrap
-from gravcal.core.fastdetect import block_stats, detect_blocks
+from gravcal.core.fastdetect import block_length, block_stats, detect_blocks, pass_chunks
 from gravcal.core.model.effect import needed_covariates
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.heldout import HeldoutResult, heldout_error
@@ -53,7 +53,6 @@ BOOTSTRAP_MAX_SAMPLES = 300_000  # 50 min at 100 Hz, in BOOTSTRAP_SEGMENTS piece
 BOOTSTRAP_SEGMENTS = 30  # 100 s each at 100 Hz
 FALLBACK_DETECTOR = "variance"
 REDETECT_CHANGE = 0.02  # re-detect when the fit moved the start by more than 2 % of 1 g (eq. 15-16 units)
-
 
 MODELS = ("auto",)  # model names calibrate_recording accepts beyond PARAMETERIZATIONS (`gravcal calibrate --model`)
 AUTO_MIN_WINDOWS = 3  # auto needs at least the offsets' 3 windows (6 for sensitivities)
@@ -188,7 +187,6 @@ def _estimate_fs(t: np.ndarray) -> float:
 
 
 def _bootstrap(t: np.ndarray, cols: _Columns, fs: float) -> Calibration:
-
     n = cols.n
     if n <= BOOTSTRAP_MAX_SAMPLES:
         return bootstrap(np.asarray(t, dtype=float), cols.block(0, n), fs)
@@ -220,9 +218,8 @@ def covariate_columns(n: int, temp: Any, vsupply: Any) -> Any:
     return np.column_stack([T, v])
 
 
-def _block_stats(t: np.ndarray, cols: _Columns, fs: float, temp: Any) -> Any:
+def _block_stats(t: np.ndarray, cols: _Columns, fs: float, temp: Any, progress: Any = None) -> Any:
     """One pass over the samples: core.fastdetect.BlockStats (mapped pages released as it goes)."""
-
     if cols.arr is not None:
         arr = cols.arr
 
@@ -235,7 +232,7 @@ def _block_stats(t: np.ndarray, cols: _Columns, fs: float, temp: Any) -> Any:
             return columns[c][i:j]
     release = [a for a in ([t, cols.arr] if cols.arr is not None else [t, *cols.cols]) if isinstance(a, np.ndarray)]
     aux = None if temp is None else (temp if isinstance(temp, np.ndarray) else np.asarray(temp, dtype=float))
-    return block_stats(t, channel, cols.n, fs, aux=aux, release=release)
+    return block_stats(t, channel, cols.n, fs, aux=aux, release=release, progress=progress)
 
 
 def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calibration, temp: Any,
@@ -246,7 +243,6 @@ def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calib
     if detector not in DETECTORS:
         raise ValueError(f"unknown detector {detector!r}; choose one of {sorted(DETECTORS)}")
     if detection == "blocks":
-
         bs = blocks if blocks is not None else _block_stats(t, cols, fs, temp)
         return detect_blocks(bs, t, detector, to_g, **detector_kw)
     kw = dict(detector_kw)
@@ -275,6 +271,27 @@ def screen_windows(ws: WindowSet, cal: Calibration, max_std_g: float) -> tuple[W
     """
     keep = window_std_g(ws, cal) <= max_std_g
     return ws.subset(np.flatnonzero(keep)), int((~keep).sum())
+
+
+class _Steps:
+    """Progress of calibrate_recording: ``pass_units`` chunks of the block pass, then 4 stages
+    (detection, fit, re-detection (counted when skipped), held-out error)."""
+
+    def __init__(self, callback: Callable[[int, int], None] | None, pass_units: int):
+        self.callback, self.pass_units, self.total, self.done = callback, pass_units, pass_units + 4, 0
+        self.pass_progress = None if callback is None else self._pass
+        self._report(0)
+
+    def _report(self, done: int) -> None:
+        self.done = done
+        if self.callback is not None:
+            self.callback(done, self.total)
+
+    def _pass(self, done: int, _total: int) -> None:
+        self._report(done)
+
+    def stage(self) -> None:
+        self._report(max(self.done, self.pass_units) + 1)
 
 
 def _blas_single_threaded(fn: Any) -> Any:
@@ -311,6 +328,7 @@ def calibrate_recording(
     max_window_std_g: float = MAX_WINDOW_STD_G,
     lab: Calibration | None = None,
     detection: str = "auto",
+    progress: Callable[[int, int], None] | None = None,
 ) -> CalibrationReport:
     """Calibrate a recording: t (N,) [s], raw (N, 3) or three (N,) columns [raw units: ax, ay, az],
     optional temp (N,) [°C] and vsupply (N,) [V] (kept as the windows' aux means). Raises ValueError with a precise
@@ -326,7 +344,9 @@ def calibrate_recording(
     (one pass over the samples, detection on 0.1 s block statistics, core.fastdetect), "stream"
     (the streaming detector over every sample, core.detectors), or "auto" (default: blocks from
     BLOCKS_MIN_SAMPLES samples on, where the streaming detector's cost matters; stream below, where
-    its sample-exact edges are cheap)."""
+    its sample-exact edges are cheap). ``progress(done, total)``: called with increasing ``done`` up to
+    ``total`` (fixed for the call): one unit per chunk of the block pass, then one per stage
+    (detection, fit, re-detection, held-out error)."""
     cols = _Columns(raw)
     t = t if isinstance(t, np.ndarray) else np.asarray(t)
     if t.ndim != 1 or t.shape[0] != cols.n:
@@ -361,7 +381,8 @@ def calibrate_recording(
     if start is None:
         start = _bootstrap(t, cols, fs)
         notes.append(f"start: {start.message or 'bootstrap'}")
-    blocks = _block_stats(t, cols, fs, temp) if detection == "blocks" else None
+    steps = _Steps(progress, pass_chunks(cols.n, block_length(fs)) if detection == "blocks" else 0)
+    blocks = _block_stats(t, cols, fs, temp, steps.pass_progress) if detection == "blocks" else None
 
     def detect(name: str, to_g: Calibration, kw: dict[str, Any]) -> WindowSet:
         return _detect(t, cols, fs, name, to_g, temp, kw, blocks, detection)
@@ -376,11 +397,13 @@ def calibrate_recording(
             notes.append(f"detector {detector!r} mostly found periods spanning posture changes; used "
                          f"{FALLBACK_DETECTOR!r} instead ({len(ws2)} windows)")
             ws, detector, detector_kw = ws2, FALLBACK_DETECTOR, {}
+    steps.stage()
     if len(ws) == 0:
         raise ValueError("no quasi-static windows found in the recording (is it all motion? is the start in the "
                          "right units?)")
     fitted = _fit_order(ws, model, start, lab, sigma_floor_g, folds)
     cal = fitted.calibration
+    steps.stage()
     change = relative_difference(cal, start)
     if change > REDETECT_CHANGE and cal.converged:
         # the detection signal |a| used the start: with a better calibration the still/moving split changes
@@ -391,6 +414,7 @@ def calibrate_recording(
             ws = ws2
             fitted = _fit_order(ws, model, cal, lab, sigma_floor_g, folds)
             cal = fitted.calibration
+    steps.stage()
     if user_start is not None:
         off = relative_difference(cal, user_start)
         if off > START_TOLERANCE and "too far off" not in cal.message:
@@ -399,6 +423,7 @@ def calibrate_recording(
     ho = heldout_error(ws, fitted.model, scheme="contiguous", folds=min(folds, len(ws)), start=fitted.fold_start,
                        full_fit=cal, estimator=fitted.estimator)
     notes += ho.notes
+    steps.stage()
     log.info("calibrated %d windows (order %s): held-out %.3g mg, in-sample %.3g mg", len(ws), fitted.model,
              ho.heldout_rms_mg, ho.insample_rms_mg)
     return CalibrationReport(cal, ws, ho.heldout_rms_mg, ho.insample_rms_mg, len(ws), notes, ho, start, fitted.order,

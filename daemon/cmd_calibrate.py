@@ -72,7 +72,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="study: local dask.distributed workers (default: the CPU count; 0: in this process, no Dask)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="study: an existing dask.distributed scheduler, e.g. "
                                                           "tcp://head-node:8786, instead of a local cluster")
-    p.add_argument("--quiet", action="store_true", help="study: no progress bar")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (one is shown only on a terminal)")
     # No argparse choices: listing them would import the numerics (a second of scipy) for every
     # `gravcal --help`; run() validates and names the known values.
     from gravcal.core.estimators.parameterization import PARAMETERIZATIONS  # numpy only: cheap
@@ -174,9 +174,12 @@ def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
     from . import offline
     from .recordings import jsonable
 
-    rec, t_read, c_read = offline.read(path, opts)
+    show = not (args.quiet or args.json) and sys.stderr.isatty()
+    with offline.progress_bar("reading", show) as bar:
+        rec, t_read, c_read = offline.read(path, opts, bar)
     log.info("read %s: %d samples, %.1f s at %.6g Hz in %.2f s", rec.source, rec.n_samples, rec.duration_s, rec.fs, t_read)
-    report, out = offline.calibrate(rec, opts, (t_read, c_read))
+    with offline.progress_bar("calibrating", show) as bar:
+        report, out = offline.calibrate(rec, opts, (t_read, c_read), bar)
     cal = report.calibration
     if args.save:
         args.save.write_text(cal.to_json(indent=2) + "\n", encoding="utf-8")

@@ -5,13 +5,17 @@ so all three report the same keys.
 """
 from __future__ import annotations
 
+import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Iterator, Optional
 
 from .errors import InputError
 from .recordings import Recording, read_recording
+
+Progress = Optional[Callable[[int, int], None]]  # progress(done, total)
 
 
 @dataclass
@@ -59,16 +63,18 @@ def check_options(opts: Options) -> None:
         raise InputError(f"--folds must be at least 2 (held-out error needs windows left out), got {opts.folds}")
 
 
-def read(path: str | Path, opts: Options) -> tuple[Recording, float, float]:
+def read(path: str | Path, opts: Options, progress: Progress = None) -> tuple[Recording, float, float]:
     """The validated recording and the wall and CPU seconds its reading took."""
     t0, c0 = time.perf_counter(), time.process_time()
     rec = read_recording(path, check_saturation=opts.check_saturation, columns=opts.columns,
-                         exclude_filler=opts.exclude_filler)
+                         exclude_filler=opts.exclude_filler, progress=progress)
     return rec, time.perf_counter() - t0, time.process_time() - c0
 
 
-def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0, 0.0)) -> tuple[Any, dict[str, Any]]:
-    """(CalibrationReport, the ``calibrate --json`` object) of a validated recording."""
+def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0, 0.0),
+              progress: Progress = None) -> tuple[Any, dict[str, Any]]:
+    """(CalibrationReport, the ``calibrate --json`` object) of a validated recording;
+    ``progress(done, total)`` follows calibrate_recording's stages (not a --lab session's)."""
     from gravcal.core.pipeline import calibrate_recording
 
     t0, c0 = time.perf_counter(), time.process_time()
@@ -78,7 +84,8 @@ def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0,
         report = calibrate_lab(rec.t, rec.raw, fs=rec.fs, to_g=opts.start)
     else:
         report = calibrate_recording(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, model=opts.model, fs=rec.fs,
-                                     detector=opts.detector, start=opts.start, folds=opts.folds, lab=opts.lab)
+                                     detector=opts.detector, start=opts.start, folds=opts.folds, lab=opts.lab,
+                                     progress=progress)
     t_cal, c_cal = time.perf_counter() - t0, time.process_time() - c0
     cal = report.calibration
     out = dict(report.to_json_dict())
@@ -105,3 +112,28 @@ def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0,
 
         out["gyro"] = gyro_report(rec.t, rec.gyro, report, fs=rec.fs)
     return report, out
+
+
+@contextmanager
+def progress_bar(desc: str, show: bool) -> Iterator[Progress]:
+    """A progress(done, total) callback drawing a tqdm bar on stderr, or None when not shown (or
+    tqdm is not installed); the bar is closed when the step ends, also on an error."""
+    if not show:
+        yield None
+        return
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        yield None
+        return
+    bar = tqdm(desc=desc, total=1, file=sys.stderr, leave=False)  # tqdm.auto: a widget in a notebook
+
+    def update(done: int, total: int) -> None:
+        if bar.total != total:
+            bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        yield update
+    finally:
+        bar.close()

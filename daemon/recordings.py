@@ -27,7 +27,7 @@ import math
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -101,11 +101,13 @@ class Recording:
 # reading
 # ---------------------------------------------------------------------------------------
 def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_saturation: bool = True,
-                   columns: str | dict[str, str] | None = None, exclude_filler: bool = False) -> Recording:
+                   columns: str | dict[str, str] | None = None, exclude_filler: bool = False,
+                   progress: Callable[[int, int], None] | None = None) -> Recording:
     """Read and validate a recording of any format in ``FORMATS`` (recognised by content).
 
     ``columns``: other CSV header names, ``"t=t_unix,ax=x_counts"`` or a dict. ``exclude_filler``:
     drop runs of exactly repeated samples (idle-sleep filler, a frozen bus) and say so in ``warnings``.
+    ``progress(done, total)``: chunks of the validation pass done, as it goes.
     """
     path = Path(path)
     mapping = parse_columns(columns)
@@ -135,7 +137,8 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
         where, names = Where(path=path), tuple(cols)
     else:
         raise InputError(f"{path}: {found.what}; not a recording gravcal reads ({', '.join(FORMATS)})")
-    rec = _validate(path, cols, where, names, min_samples=min_samples, check_saturation=check_saturation)
+    rec = _validate(path, cols, where, names, min_samples=min_samples, check_saturation=check_saturation,
+                    progress=progress)
     rec.units, rec.metadata = units, meta
     return _without_filler(rec, min_samples) if exclude_filler else rec
 
@@ -170,7 +173,9 @@ def _repeat_codes(raw: np.ndarray) -> np.ndarray:
     for s in _chunks(n, CHUNK):
         lo = max(0, s.start - 1)
         block = raw[lo:s.stop]
-        step = ~np.all(block[1:] == block[:-1], axis=1)
+        step = block[1:, 0] != block[:-1, 0]  # per column: a reduction along rows of 3 is slow
+        step |= block[1:, 1] != block[:-1, 1]
+        step |= block[1:, 2] != block[:-1, 2]
         if s.start == 0:
             step = np.concatenate([[False], step])
         codes[s] = (last + np.cumsum(step, dtype=np.uint64)) % 256  # +1 per change: equal only on a repeat
@@ -273,25 +278,47 @@ class _Scan:
     n_flagged: int = 0  # samples flagged saturated by the logger
 
 
-def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None) -> _Scan:
+def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None,
+          progress: Callable[[int, int], None] | None = None) -> _Scan:
     n = int(t.shape[0])
+    n_chunks = -(-n // SCAN_CHUNK)
     sc = _Scan()
     prev_t: float | None = None
+    # each chunk is copied once into reused contiguous buffers (the copy is where a mapped page is
+    # first touched); min/max then run at full speed and also tell finiteness (NaN propagates, inf
+    # is an extreme), so no separate isfinite pass over the triad or t
+    size = min(n, SCAN_CHUNK)
+    t_buf = np.empty(size + 1)
+    ch_buf = np.empty((3, size), dtype=raw.dtype if raw.dtype.kind == "f" else np.float64)
+    dt_buf = np.empty(size)
     for k, s in enumerate(_chunks(n, SCAN_CHUNK)):
-        tc = np.asarray(t[s], dtype=np.float64)
-        chans = [np.ascontiguousarray(raw[s, c]) for c in range(3)]  # contiguous: reductions run at full speed
-        if sc.finite and not (np.isfinite(tc).all() and all(np.isfinite(ch).all() for ch in chans)
+        m = s.stop - s.start
+        tc = t_buf[1:m + 1]
+        np.copyto(tc, t[s], casting="unsafe")
+        chans = ch_buf[:, :m]
+        np.copyto(chans, raw[s].T, casting="unsafe")
+        if prev_t is None:
+            dt = dt_buf[:m - 1]
+            np.subtract(tc[1:], tc[:-1], out=dt)
+        else:
+            t_buf[0] = prev_t
+            dt = dt_buf[:m]
+            np.subtract(t_buf[1:m + 1], t_buf[:m], out=dt)
+        prev_t = float(tc[-1])
+        with np.errstate(invalid="ignore"):
+            dmin, dmax = (float(dt.min()), float(dt.max())) if dt.size else (0.0, 0.0)
+            lo, hi = chans.min(axis=1), chans.max(axis=1)
+        if sc.finite and not (math.isfinite(tc[0]) and math.isfinite(dmin) and math.isfinite(dmax)
+                              and np.isfinite(lo).all() and np.isfinite(hi).all()
                               and all(np.isfinite(np.asarray(e[s], dtype=np.float64)).all() for e in extra)):
             sc.finite = False
             return sc  # the caller drops the bad rows and scans again
-        dt = np.diff(tc) if prev_t is None else np.diff(tc, prepend=prev_t)
-        prev_t = float(tc[-1])
         if dt.size:
-            sc.min_dt = min(sc.min_dt, float(dt.min()))
+            sc.min_dt = min(sc.min_dt, dmin)
             if k % 64 == 0:
                 sc.dt_medians.append(float(np.median(dt)))
         for c, ch in enumerate(chans):
-            cmin, cmax = ch.min(), ch.max()
+            cmin, cmax = lo[c], hi[c]
             if cmin <= sc.lo[c]:
                 nmin = int(np.count_nonzero(ch == cmin))
                 sc.n_lo[c] = nmin if cmin < sc.lo[c] else sc.n_lo[c] + nmin
@@ -307,11 +334,13 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
         for col in (t, raw, *extra, flags):
             if col is not None:
                 release_mapped(col, s.start, s.stop)
+        if progress is not None:
+            progress(k + 1, n_chunks)
     return sc
 
 
 def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tuple[str, ...], *,
-              min_samples: int, check_saturation: bool) -> Recording:
+              min_samples: int, check_saturation: bool, progress: Callable[[int, int], None] | None = None) -> Recording:
     t = cols["t"]
     raw = cols.pop("_triad", None)
     if raw is None:
@@ -327,7 +356,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
     notes: list[str] = []
     extra = ([v for v in (temp, vsupply) if v is not None]
              + ([gyro[:, i] for i in range(3)] if gyro is not None else []))
-    scan = _scan(t, raw, extra, flags)
+    scan = _scan(t, raw, extra, flags, progress)
 
     # 1. NaN / inf in any column we use: drop the rows (a copy; only when there are any).
     keep: np.ndarray | None = None

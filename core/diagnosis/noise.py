@@ -236,7 +236,9 @@ def flat_stretches(raw: np.ndarray, min_run: int = 10) -> FlatStretches:
     n = raw.shape[0]
     if n < 3:
         return FlatStretches()
-    same = np.all(raw[1:] == raw[:-1], axis=1)
+    same = raw[1:, 0] == raw[:-1, 0]  # per column: np.all along rows of 1-3 values is slow
+    for c in range(1, raw.shape[1]):
+        same &= raw[1:, c] == raw[:-1, c]
     if not same.any():
         return FlatStretches()
     # run boundaries of 'same'
@@ -247,5 +249,6 @@ def flat_stretches(raw: np.ndarray, min_run: int = 10) -> FlatStretches:
     q = float(lengths[short].sum()) / max(n - 1 - int(lengths[~short].sum()), 1)
     expected = math.log(n) / math.log(1.0 / q) if 0 < q < 1 else (0.0 if q == 0 else math.inf)
     limit = max(min_run, 3.0 * expected)
-    runs = [(int(s), int(e) + 1) for s, e, L in zip(starts, ends, lengths) if L >= limit]
+    long_ = lengths >= limit  # selected in numpy: a week holds millions of short runs
+    runs = list(zip(starts[long_].tolist(), (ends[long_] + 1).tolist()))
     return FlatStretches(runs, q, expected)

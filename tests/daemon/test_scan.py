@@ -1,0 +1,63 @@
+"""The validation scan's chunked statistics equal the same statistics over the whole arrays."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import gravcal.daemon.recordings as recordings
+
+
+def _columns(seed: int, n: int, dtype, backwards: bool = True):
+    rng = np.random.default_rng(seed)
+    t = np.cumsum(rng.uniform(0.005, 0.015, n))
+    raw = rng.integers(-40, 40, size=(n, 3)).astype(dtype)  # coarse: ties at the extremes across chunks
+    raw[rng.integers(0, n, 50), rng.integers(0, 3, 50)] = 40  # a pile-up at the maximum
+    if backwards:
+        t[rng.integers(1, n)] = t[rng.integers(0, n)]  # a step that is not positive somewhere
+    return t, raw
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("chunk", [1000, 997, 1 << 16])
+@pytest.mark.parametrize("backwards", [False, True])
+def test_chunked_scan_equals_whole_array_statistics(monkeypatch, seed, dtype, chunk, backwards):
+    monkeypatch.setattr(recordings, "SCAN_CHUNK", chunk)
+    t, raw = _columns(seed, 10_001, dtype, backwards)
+    sc = recordings._scan(t, raw, [], None)
+    assert sc.finite
+    assert sc.min_dt == np.diff(t).min()
+    np.testing.assert_array_equal(sc.lo, raw.min(axis=0))
+    np.testing.assert_array_equal(sc.hi, raw.max(axis=0))
+    np.testing.assert_array_equal(sc.n_lo, (raw == raw.min(axis=0)).sum(axis=0))
+    np.testing.assert_array_equal(sc.n_hi, (raw == raw.max(axis=0)).sum(axis=0))
+
+
+@pytest.mark.parametrize("where", ["t", "ax", "az", "extra"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("row", [0, 1, 999, 1000, 10_049])
+def test_any_non_finite_value_is_found(monkeypatch, where, bad, row):
+    monkeypatch.setattr(recordings, "SCAN_CHUNK", 1000)
+    t, raw = _columns(0, 10_050, np.float32)  # a last chunk of 50 rows
+    extra = np.zeros(t.shape[0])
+    if where == "t":
+        t[row] = bad
+    elif where == "extra":
+        extra[row] = bad
+    else:
+        raw[row, {"ax": 0, "az": 2}[where]] = bad
+    assert not recordings._scan(t, raw, [extra], None).finite
+    assert recordings._scan(*_columns(0, 10_050, np.float32), [np.zeros(t.shape[0])], None).finite
+
+
+@pytest.mark.parametrize("min_run", [5, 10])
+def test_filler_runs_from_the_limit_on_and_none_shorter(min_run):
+    from gravcal.core.diagnosis.noise import flat_stretches
+
+    codes = np.arange(1000, dtype=np.float64)  # no repeat by chance: the limit is min_run
+    codes[100:100 + min_run + 1] = codes[100]  # min_run repeated steps: filler
+    codes[500:500 + min_run] = codes[500]  # one step fewer: kept
+    raw = np.column_stack([codes, codes + 1.0, -codes])
+    flats = flat_stretches(raw, min_run=min_run)
+    assert flats.runs == [(100, 100 + min_run + 1)]
+    assert flat_stretches(recordings._repeat_codes(raw), min_run=min_run).runs == flats.runs
