@@ -32,6 +32,8 @@ import time
 
 import numpy as np
 
+from bench_daemon import _extra_watcher  # a raw watcher taking every sample
+
 FS = 200.0
 
 
@@ -49,20 +51,6 @@ def _rss_mb(pid: int) -> tuple[float, float]:
             if key in ("VmRSS", "VmHWM"):
                 out[key] = int(value.split()[0]) / 1024
     return out.get("VmRSS", float("nan")), out.get("VmHWM", float("nan"))
-
-
-def _watcher(path: str, stop) -> None:
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    s.connect(path)
-    s.sendall(b'?WATCH={"enable":true,"raw":true};\n')
-    s.settimeout(0.2)
-    while not stop.is_set():
-        try:
-            if not s.recv(1 << 20):
-                break
-        except socket.timeout:
-            continue
-    s.close()
 
 
 def _lines(sock: socket.socket, seconds: float):
@@ -110,7 +98,7 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
             if time.monotonic() > deadline or proc.poll() is not None:
                 raise SystemExit(f"gravcald --bus {bus} did not start")
             time.sleep(0.1)
-        extra = [ctx.Process(target=_watcher, args=(path, stop), daemon=True) for _ in range(clients - 1)]
+        extra = [ctx.Process(target=_extra_watcher, args=(path, 0, stop), daemon=True) for _ in range(clients - 1)]
         for p in extra:
             p.start()
         s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
