@@ -59,7 +59,8 @@ AUTO_MIN_WINDOWS = 3  # auto needs at least the offsets' 3 windows (6 for sensit
 # extended terms auto may add on top of the chosen order: every registered calibration term except the
 # cross-axis one (the order rule's 6-vs-full comparison decides that), judged by the online path's rule
 # (order.term_testability, order.is_observable_extended, order.compare_extended)
-AUTO_EXTENDED_TERMS = tuple(t for t in CALIBRATION_TERMS if calibration_view(t).acts_on != "cross")
+AUTO_EXTENDED_TERMS = tuple(t for t in CALIBRATION_TERMS  # linear ones: a profiled time constant is diagnose's
+                            if calibration_view(t).acts_on != "cross" and calibration_view(t).profiled is None)
 
 
 class OrderNotDetermined(ValueError):
