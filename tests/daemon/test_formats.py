@@ -24,8 +24,11 @@ FIXTURES = os.environ.get("GRAVCAL_SKDH_FIXTURES", "")
 def skdh_fixture(name: str) -> str:
     path = os.path.join(FIXTURES, name)
     if not (FIXTURES and os.path.isfile(path)):
-        pytest.skip(f"scikit-digital-health's test fixture {name} not found: set GRAVCAL_SKDH_FIXTURES to the "
-                    f"tests/io/data folder of its source distribution")
+        reason = (f"scikit-digital-health's test fixture {name} not found: set GRAVCAL_SKDH_FIXTURES to the "
+                  f"tests/io/data folder of its source distribution (.ci/fetch_skdh_fixtures.py DIR fetches it)")
+        if os.environ.get("GRAVCAL_REQUIRE_SKDH_FIXTURES") == "1":
+            pytest.fail(reason + "; GRAVCAL_REQUIRE_SKDH_FIXTURES=1 makes this a failure")
+        pytest.skip(reason)
     return path
 
 
