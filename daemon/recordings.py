@@ -34,6 +34,7 @@ import numpy as np
 from gravcal.core.calibration import jsonable  # noqa: F401  (re-exported for the cmd_* modules)
 from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_triad
 from gravcal.core.fastdetect import release_mapped
+from gravcal.core.repeats import MIN_RUN, FlatStretches, RunCollector, repeated_steps
 
 from .errors import InputError
 from .formats.csvtext import OPTIONAL, REQUIRED, Where, load_csv, missing_columns_error, parse_columns, shown_names
@@ -163,33 +164,23 @@ def recording_from_arrays(t: Any, acc: Any, *, temp: Any = None, vsupply: Any = 
     return _without_filler(rec, min_samples) if exclude_filler else rec
 
 
-def _repeat_codes(raw: np.ndarray) -> np.ndarray:
-    """(N, 1) uint8 codes equal in consecutive rows exactly where the triad repeats: what flat_stretches
-    needs, built in chunks (N bytes instead of the 4N of its boolean temporaries on the triad, and a
-    mapped input released as the scan releases it)."""
+def _filler_stretches(raw: np.ndarray, min_run: int = MIN_RUN) -> FlatStretches:
+    """core.repeats.flat_stretches of the triad, in cache-sized chunks with reused buffers (a
+    mapped input is released as the scan releases it)."""
     n = raw.shape[0]
-    codes = np.empty(n, dtype=np.uint8)
-    last = np.uint8(0)
-    for s in _chunks(n, CHUNK):
-        lo = max(0, s.start - 1)
-        block = raw[lo:s.stop]
-        step = block[1:, 0] != block[:-1, 0]  # per column: a reduction along rows of 3 is slow
-        step |= block[1:, 1] != block[:-1, 1]
-        step |= block[1:, 2] != block[:-1, 2]
-        if s.start == 0:
-            step = np.concatenate([[False], step])
-        codes[s] = (last + np.cumsum(step, dtype=np.uint64)) % 256  # +1 per change: equal only on a repeat
-        last = codes[s.stop - 1]
+    runs = RunCollector(min_run)
+    size = min(n, SCAN_CHUNK)
+    same, scratch = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
+    for s in _chunks(max(n - 1, 0), SCAN_CHUNK):  # steps s: row i + 1 against row i
+        runs.add(repeated_steps(raw[s.start:s.stop + 1], same, scratch), s.start)
         release_mapped(raw, s.start, s.stop)
-    return codes[:, None]
+    return runs.result(n)
 
 
 def _without_filler(rec: Recording, min_samples: int) -> Recording:
-    """Drop runs of exactly repeated triads (core.diagnosis.noise.flat_stretches decides); the first
+    """Drop runs of exactly repeated triads (core.repeats.select_flat decides); the first
     sample of each run is a real one and stays."""
-    from gravcal.core.diagnosis.noise import flat_stretches
-
-    flats = flat_stretches(_repeat_codes(rec.raw))
+    flats = _filler_stretches(rec.raw)
     if not flats.runs:
         return rec
     keep = np.ones(rec.n_samples, dtype=bool)

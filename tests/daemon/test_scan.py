@@ -60,4 +60,4 @@ def test_filler_runs_from_the_limit_on_and_none_shorter(min_run):
     raw = np.column_stack([codes, codes + 1.0, -codes])
     flats = flat_stretches(raw, min_run=min_run)
     assert flats.runs == [(100, 100 + min_run + 1)]
-    assert flat_stretches(recordings._repeat_codes(raw), min_run=min_run).runs == flats.runs
+    assert recordings._filler_stretches(raw, min_run=min_run).runs == flats.runs
