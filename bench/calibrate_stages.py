@@ -2,8 +2,9 @@
 
     python bench/calibrate_stages.py FILE.npy [--repeat 1]
 
-Stages: imports (the CLI's calibrate imports), read (daemon.recordings.read_recording: mapping and
-validating), filler (excluding exactly repeated runs, which `calibrate` does by default), start (the bootstrap calibration), block pass (core.fastdetect.block_stats), detection
+Stages: imports (the CLI's calibrate imports), read (daemon.recordings.read_recording: mapping,
+validating and finding exactly repeated runs in the same scan), filler (dropping those runs' rows,
+which `calibrate` does by default), start (the bootstrap calibration), block pass (core.fastdetect.block_stats), detection
 (detectors on the block statistics, window statistics, screening), fit (order and extended-term
 selection, re-detection's refit included), held-out (the contiguous folds). CPU time rather than
 wall time because the machine these run on is shared: wall time there measures the neighbours.

@@ -159,10 +159,12 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
             ok = np.isfinite(s1).all(axis=0) & np.isfinite(s2).all(axis=0)
         # time: the step into every sample of the block (the first one's from the previous sample)
         lo = max(i - 1, 0)
-        tc = np.asarray(t[lo:j], dtype=np.float64)
-        dt = np.diff(tc)
+        tc = ws["T"][:j - lo]
+        np.copyto(tc, t[lo:j], casting="unsafe")  # one strided copy into a reused buffer
+        dt = ws["dt"][:j - i]
         if i == 0:
-            dt = np.concatenate([[1.0 / fs], dt])
+            dt[0] = 1.0 / fs
+        np.subtract(tc[1:], tc[:-1], out=dt[j - i - (j - lo - 1):])
         with np.errstate(invalid="ignore"):
             if not (dt.min() > 0 and dt.max() <= step):  # NaN fails this too
                 bad = ~((dt > 0) & (dt <= step))
@@ -181,7 +183,8 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
                 progress(done[0], len(starts))
 
     def workspace() -> dict[str, np.ndarray]:
-        return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32)}
+        return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32),
+                "T": np.empty(chunk + 1), "dt": np.empty(chunk)}
 
     if threads > 1 and len(starts) > 1:
         spaces = [workspace() for _ in range(threads)]

@@ -16,7 +16,6 @@ import logging
 import pkgutil
 import sys
 import traceback
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Sequence
 
@@ -37,10 +36,21 @@ _UNAVAILABLE: dict[str, str] = {}  # subcommand -> why it could not be loaded
 
 
 def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version  # ~30 ms: only for --version
+
     try:
         return version("gravcal")
     except PackageNotFoundError:  # pragma: no cover - running from a bare checkout
         return "unknown"
+
+
+class _VersionAction(argparse.Action):
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help="show the version and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        print(f"gravcal {_version()}")
+        parser.exit()
 
 
 def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
@@ -51,7 +61,7 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
         description="In-use calibration of body-worn accelerometers from quasi-static moments (Lötters et al. 1998).",
         epilog="Exit status: 0 ok, 2 bad input, 3 calibration not trustworthy (flags in the output), 1 internal error.",
     )
-    parser.add_argument("--version", action="version", version=f"gravcal {_version()}")
+    parser.add_argument("--version", action=_VersionAction)
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)")
     parser.add_argument("--debug", action="store_true", help="show the traceback of any error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -71,6 +81,9 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
 
 def _command_names(argv: Sequence[str] | None = None) -> list[str]:
     here = Path(__file__).resolve().parent
+    words = [a for a in (argv or ()) if not a.startswith("-")]
+    if words and (here / f"cmd_{words[0]}.py").is_file() and not {"-h", "--help"} & set(argv or ()):
+        return [words[0]]  # listing the package (pkgutil, inspect: ~15 ms) only for help or a typo
     found = sorted(m.name[4:] for m in pkgutil.iter_modules([str(here)]) if m.name.startswith("cmd_"))
     names = [c for c in COMMANDS if c in found] + [c for c in found if c not in COMMANDS]
     words = [a for a in (argv or ()) if not a.startswith("-")]

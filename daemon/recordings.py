@@ -34,6 +34,7 @@ import numpy as np
 from gravcal.core.calibration import jsonable  # noqa: F401  (re-exported for the cmd_* modules)
 from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_triad
 from gravcal.core.fastdetect import release_mapped
+from gravcal.core.repeats import MIN_RUN, FlatStretches, RunCollector, repeated_steps
 
 from .errors import InputError
 from .formats.csvtext import OPTIONAL, REQUIRED, Where, load_csv, missing_columns_error, parse_columns, shown_names
@@ -138,9 +139,9 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
     else:
         raise InputError(f"{path}: {found.what}; not a recording gravcal reads ({', '.join(FORMATS)})")
     rec = _validate(path, cols, where, names, min_samples=min_samples, check_saturation=check_saturation,
-                    progress=progress)
+                    progress=progress, exclude_filler=exclude_filler)
     rec.units, rec.metadata = units, meta
-    return _without_filler(rec, min_samples) if exclude_filler else rec
+    return rec
 
 
 def recording_from_arrays(t: Any, acc: Any, *, temp: Any = None, vsupply: Any = None, min_samples: int = MIN_SAMPLES,
@@ -158,38 +159,29 @@ def recording_from_arrays(t: Any, acc: Any, *, temp: Any = None, vsupply: Any = 
                 raise InputError(f"{name} has shape {v.shape}; need one value per sample, shape {t.shape}")
             cols[name] = v
     rec = _validate(Path("<arrays>"), cols, Where(path=Path("<arrays>")), tuple(c for c in cols if c != "_triad"),
-                    min_samples=min_samples, check_saturation=check_saturation)
+                    min_samples=min_samples, check_saturation=check_saturation, exclude_filler=exclude_filler)
     rec.metadata = {"format": "arrays"}
-    return _without_filler(rec, min_samples) if exclude_filler else rec
+    return rec
 
 
-def _repeat_codes(raw: np.ndarray) -> np.ndarray:
-    """(N, 1) uint8 codes equal in consecutive rows exactly where the triad repeats: what flat_stretches
-    needs, built in chunks (N bytes instead of the 4N of its boolean temporaries on the triad, and a
-    mapped input released as the scan releases it)."""
+def _filler_stretches(raw: np.ndarray, min_run: int = MIN_RUN) -> FlatStretches:
+    """core.repeats.flat_stretches of the triad, in cache-sized chunks with reused buffers (a
+    mapped input is released as the scan releases it)."""
     n = raw.shape[0]
-    codes = np.empty(n, dtype=np.uint8)
-    last = np.uint8(0)
-    for s in _chunks(n, CHUNK):
-        lo = max(0, s.start - 1)
-        block = raw[lo:s.stop]
-        step = block[1:, 0] != block[:-1, 0]  # per column: a reduction along rows of 3 is slow
-        step |= block[1:, 1] != block[:-1, 1]
-        step |= block[1:, 2] != block[:-1, 2]
-        if s.start == 0:
-            step = np.concatenate([[False], step])
-        codes[s] = (last + np.cumsum(step, dtype=np.uint64)) % 256  # +1 per change: equal only on a repeat
-        last = codes[s.stop - 1]
+    runs = RunCollector(min_run)
+    size = min(n, SCAN_CHUNK)
+    same, scratch = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
+    for s in _chunks(max(n - 1, 0), SCAN_CHUNK):  # steps s: row i + 1 against row i
+        runs.add(repeated_steps(raw[s.start:s.stop + 1], same, scratch), s.start)
         release_mapped(raw, s.start, s.stop)
-    return codes[:, None]
+    return runs.result(n)
 
 
-def _without_filler(rec: Recording, min_samples: int) -> Recording:
-    """Drop runs of exactly repeated triads (core.diagnosis.noise.flat_stretches decides); the first
-    sample of each run is a real one and stays."""
-    from gravcal.core.diagnosis.noise import flat_stretches
-
-    flats = flat_stretches(_repeat_codes(rec.raw))
+def _without_filler(rec: Recording, min_samples: int, flats: FlatStretches | None = None) -> Recording:
+    """Drop runs of exactly repeated triads (core.repeats.select_flat decides; ``flats``: already
+    found by the validation scan); the first sample of each run is a real one and stays."""
+    if flats is None:
+        flats = _filler_stretches(rec.raw)
     if not flats.runs:
         return rec
     keep = np.ones(rec.n_samples, dtype=bool)
@@ -276,26 +268,29 @@ class _Scan:
     n_lo: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))  # samples exactly at the minimum
     n_hi: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))  # samples exactly at the maximum
     n_flagged: int = 0  # samples flagged saturated by the logger
+    repeats: RunCollector | None = None  # exactly repeated rows, when asked for
 
 
 def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None,
-          progress: Callable[[int, int], None] | None = None) -> _Scan:
+          progress: Callable[[int, int], None] | None = None, repeats: bool = False) -> _Scan:
     n = int(t.shape[0])
     n_chunks = -(-n // SCAN_CHUNK)
-    sc = _Scan()
+    sc = _Scan(repeats=RunCollector() if repeats else None)
     prev_t: float | None = None
     # each chunk is copied once into reused contiguous buffers (the copy is where a mapped page is
     # first touched); min/max then run at full speed and also tell finiteness (NaN propagates, inf
     # is an extreme), so no separate isfinite pass over the triad or t
     size = min(n, SCAN_CHUNK)
     t_buf = np.empty(size + 1)
-    ch_buf = np.empty((3, size), dtype=raw.dtype if raw.dtype.kind == "f" else np.float64)
+    # column 0 keeps the previous chunk's last row, for the repeat across the chunk border
+    ch_buf = np.empty((3, size + 1), dtype=raw.dtype if raw.dtype.kind == "f" else np.float64)
     dt_buf = np.empty(size)
+    same, scratch = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
     for k, s in enumerate(_chunks(n, SCAN_CHUNK)):
         m = s.stop - s.start
         tc = t_buf[1:m + 1]
         np.copyto(tc, t[s], casting="unsafe")
-        chans = ch_buf[:, :m]
+        chans = ch_buf[:, 1:m + 1]
         np.copyto(chans, raw[s].T, casting="unsafe")
         if prev_t is None:
             dt = dt_buf[:m - 1]
@@ -329,6 +324,10 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
                 sc.hi[c] = cmax
         if flags is not None:
             sc.n_flagged += int(np.count_nonzero(np.asarray(flags[s]).astype(np.int64) & FLAG_SATURATED))
+        if sc.repeats is not None:  # rows as columns of the contiguous copy: compared at full speed
+            rows = (ch_buf[:, 1:m + 1] if k == 0 else ch_buf[:, :m + 1]).T
+            sc.repeats.add(repeated_steps(rows, same, scratch), max(s.start - 1, 0))
+            ch_buf[:, 0] = ch_buf[:, m]
         # a memory-mapped input stays in the page cache but leaves this process's resident set:
         # the scan must not hold the whole file before calibration reads it again
         for col in (t, raw, *extra, flags):
@@ -340,7 +339,8 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
 
 
 def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tuple[str, ...], *,
-              min_samples: int, check_saturation: bool, progress: Callable[[int, int], None] | None = None) -> Recording:
+              min_samples: int, check_saturation: bool, progress: Callable[[int, int], None] | None = None,
+              exclude_filler: bool = False) -> Recording:
     t = cols["t"]
     raw = cols.pop("_triad", None)
     if raw is None:
@@ -356,7 +356,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
     notes: list[str] = []
     extra = ([v for v in (temp, vsupply) if v is not None]
              + ([gyro[:, i] for i in range(3)] if gyro is not None else []))
-    scan = _scan(t, raw, extra, flags, progress)
+    scan = _scan(t, raw, extra, flags, progress, repeats=exclude_filler)
 
     # 1. NaN / inf in any column we use: drop the rows (a copy; only when there are any).
     keep: np.ndarray | None = None
@@ -382,7 +382,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
         notes.append(f"dropped {msg}")
         keep = ~bad
         sub_flags = flags[keep] if flags is not None else None
-        scan = _scan(t[keep], raw[keep], [], sub_flags)
+        scan = _scan(t[keep], raw[keep], [], sub_flags, repeats=exclude_filler)
 
     # 2. Saturated (clipped) samples: a flags column says so exactly; else the pile-up heuristic.
     n_saturated = 0
@@ -401,6 +401,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
                 )
             notes.append(f"dropped {msg}")
             keep = ~sat if keep is None else keep & ~sat
+            scan.repeats = None  # found on rows that are no longer all there
 
     if keep is not None:
         t, raw = t[keep], raw[keep]
@@ -421,8 +422,11 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
     fs = 1.0 / float(np.median(scan.dt_medians))
     for note in notes:
         log.warning("%s: %s", path, note)
-    return Recording(t=t, raw=raw, temp=temp, vsupply=vsupply, gyro=gyro, fs=fs, source=path, n_dropped=n_dropped,
-                     n_saturated=n_saturated, columns=columns, warnings=notes)
+    rec = Recording(t=t, raw=raw, temp=temp, vsupply=vsupply, gyro=gyro, fs=fs, source=path, n_dropped=n_dropped,
+                    n_saturated=n_saturated, columns=columns, warnings=notes)
+    if not exclude_filler:
+        return rec
+    return _without_filler(rec, min_samples, scan.repeats.result(n_kept) if scan.repeats is not None else None)
 
 
 def _nonfinite_rows(used: dict[str, np.ndarray], n: int) -> np.ndarray:

@@ -8,11 +8,13 @@ FOUND when the information criterion prefers it by more than ``DELTA_BIC`` (Kass
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from scipy.special import ndtr
+
+from gravcal.core.repeats import FlatStretches, flat_stretches  # noqa: F401 (idle-sleep repeats, numpy only)
 
 DELTA_BIC = 10.0  # "strong" evidence (2 ln Bayes factor > 10, Kass & Raftery 1995)
 MIN_STRETCH_SAMPLES = 64
@@ -210,45 +212,3 @@ def quantization_test(stretches_raw: list[np.ndarray], scale: np.ndarray) -> dic
     res["heldout_loglik_gain"] = round(held_gain_tot, 2)
     res["found"] = bool(dbic_tot > DELTA_BIC and held_gain_tot > 0)
     return res
-
-
-# -- idle-sleep repeats ---------------------------------------------------------------------------
-@dataclass
-class FlatStretches:
-    """Runs of exactly repeated triads that real stillness would not produce."""
-
-    runs: list[tuple[int, int]] = field(default_factory=list)  # (start, end) sample ranges
-    repeat_prob: float = 0.0  # per-step probability of an exact triad repeat in ordinary data
-    max_expected_run: float = 0.0
-
-    @property
-    def n_samples(self) -> int:
-        return int(sum(b - a for a, b in self.runs))
-
-
-def flat_stretches(raw: np.ndarray, min_run: int = 10) -> FlatStretches:
-    """Exact repeats of the whole triad: runs much longer than the recording's own repeat rate allows.
-
-    q = fraction of consecutive samples with an identical triad outside long runs; the longest run
-    expected by chance in N steps is ~ log(N) / log(1/q); runs longer than 3x that (and >= min_run
-    samples) are flagged (an idle/sleeping logger repeating its last sample, a frozen bus)."""
-    raw = np.asarray(raw)
-    n = raw.shape[0]
-    if n < 3:
-        return FlatStretches()
-    same = raw[1:, 0] == raw[:-1, 0]  # per column: np.all along rows of 1-3 values is slow
-    for c in range(1, raw.shape[1]):
-        same &= raw[1:, c] == raw[:-1, c]
-    if not same.any():
-        return FlatStretches()
-    # run boundaries of 'same'
-    d = np.diff(np.concatenate([[0], same.astype(np.int8), [0]]))
-    starts, ends = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
-    lengths = ends - starts  # repeated steps; samples in the run = length + 1
-    short = lengths < min_run
-    q = float(lengths[short].sum()) / max(n - 1 - int(lengths[~short].sum()), 1)
-    expected = math.log(n) / math.log(1.0 / q) if 0 < q < 1 else (0.0 if q == 0 else math.inf)
-    limit = max(min_run, 3.0 * expected)
-    long_ = lengths >= limit  # selected in numpy: a week holds millions of short runs
-    runs = list(zip(starts[long_].tolist(), (ends[long_] + 1).tolist()))
-    return FlatStretches(runs, q, expected)

@@ -260,3 +260,27 @@ def test_block_calibration_imports_neither_scipy_optimize_nor_linalg(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert int(out[0]) > 0
     assert out[1:] == ["False", "False"], "calibration imported scipy.optimize / scipy.linalg"
+
+
+@pytest.mark.parametrize("chunk_blocks", [7, 4096])
+def test_blocks_with_a_bad_time_step_are_unusable_at_chunk_borders_too(monkeypatch, chunk_blocks):
+    """A block is usable only if the step into each of its samples (the first one's from the previous
+    block) is in (0, 1.5/fs]: checked against that rule written out over the whole recording."""
+    monkeypatch.setattr(fastdetect, "CHUNK_BLOCKS", chunk_blocks)
+    fs, B = 100.0, 10
+    rng = np.random.default_rng(3)
+    n = 20 * chunk_blocks * B + 13
+    t = np.arange(n) / fs
+    raw = rng.normal(size=(n, 3))
+    chunk = chunk_blocks * B
+    for at in (25, chunk, chunk + 1, 3 * chunk - 1, 5 * chunk + 4, n - 20):  # chunk borders and inside
+        t[at:] += 0.02  # a gap: 0.03 s > 1.5 / fs
+    t[7 * chunk:] -= 0.5  # time going backwards at a chunk border
+    dt = np.concatenate([[1.0 / fs], np.diff(t)])
+    good = (dt > 0) & (dt <= 1.5 / fs)
+    nb = n // B
+    want = good[:nb * B].reshape(nb, B).all(axis=1)
+    for threads in (1, 2):
+        bs = fastdetect.block_stats(t, lambda c, i, j: raw[i:j, c], n, fs, block_n=B, threads=threads)
+        np.testing.assert_array_equal(bs.usable, want)
+    assert want[0] and (~want).sum() >= 6

@@ -275,16 +275,16 @@ def test_to_recording_array_fields():
 
 
 @pytest.mark.parametrize("seed", range(5))
-def test_filler_codes_find_what_flat_stretches_finds_on_the_triad(monkeypatch, seed):
-    """The chunked repeat codes give flat_stretches' own runs on the triad, runs across chunk borders included."""
+def test_chunked_filler_search_finds_what_flat_stretches_finds_on_the_triad(monkeypatch, seed):
+    """The chunked filler search gives flat_stretches' own runs on the triad, runs across chunk borders included."""
     from gravcal.core.diagnosis.noise import flat_stretches
     from gravcal.daemon import recordings
 
-    monkeypatch.setattr(recordings, "CHUNK", 997)
+    monkeypatch.setattr(recordings, "SCAN_CHUNK", 997)
     rng = np.random.default_rng(seed)
     raw = rng.integers(0, 40, size=(20_000, 3)).astype(np.float32)  # coarse: chance repeats happen
     for start in rng.integers(0, 19_000, 6):
         raw[start:start + rng.integers(20, 900)] = raw[start]
     want = flat_stretches(raw)
-    got = flat_stretches(recordings._repeat_codes(raw))
+    got = recordings._filler_stretches(raw)
     assert want.runs and got.runs == want.runs and got.repeat_prob == want.repeat_prob

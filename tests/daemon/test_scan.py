@@ -60,4 +60,38 @@ def test_filler_runs_from_the_limit_on_and_none_shorter(min_run):
     raw = np.column_stack([codes, codes + 1.0, -codes])
     flats = flat_stretches(raw, min_run=min_run)
     assert flats.runs == [(100, 100 + min_run + 1)]
-    assert flat_stretches(recordings._repeat_codes(raw), min_run=min_run).runs == flats.runs
+    assert recordings._filler_stretches(raw, min_run=min_run).runs == flats.runs
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("chunk", [1, 997, 1 << 16])
+@pytest.mark.parametrize("dtype", [np.float32, np.int32])
+@pytest.mark.parametrize("bad", ["none", "nan", "saturated"])
+def test_filler_found_by_the_scan_is_flat_stretches_of_the_kept_rows(monkeypatch, seed, chunk, dtype, bad):
+    """The validation scan finds the filler on the rows it keeps: equal to flat_stretches of what is left
+    after NaN rows (dropped, then scanned again) and saturated rows (dropped after the scan)."""
+    from gravcal.core.diagnosis.noise import flat_stretches
+
+    monkeypatch.setattr(recordings, "SCAN_CHUNK", chunk)
+    rng = np.random.default_rng(seed)
+    n = 6_000
+    t = np.cumsum(rng.uniform(0.009, 0.011, n))
+    raw = rng.integers(0, 30, size=(n, 3)).astype(np.float64)  # coarse: chance repeats
+    if bad == "saturated":
+        raw[:, 2] += rng.integers(0, 2000, n) * (rng.random(n) < 0.3)  # spread values under a pile-up
+    for start in rng.integers(0, n - 50, 5):
+        raw[start:start + rng.integers(20, 800)] = raw[start]
+    if bad == "nan":
+        raw[rng.integers(0, n, 40), 1] = np.nan
+    elif bad == "saturated":
+        raw[rng.integers(0, n, 150), 2] = 3000.0  # a pile-up at the maximum
+    raw = raw if bad == "nan" else raw.astype(dtype)
+    rec = recordings.recording_from_arrays(t, raw, exclude_filler=True)
+    kept = recordings.recording_from_arrays(t, raw, exclude_filler=False).raw
+    assert kept.shape[0] < n or bad == "none"
+    flats = flat_stretches(kept)
+    assert flats.runs and rec.n_filler == flats.n_samples - len(flats.runs)
+    drop = np.zeros(kept.shape[0], dtype=bool)
+    for a, b in flats.runs:
+        drop[a + 1:b] = True
+    np.testing.assert_array_equal(rec.raw, kept[~drop])
