@@ -92,6 +92,7 @@ class TermSelector:
         self.lag_profile: dict[str, Any] = {}
         self._heldout_memo: dict[tuple, float | None] = {}
         self._fit_memo: dict[tuple, tuple] = {}
+        self._par_memo: dict[tuple, Any] = {}
         # base parameters these windows do not determine (e.g. the offsets across the axis of a single
         # posture) stay at base_cal: left free, they would let the fit turn the direction and hide a trend
         self.held_base: list[int] = list(held_base or [])
@@ -107,6 +108,14 @@ class TermSelector:
 
     # -- model objects -----------------------------------------------------------------------------
     def par(self, terms: tuple[str, ...]):
+        """The parameterization of base + ``terms`` at the current lag time constant (built once: every
+        candidate test and held-out fold asks for the same few)."""
+        key = (terms, self.lag_tau_s)
+        if key not in self._par_memo:
+            self._par_memo[key] = self._new_par(terms)
+        return self._par_memo[key]
+
+    def _new_par(self, terms: tuple[str, ...]):
         name = model_name(self.base, terms)
         K0, o0 = self.base_cal.sensitivity, self.base_cal.offset
         if not terms:
@@ -136,11 +145,13 @@ class TermSelector:
             return self._fit_memo[key]
         return self._fit(terms, held, idx)
 
-    def _fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None):
+    def _fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None,
+             p0: np.ndarray | None = None):
         par = self.par(terms)
         ws = self.ws if idx is None else self.ws.subset(idx)
         var = self.var if idx is None else self.var[idx]
-        p0 = par.pack(self.base_cal.sensitivity, self.base_cal.offset)
+        if p0 is None:
+            p0 = par.pack(self.base_cal.sensitivity, self.base_cal.offset)
         return par, fit_extended(par, ws, p0, var, free=self.free_mask(par, held))
 
     def n_folds(self, n_params: int) -> int:
@@ -161,13 +172,25 @@ class TermSelector:
         res = np.empty(self.m)
         profiled = any(calibration_view(t).profiled is not None for t in terms)
         tau_all = self.lag_tau_s
+        # the all-window optimum as the folds' start: each fold converges to its own optimum (the fit's
+        # tolerance), in fewer Gauss-Newton steps than from the baseline
+        start = None
+        if not profiled:
+            try:
+                whole = self.fit(terms, held)[1]
+                start = whole.p if whole.converged else None
+            except (ValueError, np.linalg.LinAlgError):
+                pass
         try:
             for test in np.array_split(self.order, k):
                 train = np.setdiff1d(self.order, test)
                 try:
                     if profiled:  # the time constant is chosen on the training folds too: nothing seen of the test
-                        self.lag_tau_s = min(lag_grid(), key=lambda tau: self._fit_at(tau, terms, held, train).chi2)
-                    par, f = self.fit(terms, held, train)
+                        par, f = min(self._grid_fits(terms, held, train), key=lambda pf: pf[1].chi2)
+                        if par is None:  # no time constant of the grid could be fitted
+                            return None
+                    else:
+                        par, f = self._fit(terms, held, train, start)
                 except (ValueError, np.linalg.LinAlgError):
                     return None
                 res[test] = extended_residuals_g(par, f.p, self.ws.subset(test))
@@ -175,12 +198,21 @@ class TermSelector:
             self.lag_tau_s = tau_all
         return float(np.sqrt(np.mean(res * res)) * 1e3)
 
-    def _fit_at(self, tau: float, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray):
-        self.lag_tau_s = float(tau)
-        try:
-            return self.fit(terms, held, idx)[1]
-        except (ValueError, np.linalg.LinAlgError):
-            return type("Failed", (), {"chi2": math.inf})()
+    def _grid_fits(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray) -> list[tuple]:
+        """(par, fit) of ``terms`` at each time constant of the lag grid on windows ``idx`` (a failed fit has
+        chi2 inf). Each fit starts from the previous grid point's solution: neighbouring time constants have
+        nearly the same optimum, so Gauss-Newton needs fewer steps to the same converged point."""
+        out, p0 = [], None
+        for tau in lag_grid():
+            self.lag_tau_s = float(tau)
+            try:
+                par, f = self._fit(terms, held, idx, p0)
+            except (ValueError, np.linalg.LinAlgError):
+                out.append((None, type("Failed", (), {"chi2": math.inf})()))
+                continue
+            out.append((par, f))
+            p0 = f.p if f.converged else None
+        return out
 
     # -- observability of one term's axes -----------------------------------------------------------
     def effect_std_g(self, par, f, term: str) -> np.ndarray:
