@@ -291,9 +291,13 @@ def _raw_unit(term: str) -> str:
 
 
 def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, list[int]], term: str,
-                  unobservable: list[int], p_max: int) -> TermTest:
+                  unobservable: list[int], p_max: int, *, verdict_only: bool = False,
+                  with_heldout: bool = True) -> TermTest:
     """``term`` added to the model ``chosen`` (held axes ``held``): ΔBIC, held-out error with and without,
-    magnitudes on the determined axes (undetermined ones null, with the reason)."""
+    magnitudes on the determined axes (undetermined ones null, with the reason). ``verdict_only``: the
+    held-out errors only where they can change the verdict (ΔBIC above the threshold); a term the ΔBIC
+    already fails gets none (the cross-validated fits are most of the cost), so passes() is unchanged.
+    ``with_heldout`` False: ΔBIC only (no verdict; the forward step ranks by it first)."""
     conf = sel.confounded(chosen, held, term)
     h = sorted(set(unobservable) | set(conf))
     reasons = _axis_reasons(sel, chosen, term, unobservable, conf)
@@ -309,6 +313,9 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     profiled = calibration_view(term).profiled is not None
     k_extra = (3 - len(h)) + profiled
     d_bic = (f_m.chi2 - f_t.chi2) - k_extra * math.log(sel.m) - (2 * math.log(LAG_GRID_POINTS) if profiled else 0.0)
+    if not with_heldout or (verdict_only and not d_bic > DELTA_BIC):
+        return TermTest(term, "not_found", f"ΔBIC {d_bic:.1f} <= {DELTA_BIC:g}" if with_heldout else
+                        "held-out error not evaluated", round(d_bic, 2))
     ho_m = sel.heldout_mg(chosen, held, p_max)
     ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
     mag = par_t.magnitudes(f_t.p, f_t.std)[term]
@@ -376,13 +383,28 @@ def passes(tt: TermTest) -> bool:
             and tt.heldout_after_mg < tt.heldout_before_mg)
 
 
+def _strongest_passing(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, list[int]], remaining: list[str],
+                       held_all: dict[str, list[int]], p_max: int) -> TermTest | None:
+    """The passing candidate of largest ΔBIC (the first in ``remaining`` order among equals), or None. The
+    held-out errors are computed in decreasing ΔBIC order until one passes: the ones below it cannot change
+    which enters."""
+    ranked = [evaluate_term(sel, chosen, held, t, held_all[t], p_max, with_heldout=False) for t in remaining]
+    ranked = [tt for tt in ranked if tt.status != "untestable" and tt.delta_bic is not None and tt.delta_bic > DELTA_BIC]
+    for tt in sorted(ranked, key=lambda tt: -tt.delta_bic):  # stable: ties keep the candidates' order
+        full = evaluate_term(sel, chosen, held, tt.effect, held_all[tt.effect], p_max)
+        if passes(full):
+            return full
+    return None
+
+
 def _without(chosen: tuple[str, ...], held: dict[str, list[int]], term: str):
     return tuple(c for c in chosen if c != term), {k: v for k, v in held.items() if k != term}
 
 
-def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: float
+def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: float, *, report: bool = True
                  ) -> tuple[tuple[str, ...], dict[str, list[int]], list[TermTest]]:
-    """Joint stepwise selection (module docstring). Returns (terms found, held axes, one TermTest per candidate).
+    """Joint stepwise selection (module docstring). Returns (terms found, held axes, one TermTest per candidate;
+    none when ``report`` is False: the selection alone, as the nested held-out error needs it).
 
     Forward: every remaining candidate is re-tested against the current model and the strongest passing one
     enters; backward: every chosen term is re-tested given all the others and leaves if it no longer passes.
@@ -434,22 +456,22 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
     seen = {chosen}
     dropped: set[str] = set()
     for _ in range(2 * len(live) + 2):
-        trials = {t: evaluate_term(sel, chosen, held, t, held_all[t], p_max) for t in live if t not in chosen}
-        ok = [t for t, tt in trials.items() if passes(tt)]
+        best = _strongest_passing(sel, chosen, held, [t for t in live if t not in chosen], held_all, p_max)
         changed = False
-        if ok:
-            best = max(ok, key=lambda t: trials[t].delta_bic)
-            chosen, held = chosen + (best,), {**held, best: ["xyz".index(a) for a in trials[best].undetermined_axes]}
+        if best is not None:
+            chosen, held = chosen + (best.effect,), {**held, best.effect: ["xyz".index(a) for a in best.undetermined_axes]}
             changed = True
         for term in list(chosen):  # backward: each chosen term must still earn its place given the others
             others, held_o = _without(chosen, held, term)
-            if not passes(evaluate_term(sel, others, held_o, term, held_all[term], p_max)):
+            if not passes(evaluate_term(sel, others, held_o, term, held_all[term], p_max, verdict_only=True)):
                 chosen, held = others, held_o
                 dropped.add(term)
                 changed = True
         if not changed or chosen in seen:
             break
         seen.add(chosen)
+    if not report:
+        return chosen, held, []
     for term in live:
         if term in chosen:
             others, held_o = _without(chosen, held, term)

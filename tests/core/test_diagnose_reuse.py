@@ -1,10 +1,12 @@
-"""The work diagnosis shares between fits gives the numbers of the fits done from scratch.
+"""The work diagnosis shares or skips gives the numbers and the choices of the fits done in full.
 
 TermSelector starts each held-out fold's fit from the all-window optimum and each lag time constant's fit
 from the previous grid point's; both must converge to the optimum a fit from the baseline reaches (the fit's
 own tolerance: relative cost change 1e-12, so the RMS agrees to far below 1e-6). The lagged covariate of a
 recording's history is cached by the history's values and the time constant: a changed history or time
-constant must not be served a stale lag.
+constant must not be served a stale lag. The stepwise selection computes held-out errors only where they can
+change a decision (ΔBIC above the threshold; in decreasing ΔBIC until one candidate passes): its choices must be
+those of the rule applied to every candidate fully evaluated.
 """
 from __future__ import annotations
 
@@ -85,3 +87,49 @@ def test_history_lag_is_recomputed_when_the_history_or_time_constant_changes():
     assert np.array_equal(lagged((t, changed), 900.0), first_order_lag(t, changed, 900.0)[sub] - 25.0)
     temp[:30] += 3.0  # the same array changed in place
     assert np.array_equal(lagged((t, temp), 900.0), first_order_lag(t, temp, 900.0)[sub] - 25.0)
+
+
+def fresh_selection(seed: int, effects: dict[str, float], report: bool):
+    from gravcal.core.diagnosis.terms import select_terms
+    from gravcal.core.estimators.observability import coverage
+
+    sel = selector(seed, effects)
+    sel.var = sel.var0
+    return sel, select_terms(sel, CALIBRATION_TERMS, coverage(sel.ws, sel.base_cal)["spread_deg"], report=report)
+
+
+@pytest.mark.parametrize("seed, effects", [(5, {LINEAR: PLANT[LINEAR]}),
+                                           (6, {"offset_drift": PLANT["offset_drift"], "supply_offset": PLANT["supply_offset"]}),
+                                           (7, {})])
+def test_the_selection_without_its_report_chooses_the_same_terms(seed, effects):
+    """The nested held-out error runs the selection without its report (held-out errors only where they decide)."""
+    _, (chosen, held, tests) = fresh_selection(seed, effects, report=True)
+    _, (chosen_v, held_v, tests_v) = fresh_selection(seed, effects, report=False)
+    assert (chosen_v, held_v, tests_v) == (chosen, held, [])
+    assert sorted(chosen) == sorted(effects)  # the planted terms: a selection that can tell
+
+
+@pytest.mark.parametrize("seed", [8, 9])
+def test_the_forward_step_takes_the_passing_candidate_of_largest_delta_bic(seed):
+    """Held-out errors are computed in ΔBIC order until one passes; the pick is the rule's: of all candidates
+    fully evaluated, the passing one of largest ΔBIC."""
+    from gravcal.core.diagnosis.terms import _strongest_passing, evaluate_term, passes
+
+    effects = {LINEAR: PLANT[LINEAR], "temperature_sensitivity": PLANT["temperature_sensitivity"],
+               "offset_drift": PLANT["offset_drift"]}
+    sel, _ = fresh_selection(seed, effects, report=False)
+    held_all = {t: [] for t in CALIBRATION_TERMS}
+    p_max = sel.par(CALIBRATION_TERMS).n_params
+    chosen, held, picks = (), {}, []
+    while True:
+        remaining = [t for t in CALIBRATION_TERMS if t not in chosen]
+        full = [evaluate_term(sel, chosen, held, t, held_all[t], p_max) for t in remaining]
+        ok = [tt for tt in full if passes(tt)]
+        rule = max(ok, key=lambda tt: tt.delta_bic).effect if ok else None
+        got = _strongest_passing(sel, chosen, held, remaining, held_all, p_max)
+        assert (None if got is None else got.effect) == rule, (chosen, [(tt.effect, tt.delta_bic) for tt in ok])
+        if rule is None:
+            break
+        picks.append([tt.delta_bic for tt in ok])
+        chosen, held = chosen + (rule,), {**held, rule: ["xyz".index(a) for a in got.undetermined_axes]}
+    assert len(chosen) >= 2 and any(len(p) >= 2 for p in picks)  # the order among several passing ones was tested
