@@ -321,7 +321,8 @@ def nested_heldout(ws: WindowSet, base: str, base_cal: Calibration, *, has_temp:
         wtr = ws.subset(train)
         try:
             sel = TermSelector(wtr, base, base_cal, has_temp=has_temp, folds=folds, held_base=held_base)
-            chosen, held, _ = select_terms(sel, tuple(c for c in candidates if c in EXTRA_TERMS), spread_deg)
+            chosen, held, _ = select_terms(sel, tuple(c for c in candidates if c in EXTRA_TERMS), spread_deg,
+                                           report=False)
             par_b, f_b = sel.fit((), {})
             par_e, f_e = sel.fit(chosen, held)
         except (ValueError, np.linalg.LinAlgError):

@@ -92,6 +92,7 @@ class TermSelector:
         self.lag_profile: dict[str, Any] = {}
         self._heldout_memo: dict[tuple, float | None] = {}
         self._fit_memo: dict[tuple, tuple] = {}
+        self._par_memo: dict[tuple, Any] = {}
         # base parameters these windows do not determine (e.g. the offsets across the axis of a single
         # posture) stay at base_cal: left free, they would let the fit turn the direction and hide a trend
         self.held_base: list[int] = list(held_base or [])
@@ -107,6 +108,14 @@ class TermSelector:
 
     # -- model objects -----------------------------------------------------------------------------
     def par(self, terms: tuple[str, ...]):
+        """The parameterization of base + ``terms`` at the current lag time constant (built once: every
+        candidate test and held-out fold asks for the same few)."""
+        key = (terms, self.lag_tau_s)
+        if key not in self._par_memo:
+            self._par_memo[key] = self._new_par(terms)
+        return self._par_memo[key]
+
+    def _new_par(self, terms: tuple[str, ...]):
         name = model_name(self.base, terms)
         K0, o0 = self.base_cal.sensitivity, self.base_cal.offset
         if not terms:
@@ -136,11 +145,13 @@ class TermSelector:
             return self._fit_memo[key]
         return self._fit(terms, held, idx)
 
-    def _fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None):
+    def _fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None,
+             p0: np.ndarray | None = None):
         par = self.par(terms)
         ws = self.ws if idx is None else self.ws.subset(idx)
         var = self.var if idx is None else self.var[idx]
-        p0 = par.pack(self.base_cal.sensitivity, self.base_cal.offset)
+        if p0 is None:
+            p0 = par.pack(self.base_cal.sensitivity, self.base_cal.offset)
         return par, fit_extended(par, ws, p0, var, free=self.free_mask(par, held))
 
     def n_folds(self, n_params: int) -> int:
@@ -161,13 +172,25 @@ class TermSelector:
         res = np.empty(self.m)
         profiled = any(calibration_view(t).profiled is not None for t in terms)
         tau_all = self.lag_tau_s
+        # the all-window optimum as the folds' start: each fold converges to its own optimum (the fit's
+        # tolerance), in fewer Gauss-Newton steps than from the baseline
+        start = None
+        if not profiled:
+            try:
+                whole = self.fit(terms, held)[1]
+                start = whole.p if whole.converged else None
+            except (ValueError, np.linalg.LinAlgError):
+                pass
         try:
             for test in np.array_split(self.order, k):
                 train = np.setdiff1d(self.order, test)
                 try:
                     if profiled:  # the time constant is chosen on the training folds too: nothing seen of the test
-                        self.lag_tau_s = min(lag_grid(), key=lambda tau: self._fit_at(tau, terms, held, train).chi2)
-                    par, f = self.fit(terms, held, train)
+                        par, f = min(self._grid_fits(terms, held, train), key=lambda pf: pf[1].chi2)
+                        if par is None:  # no time constant of the grid could be fitted
+                            return None
+                    else:
+                        par, f = self._fit(terms, held, train, start)
                 except (ValueError, np.linalg.LinAlgError):
                     return None
                 res[test] = extended_residuals_g(par, f.p, self.ws.subset(test))
@@ -175,12 +198,21 @@ class TermSelector:
             self.lag_tau_s = tau_all
         return float(np.sqrt(np.mean(res * res)) * 1e3)
 
-    def _fit_at(self, tau: float, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray):
-        self.lag_tau_s = float(tau)
-        try:
-            return self.fit(terms, held, idx)[1]
-        except (ValueError, np.linalg.LinAlgError):
-            return type("Failed", (), {"chi2": math.inf})()
+    def _grid_fits(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray) -> list[tuple]:
+        """(par, fit) of ``terms`` at each time constant of the lag grid on windows ``idx`` (a failed fit has
+        chi2 inf). Each fit starts from the previous grid point's solution: neighbouring time constants have
+        nearly the same optimum, so Gauss-Newton needs fewer steps to the same converged point."""
+        out, p0 = [], None
+        for tau in lag_grid():
+            self.lag_tau_s = float(tau)
+            try:
+                par, f = self._fit(terms, held, idx, p0)
+            except (ValueError, np.linalg.LinAlgError):
+                out.append((None, type("Failed", (), {"chi2": math.inf})()))
+                continue
+            out.append((par, f))
+            p0 = f.p if f.converged else None
+        return out
 
     # -- observability of one term's axes -----------------------------------------------------------
     def effect_std_g(self, par, f, term: str) -> np.ndarray:
@@ -259,9 +291,13 @@ def _raw_unit(term: str) -> str:
 
 
 def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, list[int]], term: str,
-                  unobservable: list[int], p_max: int) -> TermTest:
+                  unobservable: list[int], p_max: int, *, verdict_only: bool = False,
+                  with_heldout: bool = True) -> TermTest:
     """``term`` added to the model ``chosen`` (held axes ``held``): ΔBIC, held-out error with and without,
-    magnitudes on the determined axes (undetermined ones null, with the reason)."""
+    magnitudes on the determined axes (undetermined ones null, with the reason). ``verdict_only``: the
+    held-out errors only where they can change the verdict (ΔBIC above the threshold); a term the ΔBIC
+    already fails gets none (the cross-validated fits are most of the cost), so passes() is unchanged.
+    ``with_heldout`` False: ΔBIC only (no verdict; the forward step ranks by it first)."""
     conf = sel.confounded(chosen, held, term)
     h = sorted(set(unobservable) | set(conf))
     reasons = _axis_reasons(sel, chosen, term, unobservable, conf)
@@ -277,6 +313,9 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     profiled = calibration_view(term).profiled is not None
     k_extra = (3 - len(h)) + profiled
     d_bic = (f_m.chi2 - f_t.chi2) - k_extra * math.log(sel.m) - (2 * math.log(LAG_GRID_POINTS) if profiled else 0.0)
+    if not with_heldout or (verdict_only and not d_bic > DELTA_BIC):
+        return TermTest(term, "not_found", f"ΔBIC {d_bic:.1f} <= {DELTA_BIC:g}" if with_heldout else
+                        "held-out error not evaluated", round(d_bic, 2))
     ho_m = sel.heldout_mg(chosen, held, p_max)
     ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
     mag = par_t.magnitudes(f_t.p, f_t.std)[term]
@@ -344,13 +383,28 @@ def passes(tt: TermTest) -> bool:
             and tt.heldout_after_mg < tt.heldout_before_mg)
 
 
+def _strongest_passing(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, list[int]], remaining: list[str],
+                       held_all: dict[str, list[int]], p_max: int) -> TermTest | None:
+    """The passing candidate of largest ΔBIC (the first in ``remaining`` order among equals), or None. The
+    held-out errors are computed in decreasing ΔBIC order until one passes: the ones below it cannot change
+    which enters."""
+    ranked = [evaluate_term(sel, chosen, held, t, held_all[t], p_max, with_heldout=False) for t in remaining]
+    ranked = [tt for tt in ranked if tt.status != "untestable" and tt.delta_bic is not None and tt.delta_bic > DELTA_BIC]
+    for tt in sorted(ranked, key=lambda tt: -tt.delta_bic):  # stable: ties keep the candidates' order
+        full = evaluate_term(sel, chosen, held, tt.effect, held_all[tt.effect], p_max)
+        if passes(full):
+            return full
+    return None
+
+
 def _without(chosen: tuple[str, ...], held: dict[str, list[int]], term: str):
     return tuple(c for c in chosen if c != term), {k: v for k, v in held.items() if k != term}
 
 
-def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: float
+def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: float, *, report: bool = True
                  ) -> tuple[tuple[str, ...], dict[str, list[int]], list[TermTest]]:
-    """Joint stepwise selection (module docstring). Returns (terms found, held axes, one TermTest per candidate).
+    """Joint stepwise selection (module docstring). Returns (terms found, held axes, one TermTest per candidate;
+    none when ``report`` is False: the selection alone, as the nested held-out error needs it).
 
     Forward: every remaining candidate is re-tested against the current model and the strongest passing one
     enters; backward: every chosen term is re-tested given all the others and leaves if it no longer passes.
@@ -402,22 +456,22 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
     seen = {chosen}
     dropped: set[str] = set()
     for _ in range(2 * len(live) + 2):
-        trials = {t: evaluate_term(sel, chosen, held, t, held_all[t], p_max) for t in live if t not in chosen}
-        ok = [t for t, tt in trials.items() if passes(tt)]
+        best = _strongest_passing(sel, chosen, held, [t for t in live if t not in chosen], held_all, p_max)
         changed = False
-        if ok:
-            best = max(ok, key=lambda t: trials[t].delta_bic)
-            chosen, held = chosen + (best,), {**held, best: ["xyz".index(a) for a in trials[best].undetermined_axes]}
+        if best is not None:
+            chosen, held = chosen + (best.effect,), {**held, best.effect: ["xyz".index(a) for a in best.undetermined_axes]}
             changed = True
         for term in list(chosen):  # backward: each chosen term must still earn its place given the others
             others, held_o = _without(chosen, held, term)
-            if not passes(evaluate_term(sel, others, held_o, term, held_all[term], p_max)):
+            if not passes(evaluate_term(sel, others, held_o, term, held_all[term], p_max, verdict_only=True)):
                 chosen, held = others, held_o
                 dropped.add(term)
                 changed = True
         if not changed or chosen in seen:
             break
         seen.add(chosen)
+    if not report:
+        return chosen, held, []
     for term in live:
         if term in chosen:
             others, held_o = _without(chosen, held, term)

@@ -54,10 +54,8 @@ def lagged_deviations(terms: tuple[str, ...] | list[str], values: dict[str, np.n
             raise ValueError(f"a lagged {COVARIATES[view.covariate].label} term needs the "
                              f"{COVARIATES[view.covariate].label} and the time of each row; not given")
         if history is not None:
-            th, xh = (np.asarray(a, dtype=float).ravel() for a in history)
-            o = np.argsort(th, kind="stable")
-            lag = np.interp(np.broadcast_to(np.asarray(t, dtype=float), (n,)), th[o],
-                            first_order_lag(th, xh, refs[LAG_KEY])[o])
+            th_sorted, lag_sorted = _history_lag(history, refs[LAG_KEY])
+            lag = np.interp(np.broadcast_to(np.asarray(t, dtype=float), (n,)), th_sorted, lag_sorted)
             z = lag - refs.get(view.covariate, COVARIATES[view.covariate].default_ref)
             out[view.deviation_key] = np.repeat(z[:, None], 3, axis=1)
             continue
@@ -69,6 +67,31 @@ def lagged_deviations(terms: tuple[str, ...] | list[str], values: dict[str, np.n
         z = lag - refs.get(view.covariate, COVARIATES[view.covariate].default_ref)
         out[view.deviation_key] = np.repeat(z[:, None], 3, axis=1)
     return out
+
+
+_HISTORY_LAG_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+_HISTORY_LAG_CACHE_SIZE = 256
+_HISTORY_LAG_CACHE_MAX_ROWS = 20_000  # window-level histories
+
+
+def _history_lag(history: tuple[np.ndarray, np.ndarray], tau_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(times, lagged covariate) of a history in time order. Cached: a diagnosis binds the same recording's
+    history at the same few time constants for every fold and candidate, and the lag is a sequential loop."""
+    th, xh = (np.asarray(a, dtype=float).ravel() for a in history)
+    if th.size > _HISTORY_LAG_CACHE_MAX_ROWS:  # sample-level histories: too large to key a cache on
+        o = np.argsort(th, kind="stable")
+        return th[o], first_order_lag(th, xh, tau_s)[o]
+    key = (float(tau_s), th.tobytes(), xh.tobytes())
+    hit = _HISTORY_LAG_CACHE.get(key)
+    if hit is None:
+        o = np.argsort(th, kind="stable")
+        hit = (th[o], first_order_lag(th, xh, tau_s)[o])
+        for a in hit:
+            a.setflags(write=False)
+        if len(_HISTORY_LAG_CACHE) >= _HISTORY_LAG_CACHE_SIZE:
+            _HISTORY_LAG_CACHE.pop(next(iter(_HISTORY_LAG_CACHE)))
+        _HISTORY_LAG_CACHE[key] = hit
+    return hit
 
 
 def covariate_deviation(name: str, values: dict[str, np.ndarray | None], refs: dict[str, float],
