@@ -133,15 +133,48 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
     usable = np.empty(nb, dtype=bool)
     step = 1.5 / fs
     chunk = CHUNK_BLOCKS * B
+    ones = np.ones(B, dtype=np.float32)
     starts = list(range(0, nb * B, chunk))
     done = [0]
     lock = threading.Lock()
-    out = (mean, scatter, aux_mean, usable)
 
     def work(i: int, ws: dict[str, np.ndarray]) -> None:
         j = min(i + chunk, nb * B)
-        _reduce_chunk(out, i // B, B, [channel(c, i, j) for c in range(3)], t[max(i - 1, 0):j], i == 0,
-                      None if aux is None else aux[i:j], ws, step, fs)
+        m, b0 = (j - i) // B, i // B
+        D = ws["D"][:, :m * B]  # (3, m*B) float32: samples minus their block's first sample
+        P = ws["P"][:, :m * B]
+        ref = np.empty((3, m))
+        for c in range(3):
+            x = channel(c, i, j)
+            r = x[::B]
+            ref[c] = r
+            np.subtract(x.reshape(m, B), r[:, None], out=D[c].reshape(m, B), casting="unsafe")
+        s1 = (D.reshape(3 * m, B) @ ones).reshape(3, m).astype(np.float64)
+        for q in range(6):
+            np.multiply(D[_I6[q]], D[_J6[q]], out=P[q])
+        s2 = (P.reshape(6 * m, B) @ ones).reshape(6, m).astype(np.float64)
+        mean[:, b0:b0 + m] = ref + s1 / B
+        scatter[:, b0:b0 + m] = s2 - s1[_I6] * s1[_J6] / B
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(s1).all(axis=0) & np.isfinite(s2).all(axis=0)
+        # time: the step into every sample of the block (the first one's from the previous sample)
+        lo = max(i - 1, 0)
+        tc = ws["T"][:j - lo]
+        np.copyto(tc, t[lo:j], casting="unsafe")  # one strided copy into a reused buffer
+        dt = ws["dt"][:j - i]
+        if i == 0:
+            dt[0] = 1.0 / fs
+        np.subtract(tc[1:], tc[:-1], out=dt[j - i - (j - lo - 1):])
+        with np.errstate(invalid="ignore"):
+            if not (dt.min() > 0 and dt.max() <= step):  # NaN fails this too
+                bad = ~((dt > 0) & (dt <= step))
+                ok &= ~bad.reshape(m, B).any(axis=1)
+        if k:
+            a = np.asarray(aux[i:j], dtype=np.float64)
+            am = a.reshape(m, B, k).mean(axis=1).T
+            aux_mean[:, b0:b0 + m] = am
+            ok &= np.isfinite(am).all(axis=0)
+        usable[b0:b0 + m] = ok
         for arr in release:
             release_mapped(arr, i, j)
         if progress is not None:
@@ -150,7 +183,8 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
                 progress(done[0], len(starts))
 
     def workspace() -> dict[str, np.ndarray]:
-        return _workspace(chunk)
+        return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32),
+                "T": np.empty(chunk + 1), "dt": np.empty(chunk)}
 
     if threads > 1 and len(starts) > 1:
         spaces = [workspace() for _ in range(threads)]
@@ -171,127 +205,6 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
     with np.errstate(invalid="ignore"):
         usable &= np.isfinite(mean).all(axis=0)
     return BlockStats(float(fs), B, mean, scatter, aux_mean, usable)
-
-
-class BlockFeed:
-    """block_stats fed in order with contiguous pieces of rows, as a reading scan copies them, so
-    that one pass over a file both validates it and yields its block statistics. The chunks are
-    block_stats' own (the result is bit-identical); a chunk that straddles two pieces is gathered
-    in a small buffer. ``fs`` is an estimate: :meth:`result` takes the final rate and returns None
-    when it would class a time step differently or give another block length (compute anew)."""
-
-    def __init__(self, n: int, fs: float, k_aux: int = 0, dtype: Any = np.float64):
-        self.n, self.fs, self.B = n, float(fs), block_length(fs)
-        self.nb = n // self.B
-        self.chunk = CHUNK_BLOCKS * self.B
-        self.out = (np.empty((3, self.nb)), np.empty((6, self.nb), dtype=np.float32),
-                    np.empty((k_aux, self.nb)), np.empty(self.nb, dtype=bool))
-        self.ws = _workspace(self.chunk)
-        size = min(self.chunk, self.nb * self.B)
-        self.buf_x = np.empty((3, size), dtype=dtype)
-        self.buf_t = np.empty(size + 1)
-        self.buf_a = np.empty((size, k_aux))
-        self.pos = 0  # rows received
-        self.fill = 0  # rows of the current chunk gathered in the buffers
-        self.ok_max, self.bad_min = 0.0, math.inf  # largest time step classed usable, smallest not
-
-    def add(self, tp: np.ndarray, x: np.ndarray, aux: np.ndarray | None = None) -> None:
-        """The next rows: x (3, m) channels, tp (m + 1,) their times after the previous row's
-        (tp[0], ignored for the first piece), aux (m, k_aux) or None."""
-        m, o, end = x.shape[1], 0, self.nb * self.B
-        while o < m and self.pos < end:
-            a = (self.pos // self.chunk) * self.chunk
-            b = min(a + self.chunk, end)
-            take = min(b - self.pos, m - o)
-            if self.fill == 0 and take == b - a:  # a whole chunk inside the piece: no copy
-                self._reduce(a, x[:, o:o + take], tp[o:o + take + 1], None if aux is None else aux[o:o + take])
-            else:
-                if self.fill == 0:
-                    self.buf_t[0] = tp[o]
-                f = self.fill
-                self.buf_x[:, f:f + take] = x[:, o:o + take]
-                self.buf_t[f + 1:f + take + 1] = tp[o + 1:o + take + 1]
-                if aux is not None:
-                    self.buf_a[f:f + take] = aux[o:o + take]
-                self.fill += take
-                if self.fill == b - a:
-                    n_ = b - a
-                    self._reduce(a, self.buf_x[:, :n_], self.buf_t[:n_ + 1],
-                                 None if aux is None else self.buf_a[:n_])
-                    self.fill = 0
-            o += take
-            self.pos += take
-        self.pos += m - o  # rows past the last whole block
-
-    def _reduce(self, a: int, x: np.ndarray, tp: np.ndarray, aux: np.ndarray | None) -> None:
-        ts = tp[1:] if a == 0 else tp
-        lo, hi = _reduce_chunk(self.out, a // self.B, self.B, list(x), ts, a == 0, aux, self.ws, 1.5 / self.fs,
-                               self.fs)
-        self.ok_max, self.bad_min = max(self.ok_max, lo), min(self.bad_min, hi)
-
-    def result(self, fs: float) -> BlockStats | None:
-        """The block statistics at the final rate fs, or None when they would differ from
-        block_stats(fs)'s (another block length, a step classed otherwise, rows missing)."""
-        step = 1.5 / fs
-        if self.pos != self.n or block_length(fs) != self.B or not self.ok_max <= step < self.bad_min:
-            return None
-        mean, scatter, aux_mean, usable = self.out
-        with np.errstate(invalid="ignore"):
-            usable &= np.isfinite(mean).all(axis=0)
-        return BlockStats(float(fs), self.B, mean, scatter, aux_mean, usable)
-
-
-def _workspace(chunk: int) -> dict[str, np.ndarray]:
-    return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32),
-            "T": np.empty(chunk + 1), "dt": np.empty(chunk)}
-
-
-def _reduce_chunk(out: tuple[np.ndarray, ...], b0: int, B: int, xs: Sequence[np.ndarray], ts: np.ndarray,
-                  first: bool, aux: np.ndarray | None, ws: dict[str, np.ndarray], step: float,
-                  fs: float) -> tuple[float, float]:
-    """Blocks b0.. of one chunk into ``out`` (mean, scatter, aux_mean, usable): xs the three raw
-    channels' rows (any stride), ts their times preceded by the previous row's (unless ``first``).
-    Returns the largest time step <= ``step`` and the smallest above it (inf when none): whether
-    another threshold would class every step the same."""
-    mean, scatter, aux_mean, usable = out
-    rows = xs[0].shape[0]
-    m = rows // B
-    D = ws["D"][:, :rows]  # (3, rows) float32: samples minus their block's first sample
-    P = ws["P"][:, :rows]
-    ref = np.empty((3, m))
-    for c in range(3):
-        r = xs[c][::B]
-        ref[c] = r
-        np.subtract(xs[c].reshape(m, B), r[:, None], out=D[c].reshape(m, B), casting="unsafe")
-    ones = np.ones(B, dtype=np.float32)
-    s1 = (D.reshape(3 * m, B) @ ones).reshape(3, m).astype(np.float64)
-    for q in range(6):
-        np.multiply(D[_I6[q]], D[_J6[q]], out=P[q])
-    s2 = (P.reshape(6 * m, B) @ ones).reshape(6, m).astype(np.float64)
-    mean[:, b0:b0 + m] = ref + s1 / B
-    scatter[:, b0:b0 + m] = s2 - s1[_I6] * s1[_J6] / B
-    with np.errstate(invalid="ignore"):
-        ok = np.isfinite(s1).all(axis=0) & np.isfinite(s2).all(axis=0)
-    # time: the step into every sample of the block (the first one's from the previous sample)
-    tc = ws["T"][:ts.shape[0]]
-    np.copyto(tc, ts, casting="unsafe")  # one strided copy into a reused buffer
-    dt = ws["dt"][:rows]
-    if first:
-        dt[0] = 1.0 / fs
-    np.subtract(tc[1:], tc[:-1], out=dt[rows - (ts.shape[0] - 1):])
-    bounds = (float(dt.max()), math.inf)
-    with np.errstate(invalid="ignore"):
-        if not (dt.min() > 0 and dt.max() <= step):  # NaN fails this too
-            good = (dt > 0) & (dt <= step)
-            ok &= good.reshape(m, B).all(axis=1)
-            above = dt[dt > step]
-            bounds = (float(dt[good].max()) if good.any() else 0.0, float(above.min()) if above.size else math.inf)
-    if aux is not None and aux.shape[1]:
-        am = np.asarray(aux, dtype=np.float64).reshape(m, B, aux.shape[1]).mean(axis=1).T
-        aux_mean[:, b0:b0 + m] = am
-        ok &= np.isfinite(am).all(axis=0)
-    usable[b0:b0 + m] = ok
-    return bounds
 
 
 def _to_g_affine(to_g: Calibration | None) -> tuple[np.ndarray, np.ndarray]:

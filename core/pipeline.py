@@ -8,9 +8,10 @@
       -> LottersBatch fit (eq. 11a iterated; C_e eq. 11b)
       -> held-out error on 5 contiguous folds of windows (core.heldout)
 
-Scales to a week at 100 Hz (60 M samples): the samples are read once, in chunks (never copied whole,
-mapped pages released after each chunk), and only block and window statistics are kept. The
-bootstrap sees at most ``BOOTSTRAP_MAX_SAMPLES`` samples, in evenly spaced contiguous segments.
+Scales to a week at 100 Hz (60 M samples): the samples are read once, in chunks (arrays or
+np.memmap columns are never copied whole, mapped pages are released after each chunk), and
+only block and window statistics are kept. The bootstrap sees at most
+``BOOTSTRAP_MAX_SAMPLES`` samples, taken as evenly spaced contiguous segments.
 ``detection="stream"`` runs the streaming detectors of core.detectors over every sample
 instead (the daemon's detector; ~10x slower offline, same windows within a block or two at
 the edges: tests/core/test_fastdetect.py); the default "auto" uses blocks for recordings of
@@ -18,17 +19,15 @@ BLOCKS_MIN_SAMPLES samples or more.
 """
 from __future__ import annotations
 
-import contextlib
 import functools
 import logging
 import os
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from gravcal.core.calibration import Calibration
-from gravcal.core.columns import _Columns
 from gravcal.core.detectors import DETECTORS
 from gravcal.core.estimators.extended import extended_class, model_name
 from gravcal.core.estimators.inuse12 import FRAME_CONVENTION, frame_of, rotation_angle_deg, with_frame
@@ -38,7 +37,7 @@ from gravcal.core.estimators.observability import N_PARAMS, SIGMA_FLOOR_G, TOL_G
 from gravcal.core.estimators.order import (compare_extended, extended_base, extended_terms, is_observable_extended,
                                            reference_start, select_order, term_testability)
 from gravcal.core.estimators.start import bootstrap
-from gravcal.core.fastdetect import BlockStats, block_length, block_stats, detect_blocks, pass_chunks
+from gravcal.core.fastdetect import block_length, block_stats, detect_blocks, pass_chunks
 from gravcal.core.model.effect import needed_covariates
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.heldout import HeldoutResult, heldout_error
@@ -150,6 +149,35 @@ def _finite_or_none(x: Any) -> float | None:
     return v if np.isfinite(v) else None
 
 
+class _Columns:
+    """Uniform chunked access to raw as an (N, 3) array/memmap or a sequence of three (N,) columns."""
+
+    def __init__(self, raw: Any):
+        if isinstance(raw, (list, tuple)):
+            if len(raw) != 3:
+                raise ValueError(f"raw must be (N, 3) or three columns, got {len(raw)} columns")
+            self.cols: Sequence[np.ndarray] | None = [np.asarray(c) if not isinstance(c, np.ndarray) else c for c in raw]
+            n = {c.shape[0] for c in self.cols}
+            if len(n) != 1 or any(c.ndim != 1 for c in self.cols):
+                raise ValueError("raw columns must be 1-D and of equal length")
+            self.n = n.pop()
+            self.arr = None
+        else:
+            arr = raw if isinstance(raw, np.ndarray) else np.asarray(raw)
+            if arr.ndim != 2 or arr.shape[1] != 3:
+                raise ValueError(f"raw must be (N, 3) (ax, ay, az in raw units), got shape {arr.shape}")
+            self.arr, self.cols, self.n = arr, None, arr.shape[0]
+
+    def block(self, i: int, j: int) -> np.ndarray:
+        """Rows i..j as float64 (j - i, 3) in Fortran order: each channel converted on its own
+        into a contiguous row (3x faster than converting interleaved rows of a structured
+        memmap), which is the layout the detectors work in (no further copy)."""
+        out = np.empty((3, j - i))
+        for k in range(3):
+            out[k] = self.arr[i:j, k] if self.arr is not None else self.cols[k][i:j]
+        return out.T
+
+
 def _estimate_fs(t: np.ndarray) -> float:
     head = np.asarray(t[: min(len(t), 100_000)], dtype=float)
     dt = np.diff(head[np.isfinite(head)])
@@ -206,12 +234,6 @@ def _block_stats(t: np.ndarray, cols: _Columns, fs: float, temp: Any, progress: 
     release = [a for a in ([t, cols.arr] if cols.arr is not None else [t, *cols.cols]) if isinstance(a, np.ndarray)]
     aux = None if temp is None else (temp if isinstance(temp, np.ndarray) else np.asarray(temp, dtype=float))
     return block_stats(t, channel, cols.n, fs, aux=aux, release=release, progress=progress)
-
-
-def _blocks_fit(bs: BlockStats | None, fs: float, n: int, temp: Any) -> bool:
-    """Whether given block statistics are those of n rows at fs with temp's aux channels."""
-    return bs is not None and (bs.fs, bs.block_n, len(bs), bs.aux.shape[0]) == (
-        fs, block_length(fs), n // block_length(fs), 0 if temp is None else (1 if np.ndim(temp) == 1 else temp.shape[1]))
 
 
 def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calibration, temp: Any,
@@ -280,21 +302,14 @@ def _blas_single_threaded(fn: Any) -> Any:
 
     @functools.wraps(fn)
     def run(*args: Any, **kwargs: Any) -> Any:
-        with blas_single_thread():
+        try:
+            from threadpoolctl import threadpool_limits
+        except ImportError:  # pragma: no cover - a dependency; without it BLAS keeps its threads
+            return fn(*args, **kwargs)
+        with threadpool_limits(limits=1, user_api="blas"):
             return fn(*args, **kwargs)
 
     return run
-
-
-@contextlib.contextmanager
-def blas_single_thread() -> Iterator[None]:
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - a dependency; without it BLAS keeps its threads
-        yield
-        return
-    with threadpool_limits(limits=1, user_api="blas"):
-        yield
 
 
 @_blas_single_threaded
@@ -315,7 +330,6 @@ def calibrate_recording(
     lab: Calibration | None = None,
     detection: str = "auto",
     progress: Callable[[int, int], None] | None = None,
-    blocks: BlockStats | None = None,
 ) -> CalibrationReport:
     """Calibrate a recording: t (N,) [s], raw (N, 3) or three (N,) columns [raw units: ax, ay, az],
     optional temp (N,) [°C] and vsupply (N,) [V] (kept as the windows' aux means). Raises ValueError with a precise
@@ -331,8 +345,7 @@ def calibrate_recording(
     (one pass over the samples, detection on 0.1 s block statistics, core.fastdetect), "stream"
     (the streaming detector over every sample, core.detectors), or "auto" (default: blocks from
     BLOCKS_MIN_SAMPLES samples on, where the streaming detector's cost matters; stream below, where
-    its sample-exact edges are cheap); ``blocks``: the block statistics of these rows when the reading pass
-    computed them (read_recording's blocks_from; else the block pass computes them). ``progress(done, total)``: called with increasing ``done`` up to
+    its sample-exact edges are cheap). ``progress(done, total)``: called with increasing ``done`` up to
     ``total`` (fixed for the call): one unit per chunk of the block pass, then one per stage
     (detection, fit, re-detection, held-out error)."""
     cols = _Columns(raw)
@@ -369,10 +382,8 @@ def calibrate_recording(
     if start is None:
         start = _bootstrap(t, cols, fs)
         notes.append(f"start: {start.message or 'bootstrap'}")
-    blocks = blocks if detection == "blocks" and _blocks_fit(blocks, fs, cols.n, temp) else None
-    steps = _Steps(progress, pass_chunks(cols.n, block_length(fs)) if detection == "blocks" and blocks is None else 0)
-    if detection == "blocks" and blocks is None:
-        blocks = _block_stats(t, cols, fs, temp, steps.pass_progress)
+    steps = _Steps(progress, pass_chunks(cols.n, block_length(fs)) if detection == "blocks" else 0)
+    blocks = _block_stats(t, cols, fs, temp, steps.pass_progress) if detection == "blocks" else None
 
     def detect(name: str, to_g: Calibration, kw: dict[str, Any]) -> WindowSet:
         return _detect(t, cols, fs, name, to_g, temp, kw, blocks, detection)

@@ -66,12 +66,8 @@ def check_options(opts: Options) -> None:
 def read(path: str | Path, opts: Options, progress: Progress = None) -> tuple[Recording, float, float]:
     """The validated recording and the wall and CPU seconds its reading took."""
     t0, c0 = time.perf_counter(), time.process_time()
-    from gravcal.core.pipeline import BLOCKS_MIN_SAMPLES, blas_single_thread
-
-    with blas_single_thread():  # the scan's block sums are small products, like the calibration's
-        rec = read_recording(path, check_saturation=opts.check_saturation, columns=opts.columns,
-                             exclude_filler=opts.exclude_filler, progress=progress,
-                             blocks_from=None if opts.lab_session else BLOCKS_MIN_SAMPLES)
+    rec = read_recording(path, check_saturation=opts.check_saturation, columns=opts.columns,
+                         exclude_filler=opts.exclude_filler, progress=progress)
     return rec, time.perf_counter() - t0, time.process_time() - c0
 
 
@@ -89,7 +85,7 @@ def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0,
     else:
         report = calibrate_recording(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, model=opts.model, fs=rec.fs,
                                      detector=opts.detector, start=opts.start, folds=opts.folds, lab=opts.lab,
-                                     progress=progress, blocks=rec.blocks)
+                                     progress=progress)
     t_cal, c_cal = time.perf_counter() - t0, time.process_time() - c0
     cal = report.calibration
     out = dict(report.to_json_dict())

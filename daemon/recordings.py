@@ -33,7 +33,7 @@ import numpy as np
 
 from gravcal.core.calibration import jsonable  # noqa: F401  (re-exported for the cmd_* modules)
 from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_triad
-from gravcal.core.fastdetect import BlockFeed, release_mapped
+from gravcal.core.fastdetect import release_mapped
 from gravcal.core.repeats import MIN_RUN, FlatStretches, RunCollector, repeated_steps
 
 from .errors import InputError
@@ -84,7 +84,6 @@ class Recording:
     units: str = "raw"
     metadata: dict[str, Any] = field(default_factory=dict)
     n_filler: int = 0  # rows excluded as exactly repeated filler (exclude_filler)
-    blocks: Any = None  # core.fastdetect.BlockStats of exactly these rows, when the scan computed them
 
     @property
     def acc(self) -> np.ndarray:
@@ -99,15 +98,17 @@ class Recording:
         return float(self.t[-1] - self.t[0]) if self.n_samples else 0.0
 
 
+# ---------------------------------------------------------------------------------------
+# reading
+# ---------------------------------------------------------------------------------------
 def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_saturation: bool = True,
                    columns: str | dict[str, str] | None = None, exclude_filler: bool = False,
-                   progress: Callable[[int, int], None] | None = None, blocks_from: int | None = None) -> Recording:
+                   progress: Callable[[int, int], None] | None = None) -> Recording:
     """Read and validate a recording of any format in ``FORMATS`` (recognised by content).
 
     ``columns``: other CSV header names, ``"t=t_unix,ax=x_counts"`` or a dict. ``exclude_filler``:
     drop runs of exactly repeated samples (idle-sleep filler, a frozen bus) and say so in ``warnings``.
-    ``progress(done, total)``: chunks of the validation pass done, as it goes. ``blocks_from``: from
-    this many rows on, the same pass also computes the block statistics (``Recording.blocks``).
+    ``progress(done, total)``: chunks of the validation pass done, as it goes.
     """
     path = Path(path)
     mapping = parse_columns(columns)
@@ -138,7 +139,7 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
     else:
         raise InputError(f"{path}: {found.what}; not a recording gravcal reads ({', '.join(FORMATS)})")
     rec = _validate(path, cols, where, names, min_samples=min_samples, check_saturation=check_saturation,
-                    progress=progress, exclude_filler=exclude_filler, blocks_from=blocks_from)
+                    progress=progress, exclude_filler=exclude_filler)
     rec.units, rec.metadata = units, meta
     return rec
 
@@ -268,13 +269,10 @@ class _Scan:
     n_hi: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))  # samples exactly at the maximum
     n_flagged: int = 0  # samples flagged saturated by the logger
     repeats: RunCollector | None = None  # exactly repeated rows, when asked for
-    feed: BlockFeed | None = None  # block statistics of the rows, when asked for
 
 
 def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None,
-          progress: Callable[[int, int], None] | None = None, repeats: bool = False,
-          aux: list[np.ndarray | None] | None = None) -> _Scan:
-    """One pass over the columns; ``aux``: covariate columns (None: NaN) when blocks are wanted too."""
+          progress: Callable[[int, int], None] | None = None, repeats: bool = False) -> _Scan:
     n = int(t.shape[0])
     n_chunks = -(-n // SCAN_CHUNK)
     sc = _Scan(repeats=RunCollector() if repeats else None)
@@ -314,11 +312,6 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
             sc.min_dt = min(sc.min_dt, dmin)
             if k % 64 == 0:
                 sc.dt_medians.append(float(np.median(dt)))
-                if k == 0 and aux is not None and sc.dt_medians[0] > 0:
-                    sc.feed = BlockFeed(n, 1.0 / sc.dt_medians[0], len(aux), ch_buf.dtype)
-        if sc.feed is not None:
-            a = np.column_stack([np.full(m, np.nan) if c is None else c[s] for c in aux]) if aux else None
-            sc.feed.add(t_buf[:m + 1], chans, a)
         for c, ch in enumerate(chans):
             cmin, cmax = lo[c], hi[c]
             if cmin <= sc.lo[c]:
@@ -347,7 +340,7 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
 
 def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tuple[str, ...], *,
               min_samples: int, check_saturation: bool, progress: Callable[[int, int], None] | None = None,
-              exclude_filler: bool = False, blocks_from: int | None = None) -> Recording:
+              exclude_filler: bool = False) -> Recording:
     t = cols["t"]
     raw = cols.pop("_triad", None)
     if raw is None:
@@ -363,9 +356,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
     notes: list[str] = []
     extra = ([v for v in (temp, vsupply) if v is not None]
              + ([gyro[:, i] for i in range(3)] if gyro is not None else []))
-    aux = ([temp] if vsupply is None else [temp, vsupply]) if temp is not None or vsupply is not None else []
-    scan = _scan(t, raw, extra, flags, progress, repeats=exclude_filler,
-                 aux=aux if blocks_from is not None and n >= blocks_from else None)
+    scan = _scan(t, raw, extra, flags, progress, repeats=exclude_filler)
 
     # 1. NaN / inf in any column we use: drop the rows (a copy; only when there are any).
     keep: np.ndarray | None = None
@@ -432,8 +423,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
     for note in notes:
         log.warning("%s: %s", path, note)
     rec = Recording(t=t, raw=raw, temp=temp, vsupply=vsupply, gyro=gyro, fs=fs, source=path, n_dropped=n_dropped,
-                    n_saturated=n_saturated, columns=columns, warnings=notes,
-                    blocks=scan.feed.result(fs) if scan.feed is not None and keep is None else None)
+                    n_saturated=n_saturated, columns=columns, warnings=notes)
     if not exclude_filler:
         return rec
     return _without_filler(rec, min_samples, scan.repeats.result(n_kept) if scan.repeats is not None else None)
@@ -450,8 +440,10 @@ def _nonfinite_rows(used: dict[str, np.ndarray], n: int) -> np.ndarray:
 
 def _saturated_rows(raw: np.ndarray, flags: np.ndarray | None, keep: np.ndarray | None,
                     scan: _Scan) -> tuple[np.ndarray | None, str]:
-    """Mask of saturated rows (None when there are none) and what marked them, from the scan's
-    per-channel extremes and their counts (a mask only when needed)."""
+    """Mask of saturated rows (None when there are none) and what marked them.
+
+    Uses the scan's per-channel extremes and their counts; builds a mask only when needed.
+    """
     n = raw.shape[0]
     n_valid = n if keep is None else int(keep.sum())
     piles = []  # (channel, label, edge) with an exact pile-up at the extreme
@@ -500,6 +492,9 @@ def _check_time(path: Path, t: np.ndarray, where: Where, orig_index: np.ndarray 
             )
 
 
+# ---------------------------------------------------------------------------------------
+# writing
+# ---------------------------------------------------------------------------------------
 def recording_columns(samples: np.ndarray) -> dict[str, np.ndarray]:
     """The calibrate-format columns of SAMPLE_DTYPE rows.
 
