@@ -566,17 +566,17 @@ class FrameDecoder:
 
     unwrapper: SeqUnwrapper = field(default_factory=SeqUnwrapper)
     _stats: DecoderStats = field(default_factory=DecoderStats)
-    _tail: bytes = b""
+    tail: bytes = b""  # the start of a frame not complete yet
 
     def feed(self, data: bytes | bytearray | memoryview) -> np.ndarray:
-        buf = self._tail + bytes(data) if self._tail else bytes(data)
+        buf = self.tail + bytes(data) if self.tail else bytes(data)
         res = scan(buf)
         st = self._stats
         st.crc_errors += res.crc_errors
         st.length_errors += res.length_errors
         ngood = len(res.starts)
         st.bytes_skipped += res.keep_from - ngood * FRAME_LEN
-        self._tail = buf[res.keep_from :]
+        self.tail = buf[res.keep_from :]
         if ngood == 0:
             return np.zeros(0, dtype=SAMPLE_DTYPE)
         samples = wire_to_samples(gather(buf, res.starts))
@@ -589,8 +589,8 @@ class FrameDecoder:
 
     def discard_partial(self) -> None:
         """Forget a partial frame (after a reconnect the bytes that follow are unrelated)."""
-        self._stats.bytes_skipped += len(self._tail)
-        self._tail = b""
+        self._stats.bytes_skipped += len(self.tail)
+        self.tail = b""
 
     def stats(self) -> dict[str, int]:
         st = self._stats
