@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import binascii
 import math
+import struct
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -263,6 +264,11 @@ class DecoderStats:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
+_PAYLOAD = struct.Struct("<HI4H2H3H")  # frame bytes 3..26: seq, tick, t1[4], t2[2], gyro, temp_raw, vsupply_raw
+_SAMPLE = struct.Struct("<dqI4I2IHffH")  # SAMPLE_DTYPE's packed layout
+assert _SAMPLE.size == SAMPLE_DTYPE.itemsize
+
+
 @dataclass
 class FrameDecoder:
     """Streaming decoder: bytes in, SAMPLE_DTYPE samples out (t = NaN; the driver stamps it).
@@ -275,6 +281,10 @@ class FrameDecoder:
     tail: bytes = b""  # the start of a frame not complete yet
 
     def feed(self, data: bytes | bytearray | memoryview) -> np.ndarray:
+        if not self.tail and len(data) == FRAME_LEN:  # one frame per read: the per-sample path
+            one = self._continue_one(bytes(data))
+            if one is not None:
+                return one
         buf = self.tail + bytes(data) if self.tail else bytes(data)
         res = scan(buf)
         st = self._stats
@@ -292,6 +302,22 @@ class FrameDecoder:
         samples["flags"][gap] |= FLAG_GAP_BEFORE
         st.frames += samples.shape[0]
         return samples
+
+    def _continue_one(self, frame: bytes) -> np.ndarray | None:
+        """An intact frame that continues the stream, decoded in Python scalars and packed as one
+        SAMPLE_DTYPE row: the general path's values (wire_to_samples' one-frame arithmetic) without
+        its structured-array copies. None: anything else (the general path decides)."""
+        if frame[:2] != SYNC or frame[2] != PAYLOAD_LEN or binascii.crc_hqx(frame, 0xFFFF) != 0:
+            return None
+        seq, tick, *t1, t2a, t2b, gyro, temp_raw, vsupply_raw = _PAYLOAD.unpack_from(frame, 3)
+        one = self.unwrapper.continue_one(seq, tick)
+        if one is None:
+            return None
+        row = _SAMPLE.pack(math.nan, one[0], tick, *t1, t2a, t2b, gyro,
+                           (_volts(temp_raw) - TEMP_OFFSET_V) / TEMP_SLOPE_V_PER_C, _volts(vsupply_raw) * VSUPPLY_DIVIDER,
+                           FLAG_GAP_BEFORE if one[1] else 0)
+        self._stats.frames += 1
+        return np.frombuffer(bytearray(row), dtype=SAMPLE_DTYPE)
 
     def discard_partial(self) -> None:
         """Forget a partial frame (after a reconnect the bytes that follow are unrelated)."""

@@ -85,10 +85,10 @@ class SeqUnwrapper:
     def unwrap(self, seq_raw: np.ndarray, ticks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(keep mask, unwrapped seq of kept frames, gap-before flag of kept frames); ``ticks`` (the
         frames' device ticks) let a device restart behind an outage be told from a long loss."""
-        if len(seq_raw) == 1 and not self._after_outage and self._expected is None:
-            one = self._unwrap_one(int(seq_raw[0]), None if ticks is None else int(ticks[0]))
+        if len(seq_raw) == 1:
+            one = self.continue_one(int(seq_raw[0]), None if ticks is None else int(ticks[0]))
             if one is not None:
-                return one
+                return np.ones(1, bool), np.array([one[0]], np.int64), np.array([one[1]])
         s = np.asarray(seq_raw).astype(np.int64)
         if s.shape[0] == 0:
             return np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0, bool)
@@ -105,10 +105,11 @@ class SeqUnwrapper:
             self._learn_ticks(s, t, keep)
         return keep, seq, gap
 
-    def _unwrap_one(self, raw: int, tick: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """One frame that continues the head (rule 2, no outage, nothing pending), in Python ints: what
-        the block path does for it, without its numpy passes. None: not that case."""
-        if self._pending or self._head is None:
+    def continue_one(self, raw: int, tick: int | None) -> tuple[int, bool] | None:
+        """(unwrapped seq, gap before) of one frame that continues the head (rule 2, no outage, nothing
+        pending), in Python ints: what :meth:`unwrap` does for it, without numpy. None: not that case
+        (nothing done; :meth:`unwrap` decides)."""
+        if self._pending or self._head is None or self._after_outage or self._expected is not None:
             return None
         step = (raw - self._head) & MAX_U16
         if not 1 <= step <= self.STRAY_JUMP_MIN:
@@ -122,7 +123,7 @@ class SeqUnwrapper:
         self._head = self.last = self._head + step
         if tick is not None:
             self._tick_last = tick
-        return np.ones(1, bool), np.array([self._head + self.offset], np.int64), np.array([step > 1])
+        return self._head + self.offset, step > 1
 
     # -------------------------------------------------------- device restarts (sequence and tick from 0)
     def _learn_ticks(self, s: np.ndarray, t: np.ndarray, keep: np.ndarray) -> None:

@@ -38,7 +38,7 @@ def _stream(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
 def _run(seq, tick, one_path: bool, outages) -> tuple[list, dict]:
     u = SeqUnwrapper()
     if not one_path:
-        u._unwrap_one = lambda raw, t: None
+        u.continue_one = lambda raw, t: None
     out = []
     for i in range(seq.shape[0]):
         if i in outages:
