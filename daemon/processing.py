@@ -180,13 +180,17 @@ class Processor:
         most STATIC_MAX_AGE_S of sensor time older than the sample, else STATIC_UNKNOWN (null)."""
         last, static = self.analysed
         if seq.shape[0] == 1:  # the per-sample path, in Python scalars
-            fresh = last is not None and int(seq[0]) - last <= STATIC_MAX_AGE_S * self.cfg.device.fs_hz
-            return np.array([int(static) if fresh else STATIC_UNKNOWN], dtype=np.int8)
+            return np.array([self._static_code(int(seq[0]))], dtype=np.int8)
         codes = np.full(seq.shape[0], STATIC_UNKNOWN, dtype=np.int8)
         if last is not None:
             fresh = (seq.astype(np.int64) - last) <= STATIC_MAX_AGE_S * self.cfg.device.fs_hz
             codes[fresh] = int(static)
         return codes
+
+    def _static_code(self, seq: int) -> int:
+        last, static = self.analysed
+        fresh = last is not None and seq - last <= STATIC_MAX_AGE_S * self.cfg.device.fs_hz
+        return int(static) if fresh else STATIC_UNKNOWN
 
     def correct(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The fast path, per block as it arrives: (acc [m/s²] (N, 3) corrected with the accepted
@@ -210,15 +214,16 @@ class Processor:
         """correct() of a one-sample block with a plain calibration, in Python floats: a tenth of the
         numpy calls' overhead on 1-row arrays, and the same IEEE operations in the same order
         (duty = T1 / T2, NaN where T2 = 0; (duty - o) times K^-T summed left to right)."""
-        t1, t2 = block["t1"][0].tolist(), block["t2"][0].tolist()
+        _, seq, _, t1, t2, gyro_counts, *_ = block[0].item()  # every field in one call
+        t1, t2 = t1.tolist(), t2.tolist()
         x = []
         for i, (c, chip) in enumerate(_TRIAD_CHIPS):
             period = t2[chip]
             x.append((t1[c] / period if period else math.nan) - offset[i])
         acc = [x[0] * kinv[0][j] + x[1] * kinv[1][j] + x[2] * kinv[2][j] for j in range(3)]
         bias, sens = self._gyro_correction
-        gyro = (float(block["gyro"][0]) - bias) / sens
-        return np.array([acc]), np.array([gyro]), self.static_codes(block["seq"])
+        gyro = (float(gyro_counts) - bias) / sens
+        return np.array([acc]), np.array([gyro]), np.array([self._static_code(seq)], dtype=np.int8)
 
     def analyse(self, block: np.ndarray) -> np.ndarray:
         """Detector and estimator over a block (in arrival order, any split); returns the
