@@ -92,7 +92,7 @@ class SerialDriver(FramedStreamDriver):
             self._fd = None
         self._ser = ser
         self._timeout = 0.1
-        self._vmin = 1 if self._fd is not None and os.isatty(self._fd) else None
+        self._vmin = 0 if self._fd is not None and os.isatty(self._fd) else None  # 0: pyserial's, set at first read
 
     def _disconnect(self) -> None:
         ser, self._ser = self._ser, None
