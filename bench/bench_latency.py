@@ -5,7 +5,7 @@
 
 Each run starts ``gravcald --emulate --bus BUS --fs 200 --speed 1 --scenario six_position`` (serial/can:
 the emulator in its own process on a pty / slcan pty; i2c: the fake device in the daemon's process, so
-its sampling thread counts in the daemon's CPU). One client watches every sample with raw fields; with
+its sampling thread counts in the daemon's CPU, and the sensor model behind it in a child process). One client watches every sample with raw fields; with
 N clients, N - 1 more processes watch every sample and discard it.
 
 Latency: the emulator sends sample ``seq`` at t0 + seq / fs (CLOCK_MONOTONIC, shared by the processes),

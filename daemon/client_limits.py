@@ -10,6 +10,7 @@ import ctypes.util
 import logging
 import select
 import socket
+import threading
 from dataclasses import dataclass, field
 from typing import Any, Iterable
 
@@ -51,6 +52,9 @@ class ClientState:
     paused_until: float = 0.0  # reading paused (request budget exhausted) until this time
     flood_since: float | None = None
     refused: int = 0
+    closed: bool = False  # set under ``lock`` before the socket closes: no send after it
+    # the acquisition thread sends to this client too (fanout.py): both writers hold this lock
+    lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
 
     def pending(self) -> bool:
         return bool(self.out) or bool(self.queue) or self.dropped_unreported > 0
@@ -78,7 +82,6 @@ class ServerConfig:
     status_cache_s: float = 0.2  # ?STATUS answers are at most this old
     max_request_bytes: int = protocol.MAX_REQUEST_BYTES
     max_oversize: int = 3  # oversized requests tolerated before disconnecting
-    inbox_blocks: int = 1024  # publish() blocks held for the server thread
     send_chunk_bytes: int = 256 * 1024
 
     @classmethod

@@ -58,6 +58,7 @@ class EmulatedBus:
         self.driver_options = driver_options.strip("&?")
         self.process: Any = None  # EmulatorProcess (serial/can)
         self.device: Any = None  # FakeI2CDevice (i2c)
+        self.piped: Any = None  # the i2c device's scenario blocks, made in a child process (PipedBlocks)
         self.spec = ""
         self.truth: Calibration | None = None  # set by open() (imports the simulator: not before the socket is bound)
 
@@ -99,12 +100,17 @@ class EmulatedBus:
     def _open_i2c(self, latency_budget_s: float) -> Any:
         from ..drivers.rigs.emulator import Faults
         from ..drivers.rigs.fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec, realtime_options
-        from ..drivers.rigs.sources import scenario_source
+        from ..drivers.rigs.sources import PATTERN, scenario_source
 
         speed = self.speed if math.isfinite(self.speed) else 100.0  # a FIFO fills at a finite pace
-        source = scenario_source(self.scenario, seed=self.seed, fs=self.fs, duration=self.duration)
+        if self.scenario == PATTERN:
+            blocks = scenario_source(self.scenario, seed=self.seed, fs=self.fs, duration=self.duration).blocks
+        else:  # the sensor model (scipy.signal) runs in a child process, not in the daemon
+            from ..drivers.rigs.block_pipe import PipedBlocks
+
+            blocks = self.piped = PipedBlocks(self.scenario, seed=self.seed, fs=self.fs, duration=self.duration)
         depth = 255  # the deepest FIFO the register map allows: room for the host's scheduling jitter
-        self.device = device = FakeI2CDevice(source.blocks, source.fs, speed=speed, fifo_depth=depth,
+        self.device = device = FakeI2CDevice(blocks, self.fs, speed=speed, fifo_depth=depth,
                                              faults=Faults(disconnects=self.disconnects, seed=self.seed))
         # the device samples in real time and raises DRDY; the driver sleeps on that line
         driver = FakeI2CDriver(device, tick_hz=self._tick_hz(), latency_budget_s=latency_budget_s,
@@ -113,7 +119,8 @@ class EmulatedBus:
         return driver.open()
 
     def describe(self) -> str:
-        where = {"serial": "a pty", "can": "an slcan pty", "i2c": "a fake I2C device (in process)"}[self.bus]
+        where = {"serial": "a pty", "can": "an slcan pty",
+                 "i2c": "a fake I2C device (in process; its samples from a child process)"}[self.bus]
         pid = f", emulator pid {self.process.proc.pid}" if self.process is not None else ""
         return (f"emulated {self.bus} logger on {where}{pid}: scenario {self.scenario}, seed {self.seed}, "
                 f"{self.fs:g} Hz, speed {self.speed:g}x; device {self.spec}")
@@ -129,6 +136,9 @@ class EmulatedBus:
         return out
 
     def close(self) -> None:
+        if self.piped is not None:
+            self.piped.close()
+            self.piped = None
         if self.process is not None:
             self.process.__exit__(None, None, None)
             err = (getattr(self.process, "stderr", "") or "").strip()

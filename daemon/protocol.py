@@ -314,19 +314,19 @@ def _encode_imu_one(row: np.void, acc_ms2: np.ndarray, gyro_rads: np.ndarray, st
     gyro = float(np.asarray(gyro_rads, dtype=float).reshape(1)[0])
     st = np.asarray(static).reshape(1)
     word = ("true" if st[0] else "false") if st.dtype == bool else _STATIC_WORDS[min(max(int(st[0]), -1), 1) + 1]
-    t, temp, vsupply = float(row["t"]), float(row["temp"]), float(row["vsupply"])
+    t, seq, tick, t1, t2, gyro_counts, temp, vsupply, flags = row.item()  # one call for every field
     gyro_null = math.isnan(gyro)
-    values: list[Any] = [int(row["seq"]), t, *acc]
+    values: list[Any] = [seq, t, *acc]
     if not gyro_null:
         values.append(gyro)
     values += [word, temp, vsupply]
     floats = [t, *acc, temp, vsupply] + ([] if gyro_null else [gyro])
     template = _HEAD_FIELDS.replace("{gyro}", "null" if gyro_null else "%.6f")
     if raw:
-        t1, t2 = row["t1"].tolist(), row["t2"].tolist()
+        t1, t2 = t1.tolist(), t2.tolist()
         duty = [t1[c] / t2[_CHIP_OF_CHANNEL[c]] if t2[_CHIP_OF_CHANNEL[c]] else math.nan for c in range(4)]
         floats += duty
-        values += [*duty, *t1, *t2, int(row["gyro"]), int(row["tick"]), int(row["flags"])]
+        values += [*duty, *t1, *t2, gyro_counts, tick, flags]
         template += _RAW_FIELDS
     else:
         template += "}\n"

@@ -5,9 +5,10 @@ Design (why it looks like this):
 - One server thread runs a ``selectors`` event loop over non-blocking sockets. Nothing in
   it ever blocks on a client: sends that would block leave the data queued and register
   write interest.
-- The acquisition side calls :meth:`SocketServer.publish` (thread-safe, non-blocking: it
-  appends to a bounded inbox and pokes a wake-up socketpair). If the server thread itself
-  falls behind, the inbox drops its oldest blocks and counts them (``inbox_overruns``).
+- The acquisition side calls :meth:`SocketServer.publish` (non-blocking): the block's line is
+  encoded once and sent from the caller's thread to every watcher with nothing queued
+  (fanout.py); the server thread is woken (a socketpair) only for what a socket did not take.
+  :meth:`SocketServer.set_calibration` does the same for CALIB changes.
 - Every client has a queue of encoded lines bounded in messages and bytes (output_queue.py).
   What a slow client loses is counted and announced to it (``DROPPED``) before its next data. A
   client with output pending that makes no read progress for ``stall_timeout_s`` is disconnected.
@@ -17,12 +18,12 @@ Design (why it looks like this):
 - Non-watchers idle for ``idle_timeout_s`` are disconnected (as gpsd does) and the longest-idle
   makes room in a full table; clients whose peer hung up are closed even while no data flows.
 - IMU lines are encoded once per block and encoding (plain / raw) and shared by all clients.
+- ``publish`` has one caller thread at a time (the acquisition).
 
 The listening socket is bound or inherited from systemd by socket_activation.py.
 """
 from __future__ import annotations
 
-import collections
 import errno
 import logging
 import os
@@ -35,6 +36,7 @@ from typing import Any, Callable
 import numpy as np
 
 from . import protocol
+from .fanout import deliver, deliver_line
 from .client_limits import ClientState as _Client
 from .client_limits import RequestBudget, ServerConfig, hung_up, return_memory_to_os
 from .output_queue import OutputQueue
@@ -80,10 +82,11 @@ class SocketServer:
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
-        self._inbox: collections.deque = collections.deque()
-        self._inbox_lock = threading.Lock()
-        self._wake_pending = False
+        self._wake_lock = threading.Lock()
+        self._wake_pending = False  # the server thread has been woken for publish()'s leftovers
+        self._calib_lock = threading.Lock()  # a new watcher gets the CALIB that is current
         self._clients: dict[int, _Client] = {}
+        self._watchers: tuple[_Client, ...] = ()  # replaced, never mutated: publish() reads it unlocked
         self._next_id = 1
         self._calib: dict[str, Any] | None = None
         self._last_block: ImuBlock | None = None
@@ -92,8 +95,8 @@ class SocketServer:
         self.started = time.monotonic()
         # counters (written by the server thread only, except inbox_* under the lock)
         self.published_samples = 0
-        self.inbox_overruns = 0  # samples dropped because the server thread fell behind
-        self._inbox_lost = 0  # ... not yet reported to the watchers (DROPPED)
+        self.inbox_overruns = 0  # samples dropped before reaching the clients' queues (none: they go direct)
+        self._dropped_direct = 0  # queue overflows counted by the publishing thread
         self.clients_total = 0
         self.clients_rejected = 0
         self.clients_stalled = 0
@@ -156,36 +159,37 @@ class SocketServer:
         uncalibrated; static (N,) bool. Returns at once; the arrays must not be modified
         afterwards.
         """
-        if samples.shape[0] == 0:
+        n = samples.shape[0]
+        if n == 0:
             return
-        self._put(ImuBlock(samples, acc_ms2, gyro_rads, static))
+        block = self._last_block = ImuBlock(samples, acc_ms2, gyro_rads, static)
+        self.published_samples += n
+        wake, dropped = deliver(self._watchers, block, time.monotonic())
+        if dropped:
+            self._dropped_direct += dropped
+        if wake:
+            self._wake_once()
 
     def set_calibration(self, message: dict[str, Any]) -> None:
-        """Set the current CALIB message (see protocol.calib_message); pushed to watchers."""
+        """Set the current CALIB message (see protocol.calib_message); pushed to watchers at once,
+        in order with the samples published by the same thread."""
         msg = dict(message)
         msg["class"] = "CALIB"
-        self._put(("calib", msg))
-
-    def _put(self, item: Any) -> None:
-        with self._inbox_lock:
-            if len(self._inbox) >= self.config.inbox_blocks:
-                old = self._inbox.popleft()
-                if isinstance(old, ImuBlock):
-                    self.inbox_overruns += old.samples.shape[0]
-                    self._inbox_lost += old.samples.shape[0]
-                else:  # never lose a calibration change: keep it, drop the next block instead
-                    self._inbox.appendleft(old)
-                    for i, o in enumerate(self._inbox):
-                        if isinstance(o, ImuBlock):
-                            self.inbox_overruns += o.samples.shape[0]
-                            self._inbox_lost += o.samples.shape[0]
-                            del self._inbox[i]
-                            break
-            self._inbox.append(item)
-            wake = not self._wake_pending
-            self._wake_pending = True
+        line = protocol.encode(msg)
+        with self._calib_lock:
+            self._calib = msg
+            wake, dropped = deliver_line(self._watchers, line, time.monotonic())
+        if dropped:
+            self._dropped_direct += dropped
         if wake:
-            self._wake()
+            self._wake_once()
+
+    def _wake_once(self) -> None:
+        with self._wake_lock:
+            if self._wake_pending:
+                return
+            self._wake_pending = True
+        self._wake()
 
     def _wake(self) -> None:
         try:
@@ -196,8 +200,9 @@ class SocketServer:
     # -- introspection ---------------------------------------------------------------
     @property
     def backlog(self) -> int:
-        """Items published but not yet taken by the server thread (a replay source may wait on it)."""
-        return len(self._inbox)
+        """1 while output that publish() left queued waits for the server thread (a replay source
+        may wait on it), else 0."""
+        return int(self._wake_pending)
 
     @property
     def n_clients(self) -> int:
@@ -217,7 +222,7 @@ class SocketServer:
             "requests_refused": self.requests_refused,
             "published_samples": self.published_samples,
             "inbox_overruns": self.inbox_overruns,
-            "dropped_messages": self.dropped_total,
+            "dropped_messages": self.dropped_total + self._dropped_direct,
             "per_client": clients,
         }
 
@@ -243,7 +248,7 @@ class SocketServer:
                             self._on_readable(c)
                         if mask & selectors.EVENT_WRITE and c.id in self._clients:
                             self._flush(c)
-                self._drain_inbox()
+                self._flush_published()
                 if time.monotonic() >= self._next_check:  # not per published block: 10 times a second
                     self._next_check = time.monotonic() + 0.1
                     self._check_clients()
@@ -297,17 +302,21 @@ class SocketServer:
     def _close(self, c: _Client, why: str) -> None:
         if self._clients.pop(c.id, None) is None:
             return
+        if c.watch.enable:
+            self._watchers = tuple(w for w in self._watchers if w is not c)
         log.log(logging.INFO if why not in ("eof", "server stopping") else logging.DEBUG,
                 "client %d disconnected: %s (sent %d, dropped %d)", c.id, why, c.sent_messages, c.dropped_total)
         try:
             self._sel.unregister(c.sock)
         except (KeyError, ValueError, OSError):
             pass
-        c.sock.close()
-        if c.queue.nbytes + (len(c.out) if c.out else 0) >= TRIM_AFTER_BYTES:
-            self._trim_due = True
-        c.queue.entries.clear()
-        c.out = None
+        with c.lock:  # a send from publish() is not in progress, and none follows
+            c.closed = True
+            c.sock.close()
+            if c.queue.nbytes + (len(c.out) if c.out else 0) >= TRIM_AFTER_BYTES:
+                self._trim_due = True
+            c.queue.entries.clear()
+            c.out = None
 
     def _make_room(self) -> None:
         now = time.monotonic()
@@ -426,12 +435,16 @@ class SocketServer:
     def _execute(self, c: _Client, req: protocol.Request) -> None:
         if req.command == "WATCH":
             was = c.watch.enable
-            c.watch = c.watch.updated(req.args)
-            if c.watch.enable and not was:
-                c.last_bucket = -np.inf
-            self._reply(c, c.watch.to_message(), flush=False)
-            if c.watch.enable and not was and self._calib is not None:
-                self._reply(c, self._calib, flush=False)
+            watch = c.watch.updated(req.args)
+            with self._calib_lock, c.lock:  # the replies are queued before publish() sees the new policy
+                c.watch = watch
+                if watch.enable and not was:
+                    c.last_bucket = -np.inf
+                self._reply(c, watch.to_message(), flush=False)
+                if watch.enable and not was and self._calib is not None:
+                    self._reply(c, self._calib, flush=False)
+                if watch.enable != was:
+                    self._watchers = tuple(w for w in self._clients.values() if w.watch.enable)
             self._flush(c)
         elif req.command == "POLL":
             imu = []
@@ -478,57 +491,30 @@ class SocketServer:
 
     # -- output ----------------------------------------------------------------------
     def _enqueue(self, c: _Client, lines: list[bytes], joined: bytes | None = None) -> None:
-        lost = c.queue.put(lines, joined)
-        if lost > 0:
-            c.dropped_total += lost
-            c.dropped_unreported += lost
-            self.dropped_total += lost
-
-    def _drain_inbox(self) -> None:
-        with self._inbox_lock:
-            items = list(self._inbox)
-            self._inbox.clear()
-            self._wake_pending = False
-            lost, self._inbox_lost = self._inbox_lost, 0
-        watchers = [c for c in self._clients.values() if c.watch.enable]
-        if lost:  # samples this thread fell too far behind to take: every watcher missed them, and is told
-            for c in watchers:
+        with c.lock:
+            lost = c.queue.put(lines, joined)
+            if lost > 0:
                 c.dropped_total += lost
                 c.dropped_unreported += lost
                 self.dropped_total += lost
-        if not items:
-            return
-        for k, item in enumerate(items):
-            if k:  # hand the previous item to the sockets first: a burst must not overflow queues needlessly
-                for c in watchers:
-                    if c.id in self._clients and not c.want_write and c.queue:
-                        self._flush(c)
-            if isinstance(item, ImuBlock):
-                self.published_samples += item.samples.shape[0]
-                self._last_block = item
-                if not watchers:
-                    continue
-                t = item.samples["t"]
-                for c in watchers:
-                    if c.watch.rate > 0:
-                        mask, c.last_bucket = protocol.decimation_mask(t, c.watch.rate, c.last_bucket)
-                        idx = np.flatnonzero(mask)
-                        if idx.size != mask.size:
-                            self._enqueue(c, item.lines_at(c.watch.raw, idx))
-                            continue
-                    self._enqueue(c, item.lines(c.watch.raw), item.joined(c.watch.raw))
-            else:
-                _, msg = item
-                self._calib = msg
-                line = protocol.encode(msg)
-                for c in watchers:
-                    self._enqueue(c, [line])
-        for c in watchers:
-            if c.id in self._clients and not c.want_write:
+
+    def _flush_published(self) -> None:
+        """What publish() or set_calibration() could not hand to a socket goes out (or waits for
+        EVENT_WRITE)."""
+        with self._wake_lock:
+            if not self._wake_pending:
+                return
+            self._wake_pending = False
+        for c in self._watchers:
+            if c.id in self._clients and not c.want_write and c.pending():
                 self._flush(c)
 
     def _flush(self, c: _Client) -> None:
         """Send what the socket takes now; the rest waits for EVENT_WRITE."""
+        with c.lock:  # held across non-blocking sends only
+            self._flush_locked(c)
+
+    def _flush_locked(self, c: _Client) -> None:
         now = time.monotonic()
         while True:
             if not c.out:
@@ -561,7 +547,8 @@ class SocketServer:
         self._update_interest(c)
 
     def _update_interest(self, c: _Client) -> None:
-        c.want_write = c.pending()
+        with c.lock:  # publish() wakes this thread only while want_write is False
+            c.want_write = c.pending()
         reading = not c.read_closed and c.paused_until <= time.monotonic()
         events = (selectors.EVENT_READ if reading else 0) | (selectors.EVENT_WRITE if c.want_write else 0)
         if events == c.events:

@@ -183,6 +183,9 @@ class Gravcald:
         p = self.processor
         analysis_n = max(1, round(d.fs_hz * ANALYSIS_BLOCK_S))
         backoff, failures = 0.05, 0
+        # samples for the analysis, as bytes until a block's worth: one ring-buffer write per
+        # ANALYSIS_BLOCK_S instead of a structured-array copy per sample (the analysis runs no sooner)
+        staged = bytearray()
         while not self._acq_stop.is_set():
             try:
                 block = self.driver.read(max_samples=d.read_block, timeout=d.read_timeout_s)
@@ -210,9 +213,16 @@ class Gravcald:
                 log.exception("correcting a block of %d samples failed", n)
             else:
                 self.server.publish(block, acc, gyro, static)
-            self.ring.push(block)
-            if len(self.ring) >= analysis_n:
-                self._data.set()
+            staged += block.tobytes()
+            if len(staged) >= analysis_n * SAMPLE_DTYPE.itemsize:
+                self._stage_for_analysis(staged)
+        self._stage_for_analysis(staged)
+
+    def _stage_for_analysis(self, staged: bytearray) -> None:
+        if staged:
+            self.ring.push(np.frombuffer(bytes(staged), dtype=SAMPLE_DTYPE))
+            staged.clear()
+            self._data.set()
 
     def _reopen_driver(self) -> None:
         log.warning("%d driver read errors in a row: closing and reopening %s", REOPEN_AFTER_READ_ERRORS,

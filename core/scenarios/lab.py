@@ -2,9 +2,9 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .motion import _Q, DEG, E_UP, _supply_profile, _temp_profile
+from .quaternion import align_quat
 from .planner import _mount, _Planner, _rz, _tilt
 
 
@@ -52,10 +52,9 @@ SIX_FACES = ("+x up", "-x up", "+y up", "-y up", "+z up", "-z up")
 def _face_rotation(face: int) -> _Q:
     axis = np.zeros(3)
     axis[face // 2] = 1.0 if face % 2 == 0 else -1.0
-    if face // 2 == 2:  # align_vectors is ill-defined for antiparallel vectors; z faces explicitly
+    if face // 2 == 2:  # the smallest rotation is ill-defined for antiparallel vectors; z faces explicitly
         return _Q.identity() if face == 4 else _Q.from_rotvec([np.pi, 0, 0])
-    r, _ = Rotation.align_vectors([E_UP], [axis])
-    return _Q.from_scipy(r)
+    return _Q(align_quat(E_UP, axis))
 
 
 def _plan_six_position(duration, fs, rng, *, hold_s=(8.0, 15.0), handling_s=(3.0, 6.0), tilt_deg=3.0,

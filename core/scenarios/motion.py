@@ -6,7 +6,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from .quaternion import inverse_matrices
 
 STILL, TURN, WALK = 0, 1, 2
 MOVING = -1  # posture label of samples in transitions
@@ -72,7 +73,7 @@ class MotionPlan:
     def _base_t(self) -> np.ndarray:
         """(S, 3, 3) world -> board rotation matrices at segment start (cached)."""
         if getattr(self, "_bt_cache", None) is None:
-            self._bt_cache = Rotation.from_quat(self.base).inv().as_matrix().reshape(-1, 3, 3)
+            self._bt_cache = inverse_matrices(self.base)
         return self._bt_cache
 
     def render(self, i0: int = 0, i1: int | None = None) -> Motion:
@@ -199,10 +200,6 @@ class _Q:
         a = math.sqrt(x * x + y * y + z * z)
         s = math.sin(a / 2) / a if a > 1e-12 else 0.5
         return cls([x * s, y * s, z * s, math.cos(a / 2)])
-
-    @classmethod
-    def from_scipy(cls, r: Rotation) -> "_Q":
-        return cls(r.as_quat())
 
     @classmethod
     def random(cls, rng: np.random.Generator) -> "_Q":

@@ -4,9 +4,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .motion import _Q, DEG, E_UP, MOVING, STILL, TURN, WALK, MotionPlan, _unit
+from .quaternion import align_quat
 
 
 class _Planner:
@@ -89,8 +89,7 @@ def _mount(orientation: int | str | None, rotvec: Any) -> _Q:
     if orientation in (1, "1", None):
         return _Q.identity()
     if orientation in (2, "2"):
-        r, _ = Rotation.align_vectors([E_UP], [np.ones(3) / np.sqrt(3)])
-        return _Q.from_scipy(r)
+        return _Q(align_quat(E_UP, np.ones(3) / np.sqrt(3)))
     raise ValueError(f"orientation must be 1 (z along gravity) or 2 (gravity equal on three axes), got {orientation!r}")
 
 

@@ -127,6 +127,7 @@ class FakeI2CDevice:
         self.log = log
         self._blocks: Iterator[np.ndarray] = iter(blocks)
         self._buffered = np.zeros(0, SAMPLE_DTYPE)
+        self._buffered_wire = b""  # the frames of _buffered, encoded with its source block
         self._exhausted = False
         self._fifo = bytearray()
         self._fifo_seq: list[int] = []  # sample index of each FIFO entry (for CORRUPTED marks)
@@ -190,8 +191,9 @@ class FakeI2CDevice:
         if due > 0:
             self._produce(due)
 
-    def _take(self, n: int) -> np.ndarray:
-        parts, have = [self._buffered], self._buffered.shape[0]
+    def _take(self, n: int) -> tuple[np.ndarray, bytes]:
+        """The next ``n`` source samples (fewer when it runs dry) and their frames."""
+        parts, wire, have = [self._buffered], [self._buffered_wire], self._buffered.shape[0]
         while have < n and not self._exhausted:
             try:
                 b = next(self._blocks)
@@ -199,16 +201,26 @@ class FakeI2CDevice:
                 self._exhausted = True
                 break
             parts.append(b)
+            wire.append(encode_frames(b))  # a block at a time: one numpy pass, not one per sample
             have += b.shape[0]
         allb = np.concatenate(parts) if len(parts) > 1 else parts[0]
+        allw = b"".join(wire) if len(wire) > 1 else wire[0]
         out, self._buffered = allb[:n], allb[n:]
-        return out
+        k = out.shape[0] * FRAME_LEN
+        self._buffered_wire = allw[k:]
+        return out, allw[:k]
 
     def _produce(self, n: int) -> None:
-        samples = self._take(n)
+        samples, wire = self._take(n)
         m = samples.shape[0]
         self._produced += n  # time moves on even when the source has run dry
         if m == 0:
+            return
+        if (self.log is None and not self.faults.drop and not self.faults.disconnects
+                and m <= self.depth - len(self._fifo_seq)):  # every sample into the FIFO: the frames as they are
+            self._fifo += wire
+            self._fifo_seq.extend(range(self._produced - n, self._produced - n + m))
+            self._update_line()
             return
         idx = np.arange(self._produced - n, self._produced - n + m)
         status = np.full(m, SENT, np.uint8)

@@ -24,10 +24,12 @@ def _heavy_mapped(pid: int) -> list[str]:
     return sorted(p for p in paths if any(h in p for h in HEAVY) and not any(a in p for a in ALLOWED))
 
 
-def test_serving_daemon_maps_no_heavy_scipy_module():
+@pytest.mark.parametrize("bus", ["serial", "i2c"])
+def test_serving_daemon_maps_no_heavy_scipy_module(bus):
     """After start, with samples flowing to a client through the detector and the estimator, no
-    extension module of scipy.signal/stats/optimize/spatial/linalg is mapped into gravcald."""
-    d = GravcaldProcess(None, "--bus", "serial", "--scenario", "six_position", "--speed", "1", fs=200.0)
+    extension module of scipy.signal/stats/optimize/spatial/linalg is mapped into gravcald (i2c: the
+    emulated device runs in the daemon, the sensor model behind it in a child process)."""
+    d = GravcaldProcess(None, "--bus", bus, "--scenario", "six_position", "--speed", "1", fs=200.0)
     try:
         d.wait_serving()
         with d.client() as c:

@@ -219,7 +219,7 @@ def test_decoder_memory_is_bounded_on_endless_garbage():
     rng = np.random.default_rng(1)
     for _ in range(50):
         dec.feed(rng.integers(0, 256, 10_000, dtype=np.uint8).tobytes())
-    assert len(dec._tail) < FRAME_LEN
+    assert len(dec.tail) < FRAME_LEN
     assert dec.stats()["bytes_skipped"] > 500_000 - FRAME_LEN
 
 

@@ -154,3 +154,41 @@ def test_cross_process_disconnect_and_reconnect(tmp_path):
     np.testing.assert_array_equal(after, np.arange(after[0], after[-1] + 1))
     assert st["disconnects"] == 1 and st["reconnects"] == 1
     assert any("disconnected" in e for e in emu.events) and any("reconnected" in e for e in emu.events)
+
+
+def test_one_wake_up_per_frame_however_its_bytes_trickle_in(monkeypatch):
+    """A frame's bytes arrive over 0.6 ms at 460800 baud: the driver reads once per frame (the
+    terminal's VMIN), not once per byte that wakes select()."""
+    import threading
+
+    from gravcal.drivers import serial as serial_mod
+
+    n = 6
+    sent = wire_roundtrip(next(pattern_blocks(seed=4, fs=200, duration=n / 200, block=n)))
+    reads = []
+    read_now = serial_mod._read_now
+    monkeypatch.setattr(serial_mod, "_read_now", lambda fd: reads.append(read_now(fd)) or reads[-1])
+    link = PtyLink()
+    link.connect()
+    try:
+        with open_driver(link.spec) as drv:
+            def trickle() -> None:
+                for k in range(n):
+                    for b in encode_frames(sent[k : k + 1]):
+                        link.write(bytes([b]), True)
+                        time.sleep(0.0003)
+                    time.sleep(0.005)
+
+            writer = threading.Thread(target=trickle)
+            writer.start()
+            got, end = [], time.monotonic() + 20
+            while sum(g.shape[0] for g in got) < n and time.monotonic() < end:
+                got.append(drv.read(timeout=0.5))
+            writer.join()
+        got = np.concatenate(got)
+    finally:
+        link.close()
+    np.testing.assert_array_equal(got["seq"], sent["seq"])
+    for name in PAYLOAD:
+        np.testing.assert_array_equal(got[name], sent[name])
+    assert 1 <= len(reads) <= n, [len(r) for r in reads]  # each read completes at least one frame

@@ -1,0 +1,82 @@
+"""Delivery of a published block from the producer's thread straight to the watching clients.
+
+At 200 Hz a thread hand-off per sample costs more CPU than the sample's work, so the acquisition
+thread itself sends each block's encoded line to every watcher whose output is empty, with a
+non-blocking send(). Only what a socket does not take goes to that client's byte-bounded queue,
+and only then is the server thread woken (to register write interest and send the rest).
+
+Each client's ``lock`` orders the two writers of its socket: the server thread holds it only
+around non-blocking sends and queue updates, never across request handling or status building,
+so acquisition never waits for more than one such send.
+"""
+from __future__ import annotations
+
+from typing import Iterable
+
+import numpy as np
+
+from .client_limits import ClientState
+from .protocol import ImuBlock, decimation_mask
+
+
+def deliver(watchers: Iterable[ClientState], block: ImuBlock, now: float) -> tuple[bool, int]:
+    """Send ``block`` to each watcher: (the server thread has work to do, messages dropped)."""
+    wake, dropped = False, 0
+    for c in watchers:
+        with c.lock:
+            watch = c.watch
+            if c.closed or not watch.enable:
+                continue
+            lines = None
+            if watch.rate > 0:
+                mask, c.last_bucket = decimation_mask(block.samples["t"], watch.rate, c.last_bucket)
+                if not mask.all():
+                    lines = block.lines_at(watch.raw, np.flatnonzero(mask))
+                    if not lines:
+                        continue
+            if lines is None:
+                w, lost = _send(c, None, block.joined(watch.raw), block.samples.shape[0], now)
+            else:
+                w, lost = _send(c, lines, b"".join(lines), len(lines), now)
+            wake, dropped = wake or (w and not c.want_write), dropped + lost
+    return wake, dropped
+
+
+def deliver_line(watchers: Iterable[ClientState], line: bytes, now: float) -> tuple[bool, int]:
+    """Send one encoded message (a CALIB change) to each watcher, as :func:`deliver`."""
+    wake, dropped = False, 0
+    for c in watchers:
+        with c.lock:
+            if c.closed or not c.watch.enable:
+                continue
+            w, lost = _send(c, [line], line, 1, now)
+            wake, dropped = wake or (w and not c.want_write), dropped + lost
+    return wake, dropped
+
+
+def _send(c: ClientState, lines: list[bytes] | None, data: bytes, n: int, now: float) -> tuple[bool, int]:
+    """(the server thread must send the rest, messages dropped from the queue). ``lines``: the
+    messages in ``data`` (None: split it if needed). Called with ``c.lock`` held."""
+    sent = 0
+    if not c.pending():  # anything already waiting goes first: queue behind it
+        try:
+            sent = c.sock.send(data)
+        except OSError:  # full (EAGAIN) or gone: the server thread's next send tells which
+            sent = 0
+    if sent == 0:
+        return True, _queue(c, data.splitlines(keepends=True) if lines is None else lines, data)
+    c.sent_messages += n
+    c.sent_bytes += sent
+    c.last_progress = now
+    if sent < len(data):  # the rest of a line must follow before anything else
+        c.out = memoryview(data)[sent:]
+        return True, 0
+    return False, 0
+
+
+def _queue(c: ClientState, lines: list[bytes], data: bytes) -> int:
+    lost = c.queue.put(lines, data)
+    if lost:
+        c.dropped_total += lost
+        c.dropped_unreported += lost
+    return lost

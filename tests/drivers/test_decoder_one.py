@@ -1,0 +1,57 @@
+"""The decoder's one-frame path (a read that holds exactly one frame, the per-sample case) gives the
+bytes the general path gives: every field, the unwrapped seq, the flags and the counters."""
+import numpy as np
+import pytest
+
+from gravcal.drivers.codec import FRAME_LEN, FrameDecoder, encode_frames
+from gravcal.drivers.rigs.sources import pattern_blocks
+
+
+def _chunks(rng: np.random.Generator, n: int) -> list[bytes]:
+    """Reads of a stream: mostly one frame each, with losses, duplicates, strays, bit errors,
+    garbage, missing ADC readings and reads that split frames."""
+    s = next(pattern_blocks(seed=int(rng.integers(1 << 30)), fs=200, duration=n / 200, block=n))
+    s["temp"][rng.random(n) < 0.02] = np.nan  # sent as ADC_MISSING
+    frames = [encode_frames(s[i:i + 1]) for i in range(n)]
+    out, i = [], 0
+    while i < n:
+        r = rng.random()
+        f = frames[i]
+        if r < 0.03:
+            i += int(rng.integers(1, 40))  # lost frames
+            continue
+        if r < 0.05:
+            out.append(frames[int(rng.integers(0, n))])  # a stray (an old or future frame)
+        elif r < 0.07 and out:
+            out.append(out[-1])  # a duplicate
+        elif r < 0.09:
+            k = int(rng.integers(3, FRAME_LEN))
+            out.append(f[:k] + bytes([f[k] ^ 0x10]) + f[k + 1:])  # a bit error: CRC fails
+        elif r < 0.11:
+            k = int(rng.integers(1, FRAME_LEN))
+            out += [f[:k], f[k:]]  # split across reads
+        elif r < 0.12:
+            out.append(bytes(rng.integers(0, 256, int(rng.integers(1, 40)), dtype=np.uint8)))  # garbage
+        else:
+            out.append(f)
+        i += 1
+    return out
+
+
+def _decode(chunks: list[bytes], one_path: bool) -> tuple[bytes, dict]:
+    dec = FrameDecoder()
+    if not one_path:
+        dec._continue_one = lambda frame: None
+    got = [dec.feed(c) for c in chunks]
+    return np.concatenate(got).tobytes(), dec.stats()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_one_frame_path_gives_the_general_paths_bytes_and_counters(seed):
+    chunks = _chunks(np.random.default_rng(seed), 3000)
+    fast, fast_stats = _decode(chunks, True)
+    slow, slow_stats = _decode(chunks, False)
+    assert len(slow) > 1500 * 56
+    assert fast == slow
+    assert fast_stats == slow_stats
+    assert slow_stats["crc_errors"] > 0 and slow_stats["gaps"] > 0 and slow_stats["strays"] > 0
