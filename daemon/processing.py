@@ -19,7 +19,8 @@ import numpy as np
 from ..core.calibration import Calibration
 from ..core.estimators.online import OnlineCalibrator
 from ..core.estimators.online_policy import OnlineStep
-from ..core.samples import CHANNEL_CHIP, TRIAD, raw_triad
+from ..core.correction import PlainCorrection
+from ..core.samples import raw_triad
 from ..core.windows import Window
 from .config import Config
 from .persistence import CalibrationState
@@ -45,7 +46,6 @@ GYRO_HP_HZ = 0.3
 GYRO_RANGE_RAD_S = math.radians(300.0)
 GYRO_RAILS = (0, 4095)
 GYRO_NOMINAL_COUNTS_PER_RAD_S = 357.36
-_TRIAD_CHIPS = [(c, int(CHANNEL_CHIP[c])) for c in TRIAD]  # (channel, index of its chip's period in t2)
 
 
 def nominal_calibration(model: str = "6") -> Calibration:
@@ -163,12 +163,11 @@ class Processor:
     @applied.setter
     def applied(self, cal: Calibration) -> None:
         self._applied = cal
-        # A plain calibration: a = K^-1 (raw - o) as one matrix product per block, the inverse taken once here.
-        # An extended one applies its terms at each sample's covariates (Calibration.apply). One tuple, swapped
-        # atomically: correct() runs in the acquisition thread.
-        offset = np.asarray(cal.offset, dtype=float)
-        kinv_t = np.linalg.inv(np.asarray(cal.sensitivity, dtype=float)).T * STANDARD_GRAVITY
-        self._correction = (offset, kinv_t, cal if cal.extended_terms else None, offset.tolist(), kinv_t.tolist())
+        # A plain calibration: a = K^-1 (raw - o) (core/correction.py). An extended one applies its terms at each
+        # sample's covariates (Calibration.apply). One tuple, swapped atomically: correct() runs in the acquisition
+        # thread.
+        plain = PlainCorrection(cal.offset, cal.sensitivity, STANDARD_GRAVITY)
+        self._correction = (plain, cal if cal.extended_terms else None)
 
     @property
     def static_now(self) -> bool:
@@ -196,31 +195,24 @@ class Processor:
         """The fast path, per block as it arrives: (acc [m/s²] (N, 3) corrected with the accepted
         calibration, gyro [rad/s] (N,) NaN when not configured, static (N,) codes: the detector's
         latest decision, or unknown when that is more than STATIC_MAX_AGE_S of data old)."""
-        offset, kinv_t, extended, offset_l, kinv_l = self._correction
+        plain, extended = self._correction
         if block.shape[0] == 1 and extended is None:
-            return self._correct_one(block, offset_l, kinv_l)
+            return self._correct_one(block, plain)
         if extended is not None:  # a sample without a covariate its terms need (NaN) gets NaN
             acc = extended.apply(raw_triad(block), temp=block["temp"].astype(float),
                                  vsupply=block["vsupply"].astype(float),
                                  t=block["seq"].astype(float) / self.cfg.device.fs_hz) * STANDARD_GRAVITY
         else:
-            x = raw_triad(block) - offset  # x K^-T term by term: the same operations as _correct_one
-            acc = x[:, 0:1] * kinv_t[0] + x[:, 1:2] * kinv_t[1] + x[:, 2:3] * kinv_t[2]
+            acc = plain.block(block)
         bias, sens = self._gyro_correction
         gyro = (block["gyro"].astype(float) - bias) / sens  # NaN while either is unknown
         return acc, gyro, self.static_codes(block["seq"])
 
-    def _correct_one(self, block: np.ndarray, offset: list[float], kinv: list[list[float]]):
-        """correct() of a one-sample block with a plain calibration, in Python floats: a tenth of the
-        numpy calls' overhead on 1-row arrays, and the same IEEE operations in the same order
-        (duty = T1 / T2, NaN where T2 = 0; (duty - o) times K^-T summed left to right)."""
+    def _correct_one(self, block: np.ndarray, plain: PlainCorrection):
+        """correct() of a one-sample block with a plain calibration, in Python floats (PlainCorrection.one: the
+        same bits as the block path, a tenth of numpy's per-call overhead on 1-row arrays)."""
         _, seq, _, t1, t2, gyro_counts, *_ = block[0].item()  # every field in one call
-        t1, t2 = t1.tolist(), t2.tolist()
-        x = []
-        for i, (c, chip) in enumerate(_TRIAD_CHIPS):
-            period = t2[chip]
-            x.append((t1[c] / period if period else math.nan) - offset[i])
-        acc = [x[0] * kinv[0][j] + x[1] * kinv[1][j] + x[2] * kinv[2][j] for j in range(3)]
+        acc = plain.one(t1.tolist(), t2.tolist())
         bias, sens = self._gyro_correction
         gyro = (float(gyro_counts) - bias) / sens
         return np.array([acc]), np.array([gyro]), np.array([self._static_code(seq)], dtype=np.int8)
