@@ -22,6 +22,7 @@ import pytest
 from gravcal.core.diagnosis import diagnose_windows
 from gravcal.core.diagnosis.synthetic import PLANT, window_session
 from gravcal.core.model.terms import CALIBRATION_TERMS
+from seed_pool import pmap
 
 REGRESSION = CALIBRATION_TERMS  # every registered window-mean term (a new term is tested here without edits)
 N_SEEDS = 20
@@ -55,18 +56,27 @@ def check_magnitude(s, d, effect: str) -> list[str]:
             for i in np.flatnonzero(bad)]
 
 
+def judged(seed: int, effects: dict[str, float], nested: bool) -> tuple[list[str], list[str], float | None, bool]:
+    """One session's names, magnitude errors of the planted effects, nested gain, and whether the extended
+    model falls back to the base one when nothing is found (plain values: computed in a worker process)."""
+    s, d = run(seed, effects, nested=nested)
+    names = [f["effect"] for f in d.findings]
+    errors = [e for effect in effects if effect in names for e in check_magnitude(s, d, effect)]
+    return names, errors, d.heldout_gain_mg, d.extended_model == d.base_model or bool(d.findings)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("effect", list(PLANT))
 def test_single_effect_detected_and_measured(effect):
     detected, exact, errors, gains = 0, 0, [], []
-    for seed in range(N_SEEDS):
-        s, d = run(1000 * (1 + REGRESSION.index(effect)) + seed, {effect: PLANT[effect]}, nested=seed < N_NESTED)
-        names = [f["effect"] for f in d.findings]
+    seeds = [(1000 * (1 + REGRESSION.index(effect)) + seed, {effect: PLANT[effect]}, seed < N_NESTED)
+             for seed in range(N_SEEDS)]
+    for seed, (names, errs, gain, _) in enumerate(pmap(judged, seeds)):
         if effect in names:
             detected += 1
-            errors += check_magnitude(s, d, effect)
+            errors += errs
             if seed < N_NESTED:
-                gains.append(d.heldout_gain_mg)
+                gains.append(gain)
         exact += names == [effect]
     assert detected >= 19, f"{effect}: detected in {detected}/{N_SEEDS}"
     assert exact >= 19, f"{effect}: exactly the planted effect named in {exact}/{N_SEEDS}"
@@ -77,11 +87,11 @@ def test_single_effect_detected_and_measured(effect):
 @pytest.mark.slow
 def test_controls_have_no_findings():
     false = []
-    for seed in range(N_CONTROLS):
-        _, d = run(90_000 + seed, {}, nested=False)
-        if d.findings:
-            false.append((seed, [f["effect"] for f in d.findings]))
-        assert d.extended_model == d.base_model or d.findings
+    results = pmap(judged, [(90_000 + seed, {}, False) for seed in range(N_CONTROLS)])
+    for seed, (names, _, _, consistent) in enumerate(results):
+        if names:
+            false.append((seed, names))
+        assert consistent
     assert len(false) <= 2, f"false findings in {len(false)}/{N_CONTROLS} controls: {false}"
 
 
@@ -89,12 +99,12 @@ def test_controls_have_no_findings():
 @pytest.mark.parametrize("pair", [("temperature_offset", "offset_drift"), ("misalignment", "temperature_sensitivity")])
 def test_two_effects(pair):
     ok = 0
-    for seed in range(10):
-        s, d = run(50_000 + 100 * REGRESSION.index(pair[0]) + seed, {e: PLANT[e] for e in pair}, nested=seed < N_NESTED)
-        names = sorted(f["effect"] for f in d.findings)
-        ok += names == sorted(pair)
-        if names == sorted(pair) and seed < N_NESTED:
-            assert d.heldout_gain_mg > 0
+    seeds = [(50_000 + 100 * REGRESSION.index(pair[0]) + seed, {e: PLANT[e] for e in pair}, seed < N_NESTED)
+             for seed in range(10)]
+    for seed, (names, _, gain, _) in enumerate(pmap(judged, seeds)):
+        ok += sorted(names) == sorted(pair)
+        if sorted(names) == sorted(pair) and seed < N_NESTED:
+            assert gain > 0
     assert ok >= 9, f"{pair}: both and only them named in {ok}/10"
 
 

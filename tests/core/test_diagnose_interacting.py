@@ -25,6 +25,7 @@ from gravcal.core.model import datasheet as DS
 from gravcal.core.model.spec import CROSS_PAIRS
 from gravcal.core.model.terms import CALIBRATION_TERMS
 from gravcal.core.samples import TRIAD
+from seed_pool import pmap
 
 RISK = 0.02
 # planted parameter and its factor from report units to the model's units, per catalogue effect
@@ -51,6 +52,15 @@ def max_count(n: int, p: float) -> int:
 
 def diagnose_session(s):
     return diagnose_windows(s.ws, s.start, has_temp=True, candidates=CALIBRATION_TERMS, simulate=False, nested=False)
+
+
+def planted_result(seed: int, planted: dict[str, float]) -> tuple[list[str], list[str]]:
+    """A session with the ``planted`` effects (effect -> scale): the names found and the magnitude errors of the
+    planted ones (plain values: computed in a worker process)."""
+    s = window_session(seed, planted)
+    d = diagnose_session(s)
+    errors = [e for f in d.findings if f["effect"] in planted for e in magnitude_errors(f, truth_of(s, f["effect"]))]
+    return [f["effect"] for f in d.findings], errors
 
 
 def misalignment_truth(s) -> dict[str, float]:
@@ -100,12 +110,10 @@ def test_every_pair_of_catalogue_effects():
     """Two planted effects: both named, nothing else, each magnitude right given the other."""
     pairs = list(itertools.combinations(sorted(PLANT), 2))
     exact, errors = 0, []
-    for k, pair in enumerate(pairs):
-        s = window_session(71_000 + k, {e: PLANT[e] for e in pair})
-        d = diagnose_session(s)
-        names = sorted(f["effect"] for f in d.findings)
-        exact += names == sorted(pair)
-        errors += [e for f in d.findings if f["effect"] in pair for e in magnitude_errors(f, truth_of(s, f["effect"]))]
+    results = pmap(planted_result, [(71_000 + k, {e: PLANT[e] for e in pair}) for k, pair in enumerate(pairs)])
+    for pair, (names, errs) in zip(pairs, results):
+        exact += sorted(names) == sorted(pair)
+        errors += errs
     n = len(pairs)
     assert exact >= min_count(n, 0.95), f"both and only the pair named in {exact}/{n}"
     assert len(errors) <= max_count(2 * n, 0.02), errors  # per finding: outside the tolerance in <= 2 %
@@ -115,16 +123,24 @@ def test_every_pair_of_catalogue_effects():
 def test_smallest_documented_magnitudes_are_found():
     """The floor docs/measured-data.md claims for an hour (>= 90 % detection), with magnitudes."""
     n, errors = 6, []
-    for effect, frac in FLOOR.items():
+    runs = [(81_000 + 100 * CALIBRATION_TERMS.index(effect) + seed, {effect: frac * PLANT[effect]})
+            for effect, frac in FLOOR.items() for seed in range(n)]
+    results = pmap(planted_result, runs)
+    for i, (effect, frac) in enumerate(FLOOR.items()):
         found = 0
-        for seed in range(n):
-            s = window_session(81_000 + 100 * CALIBRATION_TERMS.index(effect) + seed, {effect: frac * PLANT[effect]})
-            d = diagnose_session(s)
-            f = [x for x in d.findings if x["effect"] == effect]
-            found += bool(f)
-            errors += magnitude_errors(f[0], truth_of(s, effect)) if f else []
+        for names, errs in results[i * n:(i + 1) * n]:
+            found += effect in names
+            errors += errs
         assert found >= min_count(n, 0.9), f"{effect} at {frac} x PLANT: found in {found}/{n}"
     assert len(errors) <= max_count(n * len(FLOOR), 0.02), errors
+
+
+def datasheet_result(seed: int, planted: dict[str, float]):
+    """planted_result, or the start of the reason when diagnose refuses the session with a ValueError."""
+    try:
+        return (*planted_result(seed, planted), None)
+    except ValueError as e:
+        return [], [], str(e)[:80]
 
 
 @pytest.mark.slow
@@ -132,20 +148,19 @@ def test_datasheet_scale_effects():
     """Each effect at its datasheet value: found when the documented floor is below it, and never replaced by
     another term (an effect too small to resolve must give no finding rather than a wrong one)."""
     n, wrong, errors, refused = 3, [], [], []
-    for effect, scale in DATASHEET.items():
+    runs = [(91_000 + 100 * CALIBRATION_TERMS.index(effect) + seed, {effect: scale})
+            for effect, scale in DATASHEET.items() for seed in range(n)]
+    results = pmap(datasheet_result, runs)
+    for i, (effect, scale) in enumerate(DATASHEET.items()):
         above_floor = scale >= FLOOR.get(effect, 1.0) * PLANT[effect]
         found = 0
-        for seed in range(n):
-            s = window_session(91_000 + 100 * CALIBRATION_TERMS.index(effect) + seed, {effect: scale})
-            try:
-                d = diagnose_session(s)
-            except ValueError as e:  # refused with a reason (a baseline that does not converge): no wrong finding
-                refused.append((effect, seed, str(e)[:80]))
+        for seed, (names, errs, reason) in enumerate(results[i * n:(i + 1) * n]):
+            if reason is not None:  # refused with a reason (a baseline that does not converge): no wrong finding
+                refused.append((effect, seed, reason))
                 continue
-            names = [f["effect"] for f in d.findings]
             found += effect in names
             wrong += [(effect, seed, x) for x in names if x != effect]
-            errors += [e for f in d.findings if f["effect"] == effect for e in magnitude_errors(f, truth_of(s, effect))]
+            errors += errs
         if above_floor:
             assert found >= min_count(n, 0.9), f"{effect} at the datasheet value: found in {found}/{n} ({refused})"
     total = n * len(DATASHEET)
@@ -196,20 +211,25 @@ def linear_temperature_slope_mg(ws, off: np.ndarray) -> dict[str, float]:
 N_MISSPECIFIED = 6
 
 
+def quadratic_result(seed: int) -> list[str]:
+    """What departs from the required answer on a quadratic-temperature session (empty: the required answer)."""
+    s, off = misspecified("quadratic_temperature", seed)
+    d = diagnose_session(s)
+    names = [f["effect"] for f in d.findings]
+    bad = [] if names == ["temperature_offset"] else [f"named {names}"]
+    if "temperature_offset" in names:
+        found = d.findings[names.index("temperature_offset")]
+        bad += magnitude_errors(found, linear_temperature_slope_mg(s.ws, off))
+    return bad
+
+
 @pytest.mark.slow
 def test_quadratic_temperature_dependence():
     """Required answer: temperature_offset, with the least-squares linear slope on the recorded temperature
     (within the magnitude tolerance), and no other term: the curvature is a remainder of the temperature
     dependence, not a supply, drift, lag or sensitivity effect."""
     ok, report = 0, []
-    for seed in range(N_MISSPECIFIED):
-        s, off = misspecified("quadratic_temperature", seed)
-        d = diagnose_session(s)
-        names = [f["effect"] for f in d.findings]
-        bad = [] if names == ["temperature_offset"] else [f"named {names}"]
-        if "temperature_offset" in names:
-            found = d.findings[names.index("temperature_offset")]
-            bad += magnitude_errors(found, linear_temperature_slope_mg(s.ws, off))
+    for seed, bad in enumerate(pmap(quadratic_result, [(seed,) for seed in range(N_MISSPECIFIED)])):
         ok += not bad
         report += [(seed, bad)] if bad else []
     assert ok >= min_count(N_MISSPECIFIED, 0.9), f"required answer in {ok}/{N_MISSPECIFIED}: {report}"
@@ -222,6 +242,22 @@ def lag_coefficients_mg(ws, off: np.ndarray, tau_s: float) -> dict[str, float]:
     return dict(zip("xyz", (np.linalg.lstsq(A, off, rcond=None)[0][1] * 1e3).tolist()))
 
 
+def lag_result(seed: int, tau_s: float) -> list[str]:
+    """What departs from the required answer on a thermal-lag session (empty: the required answer)."""
+    s, off = misspecified("thermal_lag", seed, tau_s)
+    d = diagnose_session(s)
+    names = [f["effect"] for f in d.findings]
+    bad = [] if names == ["thermal_lag"] else [f"named {names}"]
+    if "thermal_lag" in names:
+        found = d.findings[names.index("thermal_lag")]
+        bad += magnitude_errors(found, lag_coefficients_mg(s.ws, off, tau_s))
+        tau = found["magnitude"]["tau_s"]
+        lo, hi = tau["interval_68"]
+        if not (tau_s / 1.4 <= tau["value"] <= tau_s * 1.4 and lo / 1.4 <= tau_s <= hi * 1.4):
+            bad.append(f"tau {tau}")
+    return bad
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("tau_s", [300.0, 1200.0])
 def test_thermal_lag_is_named_with_its_coefficient_and_time_constant(tau_s):
@@ -230,18 +266,7 @@ def test_thermal_lag_is_named_with_its_coefficient_and_time_constant(tau_s):
     magnitude tolerance, and tau within one grid step (x 1.4) of the planted one with the reported interval
     covering it to a grid step. (1200 s is not the term's default: a fixed tau would fail it.)"""
     ok, report = 0, []
-    for seed in range(N_MISSPECIFIED):
-        s, off = misspecified("thermal_lag", seed, tau_s)
-        d = diagnose_session(s)
-        names = [f["effect"] for f in d.findings]
-        bad = [] if names == ["thermal_lag"] else [f"named {names}"]
-        if "thermal_lag" in names:
-            found = d.findings[names.index("thermal_lag")]
-            bad += magnitude_errors(found, lag_coefficients_mg(s.ws, off, tau_s))
-            tau = found["magnitude"]["tau_s"]
-            lo, hi = tau["interval_68"]
-            if not (tau_s / 1.4 <= tau["value"] <= tau_s * 1.4 and lo / 1.4 <= tau_s <= hi * 1.4):
-                bad.append(f"tau {tau}")
+    for seed, bad in enumerate(pmap(lag_result, [(seed, tau_s) for seed in range(N_MISSPECIFIED)])):
         ok += not bad
         report += [(seed, bad)] if bad else []
     assert ok >= min_count(N_MISSPECIFIED, 0.9), f"required answer in {ok}/{N_MISSPECIFIED}: {report}"
@@ -253,13 +278,17 @@ def test_plain_temperature_offset_is_not_a_lag():
     thermal_lag (the profiled time constant costs a parameter and a lag at the grid's short end is the same
     column)."""
     n, lag_named, missed = 6, [], 0
-    for seed in range(n):
-        s = window_session(41_000 + seed, {"temperature_offset": DS.TEMP_OFFSET_G_PER_C})
-        names = [f["effect"] for f in diagnose_session(s).findings]
+    planted = {"temperature_offset": DS.TEMP_OFFSET_G_PER_C}
+    results = pmap(planted_result, [(41_000 + seed, planted) for seed in range(n)])
+    for seed, (names, _) in enumerate(results):
         missed += "temperature_offset" not in names
         lag_named += [(seed, names)] if "thermal_lag" in names else []
     assert len(lag_named) <= max_count(n, 0.02), f"a plain temperature offset named a lag: {lag_named}"
     assert n - missed >= min_count(n, 0.9), f"temperature_offset found in {n - missed}/{n}"
+
+
+def random_walk_names(seed: int) -> list[str]:
+    return [f["effect"] for f in diagnose_session(misspecified("random_walk", seed)[0]).findings]
 
 
 @pytest.mark.slow
@@ -267,9 +296,7 @@ def test_random_walk_bias_is_not_attributed_to_a_covariate():
     """Required answer for a 2 mg/sqrt(h) random-walk bias: nothing, or offset_drift (its trend over the hour);
     never a temperature, supply, sensitivity or nonlinearity term."""
     wrong = []
-    for seed in range(N_MISSPECIFIED):
-        s, _ = misspecified("random_walk", seed)
-        names = [f["effect"] for f in diagnose_session(s).findings]
+    for seed, names in enumerate(pmap(random_walk_names, [(seed,) for seed in range(N_MISSPECIFIED)])):
         if set(names) - {"offset_drift"}:
             wrong.append((seed, names))
     assert len(wrong) <= max_count(N_MISSPECIFIED, 0.05), f"misattributed in {len(wrong)}/{N_MISSPECIFIED}: {wrong}"

@@ -22,6 +22,7 @@ import pytest
 from gravcal.core.estimators.remount import RemountDetector, session_windows
 from gravcal.core.model.defaults import default_model
 from gravcal.core.windows import Window
+from seed_pool import pmap
 
 K_SIGMA = 4.5
 FS = 200.0
@@ -176,6 +177,16 @@ def remount_session(seed, angle_deg, days=2.0):
                            else None, remount_rotvec=rv)
 
 
+def remount_events(seed: int, angle: float) -> list[tuple[float, float, list[float]]]:
+    """The detector's events (time, angle, old direction) on one remount session (plain values: computed in a
+    worker process)."""
+    ws, info = remount_session(seed, angle)
+    d = RemountDetector()
+    for i in range(len(ws)):
+        d.update(ws.t[i], info["f"][i], ws.n[i] / 200.0)
+    return [(float(e.t), float(e.angle_deg), list(map(float, e.old_direction))) for e in d.events]
+
+
 def test_remount_is_detected_with_its_angle_and_controls_are_not_flagged():
     """Detector level, on the posture statistics of two days of daily living (4 seeds): a 40° re-mount
     (random axis) at 30 h (14:00 on day 2) is detected within 2.5 h; the reported angle is how far the
@@ -184,22 +195,18 @@ def test_remount_is_detected_with_its_angle_and_controls_are_not_flagged():
     seeds x 3 days (python bench/bench_soak.py --remount-seeds 10): see docs/daemon.md."""
     from scipy.spatial.transform import Rotation
 
-    for seed in range(4):
-        for angle in (40.0, 0.0):
-            ws, info = remount_session(seed, angle)
-            d = RemountDetector()
-            for i in range(len(ws)):
-                d.update(ws.t[i], info["f"][i], ws.n[i] / 200.0)
-            ev = list(d.events)
-            if angle:
-                assert ev, f"seed {seed}: re-mount not detected"
-                assert REMOUNT_AT <= ev[0].t <= REMOUNT_AT + 2.5 * 3600, (seed, ev[0])
-                R = Rotation.from_rotvec(remount_rotvec(seed, angle)).as_matrix()
-                old = np.array(ev[0].old_direction)
-                turned = math.degrees(math.acos(np.clip(old @ (R.T @ old), -1, 1)))
-                assert abs(ev[0].angle_deg - turned) < 10.0, (seed, ev[0], turned)
-            else:
-                assert not ev, f"seed {seed}: false re-mount {ev}"
+    runs = [(seed, angle) for seed in range(4) for angle in (40.0, 0.0)]
+    for (seed, angle), ev in zip(runs, pmap(remount_events, runs)):
+        if angle:
+            assert ev, f"seed {seed}: re-mount not detected"
+            t, angle_deg, old_direction = ev[0]
+            assert REMOUNT_AT <= t <= REMOUNT_AT + 2.5 * 3600, (seed, ev[0])
+            R = Rotation.from_rotvec(remount_rotvec(seed, angle)).as_matrix()
+            old = np.array(old_direction)
+            turned = math.degrees(math.acos(np.clip(old @ (R.T @ old), -1, 1)))
+            assert abs(angle_deg - turned) < 10.0, (seed, ev[0], turned)
+        else:
+            assert not ev, f"seed {seed}: false re-mount {ev}"
 
 
 def test_remount_leaves_the_calibration_valid_and_the_daemon_reports_it(caplog):
