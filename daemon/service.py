@@ -200,7 +200,8 @@ class Gravcald:
                 continue
             backoff, failures = 0.05, 0
             n = block.shape[0]
-            if not n:
+            if not n:  # the bus went quiet (a stop, an unplug): the analysis gets what is staged now
+                self._stage_for_analysis(staged)
                 continue
             self.samples_in += n
             self.last_seq = int(block["seq"][-1])

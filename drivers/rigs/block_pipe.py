@@ -34,18 +34,26 @@ class PipedBlocks:
         cmd = [sys.executable, "-m", __name__, name, "--seed", str(int(seed)), "--fs", repr(float(fs)),
                "--duration", repr(float(duration))]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL)
+        # Wait for the first block here: the child's imports and sensor model take ~0.5-1 s, which must pass
+        # before the device announces itself and its stream clock starts (else its FIFO overflows at once).
+        self._first = self._read()
+
+    def _read(self) -> np.ndarray | None:
+        out = self.proc.stdout
+        head = out.read(_COUNT.size)
+        if len(head) < _COUNT.size:
+            return None
+        (n,) = _COUNT.unpack(head)
+        data = out.read(n * SAMPLE_DTYPE.itemsize)
+        if len(data) < n * SAMPLE_DTYPE.itemsize:
+            return None
+        return np.frombuffer(data, dtype=SAMPLE_DTYPE).copy()
 
     def __iter__(self) -> Iterator[np.ndarray]:
-        out = self.proc.stdout
-        while True:
-            head = out.read(_COUNT.size)
-            if len(head) < _COUNT.size:
-                return
-            (n,) = _COUNT.unpack(head)
-            data = out.read(n * SAMPLE_DTYPE.itemsize)
-            if len(data) < n * SAMPLE_DTYPE.itemsize:
-                return
-            yield np.frombuffer(data, dtype=SAMPLE_DTYPE).copy()
+        block, self._first = self._first, None
+        while block is not None:
+            yield block
+            block = self._read()
 
     def close(self) -> None:
         """Stop the child: its next write fails (EPIPE) once the pipe is closed, which also works

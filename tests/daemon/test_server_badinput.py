@@ -77,8 +77,14 @@ def test_a_client_that_never_reads_is_disconnected_and_logged(tmp_path, caplog):
             srv.publish(b, np.zeros((100, 3)), np.full(100, np.nan), np.zeros(100, bool))
             seq += 100
             time.sleep(0.01)
+        # the server thread counts the stall, then closes and logs it: wait for all three
+        def logged() -> list[str]:
+            return [r.getMessage() for r in caplog.records if "disconnected" in r.getMessage()]
+
+        while not (srv.n_clients == 0 and logged()) and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert srv.stats()["clients_stalled"] == 1 and srv.n_clients == 0
-        msgs = [r.getMessage() for r in caplog.records if "disconnected" in r.getMessage()]
+        msgs = logged()
         assert any("stalled: no reads for" in m and "with output pending" in m for m in msgs), msgs
         mute.close()
     finally:
