@@ -6,9 +6,9 @@ and FAIL instead when ``GRAVCAL_REQUIRE_DATA=1`` (CI sets it, so CI always runs 
 """
 from __future__ import annotations
 
-import os
-
 import pytest
+
+from support.inputs import skip_or_fail
 
 
 @pytest.fixture(scope="session")
@@ -18,9 +18,6 @@ def measured_data_dir():
     root = data_dir()
     missing = [name for name in RECORDINGS if not (root / name / "SOURCE.txt").is_file()]
     if missing:
-        reason = (f"measured data not found: {', '.join(missing)} missing under {root} "
-                  f"(set GRAVCAL_DATA to the folder holding them)")
-        if os.environ.get("GRAVCAL_REQUIRE_DATA") == "1":
-            pytest.fail(reason + "; GRAVCAL_REQUIRE_DATA=1 makes this a failure")
-        pytest.skip(reason)
+        skip_or_fail(f"measured data not found: {', '.join(missing)} missing under {root} "
+                     f"(set GRAVCAL_DATA to the folder holding them)", "GRAVCAL_REQUIRE_DATA")
     return root

@@ -183,16 +183,8 @@ def test_rest_state_of_a_cascade_is_scipys():
 def test_block_calibration_does_not_import_scipy_signal(tmp_path):
     """scipy.signal's package import is most of `gravcal calibrate`'s start-up: the block path avoids it
     and still filters with SciPy's kernel (the windows equal the ones found with scipy.signal imported)."""
-    import subprocess
-    import sys
-
-    s = simulate("six_position", seed=2, duration=300.0).samples  # the simulator imports scipy.signal: not in the child
-    np.save(tmp_path / "t.npy", s["t"])
-    np.save(tmp_path / "raw.npy", raw_triad(s))
-    code = (
-        "import sys, numpy as np\n"
+    out = _in_a_child(tmp_path, (
         "from gravcal.core.fastdetect import detect\n"
-        f"t, raw = np.load({str(tmp_path / 't.npy')!r}), np.load({str(tmp_path / 'raw.npy')!r})\n"
         "ws = detect(t, raw)\n"
         "loaded = 'scipy.signal' in sys.modules\n"
         "import scipy.signal\n"
@@ -200,8 +192,7 @@ def test_block_calibration_does_not_import_scipy_signal(tmp_path):
         "w._sosfilt_kernel = None\n"  # the public scipy.signal.sosfilt from here on
         "ref = detect(t, raw)\n"
         "print(loaded, len(ws), np.array_equal(ws.start, ref.start) and np.array_equal(ws.end, ref.end))\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    ))
     assert out[0] == "False", "the block detector imported scipy.signal"
     assert int(out[1]) > 0 and out[2] == "True"
 
@@ -244,20 +235,11 @@ def test_window_statistics_do_not_depend_on_the_batching(session, monkeypatch):
 
 def test_block_calibration_imports_neither_scipy_optimize_nor_linalg(tmp_path):
     """Their imports cost ~0.6 CPU-s, a tenth of a week's calibration: the default path needs neither."""
-    import subprocess
-    import sys
-
-    s = simulate("six_position", seed=2, duration=300.0).samples
-    np.save(tmp_path / "t.npy", s["t"])
-    np.save(tmp_path / "raw.npy", raw_triad(s))
-    code = (
-        "import sys, numpy as np\n"
+    out = _in_a_child(tmp_path, (
         "from gravcal.core.pipeline import calibrate_recording\n"
-        f"t, raw = np.load({str(tmp_path / 't.npy')!r}), np.load({str(tmp_path / 'raw.npy')!r})\n"
         "rep = calibrate_recording(t, raw, detection='blocks')\n"
         "print(rep.n_windows, *(m in sys.modules for m in ('scipy.optimize', 'scipy.linalg')))\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    ))
     assert int(out[0]) > 0
     assert out[1:] == ["False", "False"], "calibration imported scipy.optimize / scipy.linalg"
 
@@ -284,3 +266,18 @@ def test_blocks_with_a_bad_time_step_are_unusable_at_chunk_borders_too(monkeypat
         bs = fastdetect.block_stats(t, lambda c, i, j: raw[i:j, c], n, fs, block_n=B, threads=threads)
         np.testing.assert_array_equal(bs.usable, want)
     assert want[0] and (~want).sum() >= 6
+
+
+def _in_a_child(tmp_path, body: str) -> list[str]:
+    """Run ``body`` in a fresh interpreter (its imports are the test's subject) with ``t`` and ``raw`` of a
+    six-position session loaded (the simulator imports scipy.signal: it runs here, not in the child);
+    returns the words it printed."""
+    import subprocess
+    import sys
+
+    s = simulate("six_position", seed=2, duration=300.0).samples
+    np.save(tmp_path / "t.npy", s["t"])
+    np.save(tmp_path / "raw.npy", raw_triad(s))
+    code = ("import sys, numpy as np\n"
+            f"t, raw = np.load({str(tmp_path / 't.npy')!r}), np.load({str(tmp_path / 'raw.npy')!r})\n" + body)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()

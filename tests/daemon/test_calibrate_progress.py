@@ -11,12 +11,12 @@ import termios
 import threading
 
 import pytest
+import tqdm  # noqa: F401  the bar's library: the [study] extra, which [test] installs
 
 import gravcal.daemon.recordings as recordings
 from gravcal.core.simulate import simulate
 from gravcal.daemon.recordings import read_recording, write_recording
 
-pytest.importorskip("tqdm")
 
 
 @pytest.fixture(scope="module")

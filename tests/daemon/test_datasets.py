@@ -32,7 +32,8 @@ def test_require_data_turns_skip_into_failure(tmp_path):
     test.write_text("def test_probe(measured_data_dir):\n    assert measured_data_dir.is_dir()\n")
     conftest = (D.REPO_ROOT / "tests" / "conftest.py").read_text()
     (tmp_path / "conftest.py").write_text(conftest)
-    env_base = {"GRAVCAL_DATA": str(tmp_path / "absent"), "PATH": "/usr/bin:/bin"}
+    env_base = {"GRAVCAL_DATA": str(tmp_path / "absent"), "PATH": "/usr/bin:/bin",
+                "PYTHONPATH": str(D.REPO_ROOT / "tests")}  # the conftest's helpers (tests/support)
     import os
     for require, expect in (("1", "1 error"), ("0", "1 skipped")):  # a fixture failure is an error: red, not skipped
         env = dict(os.environ, **env_base, GRAVCAL_REQUIRE_DATA=require)

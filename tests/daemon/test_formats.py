@@ -17,6 +17,7 @@ from gravcal.daemon.datasets import data_dir
 from gravcal.daemon.errors import InputError
 from gravcal.daemon.formats.sniff import sniff
 from gravcal.daemon.recordings import read_recording
+from support.inputs import skip_or_fail
 
 FIXTURES = os.environ.get("GRAVCAL_SKDH_FIXTURES", "")
 
@@ -24,11 +25,9 @@ FIXTURES = os.environ.get("GRAVCAL_SKDH_FIXTURES", "")
 def skdh_fixture(name: str) -> str:
     path = os.path.join(FIXTURES, name)
     if not (FIXTURES and os.path.isfile(path)):
-        reason = (f"scikit-digital-health's test fixture {name} not found: set GRAVCAL_SKDH_FIXTURES to the "
-                  f"tests/io/data folder of its source distribution (.ci/fetch_skdh_fixtures.py DIR fetches it)")
-        if os.environ.get("GRAVCAL_REQUIRE_SKDH_FIXTURES") == "1":
-            pytest.fail(reason + "; GRAVCAL_REQUIRE_SKDH_FIXTURES=1 makes this a failure")
-        pytest.skip(reason)
+        skip_or_fail(f"scikit-digital-health's test fixture {name} not found: set GRAVCAL_SKDH_FIXTURES to the "
+                     f"tests/io/data folder of its source distribution (.ci/fetch_skdh_fixtures.py DIR fetches it)",
+                     "GRAVCAL_REQUIRE_SKDH_FIXTURES")
     return path
 
 
@@ -36,10 +35,8 @@ def skdh_fixture(name: str) -> str:
 def native():
     root = data_dir() / "actigraph_native"
     if not (root / "SOURCE.txt").is_file():
-        reason = f"measured data not found: {root} (set GRAVCAL_DATA to the folder holding actigraph_native)"
-        if os.environ.get("GRAVCAL_REQUIRE_DATA") == "1":
-            pytest.fail(reason + "; GRAVCAL_REQUIRE_DATA=1 makes this a failure")
-        pytest.skip(reason)
+        skip_or_fail(f"measured data not found: {root} (set GRAVCAL_DATA to the folder holding actigraph_native)",
+                     "GRAVCAL_REQUIRE_DATA")
     return root
 
 

@@ -114,7 +114,6 @@ def test_ctrl_c_leaves_valid_results_and_resume_finishes(study, tmp_path):
 
 
 def test_dask_workers_give_the_same_rows(study, tmp_path):
-    pytest.importorskip("dask.distributed")
     seq, par = tmp_path / "seq.csv", tmp_path / "par.csv"
     assert main(["calibrate", str(study), "--out", str(seq), "--workers", "0", "--quiet"]) == 0
     assert main(["calibrate", str(study), "--out", str(par), "--workers", "2", "--quiet"]) == 0
@@ -130,7 +129,7 @@ def test_the_daemon_never_imports_dask():
 
 
 def test_an_existing_scheduler_runs_the_study(study, tmp_path):
-    distributed = pytest.importorskip("dask.distributed")
+    import dask.distributed as distributed  # the [study] extra, which [test] installs
     seq, par = tmp_path / "seq.csv", tmp_path / "sched.csv"
     files = [str(study / "s0.npy"), str(study / "broken.csv")]
     assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 0
@@ -141,7 +140,7 @@ def test_an_existing_scheduler_runs_the_study(study, tmp_path):
 
 
 def test_a_task_that_dies_is_an_error_row_not_the_end(study, tmp_path, monkeypatch):
-    distributed = pytest.importorskip("dask.distributed")
+    import dask.distributed as distributed  # the [study] extra, which [test] installs
     from gravcal.daemon import study as study_mod
 
     real = study_mod.calibrate_file
