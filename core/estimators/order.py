@@ -85,7 +85,7 @@ def compare_orders(ws: WindowSet, models: tuple[str, ...], start: Calibration, *
         if k_folds >= 2:
             held = np.empty(m)
             for idx in np.array_split(order, k_folds):
-                train = np.setdiff1d(order, idx)
+                train = complement(idx, m)
                 try:
                     c = _fit(ws.subset(train), k, reference_start(k, cal, lab))
                 except ValueError:
@@ -314,32 +314,58 @@ def fit_extended_floor(model: str, ws: WindowSet, start: Calibration, *, sigma_f
 
 
 def compare_extended(ws: WindowSet, base: str, model: str, start: Calibration, *, lab: Calibration | None = None,
-                     sigma_floor_g: float = SIGMA_FLOOR_G, folds: int = 5) -> dict[str, dict[str, Any]]:
+                     sigma_floor_g: float = SIGMA_FLOOR_G, folds: int = 5,
+                     shared: dict[Any, Any] | None = None) -> dict[str, dict[str, Any]]:
     """The evidence for an extended model against its base, as compare_orders does for 6 vs the full set:
     both fitted (iterated eq. 11a) with the same fixed per-window weights, BIC on the chi² (scaled by the
     larger model's reduced chi² when > 1), and k-fold held-out RMS norm error [mg] (time-contiguous folds:
-    with a temperature ramp a fold is a temperature range the fit has not seen)."""
+    with a temperature ramp a fold is a temperature range the fit has not seen). ``shared``: a dict the
+    caller keeps across comparisons of several candidates on the same ``ws``, ``base``, ``start``, ``lab``
+    and ``sigma_floor_g``; the base's fits, which do not depend on the candidate, are then done once."""
     ref = reference_start(base, start, lab)
     m = len(ws)
     var = norm_noise_var(ws, start, sigma_floor_g=sigma_floor_g)
     pars = {k: parameterization(k, ref.sensitivity, ref.offset) for k in (base, model)}
-    fits = {k: fit_extended(par, ws, par.pack(start.sensitivity, start.offset), var) for k, par in pars.items()}
     Pm = pars[model].n_params
-    scale = max(1.0, fits[model].chi2 / max(m - Pm, 1))
     order = np.argsort(ws.t, kind="stable")
     k_folds = min(folds, m // max(2 * Pm, 1))
+    cache = {} if shared is None else shared
+    fits: dict[str, Any] = {}
+    helds: dict[str, np.ndarray | None] = {}
+    for k, par in pars.items():
+        key = (k, k_folds)
+        if key not in cache:
+            fit = fit_extended(par, ws, par.pack(start.sensitivity, start.offset), var)
+            cache[key] = (fit, _fold_residuals(par, ws, fit.p, var, order, k_folds))
+        fits[k], helds[k] = cache[key]
+    scale = max(1.0, fits[model].chi2 / max(m - Pm, 1))
     out: dict[str, dict[str, Any]] = {}
     for k, fit in fits.items():
         P = pars[k].n_params
-        entry: dict[str, Any] = {"n_params": P, "insample_rms_mg": round(float(np.sqrt(np.mean(fit.resid_g ** 2))) * 1e3, 4),
-                                 "bic": round(fit.chi2 / scale + P * math.log(m), 3), "heldout_rms_mg": None}
-        if k_folds >= 2:
-            held = np.empty(m)
-            for idx in np.array_split(order, k_folds):
-                train = np.setdiff1d(order, idx)
-                f = fit_extended(pars[k], ws.subset(train), fit.p, var[train])
-                held[idx] = extended_residuals_g(pars[k], f.p, ws.subset(idx))
-            if np.all(np.isfinite(held)):
-                entry["heldout_rms_mg"] = round(float(np.sqrt(np.mean(held * held))) * 1e3, 4)
-        out[k] = entry
+        held = helds[k]
+        out[k] = {"n_params": P, "insample_rms_mg": round(float(np.sqrt(np.mean(fit.resid_g ** 2))) * 1e3, 4),
+                  "bic": round(fit.chi2 / scale + P * math.log(m), 3),
+                  "heldout_rms_mg": None if held is None or not np.all(np.isfinite(held))
+                  else round(float(np.sqrt(np.mean(held * held))) * 1e3, 4)}
     return out
+
+
+def _fold_residuals(par: Any, ws: WindowSet, p: np.ndarray, var: np.ndarray, order: np.ndarray,
+                    k_folds: int) -> np.ndarray | None:
+    """1 - |a| [g] of every window from the fit (from ``p``) on the other time-contiguous folds; None for
+    fewer than 2 folds."""
+    if k_folds < 2:
+        return None
+    held = np.empty(len(ws))
+    for idx in np.array_split(order, k_folds):
+        train = complement(idx, len(ws))
+        f = fit_extended(par, ws.subset(train), p, var[train])
+        held[idx] = extended_residuals_g(par, f.p, ws.subset(idx))
+    return held
+
+
+def complement(idx: np.ndarray, m: int) -> np.ndarray:
+    """The sorted indices of range(m) not in ``idx`` (np.setdiff1d of a permutation of range(m), without its sort)."""
+    keep = np.ones(m, dtype=bool)
+    keep[idx] = False
+    return np.flatnonzero(keep)

@@ -1,5 +1,5 @@
 """Model auto adds temperature terms on top of the chosen order by the online path's rule
-(core/pipeline.py _auto_extended: order.term_testability, order.is_observable_extended,
+(core/estimators/order_fit.py _auto_extended: order.term_testability, order.is_observable_extended,
 order.compare_extended), and reports each term's status otherwise.
 
 Sessions (sample level, as tests/core/test_extended_fit.py's CLI recording): core.simulate of

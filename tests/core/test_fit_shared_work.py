@@ -1,0 +1,84 @@
+"""The offline fit does work once that several of its steps need (core/estimators/order_fit.py fit_order
+and _auto_extended, core/estimators/order.py compare_extended): each shortcut must give exactly (bit for
+bit) what the separate computation gives, so no decision or printed figure depends on it.
+
+Windows: core.crlb.windows_on_ellipsoid (as tests/core/test_order.py) and core.estimators.remount's
+session_windows with a temperature ramp (as tests/core/test_extended_fit.py). No statistics: the checks
+are equalities of deterministic computations.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gravcal.core.calibration import Calibration
+from gravcal.core.crlb import cap_directions, windows_on_ellipsoid
+from gravcal.core.estimators import order
+from gravcal.core.estimators.extended import model_name
+from gravcal.core.estimators.lotters import LottersBatch
+from gravcal.core.estimators.remount import session_windows
+from gravcal.core.model.defaults import default_model
+from gravcal.core.estimators.order_fit import AUTO_EXTENDED_TERMS, fit_order
+
+D = np.diag([0.125, 0.131, 0.118])
+O = np.array([0.502, 0.493, 0.508])
+MISALIGNED = D @ np.array([[1, 0.004, 0.0], [0.0, 1, 0.0], [0.018, -0.015, 1]])
+NOMINAL = Calibration("nominal", [0.5, 0.5, 0.5], np.eye(3) * 0.125)
+
+
+@pytest.fixture(scope="module")
+def ramp_windows():
+    """100 windows spread over a 1.5 h session with a 22 -> 32 °C ramp, and the 6-parameter fit."""
+    ws, _ = session_windows("loetters", seed=0, duration=5400.0, model=default_model(0, temperature_offset=True),
+                            temp_c=lambda t: 22.0 + 10.0 * t / 5400.0)
+    ws = ws.subset(np.unique(np.linspace(0, len(ws) - 1, 100).astype(int)))
+    return ws, LottersBatch("6").fit(ws)
+
+
+def terms_testable_on(ws) -> list[str]:
+    terms = [t for t in AUTO_EXTENDED_TERMS if order.term_testability(ws, t)[0]]
+    assert len(terms) >= 2, terms  # temperature and time terms on these windows
+    return terms
+
+
+def test_compare_extended_with_shared_base_fits_equals_separate_comparisons(ramp_windows, monkeypatch):
+    ws, at = ramp_windows
+    terms = terms_testable_on(ws)
+    # one- and two-term candidates: with 100 windows they get 5 and 4 folds, so the base's folds differ too
+    cands = [model_name("6", (t,)) for t in terms] + [model_name("6", tuple(terms[:2]))]
+    separate = [order.compare_extended(ws, "6", c, at) for c in cands]
+    calls = []
+    real = order.fit_extended
+    monkeypatch.setattr(order, "fit_extended", lambda *a, **k: calls.append(a[0].model) or real(*a, **k))
+    shared: dict = {}
+    together = [order.compare_extended(ws, "6", c, at, shared=shared) for c in cands]
+    assert together == separate
+    ks = [min(5, len(ws) // (2 * e["n_params"])) for e in (s[c] for s, c in zip(separate, cands))]
+    assert sorted(set(ks)) == [4, 5]
+    # the base fitted (with its folds) once per fold count, each candidate once
+    assert calls.count("6") == sum(1 + k for k in set(ks))
+    assert len(calls) - calls.count("6") == sum(1 + k for k in ks)
+
+
+def test_complement_is_setdiff1d_of_a_permutation():
+    rng = np.random.default_rng(3)
+    for m in (1, 2, 7, 100, 1001):
+        order_ = rng.permutation(m)
+        for idx in np.array_split(order_, min(5, m)):
+            got = order.complement(idx, m)
+            want = np.setdiff1d(order_, idx)
+            assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("K, chosen", [(D, "6"), (MISALIGNED, "9")])
+def test_auto_keeps_the_comparison_fit_equal_to_a_fresh_fit(K, chosen):
+    rng = np.random.default_rng(2)
+    ws = windows_on_ellipsoid(Calibration("truth", O, K), cap_directions((0, 0, 1), 180, 200, rng), noise_g=0.005,
+                              n=300, rng=rng)
+    fitted = fit_order(ws, "auto", NOMINAL, None, None, 5)
+    assert fitted.model == chosen
+    fresh = LottersBatch(chosen).fit(ws, order.reference_start(chosen, NOMINAL, None))
+    got, want = fitted.calibration.to_dict(), fresh.to_dict()
+    for key in ("model", "offset", "sensitivity", "covariance", "std", "converged", "observable", "message"):
+        assert got[key] == want[key], key
+    assert {k: v for k, v in got["metadata"].items() if not k.startswith("frame")} == want["metadata"]
