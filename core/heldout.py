@@ -105,7 +105,7 @@ def heldout_error(
     for k, test in enumerate(held):
         train = np.setdiff1d(all_idx, test, assume_unique=True)
         try:
-            cal = est.fit(ws.subset(train), start)
+            cal = est.fit_fold(ws.subset(train), start)
         except ValueError as exc:
             notes.append(f"fold {k}: not fitted ({exc})")
             continue

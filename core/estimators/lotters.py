@@ -258,6 +258,13 @@ class LottersBatch:
         """Calibration (raw = K a + o) from quasi-static windows; raises ValueError on unusable input."""
         return self._fit(ws, start, gate=self.outlier_gate_sigma is not None)
 
+    def fit_fold(self, ws: WindowSet, start: Calibration | None = None) -> Calibration:
+        """``fit`` for a held-out fold's training windows, whose fit only scores the windows left out:
+        the same parameters (K, o, metadata ``params``/``extended``), ``converged`` and fit statistics,
+        without what only a reported calibration needs (the consider term of the covariance, the
+        observability verdict: ``observable`` is False and the message says it was not judged)."""
+        return self._fit(ws, start, gate=self.outlier_gate_sigma is not None, verdict=False)
+
     def _outliers(self, par: Parameterization, sol: _Solve, mean: np.ndarray, floor2: float) -> np.ndarray:
         """Windows more than outlier_gate_sigma robust sigmas off a robust fit (bool (m,)), the largest first,
         at most OUTLIER_MAX_FRACTION of them. The robust fit (Cauchy loss on the residuals in units of each
@@ -287,7 +294,7 @@ class LottersBatch:
         mask[over] = True
         return mask
 
-    def _fit(self, ws: WindowSet, start: Calibration | None, *, gate: bool = False) -> Calibration:
+    def _fit(self, ws: WindowSet, start: Calibration | None, *, gate: bool = False, verdict: bool = True) -> Calibration:
         if not isinstance(ws, WindowSet):
             raise ValueError(f"expected a WindowSet, got {type(ws).__name__}")
         validate_windows(ws)
@@ -332,7 +339,7 @@ class LottersBatch:
         if gate and sol.converged:
             out = self._outliers(par, sol, mean, floor2)
             if out.any() and m - int(out.sum()) >= P + 3:
-                cal = self._fit(ws.subset(np.flatnonzero(~out)), start)
+                cal = self._fit(ws.subset(np.flatnonzero(~out)), start, verdict=verdict)
                 cal.metadata["outlier_windows"] = int(out.sum())
                 cal.metadata["outlier_t"] = [float(t) for t in ws.t[out]]
                 note = (f"left out {int(out.sum())} of {m} windows whose |a| is more than {self.outlier_gate_sigma:g} "
@@ -366,6 +373,13 @@ class LottersBatch:
         cov_noise = sol.cov * inflation
 
         K, o = par.unpack(sol.p)
+        if not verdict:
+            return Calibration(model=par.model, offset=o, sensitivity=K, covariance=cov_noise, param_names=list(par.names),
+                               n_windows=m, converged=bool(sol.converged and np.all(np.isfinite(sol.p))), observable=False,
+                               message="; ".join(["held-out fold: observability not judged", *notes]),
+                               metadata={"estimator": "lotters_batch", "iterations": int(sol.iterations),
+                                         "chi2": float(sol.chi2), "dof": int(dof), "sigma_floor_g": float(floor_used),
+                                         **extended_metadata(par, sol.p, np.sqrt(np.clip(np.diag(cov_noise), 0, None)))})
         scale = np.abs(np.diag(K))
         scale_ref = float(np.mean(scale))
         # consider term: the held parameters' uncertainty (consider.py)

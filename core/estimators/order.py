@@ -87,7 +87,7 @@ def compare_orders(ws: WindowSet, models: tuple[str, ...], start: Calibration, *
             for idx in np.array_split(order, k_folds):
                 train = complement(idx, m)
                 try:
-                    c = _fit(ws.subset(train), k, reference_start(k, cal, lab))
+                    c = LottersBatch(k).fit_fold(ws.subset(train), reference_start(k, cal, lab))
                 except ValueError:
                     held[idx] = np.nan
                     continue

@@ -82,3 +82,39 @@ def test_auto_keeps_the_comparison_fit_equal_to_a_fresh_fit(K, chosen):
     for key in ("model", "offset", "sensitivity", "covariance", "std", "converged", "observable", "message"):
         assert got[key] == want[key], key
     assert {k: v for k, v in got["metadata"].items() if not k.startswith("frame")} == want["metadata"]
+
+
+def fold_cases(ramp_windows):
+    ws, _ = ramp_windows
+    rng = np.random.default_rng(4)
+    rich = windows_on_ellipsoid(Calibration("truth", O, MISALIGNED), cap_directions((0, 0, 1), 180, 60, rng),
+                                noise_g=0.005, n=300, rng=rng)
+    ext = model_name("6", (terms_testable_on(ws)[0],))
+    return [(rich, LottersBatch("offsets"), NOMINAL), (rich, LottersBatch("6"), NOMINAL),
+            (rich, LottersBatch("9", sigma_floor_g=0.002), NOMINAL), (rich, LottersBatch("6", outlier_gate_sigma=3.0), None),
+            (rich, LottersBatch("6", max_iter=1), NOMINAL), (ws, LottersBatch(ext), None)]  # the 5th: not converged
+
+
+def test_fit_fold_gives_the_parameters_of_fit(ramp_windows):
+    for ws, est, start in fold_cases(ramp_windows):
+        for train in (np.arange(len(ws)) % 5 != k for k in range(2)):
+            full = est.fit(ws.subset(np.flatnonzero(train)), start)
+            fold = est.fit_fold(ws.subset(np.flatnonzero(train)), start)
+            assert np.array_equal(fold.offset, full.offset) and np.array_equal(fold.sensitivity, full.sensitivity)
+            assert fold.converged == full.converged and not fold.observable and "not judged" in fold.message
+            for key in ("params", "iterations", "chi2", "sigma_floor_g", "outlier_windows"):
+                assert fold.metadata.get(key) == full.metadata.get(key), (est.model, key)
+            assert (fold.metadata.get("extended") is None) == (full.metadata.get("extended") is None)
+
+
+def test_heldout_error_scores_fold_fits_as_the_full_fit_would(ramp_windows):
+    from gravcal.core.heldout import fold_indices, heldout_error, norm_error_mg
+
+    for ws, est, start in fold_cases(ramp_windows):
+        res = heldout_error(ws, est.model, start=start, estimator=est)
+        errors = []
+        for test in fold_indices(ws.t, "contiguous", 5):
+            train = np.setdiff1d(np.arange(len(ws)), test)
+            errors.append(norm_error_mg(est.fit(ws.subset(train), start), ws.subset(test)))
+        assert res.fold_rms_mg == [float(np.sqrt(np.mean(e ** 2))) for e in errors]
+        assert res.heldout_rms_mg == float(np.sqrt(np.mean(np.concatenate(errors) ** 2)))
