@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import _fitsums
 from .calibration import Calibration
 from .estimators.parameterization import PARAMETERIZATIONS, Parameterization
 from .windows import WindowSet
@@ -64,7 +65,9 @@ def h_variance(a: np.ndarray, Kinv: np.ndarray, cov_mean: np.ndarray) -> np.ndar
     dh/dm = (a/|a|)^T K^-1, so var h = g cov g^T with g that row vector (Lötters' C_mu, per window)."""
     u = a / np.linalg.norm(a, axis=1, keepdims=True)
     g = u @ Kinv
-    return np.einsum("mi,mij,mj->m", g, cov_mean, g)
+    out = np.empty(g.shape[0])  # numpy's einsum("mi,mij,mj->m", g, cov_mean, g), compiled
+    _fitsums.quadratic(np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(cov_mean, dtype=float), out, g.shape[0])
+    return out
 
 
 def norm_noise_var(ws: WindowSet, cal: Calibration, *, sigma_floor_g: float = 0.0) -> np.ndarray:

@@ -29,6 +29,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from gravcal.core import _fitsums
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, Parameterization
 from gravcal.core.model.effect import (LAG_KEY, constant_rows, covariate_deviation, default_lag_tau_s,
@@ -158,9 +159,7 @@ class _Bound(Parameterization):
 
     def rows_K_o(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """K (M, 3, 3), o (M, 3) of every bound window at p."""
-        K = self.K_const[None] + np.einsum("p,mpij->mij", p, self.dK_rows)
-        o = self.o_const[None] + np.einsum("p,mpi->mi", p, self.do_rows)
-        return K, o
+        return self.K_const[None] + combine_rows(p, self.dK_rows), self.o_const[None] + combine_rows(p, self.do_rows)
 
     def accel_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raw = np.asarray(raw, dtype=float).reshape(-1, 3)
@@ -175,6 +174,15 @@ class _Bound(Parameterization):
         J = np.matmul(Kinv, inner.transpose(0, 2, 1))  # (M, 3, P)
         np.negative(J, out=J)
         return a, J
+
+
+def combine_rows(p: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """sum_p p[p] rows[:, p] for rows (M, P, ...): numpy's einsum("p,mp...->m..."), compiled."""
+    M, P = rows.shape[:2]
+    out = np.empty((M,) + rows.shape[2:])
+    _fitsums.combine(np.ascontiguousarray(p, dtype=float), np.ascontiguousarray(rows, dtype=float), out, M, P,
+                     int(np.prod(rows.shape[2:], dtype=np.int64)))
+    return out
 
 
 def inverse_3x3(K: np.ndarray) -> np.ndarray:

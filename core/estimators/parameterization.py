@@ -17,6 +17,8 @@ from typing import ClassVar
 
 import numpy as np
 
+from gravcal.core import _fitsums
+
 AXES = ("x", "y", "z")
 
 
@@ -85,8 +87,15 @@ class Parameterization(ABC):
         """h = |a| (eq. 8), dh/dp (M, P) (eq. 13a generalised), and a itself."""
         a, J = self.accel_and_jacobian(p, raw)
         h = np.linalg.norm(a, axis=1)
-        B = np.einsum("mi,mip->mp", a / h[:, None], J)
-        return h, B, a
+        return h, project_rows(a / h[:, None], J), a
+
+
+def project_rows(u: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """(M, P) rows u_m^T J_m for u (M, 3) and J (M, 3, P): numpy's einsum("mi,mip->mp"), compiled."""
+    M, P = J.shape[0], J.shape[2]
+    out = np.empty((M, P))
+    _fitsums.project(np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(J, dtype=float), out, M, P)
+    return out
 
 
 class OffsetsOnly(Parameterization):

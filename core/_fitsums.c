@@ -1,0 +1,186 @@
+/* Per-window sums of products of the Lötters batch fit (core/crlb.py, core/estimators/).
+ *
+ * Each function is one numpy einsum contraction over thousands of windows whose summed axis has 3 to 15
+ * terms: numpy's einsum adds the products one after another into a zeroed output, and so do these loops
+ * (compiled with -ffp-contract=off: no fused multiply-add), so the results equal numpy's bit for bit
+ * (tests/core/test_fitsums.py checks it against einsum). Every buffer must be C-contiguous float64 of
+ * the length the given dimensions imply; anything else is a ValueError/TypeError, never an access out
+ * of bounds.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <string.h>
+
+/* Get a C-contiguous float64 buffer of exactly n doubles (writable if asked); 0 on success. */
+static int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t n, int writable, const char *name)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) < 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s must be a C-contiguous%s float64 array", name, writable ? " writable" : "");
+        return -1;
+    }
+    const char *f = view->format;
+    if (f != NULL && (f[0] == '<' || f[0] == '=' || f[0] == '@'))
+        f++;
+    if (view->itemsize != 8 || f == NULL || strcmp(f, "d") != 0) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s must be float64", name);
+        return -1;
+    }
+    if (view->len != n * 8) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_ValueError, "%s holds %zd values, expected %zd", name, view->len / 8, n);
+        return -1;
+    }
+    return 0;
+}
+
+/* m x max(p, 1) x max(k, 1) doubles must be addressable: every count the functions form is at most that. */
+static int dims_ok(Py_ssize_t m, Py_ssize_t p, Py_ssize_t k)
+{
+    if (m < 0 || p < 0 || k < 0) {
+        PyErr_SetString(PyExc_ValueError, "dimensions must be >= 0");
+        return 0;
+    }
+    if (m > PY_SSIZE_T_MAX / 8 / (p ? p : 1) / (k ? k : 1)) {
+        PyErr_SetString(PyExc_ValueError, "dimensions too large");
+        return 0;
+    }
+    return 1;
+}
+
+/* combine(coef (P,), rows (M, P, K), out (M, K)): out[m, j] = sum_p coef[p] rows[m, p, j],
+ * numpy's einsum("p,mpk->mk") (extended.py rows_K_o: K(c), o(c) of every window, module docstring). */
+static PyObject *combine(PyObject *self, PyObject *args)
+{
+    PyObject *oc, *orows, *oout;
+    Py_ssize_t m, p, k;
+    if (!PyArg_ParseTuple(args, "OOOnnn", &oc, &orows, &oout, &m, &p, &k) || !dims_ok(m, p, k))
+        return NULL;
+    Py_buffer bc, br, bo;
+    if (get_doubles(oc, &bc, p, 0, "coef") < 0)
+        return NULL;
+    if (get_doubles(orows, &br, m * p * k, 0, "rows") < 0) {
+        PyBuffer_Release(&bc);
+        return NULL;
+    }
+    if (get_doubles(oout, &bo, m * k, 1, "out") < 0) {
+        PyBuffer_Release(&bc);
+        PyBuffer_Release(&br);
+        return NULL;
+    }
+    const double *c = bc.buf, *r = br.buf;
+    double *o = bo.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < m; i++) {
+        const double *ri = r + i * p * k;
+        double *oi = o + i * k;
+        for (Py_ssize_t j = 0; j < k; j++)
+            oi[j] = 0.0;
+        for (Py_ssize_t q = 0; q < p; q++) {
+            const double cq = c[q], *rq = ri + q * k;
+            for (Py_ssize_t j = 0; j < k; j++)
+                oi[j] += cq * rq[j];
+        }
+    }
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&bc);
+    PyBuffer_Release(&br);
+    PyBuffer_Release(&bo);
+    Py_RETURN_NONE;
+}
+
+/* project(u (M, 3), J (M, 3, P), out (M, P)): out[m, q] = sum_i u[m, i] J[m, i, q],
+ * numpy's einsum("mi,mip->mp"): dh/dp = (a / |a|)^T da/dp (Lötters eq. 13a, parameterization.py). */
+static PyObject *project(PyObject *self, PyObject *args)
+{
+    PyObject *ou, *oj, *oout;
+    Py_ssize_t m, p;
+    if (!PyArg_ParseTuple(args, "OOOnn", &ou, &oj, &oout, &m, &p) || !dims_ok(m, p, 3))
+        return NULL;
+    Py_buffer bu, bj, bo;
+    if (get_doubles(ou, &bu, m * 3, 0, "u") < 0)
+        return NULL;
+    if (get_doubles(oj, &bj, m * 3 * p, 0, "J") < 0) {
+        PyBuffer_Release(&bu);
+        return NULL;
+    }
+    if (get_doubles(oout, &bo, m * p, 1, "out") < 0) {
+        PyBuffer_Release(&bu);
+        PyBuffer_Release(&bj);
+        return NULL;
+    }
+    const double *u = bu.buf, *J = bj.buf;
+    double *o = bo.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < m; i++) {
+        const double *ui = u + 3 * i, *Ji = J + 3 * p * i;
+        double *oi = o + p * i;
+        for (Py_ssize_t q = 0; q < p; q++)
+            oi[q] = 0.0;
+        for (Py_ssize_t a = 0; a < 3; a++) {
+            const double ua = ui[a], *Ja = Ji + a * p;
+            for (Py_ssize_t q = 0; q < p; q++)
+                oi[q] += ua * Ja[q];
+        }
+    }
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&bu);
+    PyBuffer_Release(&bj);
+    PyBuffer_Release(&bo);
+    Py_RETURN_NONE;
+}
+
+/* quadratic(g (M, 3), C (M, 3, 3), out (M,)): out[m] = sum_ij (g_i C_ij) g_j,
+ * numpy's einsum("mi,mij,mj->m"): the delta-method variance of h = |a| (crlb.h_variance, Lötters' C_mu). */
+static PyObject *quadratic(PyObject *self, PyObject *args)
+{
+    PyObject *og, *oC, *oout;
+    Py_ssize_t m;
+    if (!PyArg_ParseTuple(args, "OOOn", &og, &oC, &oout, &m) || !dims_ok(m, 9, 1))
+        return NULL;
+    Py_buffer bg, bC, bo;
+    if (get_doubles(og, &bg, m * 3, 0, "g") < 0)
+        return NULL;
+    if (get_doubles(oC, &bC, m * 9, 0, "C") < 0) {
+        PyBuffer_Release(&bg);
+        return NULL;
+    }
+    if (get_doubles(oout, &bo, m, 1, "out") < 0) {
+        PyBuffer_Release(&bg);
+        PyBuffer_Release(&bC);
+        return NULL;
+    }
+    const double *g = bg.buf, *C = bC.buf;
+    double *o = bo.buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < m; i++) {
+        const double *gi = g + 3 * i, *Ci = C + 9 * i;
+        double s = 0.0;
+        for (int a = 0; a < 3; a++)
+            for (int b = 0; b < 3; b++) {
+                double t = gi[a] * Ci[3 * a + b];
+                s += t * gi[b];
+            }
+        o[i] = s;
+    }
+    Py_END_ALLOW_THREADS
+    PyBuffer_Release(&bg);
+    PyBuffer_Release(&bC);
+    PyBuffer_Release(&bo);
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef methods[] = {
+    {"combine", combine, METH_VARARGS, "combine(coef, rows, out, M, P, K): out[m, k] = sum_p coef[p] rows[m, p, k]"},
+    {"project", project, METH_VARARGS, "project(u, J, out, M, P): out[m, p] = sum_i u[m, i] J[m, i, p]"},
+    {"quadratic", quadratic, METH_VARARGS, "quadratic(g, C, out, M): out[m] = sum_ij g[m, i] C[m, i, j] g[m, j]"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_fitsums",
+                                    "Per-window sums of products of the batch fit, as numpy's einsum adds them.", -1,
+                                    methods};
+
+PyMODINIT_FUNC PyInit__fitsums(void) { return PyModule_Create(&module); }
