@@ -9,6 +9,7 @@
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#include <math.h>
 #include <string.h>
 
 /* Get a C-contiguous float64 buffer of exactly n doubles (writable if asked); 0 on success. */
@@ -91,44 +92,55 @@ static PyObject *combine(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
-/* project(u (M, 3), J (M, 3, P), out (M, P)): out[m, q] = sum_i u[m, i] J[m, i, q],
- * numpy's einsum("mi,mip->mp"): dh/dp = (a / |a|)^T da/dp (Lötters eq. 13a, parameterization.py). */
-static PyObject *project(PyObject *self, PyObject *args)
+/* norm_project(a (M, 3), J (M, 3, P), h (M,), B (M, P)): h[m] = |a_m| and B[m, q] = sum_i (a[m, i] / h[m]) J[m, i, q]:
+ * h = |a| (Lötters eq. 8) as np.linalg.norm(a, axis=1) (sqrt of a0² + a1², plus a2²) and dh/dp = (a / |a|)^T da/dp
+ * (eq. 13a, parameterization.py) as numpy's einsum("mi,mip->mp", a / h[:, None], J). */
+static PyObject *norm_project(PyObject *self, PyObject *args)
 {
-    PyObject *ou, *oj, *oout;
+    PyObject *oa, *oj, *oh, *ob;
     Py_ssize_t m, p;
-    if (!PyArg_ParseTuple(args, "OOOnn", &ou, &oj, &oout, &m, &p) || !dims_ok(m, p, 3))
+    if (!PyArg_ParseTuple(args, "OOOOnn", &oa, &oj, &oh, &ob, &m, &p) || !dims_ok(m, p, 3))
         return NULL;
-    Py_buffer bu, bj, bo;
-    if (get_doubles(ou, &bu, m * 3, 0, "u") < 0)
+    Py_buffer ba, bj, bh, bb;
+    if (get_doubles(oa, &ba, m * 3, 0, "a") < 0)
         return NULL;
     if (get_doubles(oj, &bj, m * 3 * p, 0, "J") < 0) {
-        PyBuffer_Release(&bu);
+        PyBuffer_Release(&ba);
         return NULL;
     }
-    if (get_doubles(oout, &bo, m * p, 1, "out") < 0) {
-        PyBuffer_Release(&bu);
+    if (get_doubles(oh, &bh, m, 1, "h") < 0) {
+        PyBuffer_Release(&ba);
         PyBuffer_Release(&bj);
         return NULL;
     }
-    const double *u = bu.buf, *J = bj.buf;
-    double *o = bo.buf;
+    if (get_doubles(ob, &bb, m * p, 1, "B") < 0) {
+        PyBuffer_Release(&ba);
+        PyBuffer_Release(&bj);
+        PyBuffer_Release(&bh);
+        return NULL;
+    }
+    const double *A = ba.buf, *J = bj.buf;
+    double *H = bh.buf, *B = bb.buf;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t i = 0; i < m; i++) {
-        const double *ui = u + 3 * i, *Ji = J + 3 * p * i;
-        double *oi = o + p * i;
+        const double *ai = A + 3 * i, *Ji = J + 3 * p * i;
+        double *bi = B + p * i;
+        double ss = ai[0] * ai[0] + ai[1] * ai[1];
+        const double h = sqrt(ss + ai[2] * ai[2]);
+        H[i] = h;
         for (Py_ssize_t q = 0; q < p; q++)
-            oi[q] = 0.0;
-        for (Py_ssize_t a = 0; a < 3; a++) {
-            const double ua = ui[a], *Ja = Ji + a * p;
+            bi[q] = 0.0;
+        for (Py_ssize_t c = 0; c < 3; c++) {
+            const double uc = ai[c] / h, *Jc = Ji + c * p;
             for (Py_ssize_t q = 0; q < p; q++)
-                oi[q] += ua * Ja[q];
+                bi[q] += uc * Jc[q];
         }
     }
     Py_END_ALLOW_THREADS
-    PyBuffer_Release(&bu);
+    PyBuffer_Release(&ba);
     PyBuffer_Release(&bj);
-    PyBuffer_Release(&bo);
+    PyBuffer_Release(&bh);
+    PyBuffer_Release(&bb);
     Py_RETURN_NONE;
 }
 
@@ -174,13 +186,14 @@ static PyObject *quadratic(PyObject *self, PyObject *args)
 
 static PyMethodDef methods[] = {
     {"combine", combine, METH_VARARGS, "combine(coef, rows, out, M, P, K): out[m, k] = sum_p coef[p] rows[m, p, k]"},
-    {"project", project, METH_VARARGS, "project(u, J, out, M, P): out[m, p] = sum_i u[m, i] J[m, i, p]"},
+    {"norm_project", norm_project, METH_VARARGS,
+     "norm_project(a, J, h, B, M, P): h[m] = |a[m]|, B[m, p] = sum_i a[m, i] / h[m] J[m, i, p]"},
     {"quadratic", quadratic, METH_VARARGS, "quadratic(g, C, out, M): out[m] = sum_ij g[m, i] C[m, i, j] g[m, j]"},
     {NULL, NULL, 0, NULL},
 };
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_fitsums",
                                     "Per-window sums of products of the batch fit, as numpy's einsum adds them.", -1,
-                                    methods};
+                                    methods, NULL, NULL, NULL, NULL};
 
 PyMODINIT_FUNC PyInit__fitsums(void) { return PyModule_Create(&module); }

@@ -60,10 +60,11 @@ def on_ellipsoid(ws: WindowSet, cal: Calibration) -> tuple[np.ndarray, np.ndarra
     return a, a @ cal.sensitivity.T + cal.offset
 
 
-def h_variance(a: np.ndarray, Kinv: np.ndarray, cov_mean: np.ndarray) -> np.ndarray:
+def h_variance(a: np.ndarray, Kinv: np.ndarray, cov_mean: np.ndarray, h: np.ndarray | None = None) -> np.ndarray:
     """Delta-method variance [g²] of h = |a| from the covariance of the window mean (raw units²):
-    dh/dm = (a/|a|)^T K^-1, so var h = g cov g^T with g that row vector (Lötters' C_mu, per window)."""
-    u = a / np.linalg.norm(a, axis=1, keepdims=True)
+    dh/dm = (a/|a|)^T K^-1, so var h = g cov g^T with g that row vector (Lötters' C_mu, per window).
+    ``h``: |a| when the caller has it (np.linalg.norm(a, axis=1) or the equal norm_and_projection)."""
+    u = a / (np.linalg.norm(a, axis=1, keepdims=True) if h is None else h[:, None])
     g = u @ Kinv
     out = np.empty(g.shape[0])  # numpy's einsum("mi,mij,mj->m", g, cov_mean, g), compiled
     _fitsums.quadratic(np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(cov_mean, dtype=float), out, g.shape[0])

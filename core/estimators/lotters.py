@@ -208,7 +208,7 @@ class LottersBatch:
             K, _ = par.unpack(p)
             Kinv = np.linalg.inv(K)
             h, B, a = par.norm_and_jacobian(p, mean)
-            var = np.maximum(h_variance(a, Kinv, cov_mean) + floor2, _TINY_VAR_G2)  # C_mu diagonal
+            var = np.maximum(h_variance(a, Kinv, cov_mean, h) + floor2, _TINY_VAR_G2)  # C_mu diagonal
             xi = 1.0 - h  # eq. 14
             cost = float(np.sum(xi**2 / var) + w_prior * np.sum((p - anchor) ** 2))
             return xi, B, var, cost

@@ -25,6 +25,7 @@ from ..windows import WindowSet
 from .extended import ExtendedParameterization, extended_residuals_g, fit_extended, parameterization
 from .inuse12 import full_start, with_frame
 from .lotters import LottersBatch
+from .parameterization import norm_and_projection
 from .observability import (N_PARAMS, ORDERS, SIGMA_FLOOR_G, SYSTEMATIC_G, TOL_G, OrderDecision, coverage, held_note,
                             is_observable, mg_or_none)
 
@@ -236,8 +237,7 @@ def extended_observability(ws: WindowSet, cal: Calibration, model: str, *, sigma
     bound = par.at_windows(ws)
     var0 = norm_noise_var(ws, cal)
     a, J = bound.accel_and_jacobian(p, ws.mean)
-    h = np.linalg.norm(a, axis=1)
-    B = np.einsum("mi,mip->mp", a / h[:, None], J)
+    _, B = norm_and_projection(a, J)
     F = (B / (var0 + sigma_floor_g**2)[:, None]).T @ B
     Fbar = (B / (var0 + 1.0)[:, None]).T @ B / max(len(ws), 1)
     # metric: sphere directions x the windows' covariate quantiles

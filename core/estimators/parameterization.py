@@ -86,16 +86,16 @@ class Parameterization(ABC):
     def norm_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """h = |a| (eq. 8), dh/dp (M, P) (eq. 13a generalised), and a itself."""
         a, J = self.accel_and_jacobian(p, raw)
-        h = np.linalg.norm(a, axis=1)
-        return h, project_rows(a / h[:, None], J), a
+        return (*norm_and_projection(a, J), a)
 
 
-def project_rows(u: np.ndarray, J: np.ndarray) -> np.ndarray:
-    """(M, P) rows u_m^T J_m for u (M, 3) and J (M, 3, P): numpy's einsum("mi,mip->mp"), compiled."""
+def norm_and_projection(a: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """h = |a| (M,) and the rows (a / h)^T J (M, P) for a (M, 3), J (M, 3, P): numpy's np.linalg.norm(a, axis=1)
+    and einsum("mi,mip->mp", a / h[:, None], J), compiled."""
     M, P = J.shape[0], J.shape[2]
-    out = np.empty((M, P))
-    _fitsums.project(np.ascontiguousarray(u, dtype=float), np.ascontiguousarray(J, dtype=float), out, M, P)
-    return out
+    h, B = np.empty(M), np.empty((M, P))
+    _fitsums.norm_project(np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(J, dtype=float), h, B, M, P)
+    return h, B
 
 
 class OffsetsOnly(Parameterization):
