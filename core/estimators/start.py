@@ -329,7 +329,9 @@ def bootstrap(t, raw, fs: float | None = None, *, noise_factor: float = 4.0, per
 
 def _noise_floor(t, raw, fs, window_s, percentile) -> float:
     """Noise floor [raw units]: a low percentile of the max-over-axes moving std."""
-    probe = MovingVarianceDetector(fs, window_s=window_s, threshold_g=1.0, max_duration_s=None)
+    # only the detection signal is used: a threshold that only an exactly constant signal is below spares
+    # the probe the work of building still windows (the signal does not depend on the threshold)
+    probe = MovingVarianceDetector(fs, window_s=window_s, threshold_g=np.finfo(float).tiny, max_duration_s=None)
     probe.update(t, raw)
     det = probe.last_detection
     det = det[np.isfinite(det) & (np.arange(det.shape[0]) >= probe.w - 1)]

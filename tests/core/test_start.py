@@ -231,3 +231,22 @@ def test_bootstrap_isotropic_fallback_states_held_sensitivity_uncertainty_for_of
     assert with_c.mean() < 3 + 4 * np.sqrt(6 / n_seeds), with_c.mean()
     assert np.mean(with_c < 11.34) > 0.97  # chi²_3 99 % point
     assert np.median(without) > 100, np.median(without)
+
+
+def test_bootstrap_noise_floor_is_the_percentile_of_the_moving_std_whatever_the_probe_threshold():
+    # the probe runs with a vanishing threshold (no still windows to build): its detection signal, the max
+    # per-axis moving std, is the one a probe that finds everything still gives (the oracle here)
+    from gravcal.core.detectors.variance import MovingVarianceDetector
+    from gravcal.core.estimators.start import _noise_floor
+
+    rng = np.random.default_rng(5)
+    t, f = _still_and_moving(rng, _unit(rng.normal(size=(8, 3))))
+    raw = f * 4096.0 + 32768.0
+    raw[rng.choice(raw.shape[0], 3, replace=False), 1] = np.nan
+    probe = MovingVarianceDetector(100.0, window_s=0.25, threshold_g=1e9, max_duration_s=None)
+    found = probe.update(t, raw)
+    det = probe.last_detection
+    assert len(found + probe.flush()) >= 3  # still everywhere but around the NaN rows
+    det = det[np.isfinite(det) & (np.arange(det.shape[0]) >= probe.w - 1)]
+    assert _noise_floor(t, raw, 100.0, 0.25, 2.0) == max(float(np.percentile(det, 2.0)), 0.5 * float(
+        np.nanmin(np.where(np.abs(np.diff(raw, axis=0)) > 0, np.abs(np.diff(raw, axis=0)), np.inf))))
