@@ -15,7 +15,7 @@ from gravcal.core.crlb import h_variance
 from gravcal.core.estimators.extended import combine_rows
 from gravcal.core.estimators.parameterization import norm_and_projection
 
-SHAPES = [(0, 3), (1, 1), (7, 6), (1001, 9), (4000, 12), (333, 15), (20000, 9)]
+SHAPES = [(0, 3), (1, 1), (1, 6), (1, 9), (2, 12), (7, 6), (1001, 9), (4000, 12), (333, 15), (20000, 9)]
 
 
 def spread(rng: np.random.Generator, shape) -> np.ndarray:
