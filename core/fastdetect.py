@@ -6,16 +6,17 @@ the same decisions can be made on short blocks (default 0.1 s) without losing an
 estimators use:
 
 1. :func:`block_stats` reads the samples ONCE, in chunks, and keeps per block of ``block_n``
-   samples its mean (float64) and its within-block scatter Σ (x - mean)(x - mean)ᵀ (float32,
-   6 entries), plus whether every sample is finite and follows its predecessor by a step in
-   (0, 1.5/fs]. The sums are matrix-vector products (BLAS), so a chunk costs a few passes over
-   its own bytes; two threads share the chunks. Pages of a memory-mapped input are released
+   samples its mean (float64) and its within-block scatter Σ (x - mean)(x - mean)ᵀ (summed in
+   float64, stored as float32, 6 entries), plus whether every sample is finite and follows its
+   predecessor by a step in (0, 1.5/fs]. One compiled loop per chunk (core/_blockkernels.c)
+   reads the channels' strided fields in place (e.g. of a memory-mapped record); two threads
+   share the chunks. Pages of a memory-mapped input are released
    after each chunk (:func:`release_mapped`), so memory stays at the statistics (~0.24x the
    input of a week of 20-byte samples) instead of growing with the mapped file.
 2. :func:`detect_blocks` runs the detector on the block means at fs / block_n:
    "lotters" is Lötters 1998 eq. 1-2 (|a|, 0.5 Hz high-pass, rectifier, 0.5 Hz low-pass, and
-   the per-axis chains of QuasiStaticDetector), which at 10 Hz still resolves the 0.5 Hz
-   corners; "variance" is the per-axis moving std over the trailing window_s, exact at block
+   the per-axis chains of QuasiStaticDetector; one compiled loop, SciPy's sosfilt arithmetic),
+   which at 10 Hz still resolves the 0.5 Hz corners; "variance" is the per-axis moving std over the trailing window_s, exact at block
    boundaries (from the block means and scatters). A block is still when its detection
    signal is below ``threshold_g``, it is usable (finite, no time gap), the filters have
    settled, and — what the block means cannot see — the per-axis std of its own samples is
@@ -43,15 +44,14 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ._blockkernels import block_pass, lotters_chain, sosfilt
 from .calibration import Calibration
 from .detectors import estimate_fs
 from .detectors.butterworth import butter_sos, sos_rest_state
-from .detectors.windowing import _filter_rows, _sosfilt_inplace
 from .windows import WindowSet
 
 BLOCK_S = 0.1  # block length [s]: 10 Hz detection, boundaries to 0.1 s
 CHUNK_BLOCKS = 4096  # blocks per chunk of the reducing pass (a few 100 kB per channel: stays in the CPU cache)
-DETECT_CHUNK = 1 << 15  # blocks per chunk of the detection filters (reused buffers)
 THREADS = 2  # chunks of the reducing pass are shared between this many threads
 
 _I6 = np.array([0, 1, 2, 0, 0, 1])
@@ -133,48 +133,19 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
     usable = np.empty(nb, dtype=bool)
     step = 1.5 / fs
     chunk = CHUNK_BLOCKS * B
-    ones = np.ones(B, dtype=np.float32)
     starts = list(range(0, nb * B, chunk))
     done = [0]
     lock = threading.Lock()
 
-    def work(i: int, ws: dict[str, np.ndarray]) -> None:
+    def work(i: int) -> None:
         j = min(i + chunk, nb * B)
-        m, b0 = (j - i) // B, i // B
-        D = ws["D"][:, :m * B]  # (3, m*B) float32: samples minus their block's first sample
-        P = ws["P"][:, :m * B]
-        ref = np.empty((3, m))
-        for c in range(3):
-            x = channel(c, i, j)
-            r = x[::B]
-            ref[c] = r
-            np.subtract(x.reshape(m, B), r[:, None], out=D[c].reshape(m, B), casting="unsafe")
-        s1 = (D.reshape(3 * m, B) @ ones).reshape(3, m).astype(np.float64)
-        for q in range(6):
-            np.multiply(D[_I6[q]], D[_J6[q]], out=P[q])
-        s2 = (P.reshape(6 * m, B) @ ones).reshape(6, m).astype(np.float64)
-        mean[:, b0:b0 + m] = ref + s1 / B
-        scatter[:, b0:b0 + m] = s2 - s1[_I6] * s1[_J6] / B
-        with np.errstate(invalid="ignore"):
-            ok = np.isfinite(s1).all(axis=0) & np.isfinite(s2).all(axis=0)
-        # time: the step into every sample of the block (the first one's from the previous sample)
-        lo = max(i - 1, 0)
-        tc = ws["T"][:j - lo]
-        np.copyto(tc, t[lo:j], casting="unsafe")  # one strided copy into a reused buffer
-        dt = ws["dt"][:j - i]
-        if i == 0:
-            dt[0] = 1.0 / fs
-        np.subtract(tc[1:], tc[:-1], out=dt[j - i - (j - lo - 1):])
-        with np.errstate(invalid="ignore"):
-            if not (dt.min() > 0 and dt.max() <= step):  # NaN fails this too
-                bad = ~((dt > 0) & (dt <= step))
-                ok &= ~bad.reshape(m, B).any(axis=1)
-        if k:
-            a = np.asarray(aux[i:j], dtype=np.float64)
-            am = a.reshape(m, B, k).mean(axis=1).T
-            aux_mean[:, b0:b0 + m] = am
-            ok &= np.isfinite(am).all(axis=0)
-        usable[b0:b0 + m] = ok
+        xs = [_floats(channel(c, i, j), (np.float32, np.float64)) for c in range(3)]
+        if len({x.dtype for x in xs}) > 1:
+            xs = [np.asarray(x, dtype=np.float64) for x in xs]
+        # the kernel checks each step into a sample: the chunk's times with the one before it
+        tc = _floats(t[max(i - 1, 0):j], (np.float64,))
+        a = None if aux is None else _floats(aux[i:j], (np.float64,))
+        block_pass(*xs, tc, a, B, i // B, step, mean, scatter, aux_mean, usable)  # releases the GIL
         for arr in release:
             release_mapped(arr, i, j)
         if progress is not None:
@@ -182,16 +153,10 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
                 done[0] += 1
                 progress(done[0], len(starts))
 
-    def workspace() -> dict[str, np.ndarray]:
-        return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32),
-                "T": np.empty(chunk + 1), "dt": np.empty(chunk)}
-
     if threads > 1 and len(starts) > 1:
-        spaces = [workspace() for _ in range(threads)]
-
         def lane(r: int) -> None:
             for i in starts[r::threads]:
-                work(i, spaces[r])
+                work(i)
 
         with ThreadPoolExecutor(threads - 1, thread_name_prefix="gravcal-blocks") as pool:
             jobs = [pool.submit(lane, r) for r in range(1, threads)]
@@ -199,12 +164,18 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
             for job in jobs:
                 job.result()
     else:
-        ws = workspace()
         for i in starts:
-            work(i, ws)
-    with np.errstate(invalid="ignore"):
-        usable &= np.isfinite(mean).all(axis=0)
+            work(i)
     return BlockStats(float(fs), B, mean, scatter, aux_mean, usable)
+
+
+def _floats(a: np.ndarray, kinds: tuple[type, ...]) -> np.ndarray:
+    """a itself when it holds native floats of one of ``kinds`` (any stride: the kernel reads it in
+    place), else a float64 copy (integer counts, another byte order)."""
+    a = np.asarray(a)
+    if a.dtype.type in kinds and a.dtype.isnative:
+        return a
+    return np.asarray(a, dtype=np.float64)
 
 
 def _to_g_affine(to_g: Calibration | None) -> tuple[np.ndarray, np.ndarray]:
@@ -247,7 +218,7 @@ def _axis_var_g(bs: BlockStats, kinv: np.ndarray, lo: int = 0, hi: int | None = 
 def _settle_blocks(sos: np.ndarray, final: float, corner_hz: float, fs_b: float, tol: float = 0.01) -> int:
     n = int(round(20.0 / corner_hz * fs_b))
     y = np.ones((1, n))
-    _sosfilt_inplace(sos, y, np.zeros((1, sos.shape[0], 2)))
+    sosfilt(np.ascontiguousarray(sos, dtype=np.float64), y, np.zeros((1, sos.shape[0], 2)))
     y = y[0]
     bad = np.flatnonzero(np.abs(y - final) > tol)
     return int(bad[-1] + 1) if bad.shape[0] else 0
@@ -270,52 +241,18 @@ def lotters_still(bs: BlockStats, to_g: Calibration | None = None, *, hp_hz: flo
     if not bs.usable.any():
         return still
     b0 = int(np.argmax(bs.usable))  # the first usable block
-    chans = 4 if per_axis else 1
     sos_hp = butter_sos(order, hp_hz, "highpass", fs_b)
     sos_lp = butter_sos(order, lp_hz, "lowpass", fs_b)
     settle = (int(round(settle_s * fs_b)) if settle_s is not None
               else _settle_blocks(sos_hp, 0.0, hp_hz, fs_b) + _settle_blocks(sos_lp, 1.0, lp_hz, fs_b))
-    zi_hp = zi_lp = None
-    last = None  # the last usable block in g, (3,): unusable blocks are held at it
-    thr2 = threshold_g ** 2
-    # chunks of blocks with reused buffers: filter states carried across (the streaming
-    # detector's sosfilt zi), so the result does not depend on the chunk length
-    u_buf = np.empty(4 * DETECT_CHUNK)
-    pool = ThreadPoolExecutor(1, thread_name_prefix="gravcal-filter") if chans > 1 else None
-    try:
-        for i in range(b0, nb, DETECT_CHUNK):
-            j = min(i + DETECT_CHUNK, nb)
-            u = u_buf[:4 * (j - i)].reshape(4, j - i)  # C-contiguous rows for the in-place filter kernel
-            ok = bs.usable[i:j]
-            _in_g(bs.mean[:, i:j], o, kinv, out=u[1:])
-            if last is None:
-                last = u[1:, 0].copy()
-            if not ok.all():  # held at the last usable block (core.detectors: the last finite sample)
-                idx = np.where(ok, np.arange(1, j - i + 1), 0)
-                np.maximum.accumulate(idx, out=idx)
-                u[1:] = np.concatenate([last[:, None], u[1:]], axis=1)[:, idx]
-            last = u[1:, -1].copy()
-            np.multiply(u[1], u[1], out=u[0])
-            u[0] += u[2] * u[2]
-            u[0] += u[3] * u[3]
-            np.sqrt(u[0], out=u[0])  # eq. 1
-            v = u[:chans]
-            if zi_hp is None:  # high-pass at rest for the first block (core.detectors: the first finite sample)
-                zi_hp = sos_rest_state(sos_hp)[None] * v[:, 0, None, None]  # (chans, sections, 2)
-                zi_lp = np.zeros((chans, sos_lp.shape[0], 2))
-            if pool is not None:  # two channels each in two threads (the SciPy kernel releases the GIL)
-                job = pool.submit(_filter_rows, sos_hp, sos_lp, v[2:], zi_hp[2:], zi_lp[2:])
-                _filter_rows(sos_hp, sos_lp, v[:2], zi_hp[:2], zi_lp[:2])
-                job.result()
-            else:
-                _filter_rows(sos_hp, sos_lp, v, zi_hp, zi_lp)
-            s = v.max(axis=0) < threshold_g  # eq. 2 (and the per-axis chains)
-            s &= ok
-            s &= _axis_var_g(bs, kinv, i, j).max(axis=0) < thr2 * bs.block_n
-            still[i:j] = s
-    finally:
-        if pool is not None:
-            pool.shutdown()
+    # K^-1 (mean - o), |a| (eq. 1), high-pass, rectifier, low-pass, < threshold (eq. 2) on the norm
+    # and (per_axis) the three axes, the within-block std gate; unusable blocks held at the last
+    # usable one, the high-pass at rest on the first (core.detectors: the first finite sample)
+    lotters_chain(np.ascontiguousarray(bs.mean, dtype=np.float64), np.ascontiguousarray(bs.usable),
+                  np.ascontiguousarray(bs.scatter, dtype=np.float32), np.ascontiguousarray(o, dtype=np.float64),
+                  np.ascontiguousarray(kinv, dtype=np.float64), sos_hp, sos_lp,
+                  np.ascontiguousarray(sos_rest_state(sos_hp)), 4 if per_axis else 1, float(threshold_g),
+                  float(threshold_g) ** 2 * bs.block_n, b0, still)
     still[b0:b0 + settle] = False
     return still
 

@@ -1,0 +1,438 @@
+/* Compiled loops of the offline block detector (core/fastdetect.py).
+ *
+ * block_pass     one chunk of block_stats: per block of B samples the mean, the 6 scatter sums,
+ *                the aux means and the usable flag, read straight from strided (e.g. memory-mapped
+ *                record) fields, accumulated in float64.
+ * lotters_chain  lotters_still on the block means: Lötters 1998 eq. 1-2 with the per-axis chains,
+ *                the same float64 operations in the same order as the numpy/SciPy form it replaces.
+ * sosfilt        SciPy's sosfilt kernel (direct form II transposed), in place.
+ *
+ * Buffers come through the buffer protocol only (no numpy C API). Every length, format and
+ * contiguity is checked before a loop runs; loops run without the GIL. Built with
+ * -ffp-contract=off: no fused multiply-add, so every operation rounds as numpy's do.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+#define MAX_SECTIONS 8 /* biquads per cascade (order 16): the state lives on the stack */
+
+/* ---- buffers ----------------------------------------------------------------------------- */
+
+/* 'f', 'd' or '?' for a native single-item format of the right size, else 0 */
+static char kind_of(const Py_buffer *v)
+{
+    const char *f = v->format ? v->format : "B";
+    if (*f == '@' || *f == '=')
+        f++;
+#if PY_LITTLE_ENDIAN
+    else if (*f == '<')
+        f++;
+#else
+    else if (*f == '>' || *f == '!')
+        f++;
+#endif
+    if (f[0] == 0 || f[1] != 0)
+        return 0;
+    if (f[0] == 'f' && v->itemsize == 4)
+        return 'f';
+    if (f[0] == 'd' && v->itemsize == 8)
+        return 'd';
+    if (f[0] == '?' && v->itemsize == 1)
+        return '?';
+    return 0;
+}
+
+static const char *kind_name(char k)
+{
+    return k == 'f' ? "float32" : k == 'd' ? "float64" : "bool";
+}
+
+/* a strided read-only view of ndim 1 or 2 (ndim_max 2 also accepts 1-D as (n, 1)) holding
+ * items of one of the kinds in `kinds`; sets an exception and returns -1 on failure */
+static int get_strided(PyObject *obj, Py_buffer *v, const char *name, const char *kinds, int ndim_max)
+{
+    if (PyObject_GetBuffer(obj, v, PyBUF_RECORDS_RO) < 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s must be an array of floats (buffer protocol)", name);
+        return -1;
+    }
+    char k = kind_of(v);
+    if (k == 0 || strchr(kinds, k) == NULL) {
+        PyErr_Format(PyExc_TypeError, "%s must hold native %s, got format '%s'", name,
+                     kinds[1] ? "float32 or float64" : kind_name(kinds[0]), v->format ? v->format : "B");
+        PyBuffer_Release(v);
+        return -1;
+    }
+    if (v->ndim < 1 || v->ndim > ndim_max) {
+        PyErr_Format(PyExc_ValueError, "%s must be %d-D, got %d-D", name, ndim_max, v->ndim);
+        PyBuffer_Release(v);
+        return -1;
+    }
+    return 0;
+}
+
+/* a writable (or read-only) C-contiguous buffer of `count` items of kind `kind` */
+static int get_contiguous(PyObject *obj, Py_buffer *v, const char *name, char kind, Py_ssize_t count,
+                          int writable)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, v, flags) < 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s must be a C-contiguous%s %s array", name, writable ? " writable" : "",
+                     kind_name(kind));
+        return -1;
+    }
+    if (kind_of(v) != kind) {
+        PyErr_Format(PyExc_TypeError, "%s must hold %s, got format '%s'", name, kind_name(kind),
+                     v->format ? v->format : "B");
+        PyBuffer_Release(v);
+        return -1;
+    }
+    if (count >= 0 && v->len != count * v->itemsize) {
+        PyErr_Format(PyExc_ValueError, "%s must hold %zd items, got %zd", name, count, v->len / v->itemsize);
+        PyBuffer_Release(v);
+        return -1;
+    }
+    return 0;
+}
+
+static void release_all(Py_buffer *v, int n)
+{
+    for (int i = 0; i < n; i++)
+        if (v[i].obj != NULL)
+            PyBuffer_Release(&v[i]);
+}
+
+#define AT(view, i) ((const char *)(view).buf + (i) * (view).strides[0])
+
+/* ---- block_pass -------------------------------------------------------------------------- */
+
+static const int I6[6] = {0, 1, 2, 0, 0, 1};
+static const int J6[6] = {0, 1, 2, 1, 2, 2};
+
+/* One chunk of m blocks of B samples: the three channels x (strides sx), the times t (stride st,
+ * t[-1] readable unless `first`: the recording's first sample has no predecessor), outputs in
+ * blocks [col, col + m) of rows nb apart. */
+typedef struct {
+    const char *x[3], *t;
+    Py_ssize_t sx[3], st, B, m, nb, col;
+    int first;
+    double max_step;
+    double *mean;
+    float *scatter;
+    char *usable;
+} Chunk;
+
+/* The block's sums as fastdetect.block_stats defines them: d = x - x[first] (a nearby reference
+ * keeps the float64 sums exact to rounding), s = Σ d, q = Σ d_i d_j for the pairs (0,0) (1,1) (2,2)
+ * (0,1) (0,2) (1,2); mean = x[first] + s / B, scatter = q - s_i s_j / B. In the same loop, the
+ * step into each sample must lie in (0, max_step] (NaN fails). A non-finite sample makes its
+ * sums non-finite (x * 0 != 0 then), so the finiteness test is on the sums. */
+#define DEFINE_CHUNK(NAME, T)                                                                       \
+    static void NAME(const Chunk *c)                                                                \
+    {                                                                                               \
+        const Py_ssize_t B = c->B, nb = c->nb, s0 = c->sx[0], s1 = c->sx[1], s2 = c->sx[2];           \
+        const double inv_B = 1.0 / (double)B, max_step = c->max_step;                               \
+        const char *p0 = c->x[0], *p1 = c->x[1], *p2 = c->x[2], *tp = c->t;                         \
+        double prev = c->first ? *(const double *)tp - 0.5 * max_step : *(const double *)(tp - c->st); \
+        for (Py_ssize_t b = 0; b < c->m; b++) {                                                     \
+            const double r0 = *(const T *)p0, r1 = *(const T *)p1, r2 = *(const T *)p2;             \
+            double a0 = 0, a1 = 0, a2 = 0, q00 = 0, q11 = 0, q22 = 0, q01 = 0, q02 = 0, q12 = 0;      \
+            int ok = 1;                                                                             \
+            for (Py_ssize_t k = 0; k < B; k++) {                                                    \
+                const double d0 = (double)*(const T *)p0 - r0;                                      \
+                const double d1 = (double)*(const T *)p1 - r1;                                      \
+                const double d2 = (double)*(const T *)p2 - r2;                                      \
+                const double now = *(const double *)tp, dt = now - prev;                            \
+                p0 += s0, p1 += s1, p2 += s2, tp += c->st;                                          \
+                a0 += d0, a1 += d1, a2 += d2;                                                       \
+                q00 += d0 * d0, q11 += d1 * d1, q22 += d2 * d2;                                     \
+                q01 += d0 * d1, q02 += d0 * d2, q12 += d1 * d2;                                     \
+                ok &= (dt > 0.0) & (dt <= max_step);                                                \
+                prev = now;                                                                         \
+            }                                                                                       \
+            const double m0 = a0 * inv_B, m1 = a1 * inv_B, m2 = a2 * inv_B;                         \
+            const double w[6] = {q00 - a0 * m0, q11 - a1 * m1, q22 - a2 * m2,                       \
+                                 q01 - a0 * m1, q02 - a0 * m2, q12 - a1 * m2};                      \
+            double *mo = c->mean + c->col + b;                                                      \
+            float *so = c->scatter + c->col + b;                                                    \
+            mo[0] = r0 + m0, mo[nb] = r1 + m1, mo[2 * nb] = r2 + m2;                                \
+            double all = mo[0] + mo[nb] + mo[2 * nb];                                               \
+            for (int p = 0; p < 6; p++) {                                                           \
+                so[p * nb] = (float)w[p];                                                           \
+                all += w[p];                                                                        \
+            }                                                                                       \
+            c->usable[c->col + b] = (char)(ok & (all * 0.0 == 0.0));                                \
+        }                                                                                           \
+    }
+
+DEFINE_CHUNK(chunk_f, float)
+DEFINE_CHUNK(chunk_d, double)
+
+static PyObject *block_pass(PyObject *self, PyObject *args)
+{
+    PyObject *ox[3], *ot, *oaux, *omean, *oscat, *oam, *ouse;
+    Py_ssize_t B, b0;
+    double max_step;
+    if (!PyArg_ParseTuple(args, "OOOOOnndOOOO:block_pass", &ox[0], &ox[1], &ox[2], &ot, &oaux, &B, &b0,
+                          &max_step, &omean, &oscat, &oam, &ouse))
+        return NULL;
+    Py_buffer v[9] = {{0}};
+    Py_buffer *x = v, *t = v + 3, *aux = v + 4, *mean = v + 5, *scat = v + 6, *am = v + 7, *use = v + 8;
+    static const char *xname[3] = {"channel 0", "channel 1", "channel 2"};
+    for (int c = 0; c < 3; c++)
+        if (get_strided(ox[c], &x[c], xname[c], "fd", 1) < 0)
+            goto fail;
+    char kind = kind_of(&x[0]);
+    Py_ssize_t L = x[0].shape[0];
+    if (kind_of(&x[1]) != kind || kind_of(&x[2]) != kind || x[1].shape[0] != L || x[2].shape[0] != L) {
+        PyErr_SetString(PyExc_ValueError, "the three channels must have one length and one float type");
+        goto fail;
+    }
+    if (B < 1 || L % B != 0) {
+        PyErr_Format(PyExc_ValueError, "block_n must be >= 1 and divide the chunk length %zd, got %zd", L, B);
+        goto fail;
+    }
+    Py_ssize_t m = L / B;
+    if (get_strided(ot, t, "t", "d", 1) < 0)
+        goto fail;
+    Py_ssize_t t_off = t->shape[0] - L; /* 1: t starts with the sample before the chunk */
+    if (t_off != 0 && t_off != 1) {
+        PyErr_Format(PyExc_ValueError, "t must hold the chunk's %zd times (or one more before them), got %zd", L,
+                     t->shape[0]);
+        goto fail;
+    }
+    Py_ssize_t k_aux = 0, aux_s1 = 0;
+    if (oaux != Py_None) {
+        if (get_strided(oaux, aux, "aux", "d", 2) < 0)
+            goto fail;
+        k_aux = aux->ndim == 2 ? aux->shape[1] : 1;
+        aux_s1 = aux->ndim == 2 ? aux->strides[1] : 0;
+        if (aux->shape[0] != L) {
+            PyErr_Format(PyExc_ValueError, "aux must have the chunk's %zd rows, got %zd", L, aux->shape[0]);
+            goto fail;
+        }
+    }
+    if (get_contiguous(ouse, use, "usable", '?', -1, 1) < 0)
+        goto fail;
+    Py_ssize_t nb = use->len;
+    if (get_contiguous(omean, mean, "mean", 'd', 3 * nb, 1) < 0 ||
+        get_contiguous(oscat, scat, "scatter", 'f', 6 * nb, 1) < 0 ||
+        get_contiguous(oam, am, "aux_mean", 'd', k_aux * nb, 1) < 0)
+        goto fail;
+    if (b0 < 0 || b0 > nb - m) {
+        PyErr_Format(PyExc_ValueError, "blocks [%zd, %zd) lie outside the %zd output blocks", b0, b0 + m, nb);
+        goto fail;
+    }
+    if (m == 0)
+        goto done;
+
+    Chunk c = {{x[0].buf, x[1].buf, x[2].buf}, AT(*t, t_off), {x[0].strides[0], x[1].strides[0], x[2].strides[0]},
+               t->strides[0], B, m, nb, b0, t_off == 0, max_step, mean->buf, scat->buf, use->buf};
+    double *ao = am->buf;
+    Py_BEGIN_ALLOW_THREADS
+    if (kind == 'f')
+        chunk_f(&c);
+    else
+        chunk_d(&c);
+    for (Py_ssize_t a = 0; a < k_aux; a++) /* aux block means (numpy: aux.reshape(m, B, k).mean(axis=1)) */
+        for (Py_ssize_t b = 0; b < m; b++) {
+            double sa = 0.0;
+            for (Py_ssize_t k = 0; k < B; k++)
+                sa += *(const double *)(AT(*aux, b * B + k) + a * aux_s1);
+            double ma = sa / (double)B;
+            ao[a * nb + b0 + b] = ma;
+            if (!isfinite(ma))
+                c.usable[b0 + b] = 0;
+        }
+    Py_END_ALLOW_THREADS
+done:
+    release_all(v, 9);
+    Py_RETURN_NONE;
+fail:
+    release_all(v, 9);
+    return NULL;
+}
+
+/* ---- the Lötters chain ------------------------------------------------------------------- */
+
+/* One sample through a cascade of biquads in direct form II transposed, exactly as SciPy's
+ * _sosfilt_float (scipy/signal/_sosfilt.pyx) writes each operation:
+ *   y = b0 x + z0;  z0 = b1 x - a1 y + z1;  z1 = b2 x - a2 y   (sos rows b0 b1 b2 a0 a1 a2, a0 = 1) */
+static inline double cascade(const double *sos, double *z, int ns, double x)
+{
+    for (int s = 0; s < ns; s++) {
+        const double *c = sos + 6 * s;
+        double y = c[0] * x + z[2 * s];
+        z[2 * s] = c[1] * x - c[4] * y + z[2 * s + 1];
+        z[2 * s + 1] = c[2] * x - c[5] * y;
+        x = y;
+    }
+    return x;
+}
+
+static PyObject *lotters_chain(PyObject *self, PyObject *args)
+{
+    PyObject *omean, *ouse, *oscat, *oo, *okinv, *ohp, *olp, *orest, *ostill, *otrace = Py_None;
+    int chans;
+    double thr, var_limit;
+    Py_ssize_t b0;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOiddnO|O:lotters_chain", &omean, &ouse, &oscat, &oo, &okinv, &ohp, &olp,
+                          &orest, &chans, &thr, &var_limit, &b0, &ostill, &otrace))
+        return NULL;
+    Py_buffer v[10] = {{0}};
+    Py_buffer *mean = v, *use = v + 1, *scat = v + 2, *off = v + 3, *kv = v + 4, *hp = v + 5, *lp = v + 6,
+              *rest = v + 7, *still = v + 8, *trace = v + 9;
+    if (get_contiguous(ouse, use, "usable", '?', -1, 0) < 0)
+        goto fail;
+    Py_ssize_t nb = use->len;
+    if (get_contiguous(omean, mean, "mean", 'd', 3 * nb, 0) < 0 ||
+        get_contiguous(oscat, scat, "scatter", 'f', 6 * nb, 0) < 0 ||
+        get_contiguous(oo, off, "offset", 'd', 3, 0) < 0 || get_contiguous(okinv, kv, "kinv", 'd', 9, 0) < 0 ||
+        get_contiguous(ohp, hp, "sos_hp", 'd', -1, 0) < 0 || get_contiguous(olp, lp, "sos_lp", 'd', -1, 0) < 0 ||
+        get_contiguous(ostill, still, "still", '?', nb, 1) < 0)
+        goto fail;
+    Py_ssize_t nhp = hp->len / 48, nlp = lp->len / 48;
+    if (hp->len % 48 || lp->len % 48 || nhp < 1 || nlp < 1 || nhp > MAX_SECTIONS || nlp > MAX_SECTIONS) {
+        PyErr_Format(PyExc_ValueError, "sos_hp and sos_lp must be (sections, 6) with 1 to %d sections", MAX_SECTIONS);
+        goto fail;
+    }
+    if (get_contiguous(orest, rest, "rest_hp", 'd', 2 * nhp, 0) < 0)
+        goto fail;
+    if (chans < 1 || chans > 4) {
+        PyErr_Format(PyExc_ValueError, "channels must be 1 (the norm) to 4 (norm and axes), got %d", chans);
+        goto fail;
+    }
+    if (b0 < 0 || b0 > nb) {
+        PyErr_Format(PyExc_ValueError, "first block %zd outside the %zd blocks", b0, nb);
+        goto fail;
+    }
+    if (otrace != Py_None && get_contiguous(otrace, trace, "trace", 'd', 7 * nb, 1) < 0)
+        goto fail;
+    double *tr = otrace != Py_None ? trace->buf : NULL; /* (7, nb): each channel's low-passed signal, per-axis scatter */
+
+    const double *mo = mean->buf, *o = off->buf, *K = kv->buf, *sh = hp->buf, *sl = lp->buf, *rs = rest->buf;
+    const float *sc = scat->buf;
+    const char *uo = use->buf;
+    char *out = still->buf;
+    int ns_hp = (int)nhp, ns_lp = (int)nlp;
+    Py_BEGIN_ALLOW_THREADS
+    /* per-axis within-block scatter in g² (fastdetect._axis_var_g): Σ_q c_iq W_q, c_iq = K⁻¹_iI K⁻¹_iJ (x2 off
+     * the diagonal), zero terms skipped as there */
+    double cv[3][6];
+    for (int i = 0; i < 3; i++)
+        for (int p = 0; p < 6; p++)
+            cv[i][p] = K[3 * i + I6[p]] * K[3 * i + J6[p]] * (I6[p] == J6[p] ? 1.0 : 2.0);
+    double zh[4][2 * MAX_SECTIONS], zl[4][2 * MAX_SECTIONS] = {{0}}, last[3] = {0, 0, 0};
+    for (Py_ssize_t b = b0; b < nb; b++) {
+        int ok = uo[b] != 0;
+        double u[4];
+        if (ok || b == b0) { /* K⁻¹ (mean - o) (fastdetect._in_g: column by column from 0) */
+            double g[3] = {0.0, 0.0, 0.0};
+            for (int j = 0; j < 3; j++) {
+                double d = mo[j * nb + b] - o[j];
+                for (int i = 0; i < 3; i++)
+                    if (K[3 * i + j] != 0.0)
+                        g[i] += K[3 * i + j] * d;
+            }
+            for (int i = 0; i < 3; i++)
+                last[i] = g[i];
+        } /* an unusable block is held at the last usable one */
+        u[1] = last[0], u[2] = last[1], u[3] = last[2];
+        u[0] = u[1] * u[1];
+        u[0] += u[2] * u[2];
+        u[0] += u[3] * u[3];
+        u[0] = sqrt(u[0]); /* eq. 1: |a| */
+        if (b == b0) /* the high-pass at rest on the first block (sos_rest_state x first value) */
+            for (int c = 0; c < chans; c++)
+                for (int k = 0; k < 2 * ns_hp; k++)
+                    zh[c][k] = rs[k] * u[c];
+        int s = ok;
+        for (int c = 0; c < chans; c++) { /* high-pass, rectifier, low-pass (eq. 2), per channel */
+            double y = fabs(cascade(sh, zh[c], ns_hp, u[c]));
+            y = cascade(sl, zl[c], ns_lp, y);
+            s &= y < thr;
+            if (tr)
+                tr[c * nb + b] = y;
+        }
+        for (int i = 0; i < 3; i++) { /* the within-block std gate (what the block means cannot see) */
+            double w = 0.0;
+            for (int p = 0; p < 6; p++)
+                if (cv[i][p] != 0.0)
+                    w += cv[i][p] * (double)sc[p * nb + b];
+            s &= w < var_limit;
+            if (tr)
+                tr[(4 + i) * nb + b] = w;
+        }
+        out[b] = (char)s;
+    }
+    Py_END_ALLOW_THREADS
+    release_all(v, 10);
+    Py_RETURN_NONE;
+fail:
+    release_all(v, 10);
+    return NULL;
+}
+
+/* ---- sosfilt ------------------------------------------------------------------------------ */
+
+static PyObject *sosfilt(PyObject *self, PyObject *args)
+{
+    PyObject *osos, *ox, *ozi;
+    if (!PyArg_ParseTuple(args, "OOO:sosfilt", &osos, &ox, &ozi))
+        return NULL;
+    Py_buffer v[3] = {{0}};
+    Py_buffer *sos = v, *x = v + 1, *zi = v + 2;
+    if (get_contiguous(osos, sos, "sos", 'd', -1, 0) < 0 || get_contiguous(ox, x, "x", 'd', -1, 1) < 0)
+        goto fail;
+    Py_ssize_t ns = sos->len / 48;
+    if (sos->len % 48 || ns < 1) {
+        PyErr_SetString(PyExc_ValueError, "sos must be (sections, 6) with at least one section");
+        goto fail;
+    }
+    if (x->ndim != 2) {
+        PyErr_Format(PyExc_ValueError, "x must be 2-D (signals, samples), got %d-D", x->ndim);
+        goto fail;
+    }
+    Py_ssize_t signals = x->shape[0], n = x->shape[1];
+    if (get_contiguous(ozi, zi, "zi", 'd', signals * ns * 2, 1) < 0)
+        goto fail;
+    double *xs = x->buf, *z = zi->buf;
+    const double *c = sos->buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t i = 0; i < signals; i++) {
+        double *zs = z + i * ns * 2, *row = xs + i * n;
+        for (Py_ssize_t k = 0; k < n; k++)
+            row[k] = cascade(c, zs, (int)ns, row[k]);
+    }
+    Py_END_ALLOW_THREADS
+    release_all(v, 3);
+    Py_RETURN_NONE;
+fail:
+    release_all(v, 3);
+    return NULL;
+}
+
+static PyMethodDef methods[] = {
+    {"block_pass", block_pass, METH_VARARGS,
+     "block_pass(x0, x1, x2, t, aux, block_n, b0, max_step, mean, scatter, aux_mean, usable)\n"
+     "Block statistics of one chunk (see core.fastdetect.block_stats), written to blocks [b0, b0 + m)."},
+    {"lotters_chain", lotters_chain, METH_VARARGS,
+     "lotters_chain(mean, usable, scatter, offset, kinv, sos_hp, sos_lp, rest_hp, channels, threshold,\n"
+     "              var_limit, b0, still, trace=None)\nStill blocks from b0 on by Lötters' detector (core.fastdetect.lotters_still);\n"
+     "trace (7, nb) float64, optional: each channel's detection signal and the per-axis within-block scatter [g²]."},
+    {"sosfilt", sosfilt, METH_VARARGS,
+     "sosfilt(sos, x, zi)\nx (signals, n) and zi (signals, sections, 2) float64, filtered in place as scipy's sosfilt."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_blockkernels",
+                                    "Compiled loops of core.fastdetect (no numpy C API).", -1, methods,
+                                    NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__blockkernels(void)
+{
+    return PyModule_Create(&module);
+}
