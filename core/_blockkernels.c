@@ -261,7 +261,7 @@ fail:
 /* One sample through a cascade of biquads in direct form II transposed, exactly as SciPy's
  * _sosfilt_float (scipy/signal/_sosfilt.pyx) writes each operation:
  *   y = b0 x + z0;  z0 = b1 x - a1 y + z1;  z1 = b2 x - a2 y   (sos rows b0 b1 b2 a0 a1 a2, a0 = 1) */
-static inline double cascade(const double *sos, double *z, int ns, double x)
+static inline __attribute__((always_inline)) double cascade(const double *sos, double *z, int ns, double x)
 {
     for (int s = 0; s < ns; s++) {
         const double *c = sos + 6 * s;
@@ -271,6 +271,84 @@ static inline double cascade(const double *sos, double *z, int ns, double x)
         x = y;
     }
     return x;
+}
+
+typedef struct {
+    const double *mean, *o, *K, *sos_hp, *sos_lp, *rest;
+    const float *scatter;
+    const char *usable;
+    char *still;
+    double *trace; /* NULL, or (7, nb): each channel's detection signal, the per-axis scatter [g²] */
+    Py_ssize_t nb, b0;
+    double thr, var_limit;
+} Chain;
+
+#define CHAIN_CHUNK 1024 /* blocks per pass of chain_run (its signals stay in the L1 cache) */
+
+/* Two passes per chunk of blocks: first what each block decides on its own (K⁻¹ (mean - o) with
+ * the hold rule, |a|, the within-block std gate), then the filters, whose states are the only
+ * thing carried from block to block (all channels interleaved, so their dependency chains
+ * overlap). */
+static inline __attribute__((always_inline)) void chain_run(const Chain *a, int chans, int ns_hp, int ns_lp)
+{
+    const Py_ssize_t nb = a->nb;
+    const double *K = a->K;
+    /* per-axis within-block scatter in g² (fastdetect._axis_var_g): Σ_q c_iq W_q, c_iq = K⁻¹_iI K⁻¹_iJ (x2 off
+     * the diagonal). _axis_var_g and _in_g skip zero coefficients; adding their ±0 products instead
+     * gives the same bits (a sum started at +0.0 never becomes -0.0, and x + ±0 = x otherwise) for
+     * the finite means and scatters of usable blocks, and saves a branch per term. */
+    double cv[3][6];
+    for (int i = 0; i < 3; i++)
+        for (int p = 0; p < 6; p++)
+            cv[i][p] = K[3 * i + I6[p]] * K[3 * i + J6[p]] * (I6[p] == J6[p] ? 1.0 : 2.0);
+    double zh[4][2 * MAX_SECTIONS] = {{0}}, zl[4][2 * MAX_SECTIONS] = {{0}}, last[3] = {0, 0, 0};
+    double u[CHAIN_CHUNK][4];
+    for (Py_ssize_t lo = a->b0; lo < nb; lo += CHAIN_CHUNK) {
+        const Py_ssize_t n = nb - lo < CHAIN_CHUNK ? nb - lo : CHAIN_CHUNK;
+        for (Py_ssize_t k = 0; k < n; k++) {
+            const Py_ssize_t b = lo + k;
+            int ok = a->usable[b] != 0;
+            if (ok || b == a->b0) { /* K⁻¹ (mean - o) (fastdetect._in_g: column by column from +0.0) */
+                double g[3] = {0.0, 0.0, 0.0};
+                for (int j = 0; j < 3; j++) {
+                    double d = a->mean[j * nb + b] - a->o[j];
+                    for (int i = 0; i < 3; i++)
+                        g[i] += K[3 * i + j] * d;
+                }
+                last[0] = g[0], last[1] = g[1], last[2] = g[2];
+            } /* an unusable block is held at the last usable one */
+            double *v = u[k];
+            v[1] = last[0], v[2] = last[1], v[3] = last[2];
+            v[0] = v[1] * v[1];
+            v[0] += v[2] * v[2];
+            v[0] += v[3] * v[3];
+            v[0] = sqrt(v[0]); /* eq. 1: |a| */
+            for (int i = 0; i < 3; i++) { /* the within-block std gate (what the block means cannot see) */
+                double w = 0.0;
+                for (int p = 0; p < 6; p++)
+                    w += cv[i][p] * (double)a->scatter[p * nb + b];
+                ok &= w < a->var_limit;
+                if (a->trace)
+                    a->trace[(4 + i) * nb + b] = w;
+            }
+            a->still[b] = (char)ok;
+        }
+        if (lo == a->b0) /* the high-pass at rest on the first block (sos_rest_state x first value) */
+            for (int c = 0; c < chans; c++)
+                for (int k = 0; k < 2 * ns_hp; k++)
+                    zh[c][k] = a->rest[k] * u[0][c];
+        for (Py_ssize_t k = 0; k < n; k++) {
+            int s = 1;
+            for (int c = 0; c < chans; c++) { /* high-pass, rectifier, low-pass (eq. 2), per channel */
+                double y = fabs(cascade(a->sos_hp, zh[c], ns_hp, u[k][c]));
+                y = cascade(a->sos_lp, zl[c], ns_lp, y);
+                s &= y < a->thr;
+                if (a->trace)
+                    a->trace[c * nb + lo + k] = y;
+            }
+            a->still[lo + k] &= (char)s;
+        }
+    }
 }
 
 static PyObject *lotters_chain(PyObject *self, PyObject *args)
@@ -311,63 +389,19 @@ static PyObject *lotters_chain(PyObject *self, PyObject *args)
     }
     if (otrace != Py_None && get_contiguous(otrace, trace, "trace", 'd', 7 * nb, 1) < 0)
         goto fail;
-    double *tr = otrace != Py_None ? trace->buf : NULL; /* (7, nb): each channel's low-passed signal, per-axis scatter */
+    double *tr = otrace != Py_None ? trace->buf : NULL;
 
-    const double *mo = mean->buf, *o = off->buf, *K = kv->buf, *sh = hp->buf, *sl = lp->buf, *rs = rest->buf;
-    const float *sc = scat->buf;
-    const char *uo = use->buf;
-    char *out = still->buf;
-    int ns_hp = (int)nhp, ns_lp = (int)nlp;
+    Chain ch = {mean->buf, off->buf, kv->buf, hp->buf, lp->buf, rest->buf, scat->buf, use->buf, still->buf, tr,
+                nb, b0, thr, var_limit};
     Py_BEGIN_ALLOW_THREADS
-    /* per-axis within-block scatter in g² (fastdetect._axis_var_g): Σ_q c_iq W_q, c_iq = K⁻¹_iI K⁻¹_iJ (x2 off
-     * the diagonal), zero terms skipped as there */
-    double cv[3][6];
-    for (int i = 0; i < 3; i++)
-        for (int p = 0; p < 6; p++)
-            cv[i][p] = K[3 * i + I6[p]] * K[3 * i + J6[p]] * (I6[p] == J6[p] ? 1.0 : 2.0);
-    double zh[4][2 * MAX_SECTIONS], zl[4][2 * MAX_SECTIONS] = {{0}}, last[3] = {0, 0, 0};
-    for (Py_ssize_t b = b0; b < nb; b++) {
-        int ok = uo[b] != 0;
-        double u[4];
-        if (ok || b == b0) { /* K⁻¹ (mean - o) (fastdetect._in_g: column by column from 0) */
-            double g[3] = {0.0, 0.0, 0.0};
-            for (int j = 0; j < 3; j++) {
-                double d = mo[j * nb + b] - o[j];
-                for (int i = 0; i < 3; i++)
-                    if (K[3 * i + j] != 0.0)
-                        g[i] += K[3 * i + j] * d;
-            }
-            for (int i = 0; i < 3; i++)
-                last[i] = g[i];
-        } /* an unusable block is held at the last usable one */
-        u[1] = last[0], u[2] = last[1], u[3] = last[2];
-        u[0] = u[1] * u[1];
-        u[0] += u[2] * u[2];
-        u[0] += u[3] * u[3];
-        u[0] = sqrt(u[0]); /* eq. 1: |a| */
-        if (b == b0) /* the high-pass at rest on the first block (sos_rest_state x first value) */
-            for (int c = 0; c < chans; c++)
-                for (int k = 0; k < 2 * ns_hp; k++)
-                    zh[c][k] = rs[k] * u[c];
-        int s = ok;
-        for (int c = 0; c < chans; c++) { /* high-pass, rectifier, low-pass (eq. 2), per channel */
-            double y = fabs(cascade(sh, zh[c], ns_hp, u[c]));
-            y = cascade(sl, zl[c], ns_lp, y);
-            s &= y < thr;
-            if (tr)
-                tr[c * nb + b] = y;
-        }
-        for (int i = 0; i < 3; i++) { /* the within-block std gate (what the block means cannot see) */
-            double w = 0.0;
-            for (int p = 0; p < 6; p++)
-                if (cv[i][p] != 0.0)
-                    w += cv[i][p] * (double)sc[p * nb + b];
-            s &= w < var_limit;
-            if (tr)
-                tr[(4 + i) * nb + b] = w;
-        }
-        out[b] = (char)s;
-    }
+    /* the default (order 2: one biquad each, norm and axes) with constant trip counts, so that the
+     * filter states live in registers; the same operations as the general form */
+    if (nhp == 1 && nlp == 1 && chans == 4)
+        chain_run(&ch, 4, 1, 1);
+    else if (nhp == 1 && nlp == 1 && chans == 1)
+        chain_run(&ch, 1, 1, 1);
+    else
+        chain_run(&ch, chans, (int)nhp, (int)nlp);
     Py_END_ALLOW_THREADS
     release_all(v, 10);
     Py_RETURN_NONE;
