@@ -278,3 +278,24 @@ def test_sosfilt_is_scipys_bit_for_bit(sections):
         sosfilt(np.ascontiguousarray(sos), got, np.zeros((3, sections + 2, 2)))
     with pytest.raises(ValueError, match="x must be 2-D"):
         sosfilt(np.ascontiguousarray(sos), got[0].copy(), z[0].copy())
+
+
+def test_scan_chunk_refuses_bad_buffers_by_name():
+    from gravcal.core._blockkernels import scan_chunk
+
+    good = dict(t=np.arange(10.0), x0=np.zeros(10), x1=np.zeros(10), x2=np.zeros(10), prev=None, state=np.zeros(14),
+                same=np.zeros(10, bool))
+    cases = [
+        (dict(t=np.arange(10, dtype=np.int64)), TypeError, "t must hold native float64"),
+        (dict(x1=np.zeros(9)), ValueError, "must have one length (10)"),
+        (dict(x2=np.zeros(10, np.float32)), ValueError, "the channels one float type"),
+        (dict(prev=np.zeros(3)), ValueError, "prev must hold 4 items"),
+        (dict(state=np.zeros(13)), ValueError, "state must hold 14 items"),
+        (dict(state=np.zeros(28)[::2]), TypeError, "state must be a C-contiguous writable float64"),
+        (dict(same=np.zeros(11, bool)), ValueError, "same must hold 10 items"),
+    ]
+    for change, error, words in cases:
+        with pytest.raises(error) as exc:
+            scan_chunk(*{**good, **change}.values())
+        assert words in str(exc.value), change
+    scan_chunk(*good.values())  # and the good arguments pass
