@@ -44,7 +44,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ._blockkernels import block_pass, lotters_chain, sosfilt
+from ._blockkernels import block_pass, lotters_chain, sosfilt, window_sums
 from .calibration import Calibration
 from .detectors import estimate_fs
 from .detectors.butterworth import butter_sos, sos_rest_state
@@ -337,46 +337,15 @@ def windows_from_still(bs: BlockStats, still: np.ndarray, t: np.ndarray, *, min_
                      end.astype(np.int64))
 
 
-_SPAN_BLOCKS = 1 << 18  # blocks summed at once by _window_sums (bounded temporaries)
-
-
 def _window_sums(bs: BlockStats, ps: np.ndarray, pe: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean (3, m), scatter (6, m) and aux mean (k, m) of the samples of block ranges [ps, pe).
-
-    Per batch of windows spanning at most _SPAN_BLOCKS blocks: sums of the block means minus
-    one reference r (the batch's first block mean) and of their products, cut at [ps, pe) by
-    np.add.reduceat. Σ (m_b - m)(m_b - m)ᵀ = Σ d dᵀ - (Σ d)(Σ d)ᵀ / n_b holds for d = m_b - r with
-    any r; a nearby r (posture differences, not raw offsets) keeps the cancellation harmless."""
-    m, B, k = ps.shape[0], bs.block_n, bs.aux.shape[0]
+    """Mean (3, m), scatter (6, m) and aux mean (k, m) of the samples of block ranges [ps, pe):
+    per window, sums of the block means minus the window's first one and of their products,
+    Σ (m_b - m)(m_b - m)ᵀ = Σ d dᵀ - (Σ d)(Σ d)ᵀ / n_b for d = m_b - r with any r (one compiled loop)."""
+    m, k = ps.shape[0], bs.aux.shape[0]
     mean, scat, aux = np.empty((3, m)), np.empty((6, m)), np.empty((k, m))
-    buf = np.empty((15 + k, 0))  # reused across batches: a fresh one per batch costs its page faults
-    lo = 0
-    while lo < m:
-        hi = lo + 1 + int(np.searchsorted(pe[lo + 1:], ps[lo] + _SPAN_BLOCKS, side="right"))
-        base, top = int(ps[lo]), int(pe[hi - 1])
-        span = top - base
-        if buf.shape[1] < span + 1:
-            buf = np.empty((15 + k, span + 1))
-        rows = buf[:, :span + 1]
-        rows[:, span] = 0.0  # the last cut's (discarded) segment
-        d = rows[:3, :span]
-        np.subtract(bs.mean[:, base:top], bs.mean[:, base, None], out=d)
-        for q in range(6):
-            np.multiply(d[_I6[q]], d[_J6[q]], out=rows[3 + q, :span])
-        rows[9:15, :span] = bs.scatter[:, base:top]
-        if k:
-            rows[15:, :span] = bs.aux[:, base:top]
-        cuts = np.empty(2 * (hi - lo), dtype=np.int64)
-        cuts[0::2], cuts[1::2] = ps[lo:hi] - base, pe[lo:hi] - base
-        sums = np.add.reduceat(rows, cuts, axis=1)[:, 0::2]
-        nb_w = (pe[lo:hi] - ps[lo:hi]).astype(float)
-        s1, s2 = sums[:3], sums[3:9]
-        # Σ_b (m_b - m)(m_b - m)ᵀ = Σ d dᵀ - (Σ d)(Σ d)ᵀ / n_b  (d = m_b - r for any r)
-        between = s2 - s1[_I6] * s1[_J6] / nb_w
-        mean[:, lo:hi] = bs.mean[:, base, None] + s1 / nb_w
-        scat[:, lo:hi] = sums[9:15] + B * between
-        aux[:, lo:hi] = sums[15:] / nb_w
-        lo = hi
+    window_sums(np.ascontiguousarray(bs.mean, dtype=np.float64), np.ascontiguousarray(bs.scatter, dtype=np.float32),
+                np.ascontiguousarray(bs.aux, dtype=np.float64), np.ascontiguousarray(ps, dtype=np.int64),
+                np.ascontiguousarray(pe, dtype=np.int64), bs.block_n, mean, scat, aux)
     return mean, scat, aux
 
 

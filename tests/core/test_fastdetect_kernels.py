@@ -299,3 +299,47 @@ def test_scan_chunk_refuses_bad_buffers_by_name():
             scan_chunk(*{**good, **change}.values())
         assert words in str(exc.value), change
     scan_chunk(*good.values())  # and the good arguments pass
+
+
+# ---- window statistics ---------------------------------------------------------------------------
+
+def window_oracle(bs, ps, pe):
+    """The windows' mean, scatter and aux means in numpy, with bounds of their float64 rounding."""
+    mean, scat, aux, mean_tol, scat_tol = [], [], [], [], []
+    B = bs.block_n
+    for a, b in zip(ps, pe):
+        n = b - a
+        d = bs.mean[:, a:b] - bs.mean[:, a, None]
+        s, ad = d.sum(axis=1), np.abs(d)
+        q = np.array([(d[i] * d[j]).sum() for i, j in zip(I6, J6)])
+        w = bs.scatter[:, a:b].astype(np.float64).sum(axis=1)
+        mean.append(bs.mean[:, a] + s / n)
+        scat.append(w + B * (q - s[I6] * s[J6] / n))
+        aux.append(bs.aux[:, a:b].mean(axis=1))
+        # sums of n terms err by <= (n - 1) u Σ|term| either side; a few u more for the rest
+        mean_tol.append(2 * (n + 2) * U64 * (ad.sum(axis=1) / n + np.abs(mean[-1])))
+        prods = np.array([(ad[i] * ad[j]).sum() for i, j in zip(I6, J6)])
+        scat_tol.append(2 * (n + 4) * U64 * (np.abs(bs.scatter[:, a:b]).sum(axis=1) + B * (prods + np.abs(s[I6] * s[J6]) / n)))
+    return (np.array(mean).T, np.array(scat).T, np.array(aux).T, np.array(mean_tol).T, np.array(scat_tol).T)
+
+
+def test_window_sums_equal_the_numpy_form_to_rounding(daily_blocks):
+    bs, truth = daily_blocks
+    aux = np.vstack([np.linspace(20, 30, len(bs)), 1.5 + np.cos(np.arange(len(bs)))])  # no cancelling sums
+    bs = fastdetect.BlockStats(bs.fs, bs.block_n, bs.mean, bs.scatter, aux, bs.usable)
+    rng = np.random.default_rng(8)
+    ps = np.sort(rng.integers(1600, len(bs) - 700, 300))  # after the fixture's NaN blocks
+    pe = ps + rng.integers(1, 600, 300)  # overlapping, one-block and 60 s windows alike
+    mean, scat, amean = fastdetect._window_sums(bs, ps, pe)
+    want, want_scat, want_aux, mean_tol, scat_tol = window_oracle(bs, ps, pe)
+    assert np.all(np.abs(mean - want) <= mean_tol)
+    assert np.all(np.abs(scat - want_scat) <= scat_tol)
+    np.testing.assert_allclose(amean, want_aux, rtol=1e-13)
+    assert np.abs(scat).max() > 0
+
+
+def test_window_sums_refuse_ranges_outside_the_blocks(daily_blocks):
+    bs, _ = daily_blocks
+    for ps, pe in (([5], [5]), ([-1], [3]), ([0], [len(bs) + 1]), ([7], [3])):
+        with pytest.raises(ValueError, match="not a non-empty range of the"):
+            fastdetect._window_sums(bs, np.array(ps), np.array(pe))
