@@ -58,29 +58,47 @@ _I6 = np.array([0, 1, 2, 0, 0, 1])
 _J6 = np.array([0, 1, 2, 1, 2, 2])
 
 
-def release_mapped(a: np.ndarray, lo: int, hi: int) -> None:
-    """Drop rows [lo, hi) of a read-only memory-mapped array from this process's resident set.
-
-    The data stays in the page cache (reading them again is a minor fault, no I/O); only the
-    process stops holding them, so one pass over a mapped 1.2 GB file does not leave 1.2 GB in
-    its RSS. A no-op for anything but a read-only np.memmap (or a view of one): for private
-    memory, MADV_DONTNEED would zero the data.
-    """
+def _mapped_rows(a: np.ndarray) -> tuple[Any, int, int] | None:
+    """(mmap, byte offset of row 0 in it, row stride) of a read-only np.memmap (or a view of one),
+    else None: for private memory, MADV_DONTNEED would zero the data."""
     base: Any = a
     while base is not None and not isinstance(base, np.memmap):
         base = getattr(base, "base", None)
     mm = getattr(base, "_mmap", None)
-    if mm is None or getattr(base, "mode", None) != "r" or not hasattr(mm, "madvise") or hi <= lo:
-        return
+    if mm is None or getattr(base, "mode", None) != "r" or not hasattr(mm, "madvise") or a.ndim == 0:
+        return None
+    start = np.frombuffer(mm, dtype=np.uint8).__array_interface__["data"][0]
+    return mm, a.__array_interface__["data"][0] - start, a.strides[0]
+
+
+def row_releaser(arrays: Sequence[np.ndarray]) -> Callable[[int, int], None]:
+    """``release(lo, hi)``: drop rows [lo, hi) of the memory-mapped ones of ``arrays`` from this
+    process's resident set. The data stays in the page cache (reading them again is a minor fault,
+    no I/O); only the process stops holding them, so one pass over a mapped 1.2 GB file does not
+    leave 1.2 GB in its RSS. Each mapping is resolved once, and fields of the same records (t and
+    the triad of one structured .npy) are released once, not once per field."""
+    rows: list[tuple[Any, int, int]] = []
+    for a in arrays:
+        r = _mapped_rows(a) if isinstance(a, np.ndarray) else None
+        # another field of records already listed: within one record (stride) of it in the same mapping
+        if r is not None and not any(q[0] is r[0] and q[2] == r[2] and abs(q[1] - r[1]) < abs(r[2]) for q in rows):
+            rows.append(r)
     page = mmap.PAGESIZE
-    start_addr = np.frombuffer(mm, dtype=np.uint8).ctypes.data
-    stride = a.strides[0] if a.ndim else 0
-    first = a.ctypes.data + lo * stride - start_addr
-    last = a.ctypes.data + hi * stride - start_addr
-    first = (first // page) * page
-    last = min((last // page) * page, len(mm))
-    if last > first >= 0:
-        mm.madvise(mmap.MADV_DONTNEED, first, last - first)
+
+    def release(lo: int, hi: int) -> None:
+        for mm, offset, stride in rows:
+            first = (offset + lo * stride) // page * page
+            last = min((offset + hi * stride) // page * page, len(mm))
+            if last > first >= 0:
+                mm.madvise(mmap.MADV_DONTNEED, first, last - first)
+
+    return release
+
+
+def release_mapped(a: np.ndarray, lo: int, hi: int) -> None:
+    """Drop rows [lo, hi) of a read-only memory-mapped array from this process's resident set
+    (:func:`row_releaser` for one array and one range); a no-op for anything else."""
+    row_releaser([a])(lo, hi)
 
 
 @dataclass
@@ -136,6 +154,7 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
     starts = list(range(0, nb * B, chunk))
     done = [0]
     lock = threading.Lock()
+    drop = row_releaser(release)
 
     def work(i: int) -> None:
         j = min(i + chunk, nb * B)
@@ -146,8 +165,7 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
         tc = _floats(t[max(i - 1, 0):j], (np.float64,))
         a = None if aux is None else _floats(aux[i:j], (np.float64,))
         block_pass(*xs, tc, a, B, i // B, step, mean, scatter, aux_mean, usable)  # releases the GIL
-        for arr in release:
-            release_mapped(arr, i, j)
+        drop(i, j)
         if progress is not None:
             with lock:
                 done[0] += 1

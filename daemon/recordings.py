@@ -34,7 +34,7 @@ import numpy as np
 from gravcal.core.calibration import jsonable  # noqa: F401  (re-exported for the cmd_* modules)
 from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_triad
 from gravcal.core._blockkernels import scan_chunk
-from gravcal.core.fastdetect import release_mapped
+from gravcal.core.fastdetect import release_mapped, row_releaser
 from gravcal.core.repeats import MIN_RUN, FlatStretches, RunCollector, repeated_steps
 
 from .errors import InputError
@@ -283,6 +283,7 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
     state[0:3], state[3:6], state[6:12], state[12], state[13] = np.inf, -np.inf, 0.0, np.inf, 1.0
     prev: np.ndarray | None = None  # t and the triad of the row before the chunk
     same = np.empty(min(n, SCAN_CHUNK), dtype=bool) if repeats else None
+    drop = row_releaser([c for c in (t, raw, *extra, flags) if c is not None])
     native = raw.dtype.type in (np.float32, np.float64) and raw.dtype.isnative
     t_native = t.dtype.type is np.float64 and t.dtype.isnative
     for k, s in enumerate(_chunks(n, SCAN_CHUNK)):
@@ -305,9 +306,7 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
         prev = np.array([tc[-1], block[-1, 0], block[-1, 1], block[-1, 2]], dtype=np.float64)
         # a memory-mapped input stays in the page cache but leaves this process's resident set:
         # the scan must not hold the whole file before calibration reads it again
-        for col in (t, raw, *extra, flags):
-            if col is not None:
-                release_mapped(col, s.start, s.stop)
+        drop(s.start, s.stop)
         if progress is not None:
             progress(k + 1, n_chunks)
     sc.lo, sc.hi = state[0:3].copy(), state[3:6].copy()
