@@ -10,17 +10,18 @@ estimators use:
    float64, stored as float32, 6 entries), plus whether every sample is finite and follows its
    predecessor by a step in (0, 1.5/fs]. One compiled loop per chunk (core/_blockkernels.c)
    reads the channels' strided fields in place (e.g. of a memory-mapped record); two threads
-   share the chunks. Pages of a memory-mapped input are released
-   after each chunk (:func:`release_mapped`), so memory stays at the statistics (~0.24x the
-   input of a week of 20-byte samples) instead of growing with the mapped file.
+   share the chunks. Pages of a memory-mapped input are released after each chunk
+   (:func:`row_releaser`), so memory stays at the statistics (~0.24x the input of a week of
+   20-byte samples) instead of growing with the mapped file.
 2. :func:`detect_blocks` runs the detector on the block means at fs / block_n:
    "lotters" is Lötters 1998 eq. 1-2 (|a|, 0.5 Hz high-pass, rectifier, 0.5 Hz low-pass, and
    the per-axis chains of QuasiStaticDetector; one compiled loop, SciPy's sosfilt arithmetic),
-   which at 10 Hz still resolves the 0.5 Hz corners; "variance" is the per-axis moving std over the trailing window_s, exact at block
-   boundaries (from the block means and scatters). A block is still when its detection
-   signal is below ``threshold_g``, it is usable (finite, no time gap), the filters have
-   settled, and — what the block means cannot see — the per-axis std of its own samples is
-   below ``threshold_g`` too (vibration above the block rate's Nyquist frequency).
+   which at 10 Hz still resolves the 0.5 Hz corners; "variance" is the per-axis moving std over
+   the trailing window_s, exact at block boundaries (from the block means and scatters). A
+   block is still when its detection signal is below ``threshold_g``, it is usable (finite, no
+   time gap), the filters have settled, and — what the block means cannot see — the per-axis
+   std of its own samples is below ``threshold_g`` too (vibration above the block rate's
+   Nyquist frequency).
 3. The windowing rules are those of the streaming detectors (core.detectors) in blocks: the
    still mask is eroded by ``guard_s``, runs are cut into pieces of ``max_duration_s`` from
    their first block, pieces shorter than ``min_duration_s`` are dropped. Window means and
