@@ -45,7 +45,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ._blockkernels import block_pass, lotters_chain, sosfilt, window_sums
+from ._blockkernels import block_pass, lotters_chain, sosfilt, variance_chain, window_sums
 from .calibration import Calibration
 from .detectors import estimate_fs
 from .detectors.butterworth import butter_sos, sos_rest_state
@@ -207,33 +207,6 @@ def _to_g_affine(to_g: Calibration | None) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(to_g.offset, dtype=float), np.linalg.inv(to_g.sensitivity)
 
 
-def _in_g(mean: np.ndarray, o: np.ndarray, kinv: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """K^-1 (mean - o) for channel-major rows (3, m): column combinations, because BLAS is slow
-    for a (m, 3) x (3, 3) product (and elementwise keeps every block's value independent of m)."""
-    out = np.zeros(mean.shape) if out is None else out
-    out[...] = 0.0
-    d = np.empty(mean.shape[1])
-    for j in range(3):
-        np.subtract(mean[j], o[j], out=d)
-        for i in range(3):
-            if kinv[i, j] != 0.0:
-                out[i] += kinv[i, j] * d
-    return out
-
-
-def _axis_var_g(bs: BlockStats, kinv: np.ndarray, lo: int = 0, hi: int | None = None) -> np.ndarray:
-    """(3, hi - lo) within-block per-axis scatter in g² of blocks [lo, hi): Σ_q c_iq W_q
-    (divide by block_n for the variance, ddof=0)."""
-    hi = len(bs) if hi is None else hi
-    out = np.zeros((3, hi - lo))
-    for i in range(3):
-        for q in range(6):
-            c = kinv[i, _I6[q]] * kinv[i, _J6[q]] * (1.0 if _I6[q] == _J6[q] else 2.0)
-            if c != 0.0:
-                out[i] += c * bs.scatter[q, lo:hi]
-    return out
-
-
 def _settle_blocks(sos: np.ndarray, final: float, corner_hz: float, fs_b: float, tol: float = 0.01) -> int:
     n = int(round(20.0 / corner_hz * fs_b))
     y = np.ones((1, n))
@@ -285,31 +258,20 @@ def variance_still(bs: BlockStats, to_g: Calibration | None = None, *, window_s:
         raise ValueError(f"window_s = {window_s} s holds fewer than 2 samples at fs = {bs.fs} Hz")
     if not threshold_g > 0:
         raise ValueError(f"threshold_g must be > 0, got {threshold_g}")
-    o, kinv = _to_g_affine(to_g)
+    _, kinv = _to_g_affine(to_g)
     nb = len(bs)
     if nb < wb:
         return np.zeros(nb, dtype=bool)
     ok = bs.usable
     if not ok.any():
         return np.zeros(nb, dtype=bool)
-    # relative to the first usable block (precision of the moving sums); unusable blocks are
-    # zeroed (they only make their windows not still)
-    a = np.where(ok, _in_g(bs.mean, bs.mean[:, int(np.argmax(ok))], kinv), 0.0)
-    within = np.where(ok, _axis_var_g(bs, kinv), 0.0)  # per-axis scatter [g²]
-    B = bs.block_n
-
-    def moving(x: np.ndarray) -> np.ndarray:  # sums over the trailing wb blocks, (3, nb - wb + 1)
-        c = np.cumsum(np.concatenate([np.zeros((x.shape[0], 1)), x], axis=1), axis=1)
-        return c[:, wb:] - c[:, :-wb]
-
-    s_a, s_aa, s_w = moving(a), moving(a * a), moving(within)
-    n = wb * B
-    # scatter of the n samples = Σ within + B Σ (m_b - m̄)²  (per axis)
-    scat = s_w + B * (s_aa - s_a * s_a / wb)
-    var = np.clip(scat / (n - 1), 0.0, None)
-    bad = np.convolve((~ok).astype(np.int64), np.ones(wb, dtype=np.int64))[wb - 1:nb]  # unusable blocks in the window
-    still = np.zeros(nb, dtype=bool)
-    still[wb - 1:] = (var.max(axis=0) < threshold_g ** 2) & (bad == 0)
+    # relative to the first usable block (precision of the moving sums); unusable blocks count as
+    # zero (they only make their windows not still); the running sums keep wb + 1 blocks, not nb
+    still = np.empty(nb, dtype=bool)
+    variance_chain(np.ascontiguousarray(bs.mean, dtype=np.float64), np.ascontiguousarray(ok),
+                   np.ascontiguousarray(bs.scatter, dtype=np.float32),
+                   np.ascontiguousarray(bs.mean[:, int(np.argmax(ok))], dtype=np.float64),
+                   np.ascontiguousarray(kinv, dtype=np.float64), wb, bs.block_n, float(threshold_g) ** 2, still)
     return still
 
 

@@ -11,7 +11,7 @@ import pytest
 from scipy import signal
 
 import gravcal.core.fastdetect as fastdetect
-from gravcal.core._blockkernels import block_pass, lotters_chain, sosfilt
+from gravcal.core._blockkernels import block_pass, lotters_chain, sosfilt, variance_chain
 from gravcal.core.calibration import Calibration
 from gravcal.core.detectors.butterworth import butter_sos, sos_rest_state
 from gravcal.core.samples import raw_triad
@@ -53,6 +53,50 @@ def block_oracle(x: np.ndarray, t: np.ndarray, fs: float, B: int, aux: np.ndarra
     return mean, scatter, mean_tol, scatter_tol, aux_mean, usable
 
 
+def in_g(mean: np.ndarray, o: np.ndarray, kinv: np.ndarray) -> np.ndarray:
+    """K^-1 (mean - o) for channel-major rows (3, m), column by column from zero, zero terms skipped."""
+    out = np.zeros(mean.shape)
+    for j in range(3):
+        d = mean[j] - o[j]
+        for i in range(3):
+            if kinv[i, j] != 0.0:
+                out[i] += kinv[i, j] * d
+    return out
+
+
+def axis_var_g(bs, kinv: np.ndarray, lo: int = 0, hi: int | None = None) -> np.ndarray:
+    """(3, hi - lo) within-block per-axis scatter in g² of blocks [lo, hi): Σ_q c_iq W_q, zero terms skipped."""
+    hi = len(bs) if hi is None else hi
+    out = np.zeros((3, hi - lo))
+    for i in range(3):
+        for q in range(6):
+            c = kinv[i, I6[q]] * kinv[i, J6[q]] * (1.0 if I6[q] == J6[q] else 2.0)
+            if c != 0.0:
+                out[i] += c * bs.scatter[q, lo:hi]
+    return out
+
+
+def variance_oracle(bs, to_g, *, window_s=1.0, threshold_g=0.02):
+    """variance_still as numpy computes it: (still, per-axis variances (3, nb - wb + 1), wb)."""
+    wb = max(1, int(round(window_s * bs.fs / bs.block_n)))
+    _, kinv = fastdetect._to_g_affine(to_g)
+    nb, ok, B = len(bs), bs.usable, bs.block_n
+    with np.errstate(invalid="ignore"):
+        a = np.where(ok, in_g(bs.mean, bs.mean[:, int(np.argmax(ok))], kinv), 0.0)
+        within = np.where(ok, axis_var_g(bs, kinv), 0.0)
+
+    def moving(x):  # sums over the trailing wb blocks
+        c = np.cumsum(np.concatenate([np.zeros((x.shape[0], 1)), x], axis=1), axis=1)
+        return c[:, wb:] - c[:, :-wb]
+
+    s_a, s_aa, s_w = moving(a), moving(a * a), moving(within)
+    var = np.clip((s_w + B * (s_aa - s_a * s_a / wb)) / (wb * B - 1), 0.0, None)
+    bad = np.convolve((~ok).astype(np.int64), np.ones(wb, dtype=np.int64))[wb - 1:nb]
+    still = np.zeros(nb, dtype=bool)
+    still[wb - 1:] = (var.max(axis=0) < threshold_g ** 2) & (bad == 0)
+    return still, var, wb
+
+
 def lotters_oracle(bs, to_g, *, hp_hz=0.5, lp_hz=0.5, threshold_g=0.02, order=2, per_axis=True):
     """lotters_still as numpy and scipy.signal.sosfilt compute it, before the settling blocks are
     cleared: (still, detection signals (channels, nb), per-axis within-block scatter (3, nb)) from
@@ -61,7 +105,7 @@ def lotters_oracle(bs, to_g, *, hp_hz=0.5, lp_hz=0.5, threshold_g=0.02, order=2,
     o, kinv = fastdetect._to_g_affine(to_g)
     nb = len(bs)
     b0 = int(np.argmax(bs.usable))
-    g = fastdetect._in_g(bs.mean[:, b0:], o, kinv)
+    g = in_g(bs.mean[:, b0:], o, kinv)
     ok = bs.usable[b0:]
     idx = np.maximum.accumulate(np.where(ok, np.arange(nb - b0), 0))  # unusable: held at the last usable
     g = g[:, idx]
@@ -73,7 +117,7 @@ def lotters_oracle(bs, to_g, *, hp_hz=0.5, lp_hz=0.5, threshold_g=0.02, order=2,
     zi = sos_rest_state(sos_hp)[:, None, :] * u[None, :, 0, None]  # (sections, channels, 2)
     y, _ = signal.sosfilt(sos_hp, u, axis=1, zi=zi)
     y, _ = signal.sosfilt(sos_lp, np.abs(y), axis=1, zi=np.zeros((sos_lp.shape[0], u.shape[0], 2)))
-    var = fastdetect._axis_var_g(bs, kinv, b0, nb)
+    var = axis_var_g(bs, kinv, b0, nb)
     still = np.zeros(nb, dtype=bool)
     still[b0:] = (y.max(axis=0) < threshold_g) & ok & (var.max(axis=0) < threshold_g ** 2 * bs.block_n)
     return still, y, var, b0
@@ -261,6 +305,42 @@ def test_lotters_chain_refuses_bad_buffers_by_name(daily_blocks):
         assert words in str(exc.value), change
     with pytest.raises(ValueError, match="trace must hold"):
         lotters_chain(*args.values(), np.zeros((7, 3)))
+
+
+@pytest.mark.parametrize("window_s", [0.1, 1.0, 2.5])
+@pytest.mark.parametrize("frame", ["truth", "skewed", "raw"])
+def test_variance_chain_is_the_numpy_form_bit_for_bit(daily_blocks, window_s, frame):
+    bs, truth = daily_blocks
+    to_g = {"truth": truth, "raw": None,
+            "skewed": Calibration("skewed", truth.offset, truth.sensitivity @ np.array([[1, 0.02, 0], [0, 1, -0.03],
+                                                                                      [0.01, 0, 1]]))}[frame]
+    thr = 0.02 if to_g is not None else 0.02 * float(np.mean(np.diag(truth.sensitivity)))
+    still, var, wb = variance_oracle(bs, to_g, window_s=window_s, threshold_g=thr)
+    _, kinv = fastdetect._to_g_affine(to_g)
+    got, trace = np.zeros(len(bs), dtype=bool), np.full((3, len(bs)), np.nan)
+    variance_chain(bs.mean, bs.usable, bs.scatter, np.ascontiguousarray(bs.mean[:, int(np.argmax(bs.usable))]), kinv,
+                   wb, bs.block_n, thr ** 2, got, trace)
+    np.testing.assert_array_equal(trace[:, wb - 1:], var)  # every window's variances, bit for bit
+    np.testing.assert_array_equal(got, still)
+    np.testing.assert_array_equal(fastdetect.variance_still(bs, to_g, window_s=window_s, threshold_g=thr), still)
+    assert 0.2 < still.mean() < 0.9 and not still[1500:1504].any()  # both decisions; the NaN blocks are not still
+
+
+def test_variance_chain_refuses_bad_arguments_by_name(daily_blocks):
+    bs, _ = daily_blocks
+    args = dict(mean=bs.mean, usable=bs.usable, scatter=bs.scatter, ref=np.zeros(3), kinv=np.eye(3), wb=10, B=10,
+                thr2=4e-4, still=np.zeros(len(bs), bool))
+    cases = [
+        (dict(wb=0), ValueError, "need 1 to 4096 blocks"),
+        (dict(wb=5000), ValueError, "need 1 to 4096 blocks"),
+        (dict(ref=np.zeros(2)), ValueError, "ref must hold 3 items"),
+        (dict(scatter=bs.scatter[:, :-1].copy()), ValueError, "scatter must hold"),
+        (dict(still=np.zeros(len(bs), np.int8)), TypeError, "still must hold bool"),
+    ]
+    for change, error, words in cases:
+        with pytest.raises(error) as exc:
+            variance_chain(*{**args, **change}.values())
+        assert words in str(exc.value), change
 
 
 @pytest.mark.parametrize("sections", [1, 2, 3])
