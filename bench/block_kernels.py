@@ -17,7 +17,8 @@ import time
 import numpy as np
 
 from gravcal.core import fastdetect
-from gravcal.core._blockkernels import block_pass, lotters_chain, scan_chunk, window_sums
+from gravcal.core._blockkernels import block_pass, lotters_chain, window_sums
+from gravcal.core._scankernel import scan_chunk
 from gravcal.core.detectors.butterworth import butter_sos, sos_rest_state
 
 

@@ -33,7 +33,7 @@ import numpy as np
 
 from gravcal.core.calibration import jsonable  # noqa: F401  (re-exported for the cmd_* modules)
 from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_triad
-from gravcal.core._blockkernels import scan_chunk
+from gravcal.core._scankernel import scan_chunk
 from gravcal.core.fastdetect import release_mapped, row_releaser
 from gravcal.core.repeats import MIN_RUN, FlatStretches, RunCollector, repeated_steps
 

@@ -361,7 +361,7 @@ def test_sosfilt_is_scipys_bit_for_bit(sections):
 
 
 def test_scan_chunk_refuses_bad_buffers_by_name():
-    from gravcal.core._blockkernels import scan_chunk
+    from gravcal.core._scankernel import scan_chunk
 
     good = dict(t=np.arange(10.0), x0=np.zeros(10), x1=np.zeros(10), x2=np.zeros(10), prev=None, state=np.zeros(14),
                 same=np.zeros(10, bool))
