@@ -290,8 +290,12 @@ def windows_from_still(bs: BlockStats, still: np.ndarray, t: np.ndarray, *, min_
         if max_b < min_b:
             raise ValueError(f"max_duration_s ({max_duration_s} s) is shorter than min_duration_s ({min_duration_s} s)")
     k = bs.aux.shape[0]
-    # still runs [lo, hi), eroded by g blocks each side (the recording's ends count as not still)
-    e = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(np.int8), [0]])))
+    # still runs [lo, hi), eroded by g blocks each side (the recording's ends count as not still):
+    # the changes alternate between a run's start and its end (no temporaries of the block count
+    # but the comparison)
+    nb = still.shape[0]
+    change = np.flatnonzero(still[1:] != still[:-1]) + 1
+    e = np.concatenate([[0] if nb and still[0] else [], change, [nb] if nb and still[-1] else []]).astype(np.int64)
     lo, hi = e[0::2] + g, e[1::2] - g
     keep = hi - lo >= min_b
     lo, hi = lo[keep], hi[keep]

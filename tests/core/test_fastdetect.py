@@ -298,3 +298,25 @@ def _in_a_child(tmp_path, body: str) -> list[str]:
     code = ("import sys, numpy as np\n"
             f"t, raw = np.load({str(tmp_path / 't.npy')!r}), np.load({str(tmp_path / 'raw.npy')!r})\n" + body)
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+
+
+def test_windows_are_the_still_runs_including_those_at_the_ends():
+    """With no guard and no length limits, the windows are exactly the runs of still blocks, found
+    by a plain loop here (runs touching the first and the last block too)."""
+    rng = np.random.default_rng(11)
+    n, B = 4000, 10
+    t = np.arange(n) / FS
+    raw = rng.normal(size=(n, 3))
+    bs = fastdetect.block_stats(t, lambda c, i, j: raw[i:j, c], n, FS, block_n=B)
+    masks = [np.ones(len(bs), bool), np.zeros(len(bs), bool), rng.random(len(bs)) < 0.7, rng.random(len(bs)) < 0.3]
+    masks[2][:5] = masks[2][-5:] = True
+    for still in masks:
+        runs, start = [], None
+        for b, s in enumerate(list(still) + [False]):
+            if s and start is None:
+                start = b
+            elif not s and start is not None:
+                runs.append((start, b))
+                start = None
+        ws = fastdetect.windows_from_still(bs, still, t, min_duration_s=0.0, max_duration_s=None, guard_s=0.0)
+        assert list(zip(ws.start // B, ws.end // B)) == runs
