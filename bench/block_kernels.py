@@ -1,4 +1,4 @@
-"""Time per sample / block of the compiled loops of core._blockkernels (one thread, best of repeats).
+"""Time per sample / block of the compiled loops (core._blockkernels, core._scankernel; one thread, best of repeats).
 
     python bench/block_kernels.py FILE.npy [--rows 2000000] [--repeat 7]
 
