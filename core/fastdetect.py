@@ -6,20 +6,22 @@ the same decisions can be made on short blocks (default 0.1 s) without losing an
 estimators use:
 
 1. :func:`block_stats` reads the samples ONCE, in chunks, and keeps per block of ``block_n``
-   samples its mean (float64) and its within-block scatter Σ (x - mean)(x - mean)ᵀ (float32,
-   6 entries), plus whether every sample is finite and follows its predecessor by a step in
-   (0, 1.5/fs]. The sums are matrix-vector products (BLAS), so a chunk costs a few passes over
-   its own bytes; two threads share the chunks. Pages of a memory-mapped input are released
-   after each chunk (:func:`release_mapped`), so memory stays at the statistics (~0.24x the
-   input of a week of 20-byte samples) instead of growing with the mapped file.
+   samples its mean (float64) and its within-block scatter Σ (x - mean)(x - mean)ᵀ (summed in
+   float64, stored as float32, 6 entries), plus whether every sample is finite and follows its
+   predecessor by a step in (0, 1.5/fs]. One compiled loop per chunk (core/_blockkernels.c)
+   reads the channels' strided fields in place (e.g. of a memory-mapped record); two threads
+   share the chunks. Pages of a memory-mapped input are released after each chunk
+   (:func:`row_releaser`), so memory stays at the statistics (~0.24x the input of a week of
+   20-byte samples) instead of growing with the mapped file.
 2. :func:`detect_blocks` runs the detector on the block means at fs / block_n:
    "lotters" is Lötters 1998 eq. 1-2 (|a|, 0.5 Hz high-pass, rectifier, 0.5 Hz low-pass, and
-   the per-axis chains of QuasiStaticDetector), which at 10 Hz still resolves the 0.5 Hz
-   corners; "variance" is the per-axis moving std over the trailing window_s, exact at block
-   boundaries (from the block means and scatters). A block is still when its detection
-   signal is below ``threshold_g``, it is usable (finite, no time gap), the filters have
-   settled, and — what the block means cannot see — the per-axis std of its own samples is
-   below ``threshold_g`` too (vibration above the block rate's Nyquist frequency).
+   the per-axis chains of QuasiStaticDetector; one compiled loop, SciPy's sosfilt arithmetic),
+   which at 10 Hz still resolves the 0.5 Hz corners; "variance" is the per-axis moving std over
+   the trailing window_s, exact at block boundaries (from the block means and scatters). A
+   block is still when its detection signal is below ``threshold_g``, it is usable (finite, no
+   time gap), the filters have settled, and — what the block means cannot see — the per-axis
+   std of its own samples is below ``threshold_g`` too (vibration above the block rate's
+   Nyquist frequency).
 3. The windowing rules are those of the streaming detectors (core.detectors) in blocks: the
    still mask is eroded by ``guard_s``, runs are cut into pieces of ``max_duration_s`` from
    their first block, pieces shorter than ``min_duration_s`` are dropped. Window means and
@@ -43,44 +45,61 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from ._blockkernels import block_pass, lotters_chain, sosfilt, variance_chain, window_sums
 from .calibration import Calibration
 from .detectors import estimate_fs
 from .detectors.butterworth import butter_sos, sos_rest_state
-from .detectors.windowing import _filter_rows, _sosfilt_inplace
 from .windows import WindowSet
 
 BLOCK_S = 0.1  # block length [s]: 10 Hz detection, boundaries to 0.1 s
 CHUNK_BLOCKS = 4096  # blocks per chunk of the reducing pass (a few 100 kB per channel: stays in the CPU cache)
-DETECT_CHUNK = 1 << 15  # blocks per chunk of the detection filters (reused buffers)
 THREADS = 2  # chunks of the reducing pass are shared between this many threads
 
 _I6 = np.array([0, 1, 2, 0, 0, 1])
 _J6 = np.array([0, 1, 2, 1, 2, 2])
 
 
-def release_mapped(a: np.ndarray, lo: int, hi: int) -> None:
-    """Drop rows [lo, hi) of a read-only memory-mapped array from this process's resident set.
-
-    The data stays in the page cache (reading them again is a minor fault, no I/O); only the
-    process stops holding them, so one pass over a mapped 1.2 GB file does not leave 1.2 GB in
-    its RSS. A no-op for anything but a read-only np.memmap (or a view of one): for private
-    memory, MADV_DONTNEED would zero the data.
-    """
+def _mapped_rows(a: np.ndarray) -> tuple[Any, int, int] | None:
+    """(mmap, byte offset of row 0 in it, row stride) of a read-only np.memmap (or a view of one),
+    else None: for private memory, MADV_DONTNEED would zero the data."""
     base: Any = a
     while base is not None and not isinstance(base, np.memmap):
         base = getattr(base, "base", None)
     mm = getattr(base, "_mmap", None)
-    if mm is None or getattr(base, "mode", None) != "r" or not hasattr(mm, "madvise") or hi <= lo:
-        return
+    if mm is None or getattr(base, "mode", None) != "r" or not hasattr(mm, "madvise") or a.ndim == 0:
+        return None
+    start = np.frombuffer(mm, dtype=np.uint8).__array_interface__["data"][0]
+    return mm, a.__array_interface__["data"][0] - start, a.strides[0]
+
+
+def row_releaser(arrays: Sequence[np.ndarray]) -> Callable[[int, int], None]:
+    """``release(lo, hi)``: drop rows [lo, hi) of the memory-mapped ones of ``arrays`` from this
+    process's resident set. The data stays in the page cache (reading them again is a minor fault,
+    no I/O); only the process stops holding them, so one pass over a mapped 1.2 GB file does not
+    leave 1.2 GB in its RSS. Each mapping is resolved once, and fields of the same records (t and
+    the triad of one structured .npy) are released once, not once per field."""
+    rows: list[tuple[Any, int, int]] = []
+    for a in arrays:
+        r = _mapped_rows(a) if isinstance(a, np.ndarray) else None
+        # another field of records already listed: within one record (stride) of it in the same mapping
+        if r is not None and not any(q[0] is r[0] and q[2] == r[2] and abs(q[1] - r[1]) < abs(r[2]) for q in rows):
+            rows.append(r)
     page = mmap.PAGESIZE
-    start_addr = np.frombuffer(mm, dtype=np.uint8).ctypes.data
-    stride = a.strides[0] if a.ndim else 0
-    first = a.ctypes.data + lo * stride - start_addr
-    last = a.ctypes.data + hi * stride - start_addr
-    first = (first // page) * page
-    last = min((last // page) * page, len(mm))
-    if last > first >= 0:
-        mm.madvise(mmap.MADV_DONTNEED, first, last - first)
+
+    def release(lo: int, hi: int) -> None:
+        for mm, offset, stride in rows:
+            first = (offset + lo * stride) // page * page
+            last = min((offset + hi * stride) // page * page, len(mm))
+            if last > first >= 0:
+                mm.madvise(mmap.MADV_DONTNEED, first, last - first)
+
+    return release
+
+
+def release_mapped(a: np.ndarray, lo: int, hi: int) -> None:
+    """Drop rows [lo, hi) of a read-only memory-mapped array from this process's resident set
+    (:func:`row_releaser` for one array and one range); a no-op for anything else."""
+    row_releaser([a])(lo, hi)
 
 
 @dataclass
@@ -133,65 +152,30 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
     usable = np.empty(nb, dtype=bool)
     step = 1.5 / fs
     chunk = CHUNK_BLOCKS * B
-    ones = np.ones(B, dtype=np.float32)
     starts = list(range(0, nb * B, chunk))
     done = [0]
     lock = threading.Lock()
+    drop = row_releaser(release)
 
-    def work(i: int, ws: dict[str, np.ndarray]) -> None:
+    def work(i: int) -> None:
         j = min(i + chunk, nb * B)
-        m, b0 = (j - i) // B, i // B
-        D = ws["D"][:, :m * B]  # (3, m*B) float32: samples minus their block's first sample
-        P = ws["P"][:, :m * B]
-        ref = np.empty((3, m))
-        for c in range(3):
-            x = channel(c, i, j)
-            r = x[::B]
-            ref[c] = r
-            np.subtract(x.reshape(m, B), r[:, None], out=D[c].reshape(m, B), casting="unsafe")
-        s1 = (D.reshape(3 * m, B) @ ones).reshape(3, m).astype(np.float64)
-        for q in range(6):
-            np.multiply(D[_I6[q]], D[_J6[q]], out=P[q])
-        s2 = (P.reshape(6 * m, B) @ ones).reshape(6, m).astype(np.float64)
-        mean[:, b0:b0 + m] = ref + s1 / B
-        scatter[:, b0:b0 + m] = s2 - s1[_I6] * s1[_J6] / B
-        with np.errstate(invalid="ignore"):
-            ok = np.isfinite(s1).all(axis=0) & np.isfinite(s2).all(axis=0)
-        # time: the step into every sample of the block (the first one's from the previous sample)
-        lo = max(i - 1, 0)
-        tc = ws["T"][:j - lo]
-        np.copyto(tc, t[lo:j], casting="unsafe")  # one strided copy into a reused buffer
-        dt = ws["dt"][:j - i]
-        if i == 0:
-            dt[0] = 1.0 / fs
-        np.subtract(tc[1:], tc[:-1], out=dt[j - i - (j - lo - 1):])
-        with np.errstate(invalid="ignore"):
-            if not (dt.min() > 0 and dt.max() <= step):  # NaN fails this too
-                bad = ~((dt > 0) & (dt <= step))
-                ok &= ~bad.reshape(m, B).any(axis=1)
-        if k:
-            a = np.asarray(aux[i:j], dtype=np.float64)
-            am = a.reshape(m, B, k).mean(axis=1).T
-            aux_mean[:, b0:b0 + m] = am
-            ok &= np.isfinite(am).all(axis=0)
-        usable[b0:b0 + m] = ok
-        for arr in release:
-            release_mapped(arr, i, j)
+        xs = [_floats(channel(c, i, j), (np.float32, np.float64)) for c in range(3)]
+        if len({x.dtype for x in xs}) > 1:
+            xs = [np.asarray(x, dtype=np.float64) for x in xs]
+        # the kernel checks each step into a sample: the chunk's times with the one before it
+        tc = _floats(t[max(i - 1, 0):j], (np.float64,))
+        a = None if aux is None else _floats(aux[i:j], (np.float64,))
+        block_pass(*xs, tc, a, B, i // B, step, mean, scatter, aux_mean, usable)  # releases the GIL
+        drop(i, j)
         if progress is not None:
             with lock:
                 done[0] += 1
                 progress(done[0], len(starts))
 
-    def workspace() -> dict[str, np.ndarray]:
-        return {"D": np.empty((3, chunk), dtype=np.float32), "P": np.empty((6, chunk), dtype=np.float32),
-                "T": np.empty(chunk + 1), "dt": np.empty(chunk)}
-
     if threads > 1 and len(starts) > 1:
-        spaces = [workspace() for _ in range(threads)]
-
         def lane(r: int) -> None:
             for i in starts[r::threads]:
-                work(i, spaces[r])
+                work(i)
 
         with ThreadPoolExecutor(threads - 1, thread_name_prefix="gravcal-blocks") as pool:
             jobs = [pool.submit(lane, r) for r in range(1, threads)]
@@ -199,12 +183,18 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
             for job in jobs:
                 job.result()
     else:
-        ws = workspace()
         for i in starts:
-            work(i, ws)
-    with np.errstate(invalid="ignore"):
-        usable &= np.isfinite(mean).all(axis=0)
+            work(i)
     return BlockStats(float(fs), B, mean, scatter, aux_mean, usable)
+
+
+def _floats(a: np.ndarray, kinds: tuple[type, ...]) -> np.ndarray:
+    """a itself when it holds native floats of one of ``kinds`` (any stride: the kernel reads it in
+    place), else a float64 copy (integer counts, another byte order)."""
+    a = np.asarray(a)
+    if a.dtype.type in kinds and a.dtype.isnative:
+        return a
+    return np.asarray(a, dtype=np.float64)
 
 
 def _to_g_affine(to_g: Calibration | None) -> tuple[np.ndarray, np.ndarray]:
@@ -217,37 +207,10 @@ def _to_g_affine(to_g: Calibration | None) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(to_g.offset, dtype=float), np.linalg.inv(to_g.sensitivity)
 
 
-def _in_g(mean: np.ndarray, o: np.ndarray, kinv: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-    """K^-1 (mean - o) for channel-major rows (3, m): column combinations, because BLAS is slow
-    for a (m, 3) x (3, 3) product (and elementwise keeps every block's value independent of m)."""
-    out = np.zeros(mean.shape) if out is None else out
-    out[...] = 0.0
-    d = np.empty(mean.shape[1])
-    for j in range(3):
-        np.subtract(mean[j], o[j], out=d)
-        for i in range(3):
-            if kinv[i, j] != 0.0:
-                out[i] += kinv[i, j] * d
-    return out
-
-
-def _axis_var_g(bs: BlockStats, kinv: np.ndarray, lo: int = 0, hi: int | None = None) -> np.ndarray:
-    """(3, hi - lo) within-block per-axis scatter in g² of blocks [lo, hi): Σ_q c_iq W_q
-    (divide by block_n for the variance, ddof=0)."""
-    hi = len(bs) if hi is None else hi
-    out = np.zeros((3, hi - lo))
-    for i in range(3):
-        for q in range(6):
-            c = kinv[i, _I6[q]] * kinv[i, _J6[q]] * (1.0 if _I6[q] == _J6[q] else 2.0)
-            if c != 0.0:
-                out[i] += c * bs.scatter[q, lo:hi]
-    return out
-
-
 def _settle_blocks(sos: np.ndarray, final: float, corner_hz: float, fs_b: float, tol: float = 0.01) -> int:
     n = int(round(20.0 / corner_hz * fs_b))
     y = np.ones((1, n))
-    _sosfilt_inplace(sos, y, np.zeros((1, sos.shape[0], 2)))
+    sosfilt(np.ascontiguousarray(sos, dtype=np.float64), y, np.zeros((1, sos.shape[0], 2)))
     y = y[0]
     bad = np.flatnonzero(np.abs(y - final) > tol)
     return int(bad[-1] + 1) if bad.shape[0] else 0
@@ -270,52 +233,18 @@ def lotters_still(bs: BlockStats, to_g: Calibration | None = None, *, hp_hz: flo
     if not bs.usable.any():
         return still
     b0 = int(np.argmax(bs.usable))  # the first usable block
-    chans = 4 if per_axis else 1
     sos_hp = butter_sos(order, hp_hz, "highpass", fs_b)
     sos_lp = butter_sos(order, lp_hz, "lowpass", fs_b)
     settle = (int(round(settle_s * fs_b)) if settle_s is not None
               else _settle_blocks(sos_hp, 0.0, hp_hz, fs_b) + _settle_blocks(sos_lp, 1.0, lp_hz, fs_b))
-    zi_hp = zi_lp = None
-    last = None  # the last usable block in g, (3,): unusable blocks are held at it
-    thr2 = threshold_g ** 2
-    # chunks of blocks with reused buffers: filter states carried across (the streaming
-    # detector's sosfilt zi), so the result does not depend on the chunk length
-    u_buf = np.empty(4 * DETECT_CHUNK)
-    pool = ThreadPoolExecutor(1, thread_name_prefix="gravcal-filter") if chans > 1 else None
-    try:
-        for i in range(b0, nb, DETECT_CHUNK):
-            j = min(i + DETECT_CHUNK, nb)
-            u = u_buf[:4 * (j - i)].reshape(4, j - i)  # C-contiguous rows for the in-place filter kernel
-            ok = bs.usable[i:j]
-            _in_g(bs.mean[:, i:j], o, kinv, out=u[1:])
-            if last is None:
-                last = u[1:, 0].copy()
-            if not ok.all():  # held at the last usable block (core.detectors: the last finite sample)
-                idx = np.where(ok, np.arange(1, j - i + 1), 0)
-                np.maximum.accumulate(idx, out=idx)
-                u[1:] = np.concatenate([last[:, None], u[1:]], axis=1)[:, idx]
-            last = u[1:, -1].copy()
-            np.multiply(u[1], u[1], out=u[0])
-            u[0] += u[2] * u[2]
-            u[0] += u[3] * u[3]
-            np.sqrt(u[0], out=u[0])  # eq. 1
-            v = u[:chans]
-            if zi_hp is None:  # high-pass at rest for the first block (core.detectors: the first finite sample)
-                zi_hp = sos_rest_state(sos_hp)[None] * v[:, 0, None, None]  # (chans, sections, 2)
-                zi_lp = np.zeros((chans, sos_lp.shape[0], 2))
-            if pool is not None:  # two channels each in two threads (the SciPy kernel releases the GIL)
-                job = pool.submit(_filter_rows, sos_hp, sos_lp, v[2:], zi_hp[2:], zi_lp[2:])
-                _filter_rows(sos_hp, sos_lp, v[:2], zi_hp[:2], zi_lp[:2])
-                job.result()
-            else:
-                _filter_rows(sos_hp, sos_lp, v, zi_hp, zi_lp)
-            s = v.max(axis=0) < threshold_g  # eq. 2 (and the per-axis chains)
-            s &= ok
-            s &= _axis_var_g(bs, kinv, i, j).max(axis=0) < thr2 * bs.block_n
-            still[i:j] = s
-    finally:
-        if pool is not None:
-            pool.shutdown()
+    # K^-1 (mean - o), |a| (eq. 1), high-pass, rectifier, low-pass, < threshold (eq. 2) on the norm
+    # and (per_axis) the three axes, the within-block std gate; unusable blocks held at the last
+    # usable one, the high-pass at rest on the first (core.detectors: the first finite sample)
+    lotters_chain(np.ascontiguousarray(bs.mean, dtype=np.float64), np.ascontiguousarray(bs.usable),
+                  np.ascontiguousarray(bs.scatter, dtype=np.float32), np.ascontiguousarray(o, dtype=np.float64),
+                  np.ascontiguousarray(kinv, dtype=np.float64), sos_hp, sos_lp,
+                  np.ascontiguousarray(sos_rest_state(sos_hp)), 4 if per_axis else 1, float(threshold_g),
+                  float(threshold_g) ** 2 * bs.block_n, b0, still)
     still[b0:b0 + settle] = False
     return still
 
@@ -329,31 +258,20 @@ def variance_still(bs: BlockStats, to_g: Calibration | None = None, *, window_s:
         raise ValueError(f"window_s = {window_s} s holds fewer than 2 samples at fs = {bs.fs} Hz")
     if not threshold_g > 0:
         raise ValueError(f"threshold_g must be > 0, got {threshold_g}")
-    o, kinv = _to_g_affine(to_g)
+    _, kinv = _to_g_affine(to_g)
     nb = len(bs)
     if nb < wb:
         return np.zeros(nb, dtype=bool)
     ok = bs.usable
     if not ok.any():
         return np.zeros(nb, dtype=bool)
-    # relative to the first usable block (precision of the moving sums); unusable blocks are
-    # zeroed (they only make their windows not still)
-    a = np.where(ok, _in_g(bs.mean, bs.mean[:, int(np.argmax(ok))], kinv), 0.0)
-    within = np.where(ok, _axis_var_g(bs, kinv), 0.0)  # per-axis scatter [g²]
-    B = bs.block_n
-
-    def moving(x: np.ndarray) -> np.ndarray:  # sums over the trailing wb blocks, (3, nb - wb + 1)
-        c = np.cumsum(np.concatenate([np.zeros((x.shape[0], 1)), x], axis=1), axis=1)
-        return c[:, wb:] - c[:, :-wb]
-
-    s_a, s_aa, s_w = moving(a), moving(a * a), moving(within)
-    n = wb * B
-    # scatter of the n samples = Σ within + B Σ (m_b - m̄)²  (per axis)
-    scat = s_w + B * (s_aa - s_a * s_a / wb)
-    var = np.clip(scat / (n - 1), 0.0, None)
-    bad = np.convolve((~ok).astype(np.int64), np.ones(wb, dtype=np.int64))[wb - 1:nb]  # unusable blocks in the window
-    still = np.zeros(nb, dtype=bool)
-    still[wb - 1:] = (var.max(axis=0) < threshold_g ** 2) & (bad == 0)
+    # relative to the first usable block (precision of the moving sums); unusable blocks count as
+    # zero (they only make their windows not still); the running sums keep wb + 1 blocks, not nb
+    still = np.empty(nb, dtype=bool)
+    variance_chain(np.ascontiguousarray(bs.mean, dtype=np.float64), np.ascontiguousarray(ok),
+                   np.ascontiguousarray(bs.scatter, dtype=np.float32),
+                   np.ascontiguousarray(bs.mean[:, int(np.argmax(ok))], dtype=np.float64),
+                   np.ascontiguousarray(kinv, dtype=np.float64), wb, bs.block_n, float(threshold_g) ** 2, still)
     return still
 
 
@@ -372,8 +290,12 @@ def windows_from_still(bs: BlockStats, still: np.ndarray, t: np.ndarray, *, min_
         if max_b < min_b:
             raise ValueError(f"max_duration_s ({max_duration_s} s) is shorter than min_duration_s ({min_duration_s} s)")
     k = bs.aux.shape[0]
-    # still runs [lo, hi), eroded by g blocks each side (the recording's ends count as not still)
-    e = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(np.int8), [0]])))
+    # still runs [lo, hi), eroded by g blocks each side (the recording's ends count as not still):
+    # the changes alternate between a run's start and its end (no temporaries of the block count
+    # but the comparison)
+    nb = still.shape[0]
+    change = np.flatnonzero(still[1:] != still[:-1]) + 1
+    e = np.concatenate([[0] if nb and still[0] else [], change, [nb] if nb and still[-1] else []]).astype(np.int64)
     lo, hi = e[0::2] + g, e[1::2] - g
     keep = hi - lo >= min_b
     lo, hi = lo[keep], hi[keep]
@@ -400,46 +322,15 @@ def windows_from_still(bs: BlockStats, still: np.ndarray, t: np.ndarray, *, min_
                      end.astype(np.int64))
 
 
-_SPAN_BLOCKS = 1 << 18  # blocks summed at once by _window_sums (bounded temporaries)
-
-
 def _window_sums(bs: BlockStats, ps: np.ndarray, pe: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean (3, m), scatter (6, m) and aux mean (k, m) of the samples of block ranges [ps, pe).
-
-    Per batch of windows spanning at most _SPAN_BLOCKS blocks: sums of the block means minus
-    one reference r (the batch's first block mean) and of their products, cut at [ps, pe) by
-    np.add.reduceat. Σ (m_b - m)(m_b - m)ᵀ = Σ d dᵀ - (Σ d)(Σ d)ᵀ / n_b holds for d = m_b - r with
-    any r; a nearby r (posture differences, not raw offsets) keeps the cancellation harmless."""
-    m, B, k = ps.shape[0], bs.block_n, bs.aux.shape[0]
+    """Mean (3, m), scatter (6, m) and aux mean (k, m) of the samples of block ranges [ps, pe):
+    per window, sums of the block means minus the window's first one and of their products,
+    Σ (m_b - m)(m_b - m)ᵀ = Σ d dᵀ - (Σ d)(Σ d)ᵀ / n_b for d = m_b - r with any r (one compiled loop)."""
+    m, k = ps.shape[0], bs.aux.shape[0]
     mean, scat, aux = np.empty((3, m)), np.empty((6, m)), np.empty((k, m))
-    buf = np.empty((15 + k, 0))  # reused across batches: a fresh one per batch costs its page faults
-    lo = 0
-    while lo < m:
-        hi = lo + 1 + int(np.searchsorted(pe[lo + 1:], ps[lo] + _SPAN_BLOCKS, side="right"))
-        base, top = int(ps[lo]), int(pe[hi - 1])
-        span = top - base
-        if buf.shape[1] < span + 1:
-            buf = np.empty((15 + k, span + 1))
-        rows = buf[:, :span + 1]
-        rows[:, span] = 0.0  # the last cut's (discarded) segment
-        d = rows[:3, :span]
-        np.subtract(bs.mean[:, base:top], bs.mean[:, base, None], out=d)
-        for q in range(6):
-            np.multiply(d[_I6[q]], d[_J6[q]], out=rows[3 + q, :span])
-        rows[9:15, :span] = bs.scatter[:, base:top]
-        if k:
-            rows[15:, :span] = bs.aux[:, base:top]
-        cuts = np.empty(2 * (hi - lo), dtype=np.int64)
-        cuts[0::2], cuts[1::2] = ps[lo:hi] - base, pe[lo:hi] - base
-        sums = np.add.reduceat(rows, cuts, axis=1)[:, 0::2]
-        nb_w = (pe[lo:hi] - ps[lo:hi]).astype(float)
-        s1, s2 = sums[:3], sums[3:9]
-        # Σ_b (m_b - m)(m_b - m)ᵀ = Σ d dᵀ - (Σ d)(Σ d)ᵀ / n_b  (d = m_b - r for any r)
-        between = s2 - s1[_I6] * s1[_J6] / nb_w
-        mean[:, lo:hi] = bs.mean[:, base, None] + s1 / nb_w
-        scat[:, lo:hi] = sums[9:15] + B * between
-        aux[:, lo:hi] = sums[15:] / nb_w
-        lo = hi
+    window_sums(np.ascontiguousarray(bs.mean, dtype=np.float64), np.ascontiguousarray(bs.scatter, dtype=np.float32),
+                np.ascontiguousarray(bs.aux, dtype=np.float64), np.ascontiguousarray(ps, dtype=np.int64),
+                np.ascontiguousarray(pe, dtype=np.int64), bs.block_n, mean, scat, aux)
     return mean, scat, aux
 
 

@@ -33,7 +33,8 @@ import numpy as np
 
 from gravcal.core.calibration import jsonable  # noqa: F401  (re-exported for the cmd_* modules)
 from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_triad
-from gravcal.core.fastdetect import release_mapped
+from gravcal.core._scankernel import scan_chunk
+from gravcal.core.fastdetect import release_mapped, row_releaser
 from gravcal.core.repeats import MIN_RUN, FlatStretches, RunCollector, repeated_steps
 
 from .errors import InputError
@@ -276,65 +277,41 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
     n = int(t.shape[0])
     n_chunks = -(-n // SCAN_CHUNK)
     sc = _Scan(repeats=RunCollector() if repeats else None)
-    prev_t: float | None = None
-    # each chunk is copied once into reused contiguous buffers (the copy is where a mapped page is
-    # first touched); min/max then run at full speed and also tell finiteness (NaN propagates, inf
-    # is an extreme), so no separate isfinite pass over the triad or t
-    size = min(n, SCAN_CHUNK)
-    t_buf = np.empty(size + 1)
-    # column 0 keeps the previous chunk's last row, for the repeat across the chunk border
-    ch_buf = np.empty((3, size + 1), dtype=raw.dtype if raw.dtype.kind == "f" else np.float64)
-    dt_buf = np.empty(size)
-    same, scratch = np.empty(size, dtype=bool), np.empty(size, dtype=bool)
+    # one compiled pass per chunk over the columns in place (strided fields of a mapped file too):
+    # extremes and their counts, the smallest step, finiteness and the repeated rows
+    state = np.empty(14)
+    state[0:3], state[3:6], state[6:12], state[12], state[13] = np.inf, -np.inf, 0.0, np.inf, 1.0
+    prev: np.ndarray | None = None  # t and the triad of the row before the chunk
+    same = np.empty(min(n, SCAN_CHUNK), dtype=bool) if repeats else None
+    drop = row_releaser([c for c in (t, raw, *extra, flags) if c is not None])
+    native = raw.dtype.type in (np.float32, np.float64) and raw.dtype.isnative
+    t_native = t.dtype.type is np.float64 and t.dtype.isnative
     for k, s in enumerate(_chunks(n, SCAN_CHUNK)):
         m = s.stop - s.start
-        tc = t_buf[1:m + 1]
-        np.copyto(tc, t[s], casting="unsafe")
-        chans = ch_buf[:, 1:m + 1]
-        np.copyto(chans, raw[s].T, casting="unsafe")
-        if prev_t is None:
-            dt = dt_buf[:m - 1]
-            np.subtract(tc[1:], tc[:-1], out=dt)
-        else:
-            t_buf[0] = prev_t
-            dt = dt_buf[:m]
-            np.subtract(t_buf[1:m + 1], t_buf[:m], out=dt)
-        prev_t = float(tc[-1])
-        with np.errstate(invalid="ignore"):
-            dmin, dmax = (float(dt.min()), float(dt.max())) if dt.size else (0.0, 0.0)
-            lo, hi = chans.min(axis=1), chans.max(axis=1)
-        if sc.finite and not (math.isfinite(tc[0]) and math.isfinite(dmin) and math.isfinite(dmax)
-                              and np.isfinite(lo).all() and np.isfinite(hi).all()
-                              and all(np.isfinite(np.asarray(e[s], dtype=np.float64)).all() for e in extra)):
+        tc = t[s] if t_native else np.asarray(t[s], dtype=np.float64)
+        block = raw[s] if native else np.asarray(raw[s], dtype=np.float64)
+        sm = None if same is None else same[:m]
+        scan_chunk(tc, block[:, 0], block[:, 1], block[:, 2], prev, state, sm)
+        if not (state[13] and all(np.isfinite(np.asarray(e[s], dtype=np.float64)).all() for e in extra)):
             sc.finite = False
             return sc  # the caller drops the bad rows and scans again
-        if dt.size:
-            sc.min_dt = min(sc.min_dt, dmin)
-            if k % 64 == 0:
-                sc.dt_medians.append(float(np.median(dt)))
-        for c, ch in enumerate(chans):
-            cmin, cmax = lo[c], hi[c]
-            if cmin <= sc.lo[c]:
-                nmin = int(np.count_nonzero(ch == cmin))
-                sc.n_lo[c] = nmin if cmin < sc.lo[c] else sc.n_lo[c] + nmin
-                sc.lo[c] = cmin
-            if cmax >= sc.hi[c]:
-                nmax = int(np.count_nonzero(ch == cmax))
-                sc.n_hi[c] = nmax if cmax > sc.hi[c] else sc.n_hi[c] + nmax
-                sc.hi[c] = cmax
+        if k % 64 == 0:  # the step distribution, sampled
+            steps = np.diff(tc) if prev is None else np.diff(tc, prepend=prev[0])
+            if steps.size:
+                sc.dt_medians.append(float(np.median(steps)))
         if flags is not None:
             sc.n_flagged += int(np.count_nonzero(np.asarray(flags[s]).astype(np.int64) & FLAG_SATURATED))
-        if sc.repeats is not None:  # rows as columns of the contiguous copy: compared at full speed
-            rows = (ch_buf[:, 1:m + 1] if k == 0 else ch_buf[:, :m + 1]).T
-            sc.repeats.add(repeated_steps(rows, same, scratch), max(s.start - 1, 0))
-            ch_buf[:, 0] = ch_buf[:, m]
+        if sm is not None:  # same[i]: row s.start + i against the row before it (step s.start + i - 1)
+            sc.repeats.add(sm if prev is not None else sm[1:], max(s.start - 1, 0))
+        prev = np.array([tc[-1], block[-1, 0], block[-1, 1], block[-1, 2]], dtype=np.float64)
         # a memory-mapped input stays in the page cache but leaves this process's resident set:
         # the scan must not hold the whole file before calibration reads it again
-        for col in (t, raw, *extra, flags):
-            if col is not None:
-                release_mapped(col, s.start, s.stop)
+        drop(s.start, s.stop)
         if progress is not None:
             progress(k + 1, n_chunks)
+    sc.lo, sc.hi = state[0:3].copy(), state[3:6].copy()
+    sc.n_lo, sc.n_hi = state[6:9].astype(np.int64), state[9:12].astype(np.int64)
+    sc.min_dt = float(state[12])
     return sc
 
 

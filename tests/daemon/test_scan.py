@@ -96,3 +96,23 @@ def test_filler_found_by_the_scan_is_flat_stretches_of_the_kept_rows(monkeypatch
     for a, b in flats.runs:
         drop[a + 1:b] = True
     np.testing.assert_array_equal(rec.raw, kept[~drop])
+
+
+@pytest.mark.parametrize("chunk", [1000, 997, 1 << 16])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_steps_and_repeats_across_chunk_borders_are_counted(monkeypatch, chunk, dtype):
+    """The step into a chunk's first row and its repeat of the row before are the scan's too: a
+    repeated time and a repeated triad placed on a border, and rows that repeat in only two channels."""
+    monkeypatch.setattr(recordings, "SCAN_CHUNK", chunk)
+    rng = np.random.default_rng(chunk)
+    n = 10_000
+    t = np.cumsum(rng.uniform(0.005, 0.015, n))
+    raw = rng.integers(0, 6, size=(n, 3)).astype(dtype)  # coarse: many repeats of two channels, some of three
+    t[2000] = t[1999]  # a zero step: on a border for chunk 1000
+    raw[5000] = raw[4999]  # a repeated triad on a border for chunk 1000
+    raw[2 * 997] = raw[2 * 997 - 1]  # and for chunk 997
+    sc = recordings._scan(t, raw, [], None, repeats=True)
+    assert sc.min_dt == 0.0 == np.diff(t).min()
+    same = (raw[1:] == raw[:-1]).all(axis=1)
+    two = (raw[1:, :2] == raw[:-1, :2]).all(axis=1)
+    assert sc.repeats.n_repeats == int(same.sum()) and two.sum() > 2 * same.sum()
