@@ -17,6 +17,7 @@ from gravcal.daemon.cli import main
 from gravcal.daemon.study import FIELDS
 
 N_GOOD = 4
+N_LINKED = 12
 
 
 @pytest.fixture(scope="module")
@@ -91,8 +92,14 @@ def test_bad_study_requests_say_so(tmp_path, capsys):
 
 
 def test_ctrl_c_leaves_valid_results_and_resume_finishes(study, tmp_path):
+    # enough files that the run cannot finish between its first row and the signal, however fast
+    # a file is calibrated (hard links: the same recordings under other names)
+    many = tmp_path / "many"
+    many.mkdir()
+    for i in range(N_LINKED):
+        os.link(study / ("site2" if i % N_GOOD == 3 else "") / f"s{i % N_GOOD}.npy", many / f"r{i:02d}.npy")
     out = tmp_path / "results.csv"
-    cmd = [sys.executable, "-m", "gravcal.daemon.cli", "calibrate", str(study), "--out", str(out), "--workers", "0",
+    cmd = [sys.executable, "-m", "gravcal.daemon.cli", "calibrate", str(many), "--out", str(out), "--workers", "0",
            "--quiet"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
@@ -105,12 +112,12 @@ def test_ctrl_c_leaves_valid_results_and_resume_finishes(study, tmp_path):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     partial = rows_of(out)
-    assert 1 <= len(partial) < N_GOOD + 1
+    assert 1 <= len(partial) < N_LINKED
     assert out.read_text().endswith("\n")
     assert subprocess.run(cmd, capture_output=True, timeout=300).returncode == 0
     rows = rows_of(out)
     assert rows[: len(partial)] == partial
-    assert sorted(r["file"] for r in rows) == sorted({r["file"] for r in rows}) and len(rows) == N_GOOD + 1
+    assert sorted(r["file"] for r in rows) == sorted({r["file"] for r in rows}) and len(rows) == N_LINKED
 
 
 def test_dask_workers_give_the_same_rows(study, tmp_path):
