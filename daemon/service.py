@@ -296,6 +296,8 @@ class Gravcald:
                          "withheld": self.watchdog.withheld},
             "config": {"path": self.config_path, "reloads": self.reloads, "reload_error": self.reload_error},
             "notes": list(self.notes),
+            # OS thread ids by name, so a profiler can split the process's CPU by thread (/proc/PID/task/TID)
+            "threads": {t.name: t.native_id for t in threading.enumerate()},
             **({"emulator": self.emulator.status()} if self.emulator is not None else {}),
         }
 
