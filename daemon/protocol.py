@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from ..core.samples import CHANNEL_CHIP, duty_ratios
+from ..core.samples import duty_ratios
+from ._linekernel import imu_line
 
 PROTOCOL_MAJOR = 1
 PROTOCOL_MINOR = 0
@@ -274,8 +275,9 @@ def encode_imu_joined(
     flat tuple of the values, built column-wise by numpy (no Python step per sample).
     """
     n = samples.shape[0]
-    if n == 1:  # the per-sample latency path: Python scalars cost a fifth of the column-wise numpy calls
-        return _encode_imu_one(samples[0], acc_ms2, gyro_rads, static, raw)
+    if n == 1:  # the per-sample latency path, in C (_linekernel.c): the same bytes without numpy's per-call costs
+        return imu_line(samples, np.ascontiguousarray(acc_ms2, dtype=float), np.asarray(gyro_rads).reshape(1)[0],
+                        np.asarray(static).reshape(1)[0], raw)
     acc = np.asarray(acc_ms2, dtype=float).reshape(n, 3)
     gyro = np.asarray(gyro_rads, dtype=float).reshape(n)
     gyro_null = bool(np.isnan(gyro).all())  # the usual uncalibrated gyro: a literal null, no scan
@@ -301,39 +303,6 @@ def encode_imu_joined(
     if not finite:
         for word in _NON_FINITE_WORDS:
             text = text.replace(word, b"null")
-    return text
-
-
-_STATIC_WORDS = ("null", "false", "true")
-_CHIP_OF_CHANNEL = tuple(int(c) for c in CHANNEL_CHIP)
-
-
-def _encode_imu_one(row: np.void, acc_ms2: np.ndarray, gyro_rads: np.ndarray, static: np.ndarray, raw: bool) -> bytes:
-    """:func:`encode_imu_joined` of one sample, the same bytes from Python scalars."""
-    acc = np.asarray(acc_ms2, dtype=float).reshape(3).tolist()
-    gyro = float(np.asarray(gyro_rads, dtype=float).reshape(1)[0])
-    st = np.asarray(static).reshape(1)
-    word = ("true" if st[0] else "false") if st.dtype == bool else _STATIC_WORDS[min(max(int(st[0]), -1), 1) + 1]
-    t, seq, tick, t1, t2, gyro_counts, temp, vsupply, flags = row.item()  # one call for every field
-    gyro_null = math.isnan(gyro)
-    values: list[Any] = [seq, t, *acc]
-    if not gyro_null:
-        values.append(gyro)
-    values += [word, temp, vsupply]
-    floats = [t, *acc, temp, vsupply] + ([] if gyro_null else [gyro])
-    template = _HEAD_FIELDS.replace("{gyro}", "null" if gyro_null else "%.6f")
-    if raw:
-        t1, t2 = t1.tolist(), t2.tolist()
-        duty = [t1[c] / t2[_CHIP_OF_CHANNEL[c]] if t2[_CHIP_OF_CHANNEL[c]] else math.nan for c in range(4)]
-        floats += duty
-        values += [*duty, *t1, *t2, gyro_counts, tick, flags]
-        template += _RAW_FIELDS
-    else:
-        template += "}\n"
-    text = (template % tuple(values)).encode()
-    if not all(map(math.isfinite, floats)):
-        for w in _NON_FINITE_WORDS:
-            text = text.replace(w, b"null")
     return text
 
 
