@@ -73,6 +73,8 @@ class Processor:
         # (seq of the last analysed sample, the detector's decision there): one tuple, swapped atomically, read by
         # correct() in the acquisition thread; seq None before any analysis
         self.analysed: tuple[int | None, bool] = (None, False)
+        self.corrected_seq: int | None = None  # seq of the last sample corrected (the analysis lag is from it)
+        self.static_unknown = 0  # corrected samples whose `static` was unknown (the detector too far behind)
         self.applied = start.calibration  # what corrects the published samples until an update is accepted
         saved_remount = start.extra.get("remount") if resumed else None
         e = cfg.estimator
@@ -206,14 +208,22 @@ class Processor:
             acc = plain.block(block)
         bias, sens = self._gyro_correction
         gyro = (block["gyro"].astype(float) - bias) / sens  # NaN while either is unknown
-        return acc, gyro, self.static_codes(block["seq"])
+        static = self.static_codes(block["seq"])
+        self.static_unknown += int(np.count_nonzero(static == STATIC_UNKNOWN))
+        if block.shape[0]:
+            self.corrected_seq = int(block["seq"][-1])
+        return acc, gyro, static
 
     def _correct_one(self, block: np.ndarray, plain: PlainCorrection):
         """correct() of a one-sample block with a plain calibration (PlainCorrection.one, in C: the same bits as
         the block path, without numpy's per-call overhead on 1-row arrays)."""
         acc, gyro = np.empty((1, 3)), np.empty(1)
         plain.one(block, acc, gyro, *self._gyro_correction)
-        return acc, gyro, np.array([self._static_code(int(block["seq"][0]))], dtype=np.int8)
+        self.corrected_seq = seq = int(block["seq"][0])
+        code = self._static_code(seq)
+        if code == STATIC_UNKNOWN:
+            self.static_unknown += 1
+        return acc, gyro, np.array([code], dtype=np.int8)
 
     def analyse(self, block: np.ndarray) -> np.ndarray:
         """Detector and estimator over a block (in arrival order, any split); returns the

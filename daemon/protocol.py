@@ -276,8 +276,8 @@ def encode_imu_joined(
     """
     n = samples.shape[0]
     if n == 1:  # the per-sample latency path, in C (_linekernel.c): the same bytes without numpy's per-call costs
-        return imu_line(samples, np.ascontiguousarray(acc_ms2, dtype=float), np.asarray(gyro_rads).reshape(1)[0],
-                        np.asarray(static).reshape(1)[0], raw)
+        return imu_line(samples, np.ascontiguousarray(acc_ms2, dtype=float), np.asarray(gyro_rads).item(),
+                        np.asarray(static).item(), raw)
     acc = np.asarray(acc_ms2, dtype=float).reshape(n, 3)
     gyro = np.asarray(gyro_rads, dtype=float).reshape(n)
     gyro_null = bool(np.isnan(gyro).all())  # the usual uncalibrated gyro: a literal null, no scan

@@ -215,7 +215,11 @@ class Driver(ABC):
 
     # -- internals ------------------------------------------------------------------
     def _take(self, max_samples: int) -> np.ndarray:
-        out, self._pending = self._pending[:max_samples], self._pending[max_samples:]
+        out = self._pending
+        if out.shape[0] <= max_samples:  # the usual case (a sample per read): no slicing
+            self._pending = _EMPTY
+        else:
+            out, self._pending = out[:max_samples], out[max_samples:]
         self.counters["samples"] += out.shape[0]
         return out
 
@@ -305,6 +309,9 @@ class Driver(ABC):
         self._rate.update(block, t_recv)
 
 
+_EMPTY = np.zeros(0, dtype=SAMPLE_DTYPE)
+
+
 class FramedStreamDriver(Driver):
     """A driver whose bytes go through the shared serial frame codec (``self.decoder``, a
     codec.FrameDecoder): the serial port, and the I2C FIFO, which carries the same frames."""
@@ -322,18 +329,26 @@ class FramedStreamDriver(Driver):
 
 
 class _RateEstimate:
-    """Sample rate [Hz] from unwrapped seq vs host time, for resolving long outages."""
+    """Sample rate [Hz] from unwrapped seq vs host time, for resolving long outages (updated every
+    UPDATE_S of host time: an outage is at least a reconnect backoff long)."""
+
+    UPDATE_S = 0.25
 
     def __init__(self) -> None:
         self._first: tuple[int, float] | None = None
+        self._next = -np.inf  # host time of the next update
         self.rate_hz: float | None = None
 
     def update(self, block: np.ndarray, t_recv: float) -> None:
+        if t_recv < self._next:
+            return
         seq = int(block["seq"][-1])
         if self._first is None:
             self._first = (seq, t_recv)
-        elif t_recv - self._first[1] > 1.0:
+            self._next = t_recv + 1.0
+        else:
             self.rate_hz = (seq - self._first[0]) / (t_recv - self._first[1])
+            self._next = t_recv + self.UPDATE_S
 
 
 # ---------------------------------------------------------------- specs
