@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -346,28 +346,28 @@ def decimation_mask(t: np.ndarray, rate: float, last_bucket: float) -> tuple[np.
     return mask, float(last_bucket)
 
 
-@dataclass
 class ImuBlock:
-    """A block handed from acquisition to the server (all arrays length N)."""
+    """A block handed from acquisition to the server (all arrays length N), with its encoded
+    lines cached per encoding (index: raw) and shared by every client. A plain class with slots:
+    one is made per sample on the latency path."""
 
-    samples: np.ndarray
-    acc_ms2: np.ndarray
-    gyro_rads: np.ndarray
-    static: np.ndarray
-    _lines: dict[bool, list[bytes]] = field(default_factory=dict, repr=False)
+    __slots__ = ("samples", "acc_ms2", "gyro_rads", "static", "_lines", "_joined")
 
-    _joined: dict[bool, bytes] = field(default_factory=dict, repr=False)
+    def __init__(self, samples: np.ndarray, acc_ms2: np.ndarray, gyro_rads: np.ndarray, static: np.ndarray):
+        self.samples, self.acc_ms2, self.gyro_rads, self.static = samples, acc_ms2, gyro_rads, static
+        self._lines: list[list[bytes] | None] = [None, None]
+        self._joined: list[bytes | None] = [None, None]
 
     def lines(self, raw: bool) -> list[bytes]:
         """Encoded IMU lines, computed once per encoding and shared by every client."""
-        got = self._lines.get(raw)
+        got = self._lines[raw]
         if got is None:
             got = self._lines[raw] = self.joined(raw).splitlines(keepends=True)
         return got
 
     def joined(self, raw: bool) -> bytes:
         """All lines as one byte string (what a full-rate client is sent), encoded once."""
-        got = self._joined.get(raw)
+        got = self._joined[raw]
         if got is None:
             got = self._joined[raw] = encode_imu_joined(self.samples, self.acc_ms2, self.gyro_rads, self.static,
                                                         raw=raw)
@@ -376,7 +376,7 @@ class ImuBlock:
     def lines_at(self, raw: bool, idx: np.ndarray) -> list[bytes]:
         """The lines of the samples at ``idx`` (decimated clients). When every watcher is
         decimated only these samples are encoded, not the whole block."""
-        got = self._lines.get(raw)
+        got = self._lines[raw]
         if got is not None:
             return [got[i] for i in idx.tolist()]
         return encode_imu(self.samples[idx], self.acc_ms2[idx], self.gyro_rads[idx], self.static[idx], raw=raw)

@@ -294,7 +294,8 @@ class Driver(ABC):
         never before a sample stamped earlier (reception jitter, a device reset or a wrong tick
         rate must not make ``t`` run backwards)."""
         if block.shape[0] == 1:  # the event-driven common case, without array arithmetic
-            self._last_t = block["t"][0] = max(t_recv, self._last_t)
+            self._last_t = t = max(t_recv, self._last_t)
+            block["t"] = t  # one field assignment
             self._rate.update(block, t_recv)
             return
         if self.tick_hz:

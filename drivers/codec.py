@@ -296,10 +296,10 @@ class FrameDecoder:
         one = self.unwrapper.continue_one(*head)
         if one is None:
             return None
-        row = bytearray(SAMPLE_DTYPE.itemsize)
+        row = np.empty(1, dtype=SAMPLE_DTYPE)
         frame_to_row(frame, row, one[0], FLAG_GAP_BEFORE if one[1] else 0)
         self._stats.frames += 1
-        return np.frombuffer(row, dtype=SAMPLE_DTYPE)
+        return row
 
     def discard_partial(self) -> None:
         """Forget a partial frame (after a reconnect the bytes that follow are unrelated)."""
