@@ -2,6 +2,7 @@
  *
  * frame_header(frame)                 -> (seq, tick) of an intact 29-byte frame, else None
  * frame_to_row(frame, row, seq, flags)   writes one SAMPLE_DTYPE row (core/samples.py) for it
+ * sample_to_row(row, seq, tick, ...)       the same row from one sample's raw fields (drivers/can.py)
  *
  * The values are those of codec.wire_to_samples followed by the decoder's unwrapping: the wire
  * layout and the CRC are codec.py's (CRC-16/CCITT-FALSE over the whole frame is 0 when intact),
@@ -54,6 +55,25 @@ static double adc_volts(unsigned int code)
     return code > ADC_FULL_SCALE ? NAN : (double)code * (2.5 / 4096.0);
 }
 
+/* One SAMPLE_DTYPE record: t NaN (the driver stamps host time), the unwrapped seq, the raw fields, and
+   temp/vsupply as codec.temp_from_raw / vsupply_from_raw compute them in float64, stored as float32. */
+static void write_row(unsigned char *r, long long seq, uint32_t tick, const uint32_t t1[4], const uint32_t t2[2],
+                      uint16_t gyro, unsigned int temp_raw, unsigned int vsupply_raw, uint16_t flags)
+{
+    double t = NAN;
+    float temp = (float)((adc_volts(temp_raw) - 0.5) / 0.01); /* (V - 0.5 V) / 10 mV/°C */
+    float vsupply = (float)(adc_volts(vsupply_raw) * 3.0);    /* V * 3 (1:3 divider) */
+    memcpy(r + 0, &t, 8);
+    memcpy(r + 8, &seq, 8);
+    memcpy(r + 16, &tick, 4);
+    memcpy(r + 20, t1, 16);
+    memcpy(r + 36, t2, 8);
+    memcpy(r + 44, &gyro, 2);
+    memcpy(r + 46, &temp, 4);
+    memcpy(r + 50, &vsupply, 4);
+    memcpy(r + 54, &flags, 2);
+}
+
 static PyObject *frame_header(PyObject *self, PyObject *args)
 {
     Py_buffer f;
@@ -86,27 +106,41 @@ static PyObject *frame_to_row(PyObject *self, PyObject *args)
         return NULL;
     }
     const unsigned char *p = f.buf;
-    unsigned char *r = row.buf;
-    double t = NAN; /* the driver stamps host time */
-    uint32_t tick = u32le(p + 5), t1[4], t2[2];
+    uint32_t t1[4], t2[2];
     for (int c = 0; c < 4; c++)
         t1[c] = u16le(p + 9 + 2 * c);
     for (int k = 0; k < 2; k++)
         t2[k] = u16le(p + 17 + 2 * k);
-    uint16_t gyro = (uint16_t)u16le(p + 21), fl = (uint16_t)flags;
-    float temp = (float)((adc_volts(u16le(p + 23)) - 0.5) / 0.01); /* temp_from_raw: (V - 0.5 V) / 10 mV/°C */
-    float vsupply = (float)(adc_volts(u16le(p + 25)) * 3.0);       /* vsupply_from_raw: V * 3 (1:3 divider) */
-    memcpy(r + 0, &t, 8);
-    memcpy(r + 8, &seq, 8);
-    memcpy(r + 16, &tick, 4);
-    memcpy(r + 20, t1, 16);
-    memcpy(r + 36, t2, 8);
-    memcpy(r + 44, &gyro, 2);
-    memcpy(r + 46, &temp, 4);
-    memcpy(r + 50, &vsupply, 4);
-    memcpy(r + 54, &fl, 2);
+    write_row(row.buf, seq, u32le(p + 5), t1, t2, (uint16_t)u16le(p + 21), u16le(p + 23), u16le(p + 25),
+              (uint16_t)flags);
     PyBuffer_Release(&f);
     PyBuffer_Release(&row);
+    Py_RETURN_NONE;
+}
+
+static PyObject *sample_to_row(PyObject *self, PyObject *args)
+{
+    Py_buffer row;
+    long long seq;
+    unsigned long tick;
+    unsigned int gyro, t1[4], t2[2], temp_raw, vsupply_raw, flags;
+    if (!PyArg_ParseTuple(args, "w*LkI(IIII)(II)III:sample_to_row", &row, &seq, &tick, &gyro, &t1[0], &t1[1],
+                          &t1[2], &t1[3], &t2[0], &t2[1], &temp_raw, &vsupply_raw, &flags))
+        return NULL;
+    const char *why = NULL;
+    if (row.len != SAMPLE_SIZE)
+        why = "sample_to_row: row must be one 56-byte SAMPLE_DTYPE record";
+    else if (tick > 0xFFFFFFFFul || gyro > 0xFFFF || temp_raw > 0xFFFF || vsupply_raw > 0xFFFF || flags > 0xFFFF)
+        why = "sample_to_row: tick must fit 32 bits, gyro, the ADC codes and flags 16 bits";
+    if (why == NULL) {
+        uint32_t a[4] = {t1[0], t1[1], t1[2], t1[3]}, b[2] = {t2[0], t2[1]};
+        write_row(row.buf, seq, (uint32_t)tick, a, b, (uint16_t)gyro, temp_raw, vsupply_raw, (uint16_t)flags);
+    }
+    PyBuffer_Release(&row);
+    if (why != NULL) {
+        PyErr_SetString(PyExc_ValueError, why);
+        return NULL;
+    }
     Py_RETURN_NONE;
 }
 
@@ -115,6 +149,9 @@ static PyMethodDef methods[] = {
      "frame_header(frame) -> (seq, tick) of an intact 29-byte frame (sync, length, CRC), else None."},
     {"frame_to_row", frame_to_row, METH_VARARGS,
      "frame_to_row(frame, row, seq, flags): write the frame's SAMPLE_DTYPE record (t NaN) into the 56-byte row."},
+    {"sample_to_row", sample_to_row, METH_VARARGS,
+     "sample_to_row(row, seq, tick, gyro, t1[4], t2[2], temp_raw, vsupply_raw, flags): write the SAMPLE_DTYPE record "
+     "(t NaN) of one sample's raw fields (a CAN sample's four frames) into the 56-byte row."},
     {NULL, NULL, 0, NULL},
 };
 
