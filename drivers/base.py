@@ -174,10 +174,14 @@ class Driver(ABC):
             except self.transient_errors as exc:
                 self._lost(exc)
                 continue
-            if block.shape[0]:
+            n = block.shape[0]
+            if n:
                 self._stamp(block, time.monotonic())
                 if self._flag_reconnect:
                     self._mark_reconnect(block)
+                if n <= max_samples:  # the usual case (a sample per read): handed over whole
+                    self.counters["samples"] += n
+                    return block
                 self._pending = block
                 return self._take(max_samples)
             if time.monotonic() >= deadline:
@@ -215,11 +219,7 @@ class Driver(ABC):
 
     # -- internals ------------------------------------------------------------------
     def _take(self, max_samples: int) -> np.ndarray:
-        out = self._pending
-        if out.shape[0] <= max_samples:  # the usual case (a sample per read): no slicing
-            self._pending = _EMPTY
-        else:
-            out, self._pending = out[:max_samples], out[max_samples:]
+        out, self._pending = self._pending[:max_samples], self._pending[max_samples:]
         self.counters["samples"] += out.shape[0]
         return out
 
@@ -308,9 +308,6 @@ class Driver(ABC):
         block["t"] = np.maximum.accumulate(t)
         self._last_t = float(block["t"][-1])
         self._rate.update(block, t_recv)
-
-
-_EMPTY = np.zeros(0, dtype=SAMPLE_DTYPE)
 
 
 class FramedStreamDriver(Driver):
