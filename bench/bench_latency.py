@@ -83,10 +83,13 @@ DEVICE_THREADS = ("fake-i2c-device",)
 
 
 def _thread_cpu(pid: int, status0: dict, status1: dict, task0: dict[int, float], task1: dict[int, float],
-                wall: float) -> tuple[dict[str, float], float]:
+                wall: float) -> tuple[dict[str, float], float | None]:
     """(% of one core per daemon thread by name, % spent by the emulated device: its threads and its
-    bus accesses made from the driver's thread, which are taken out of that thread's figure)."""
-    names = {tid: name for name, tid in status1.get("threads", {}).items()}
+    bus accesses made from the driver's thread, which are taken out of that thread's figure; None when
+    the daemon does not name its threads: a tree from before this report)."""
+    if "threads" not in status1:
+        return {"(threads not named)": sum(task1[t] - task0.get(t, 0.0) for t in task1) / wall * 100}, None
+    names = {tid: name for name, tid in status1["threads"].items()}
     per: dict[str, float] = {}
     for tid, c1 in task1.items():
         name = names.get(tid, "other")
@@ -187,7 +190,8 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
     pct = {f"p{q:g}": float(np.percentile(spread, q)) for q in (50, 99, 99.9)}
     return {"bus": bus, "clients": clients, "samples": int(a.shape[0]), "seconds": wall,
             "samples_per_s": a.shape[0] / wall, "latency_ms": pct, "cpu_percent": cpu / wall * 100,
-            "cpu_percent_daemon": cpu / wall * 100 - device, "cpu_percent_emulated_device": device,
+            "cpu_percent_daemon": None if device is None else cpu / wall * 100 - device,
+            "cpu_percent_emulated_device": device,
             "cpu_percent_by_thread": threads,
             "rss_mb": rss, "rss_peak_mb": hwm, "src": src or "this tree", "latency_budget_s": budget_s}
 
@@ -202,7 +206,8 @@ def _show(r: dict) -> str:
                 r["cpu_percent_by_thread"].items(), key=lambda kv: -kv[1]) if v >= 0.005)
             + (f"\n{'':9s}CPU of the process {r['cpu_percent']:.2f} % = gravcald's own {r['cpu_percent_daemon']:.2f} % "
                f"+ the emulated I2C device in its process {r['cpu_percent_emulated_device']:.2f} % (its sampling "
-               f"thread and its bus accesses from the driver's thread)" if r["bus"] == "i2c" else ""))
+               f"thread and its bus accesses from the driver's thread)"
+               if r["bus"] == "i2c" and r["cpu_percent_emulated_device"] is not None else ""))
 
 
 def main(argv=None) -> int:
