@@ -5,6 +5,7 @@
  *   offset  3 float64 o [duty];  kinv_t 9 float64, scale * K^-T row-major (PlainCorrection.kinv_t)
  *   acc     3 float64 out: a = scale * K^-1 (raw - o)  (Lötters 1998's linear model, solved for a)
  *   gyro    1 float64 out: (counts - bias) / sens     (NaN while either is unknown)
+ *   returns the record's seq (the caller's static decision needs it; no numpy field access for it)
  *
  * Each step is PlainCorrection.block's numpy operation in the same order, so the bits match:
  * raw = T1 / T2 of the triad's chips (core.samples.duty_ratios, NaN where T2 = 0), x = raw - o,
@@ -21,6 +22,7 @@
 #endif
 
 #define SAMPLE_SIZE 56
+#define SEQ_AT 8
 #define T1_AT 20
 #define T2_AT 36
 #define GYRO_AT 44
@@ -31,6 +33,7 @@ static PyObject *correct_row(PyObject *self, PyObject *args)
 {
     Py_buffer row, off, kin, acc, gyr;
     double bias, sens;
+    long long seq = 0;
     if (!PyArg_ParseTuple(args, "y*y*y*ddw*w*:correct_row", &row, &off, &kin, &bias, &sens, &acc, &gyr))
         return NULL;
     const char *why = row.len != SAMPLE_SIZE ? "correct_row: row must be one 56-byte SAMPLE_DTYPE record"
@@ -44,6 +47,7 @@ static PyObject *correct_row(PyObject *self, PyObject *args)
         uint32_t t1[4], t2[2];
         uint16_t counts;
         double o[3], k[9], x[3], a[3], g;
+        memcpy(&seq, r + SEQ_AT, 8);
         memcpy(t1, r + T1_AT, 16);
         memcpy(t2, r + T2_AT, 8);
         memcpy(&counts, r + GYRO_AT, 2);
@@ -68,13 +72,13 @@ static PyObject *correct_row(PyObject *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, why);
         return NULL;
     }
-    Py_RETURN_NONE;
+    return PyLong_FromLongLong(seq);
 }
 
 static PyMethodDef methods[] = {
     {"correct_row", correct_row, METH_VARARGS,
      "correct_row(row, offset, kinv_t, gyro_bias, gyro_sens, acc, gyro): the plain correction of one SAMPLE_DTYPE "
-     "record into acc (3 float64) and gyro (1 float64)."},
+     "record into acc (3 float64) and gyro (1 float64); returns the record's seq."},
     {NULL, NULL, 0, NULL},
 };
 

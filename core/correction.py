@@ -34,8 +34,8 @@ class PlainCorrection:
         return x[:, 0:1] * k[0] + x[:, 1:2] * k[1] + x[:, 2:3] * k[2]
 
     def one(self, row: np.ndarray, acc: np.ndarray, gyro: np.ndarray, gyro_bias: float = math.nan,
-            gyro_sens: float = math.nan) -> None:
+            gyro_sens: float = math.nan) -> int:
         """Correct one SAMPLE_DTYPE record ``row`` (a C-contiguous 1-row block): its triad into ``acc`` (3
         float64) and its gyro rate (counts - gyro_bias) / gyro_sens into ``gyro`` (1 float64; NaN while either
-        is unknown), the bits :meth:`block` and the gyro's numpy form give."""
-        correct_row(row, self.offset, self.kinv_t, gyro_bias, gyro_sens, acc, gyro)
+        is unknown), the bits :meth:`block` and the gyro's numpy form give. Returns the record's seq."""
+        return correct_row(row, self.offset, self.kinv_t, gyro_bias, gyro_sens, acc, gyro)

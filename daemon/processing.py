@@ -37,6 +37,14 @@ NOMINAL_SENSITIVITY = 0.04
 # up, and the detection signal is itself a 0.5 Hz low-pass; a starved processing thread (a loaded host, a
 # time-lapse emulator) would otherwise label seconds of later motion with an old "still".
 STATIC_MAX_AGE_S = 2.0
+# The one-sample `static` arrays by code (unknown, moving, still), shared and read-only: made once, not per sample
+def _frozen_code(code: int) -> np.ndarray:
+    a = np.array([code], dtype=np.int8)
+    a.flags.writeable = False
+    return a
+
+
+_STATIC_ONE = {code: _frozen_code(code) for code in (STATIC_UNKNOWN, 0, 1)}
 
 # The emulated/reference board's gyro path (docs/gyro.md, core/model/enc03j.py): ENC-03J on the
 # board's y axis, 0.3 Hz high-pass conditioning, ±300 °/s, 12-bit ADC. The start sensitivity is
@@ -181,7 +189,7 @@ class Processor:
         most STATIC_MAX_AGE_S of sensor time older than the sample, else STATIC_UNKNOWN (null)."""
         last, static = self.analysed
         if seq.shape[0] == 1:  # the per-sample path, in Python scalars
-            return np.array([self._static_code(int(seq[0]))], dtype=np.int8)
+            return _STATIC_ONE[self._static_code(int(seq[0]))]
         codes = np.full(seq.shape[0], STATIC_UNKNOWN, dtype=np.int8)
         if last is not None:
             fresh = (seq.astype(np.int64) - last) <= STATIC_MAX_AGE_S * self.cfg.device.fs_hz
@@ -218,12 +226,11 @@ class Processor:
         """correct() of a one-sample block with a plain calibration (PlainCorrection.one, in C: the same bits as
         the block path, without numpy's per-call overhead on 1-row arrays)."""
         acc, gyro = np.empty((1, 3)), np.empty(1)
-        plain.one(block, acc, gyro, *self._gyro_correction)
-        self.corrected_seq = seq = int(block["seq"][0])
+        self.corrected_seq = seq = plain.one(block, acc, gyro, *self._gyro_correction)
         code = self._static_code(seq)
         if code == STATIC_UNKNOWN:
             self.static_unknown += 1
-        return acc, gyro, np.array([code], dtype=np.int8)
+        return acc, gyro, _STATIC_ONE[code]
 
     def analyse(self, block: np.ndarray) -> np.ndarray:
         """Detector and estimator over a block (in arrival order, any split); returns the

@@ -21,8 +21,8 @@ def test_one_sample_form_equals_the_block_form_and_the_model(seed):
     block = c.block(samples)
     one, gyro = np.empty((samples.shape[0], 3)), np.empty(samples.shape[0])
     bias, per_rad_s = float(rng.uniform(1800, 2200)), float(rng.uniform(300, 400))
-    for i in range(samples.shape[0]):
-        c.one(samples[i:i + 1], one[i], gyro[i:i + 1], bias, per_rad_s)
+    seqs = [c.one(samples[i:i + 1], one[i], gyro[i:i + 1], bias, per_rad_s) for i in range(samples.shape[0])]
+    assert seqs == samples["seq"].tolist()  # each record's seq, returned for the caller's static decision
     np.testing.assert_array_equal(one, block)
     np.testing.assert_array_equal(gyro, (samples["gyro"].astype(float) - bias) / per_rad_s)
     want = np.linalg.solve(sens, (raw_triad(samples) - offset).T).T * 9.80665
