@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 import threading
 import time
 from typing import Any
@@ -43,9 +42,6 @@ from .socket_activation import activated_socket
 
 log = logging.getLogger("gravcal.gravcald")
 
-# How long a thread holding the GIL keeps it while another waits [s] (Python's default: 5 ms). The
-# analysis runs pure-Python stretches of several ms; a sample arriving meanwhile would wait for them.
-GIL_SWITCH_INTERVAL_S = 0.0005
 REOPEN_AFTER_READ_ERRORS = 3  # a driver whose read() keeps raising is closed and reopened
 # samples collected before the detector and estimator run [s of data]: their per-call overhead (~0.2 ms)
 # is paid this often; the published `static` is this much (plus the analysis time) older than the sample
@@ -164,7 +160,6 @@ class Gravcald:
         if self.identity is not None:  # root until here: the device and socket are open
             self.store.ensure_directory()
             privileges.drop(self.identity, hand_over=[self.store.directory])
-        sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         for name, target in (("gravcal-acquisition", self._acquire), ("gravcal-processing", self._process)):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
