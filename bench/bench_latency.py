@@ -11,8 +11,11 @@ N clients, N - 1 more processes watch every sample and discard it.
 Latency: the emulator sends sample ``seq`` at t0 + seq / fs (CLOCK_MONOTONIC, shared by the processes),
 so recv - seq / fs is the frame-in -> line-out delay plus a constant; reported as the spread above the
 run's best case (which holds the wire time, 0.63 ms for a 29-byte frame at 460800 baud): p50, p99, p99.9.
-CPU: utime + stime of the gravcald process over the measurement, % of one core. RSS: VmRSS of gravcald
-at the end and its peak (VmHWM).
+CPU: utime + stime of the gravcald process over the measurement, % of one core, and per thread
+(/proc/PID/task/TID; gravcald's ?STATUS names its threads' ids). For i2c the emulated device's own cost
+(its sampling thread, and its bus transactions timed in the driver's thread, which a real I2C device
+would not cost the host) is reported apart from gravcald's own. RSS: VmRSS of gravcald at the end and
+its peak (VmHWM).
 
 ``--baseline-src DIR``: run the same measurement first with another source tree (a directory holding
 gravcal/core, gravcal/drivers, gravcal/daemon, e.g. an unpacked `git archive` of an older commit, put
@@ -38,9 +41,68 @@ FS = 200.0
 
 
 def _cpu_s(pid: int) -> float:
-    with open(f"/proc/{pid}/stat") as fh:
+    return _cpu_s_path(f"/proc/{pid}/stat")
+
+
+def _task_cpu_s(pid: int) -> dict[int, float]:
+    """CPU seconds of each thread of ``pid`` (utime + stime of /proc/PID/task/TID/stat)."""
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            out[int(tid)] = _cpu_s_path(f"/proc/{pid}/task/{tid}/stat")
+        except OSError:  # the thread ended
+            pass
+    return out
+
+
+def _cpu_s_path(path: str) -> float:
+    with open(path) as fh:
         fields = fh.read().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _status(path: str) -> dict:
+    """gravcald's STATUS (its thread ids by name, the emulated device's own CPU)."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.connect(path)
+        s.settimeout(5.0)
+        s.sendall(b"?STATUS;\n")
+        buf = b""
+        while True:
+            data = s.recv(1 << 16)
+            if not data:
+                raise SystemExit("gravcald closed the connection before answering ?STATUS")
+            buf += data
+            for line in buf.split(b"\n")[:-1]:
+                if b'"STATUS"' in line:
+                    return json.loads(line)
+
+
+# threads of the emulated I2C device inside the daemon's process (a real device costs the host nothing)
+DEVICE_THREADS = ("fake-i2c-device",)
+
+
+def _thread_cpu(pid: int, status0: dict, status1: dict, task0: dict[int, float], task1: dict[int, float],
+                wall: float) -> tuple[dict[str, float], float | None]:
+    """(% of one core per daemon thread by name, % spent by the emulated device: its threads and its
+    bus accesses made from the driver's thread, which are taken out of that thread's figure; None when
+    the daemon does not name its threads: a tree from before this report)."""
+    if "threads" not in status1:
+        return {"(threads not named)": sum(task1[t] - task0.get(t, 0.0) for t in task1) / wall * 100}, None
+    names = {tid: name for name, tid in status1["threads"].items()}
+    per: dict[str, float] = {}
+    for tid, c1 in task1.items():
+        name = names.get(tid, "other")
+        per[name] = per.get(name, 0.0) + (c1 - task0.get(tid, 0.0)) / wall * 100
+    bus0 = status0.get("emulator", {}).get("bus_access_cpu_s")
+    bus1 = status1.get("emulator", {}).get("bus_access_cpu_s")
+    device = sum(per.pop(n, 0.0) for n in DEVICE_THREADS)
+    if bus0 is not None and bus1 is not None:
+        bus = (bus1 - bus0) / wall * 100
+        device += bus
+        if "gravcal-acquisition" in per:
+            per["gravcal-acquisition"] -= bus
+    return per, device
 
 
 def _rss_mb(pid: int) -> tuple[float, float]:
@@ -105,10 +167,12 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
         s.connect(path)
         s.sendall(b'?WATCH={"enable":true,"raw":true};\n')
         _lines(s, 8.0)  # warm-up: imports, the emulator's start-up backlog, first windows
-        cpu0, t0 = _cpu_s(proc.pid), time.monotonic()
+        status0 = _status(path)
+        cpu0, task0, t0 = _cpu_s(proc.pid), _task_cpu_s(proc.pid), time.monotonic()
         rows = _lines(s, seconds)
         wall = time.monotonic() - t0
-        cpu = _cpu_s(proc.pid) - cpu0
+        cpu, task1 = _cpu_s(proc.pid) - cpu0, _task_cpu_s(proc.pid)
+        threads, device = _thread_cpu(proc.pid, status0, _status(path), task0, task1, wall)
         rss, hwm = _rss_mb(proc.pid)
         s.close()
     finally:
@@ -126,6 +190,9 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
     pct = {f"p{q:g}": float(np.percentile(spread, q)) for q in (50, 99, 99.9)}
     return {"bus": bus, "clients": clients, "samples": int(a.shape[0]), "seconds": wall,
             "samples_per_s": a.shape[0] / wall, "latency_ms": pct, "cpu_percent": cpu / wall * 100,
+            "cpu_percent_daemon": None if device is None else cpu / wall * 100 - device,
+            "cpu_percent_emulated_device": device,
+            "cpu_percent_by_thread": threads,
             "rss_mb": rss, "rss_peak_mb": hwm, "src": src or "this tree", "latency_budget_s": budget_s}
 
 
@@ -134,7 +201,13 @@ def _show(r: dict) -> str:
     budget = "" if r.get("latency_budget_s") is None else f"budget {r['latency_budget_s'] * 1e3:g} ms  "
     return (f"{budget}{r['bus']:6s} {r['clients']:3d} client(s)  {r['samples_per_s']:6.1f}/s  latency p50 {lat['p50']:7.2f} "
             f"p99 {lat['p99']:7.2f} p99.9 {lat['p99.9']:7.2f} ms  CPU {r['cpu_percent']:5.2f} %  "
-            f"RSS {r['rss_mb']:6.1f} MB (peak {r['rss_peak_mb']:.1f})")
+            f"RSS {r['rss_mb']:6.1f} MB (peak {r['rss_peak_mb']:.1f})\n"
+            f"{'':9s}CPU by thread:" + "".join(f" {k} {v:.2f} %" for k, v in sorted(
+                r["cpu_percent_by_thread"].items(), key=lambda kv: -kv[1]) if v >= 0.005)
+            + (f"\n{'':9s}CPU of the process {r['cpu_percent']:.2f} % = gravcald's own {r['cpu_percent_daemon']:.2f} % "
+               f"+ the emulated I2C device in its process {r['cpu_percent_emulated_device']:.2f} % (its sampling "
+               f"thread and its bus accesses from the driver's thread)"
+               if r["bus"] == "i2c" and r["cpu_percent_emulated_device"] is not None else ""))
 
 
 def main(argv=None) -> int:

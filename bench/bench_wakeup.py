@@ -3,7 +3,7 @@ latency path costs before any decoding, correction or encoding.
 
     python bench/bench_wakeup.py [--fs 200] [--seconds 15]
 
-A child process writes a 29-byte frame to a pipe every 1/fs s; this process select()s and reads it
+A child process writes a 29-byte frame to a pipe every 1/fs s; this process poll()s and reads it
 (``plain``), and in a second run also wakes a second thread through another pipe per frame
 (``handoff``, as acquisition wakes the server thread). Prints each run's CPU in % of one core.
 """
@@ -43,9 +43,11 @@ def measure(handoff: bool, fs: float, seconds: float) -> float:
 
     if handoff:
         threading.Thread(target=server, daemon=True).start()
+    poller = select.poll()  # as the serial driver: the descriptor registered once
+    poller.register(r, select.POLLIN)
     t0, c0 = time.monotonic(), time.process_time()
     while True:
-        select.select([r], [], [])
+        poller.poll()
         if not os.read(r, 4096):
             break
         if handoff:

@@ -1,10 +1,10 @@
 """The plain correction a = K^-1 (raw - o), applied to every published sample.
 
-Two forms that give the same bits: ``block`` on numpy arrays (N samples) and ``one`` on Python
-floats for a single sample, which is the daemon's per-sample latency path (numpy's per-call overhead
-on 1-row arrays is most of the cost there). Both compute the duty cycle T1/T2 (NaN where T2 = 0,
-core.samples.duty_ratios), subtract the offset and sum (raw - o) times K^-T term by term, left to
-right. An extended calibration (terms with covariates) goes through Calibration.apply instead.
+Two forms that give the same bits: ``block`` on numpy arrays (N samples) and ``one`` on a single
+SAMPLE_DTYPE record, which is the daemon's per-sample latency path, in C (_correctkernel.c: numpy's
+per-call overhead on 1-row arrays would be most of the cost there). Both compute the duty cycle T1/T2
+(NaN where T2 = 0, core.samples.duty_ratios), subtract the offset and sum (raw - o) times K^-T term by
+term, left to right. An extended calibration (terms with covariates) goes through Calibration.apply instead.
 """
 from __future__ import annotations
 
@@ -12,9 +12,8 @@ import math
 
 import numpy as np
 
-from .samples import CHANNEL_CHIP, TRIAD, raw_triad
-
-_TRIAD_CHIPS = [(c, int(CHANNEL_CHIP[c])) for c in TRIAD]  # (channel, index of its chip's period in t2)
+from ._correctkernel import correct_row
+from .samples import raw_triad
 
 
 class PlainCorrection:
@@ -25,10 +24,8 @@ class PlainCorrection:
     """
 
     def __init__(self, offset: np.ndarray, sensitivity: np.ndarray, scale: float = 1.0):
-        self.offset = np.asarray(offset, dtype=float)
-        self.kinv_t = np.linalg.inv(np.asarray(sensitivity, dtype=float)).T * scale
-        self._offset = self.offset.tolist()
-        self._kinv = self.kinv_t.tolist()
+        self.offset = np.ascontiguousarray(offset, dtype=float)
+        self.kinv_t = np.ascontiguousarray(np.linalg.inv(np.asarray(sensitivity, dtype=float)).T * scale)
 
     def block(self, samples: np.ndarray) -> np.ndarray:
         """(N, 3) corrected triad of a SAMPLE_DTYPE block."""
@@ -36,11 +33,9 @@ class PlainCorrection:
         k = self.kinv_t
         return x[:, 0:1] * k[0] + x[:, 1:2] * k[1] + x[:, 2:3] * k[2]
 
-    def one(self, t1: list[float], t2: list[float]) -> list[float]:
-        """The corrected triad [3] of one sample, from its T1 (per channel) and T2 (per chip) counts."""
-        o, k = self._offset, self._kinv
-        x = []
-        for i, (c, chip) in enumerate(_TRIAD_CHIPS):
-            period = t2[chip]
-            x.append((t1[c] / period if period else math.nan) - o[i])
-        return [x[0] * k[0][j] + x[1] * k[1][j] + x[2] * k[2][j] for j in range(3)]
+    def one(self, row: np.ndarray, acc: np.ndarray, gyro: np.ndarray, gyro_bias: float = math.nan,
+            gyro_sens: float = math.nan) -> int:
+        """Correct one SAMPLE_DTYPE record ``row`` (a C-contiguous 1-row block): its triad into ``acc`` (3
+        float64) and its gyro rate (counts - gyro_bias) / gyro_sens into ``gyro`` (1 float64; NaN while either
+        is unknown), the bits :meth:`block` and the gyro's numpy form give. Returns the record's seq."""
+        return correct_row(row, self.offset, self.kinv_t, gyro_bias, gyro_sens, acc, gyro)

@@ -131,6 +131,8 @@ class EmulatedBus:
         if self.process is not None:
             out["events"] = list(self.process.events)
             out["stream_done"] = self.process.done_line
+        if self.device is not None:  # the fake device's CPU in the driver's thread (a real I2C device costs none)
+            out["bus_access_cpu_s"] = self.device.bus_cpu_s
         if self.truth is not None:  # what the estimate should converge to (raw = K a + o)
             out["truth"] = {"offset": self.truth.offset.tolist(), "sensitivity": self.truth.sensitivity.tolist()}
         return out

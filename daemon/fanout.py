@@ -22,6 +22,7 @@ from .protocol import ImuBlock, decimation_mask
 def deliver(watchers: Iterable[ClientState], block: ImuBlock, now: float) -> tuple[bool, int]:
     """Send ``block`` to each watcher: (the server thread has work to do, messages dropped)."""
     wake, dropped = False, 0
+    n = block.samples.shape[0]
     for c in watchers:
         with c.lock:
             watch = c.watch
@@ -34,10 +35,17 @@ def deliver(watchers: Iterable[ClientState], block: ImuBlock, now: float) -> tup
                     lines = block.lines_at(watch.raw, np.flatnonzero(mask))
                     if not lines:
                         continue
-            if lines is None:
-                w, lost = _send(c, None, block.joined(watch.raw), block.samples.shape[0], now)
-            else:
+            if lines is not None:
                 w, lost = _send(c, lines, b"".join(lines), len(lines), now)
+            else:
+                data = block.joined(watch.raw)
+                sent = _send_now(c, data)
+                if sent == len(data):  # the usual case, per client per sample: taken whole
+                    c.sent_messages += n
+                    c.sent_bytes += sent
+                    c.last_progress = now
+                    continue
+                w, lost = _sent(c, None, data, n, sent, now)
             wake, dropped = wake or (w and not c.want_write), dropped + lost
     return wake, dropped
 
@@ -54,15 +62,25 @@ def deliver_line(watchers: Iterable[ClientState], line: bytes, now: float) -> tu
     return wake, dropped
 
 
+def _send_now(c: ClientState, data: bytes) -> int:
+    """Bytes of ``data`` the socket took at once (0: something already waits, which goes first, or
+    the socket is full (EAGAIN) or gone: the server thread's next send tells which)."""
+    if c.pending():
+        return 0
+    try:
+        return c.sock.send(data)
+    except OSError:
+        return 0
+
+
 def _send(c: ClientState, lines: list[bytes] | None, data: bytes, n: int, now: float) -> tuple[bool, int]:
     """(the server thread must send the rest, messages dropped from the queue). ``lines``: the
     messages in ``data`` (None: split it if needed). Called with ``c.lock`` held."""
-    sent = 0
-    if not c.pending():  # anything already waiting goes first: queue behind it
-        try:
-            sent = c.sock.send(data)
-        except OSError:  # full (EAGAIN) or gone: the server thread's next send tells which
-            sent = 0
+    return _sent(c, lines, data, n, _send_now(c, data), now)
+
+
+def _sent(c: ClientState, lines: list[bytes] | None, data: bytes, n: int, sent: int, now: float) -> tuple[bool, int]:
+    """The bookkeeping after ``sent`` bytes of ``data`` went out: the rest is the server thread's."""
     if sent == 0:
         return True, _queue(c, data.splitlines(keepends=True) if lines is None else lines, data)
     c.sent_messages += n

@@ -37,6 +37,14 @@ NOMINAL_SENSITIVITY = 0.04
 # up, and the detection signal is itself a 0.5 Hz low-pass; a starved processing thread (a loaded host, a
 # time-lapse emulator) would otherwise label seconds of later motion with an old "still".
 STATIC_MAX_AGE_S = 2.0
+# The one-sample `static` arrays by code (unknown, moving, still), shared and read-only: made once, not per sample
+def _frozen_code(code: int) -> np.ndarray:
+    a = np.array([code], dtype=np.int8)
+    a.flags.writeable = False
+    return a
+
+
+_STATIC_ONE = {code: _frozen_code(code) for code in (STATIC_UNKNOWN, 0, 1)}
 
 # The emulated/reference board's gyro path (docs/gyro.md, core/model/enc03j.py): ENC-03J on the
 # board's y axis, 0.3 Hz high-pass conditioning, ±300 °/s, 12-bit ADC. The start sensitivity is
@@ -73,6 +81,8 @@ class Processor:
         # (seq of the last analysed sample, the detector's decision there): one tuple, swapped atomically, read by
         # correct() in the acquisition thread; seq None before any analysis
         self.analysed: tuple[int | None, bool] = (None, False)
+        self.corrected_seq: int | None = None  # seq of the last sample corrected (the analysis lag is from it)
+        self.static_unknown = 0  # corrected samples whose `static` was unknown (the detector too far behind)
         self.applied = start.calibration  # what corrects the published samples until an update is accepted
         saved_remount = start.extra.get("remount") if resumed else None
         e = cfg.estimator
@@ -179,7 +189,7 @@ class Processor:
         most STATIC_MAX_AGE_S of sensor time older than the sample, else STATIC_UNKNOWN (null)."""
         last, static = self.analysed
         if seq.shape[0] == 1:  # the per-sample path, in Python scalars
-            return np.array([self._static_code(int(seq[0]))], dtype=np.int8)
+            return _STATIC_ONE[self._static_code(int(seq[0]))]
         codes = np.full(seq.shape[0], STATIC_UNKNOWN, dtype=np.int8)
         if last is not None:
             fresh = (seq.astype(np.int64) - last) <= STATIC_MAX_AGE_S * self.cfg.device.fs_hz
@@ -206,16 +216,21 @@ class Processor:
             acc = plain.block(block)
         bias, sens = self._gyro_correction
         gyro = (block["gyro"].astype(float) - bias) / sens  # NaN while either is unknown
-        return acc, gyro, self.static_codes(block["seq"])
+        static = self.static_codes(block["seq"])
+        self.static_unknown += int(np.count_nonzero(static == STATIC_UNKNOWN))
+        if block.shape[0]:
+            self.corrected_seq = int(block["seq"][-1])
+        return acc, gyro, static
 
     def _correct_one(self, block: np.ndarray, plain: PlainCorrection):
-        """correct() of a one-sample block with a plain calibration, in Python floats (PlainCorrection.one: the
-        same bits as the block path, a tenth of numpy's per-call overhead on 1-row arrays)."""
-        _, seq, _, t1, t2, gyro_counts, *_ = block[0].item()  # every field in one call
-        acc = plain.one(t1.tolist(), t2.tolist())
-        bias, sens = self._gyro_correction
-        gyro = (float(gyro_counts) - bias) / sens
-        return np.array([acc]), np.array([gyro]), np.array([self._static_code(seq)], dtype=np.int8)
+        """correct() of a one-sample block with a plain calibration (PlainCorrection.one, in C: the same bits as
+        the block path, without numpy's per-call overhead on 1-row arrays)."""
+        acc, gyro = np.empty((1, 3)), np.empty(1)
+        self.corrected_seq = seq = plain.one(block, acc, gyro, *self._gyro_correction)
+        code = self._static_code(seq)
+        if code == STATIC_UNKNOWN:
+            self.static_unknown += 1
+        return acc, gyro, _STATIC_ONE[code]
 
     def analyse(self, block: np.ndarray) -> np.ndarray:
         """Detector and estimator over a block (in arrival order, any split); returns the

@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from ..core.samples import CHANNEL_CHIP, duty_ratios
+from ..core.samples import duty_ratios
+from ._linekernel import imu_line
 
 PROTOCOL_MAJOR = 1
 PROTOCOL_MINOR = 0
@@ -274,8 +275,9 @@ def encode_imu_joined(
     flat tuple of the values, built column-wise by numpy (no Python step per sample).
     """
     n = samples.shape[0]
-    if n == 1:  # the per-sample latency path: Python scalars cost a fifth of the column-wise numpy calls
-        return _encode_imu_one(samples[0], acc_ms2, gyro_rads, static, raw)
+    if n == 1:  # the per-sample latency path, in C (_linekernel.c): the same bytes without numpy's per-call costs
+        return imu_line(samples, np.ascontiguousarray(acc_ms2, dtype=float), np.asarray(gyro_rads).item(),
+                        np.asarray(static).item(), raw)
     acc = np.asarray(acc_ms2, dtype=float).reshape(n, 3)
     gyro = np.asarray(gyro_rads, dtype=float).reshape(n)
     gyro_null = bool(np.isnan(gyro).all())  # the usual uncalibrated gyro: a literal null, no scan
@@ -301,39 +303,6 @@ def encode_imu_joined(
     if not finite:
         for word in _NON_FINITE_WORDS:
             text = text.replace(word, b"null")
-    return text
-
-
-_STATIC_WORDS = ("null", "false", "true")
-_CHIP_OF_CHANNEL = tuple(int(c) for c in CHANNEL_CHIP)
-
-
-def _encode_imu_one(row: np.void, acc_ms2: np.ndarray, gyro_rads: np.ndarray, static: np.ndarray, raw: bool) -> bytes:
-    """:func:`encode_imu_joined` of one sample, the same bytes from Python scalars."""
-    acc = np.asarray(acc_ms2, dtype=float).reshape(3).tolist()
-    gyro = float(np.asarray(gyro_rads, dtype=float).reshape(1)[0])
-    st = np.asarray(static).reshape(1)
-    word = ("true" if st[0] else "false") if st.dtype == bool else _STATIC_WORDS[min(max(int(st[0]), -1), 1) + 1]
-    t, seq, tick, t1, t2, gyro_counts, temp, vsupply, flags = row.item()  # one call for every field
-    gyro_null = math.isnan(gyro)
-    values: list[Any] = [seq, t, *acc]
-    if not gyro_null:
-        values.append(gyro)
-    values += [word, temp, vsupply]
-    floats = [t, *acc, temp, vsupply] + ([] if gyro_null else [gyro])
-    template = _HEAD_FIELDS.replace("{gyro}", "null" if gyro_null else "%.6f")
-    if raw:
-        t1, t2 = t1.tolist(), t2.tolist()
-        duty = [t1[c] / t2[_CHIP_OF_CHANNEL[c]] if t2[_CHIP_OF_CHANNEL[c]] else math.nan for c in range(4)]
-        floats += duty
-        values += [*duty, *t1, *t2, gyro_counts, tick, flags]
-        template += _RAW_FIELDS
-    else:
-        template += "}\n"
-    text = (template % tuple(values)).encode()
-    if not all(map(math.isfinite, floats)):
-        for w in _NON_FINITE_WORDS:
-            text = text.replace(w, b"null")
     return text
 
 
@@ -377,28 +346,28 @@ def decimation_mask(t: np.ndarray, rate: float, last_bucket: float) -> tuple[np.
     return mask, float(last_bucket)
 
 
-@dataclass
 class ImuBlock:
-    """A block handed from acquisition to the server (all arrays length N)."""
+    """A block handed from acquisition to the server (all arrays length N), with its encoded
+    lines cached per encoding (index: raw) and shared by every client. A plain class with slots:
+    one is made per sample on the latency path."""
 
-    samples: np.ndarray
-    acc_ms2: np.ndarray
-    gyro_rads: np.ndarray
-    static: np.ndarray
-    _lines: dict[bool, list[bytes]] = field(default_factory=dict, repr=False)
+    __slots__ = ("samples", "acc_ms2", "gyro_rads", "static", "_lines", "_joined")
 
-    _joined: dict[bool, bytes] = field(default_factory=dict, repr=False)
+    def __init__(self, samples: np.ndarray, acc_ms2: np.ndarray, gyro_rads: np.ndarray, static: np.ndarray):
+        self.samples, self.acc_ms2, self.gyro_rads, self.static = samples, acc_ms2, gyro_rads, static
+        self._lines: list[list[bytes] | None] = [None, None]
+        self._joined: list[bytes | None] = [None, None]
 
     def lines(self, raw: bool) -> list[bytes]:
         """Encoded IMU lines, computed once per encoding and shared by every client."""
-        got = self._lines.get(raw)
+        got = self._lines[raw]
         if got is None:
             got = self._lines[raw] = self.joined(raw).splitlines(keepends=True)
         return got
 
     def joined(self, raw: bool) -> bytes:
         """All lines as one byte string (what a full-rate client is sent), encoded once."""
-        got = self._joined.get(raw)
+        got = self._joined[raw]
         if got is None:
             got = self._joined[raw] = encode_imu_joined(self.samples, self.acc_ms2, self.gyro_rads, self.static,
                                                         raw=raw)
@@ -407,7 +376,7 @@ class ImuBlock:
     def lines_at(self, raw: bool, idx: np.ndarray) -> list[bytes]:
         """The lines of the samples at ``idx`` (decimated clients). When every watcher is
         decimated only these samples are encoded, not the whole block."""
-        got = self._lines.get(raw)
+        got = self._lines[raw]
         if got is not None:
             return [got[i] for i in idx.tolist()]
         return encode_imu(self.samples[idx], self.acc_ms2[idx], self.gyro_rads[idx], self.static[idx], raw=raw)

@@ -123,16 +123,16 @@ class WatchdogPolicy:
         self.interval_s = interval_s
         self.period_s = None if interval_s is None else interval_s / 2.0
         self._clock = clock
-        self._lock = threading.Lock()
-        self._since_feed = 0
+        # samples counted by acquisition (its only writer) and that count at the last feed (tick's only):
+        # no lock on the per-sample path
+        self._arrived = 0
+        self._at_feed = 0
         self._last_feed = clock()
         self.feeds = 0
         self.withheld = 0  # ticks at which a feed was due but no samples had arrived
 
     def samples_arrived(self, n: int) -> None:
-        if n > 0:
-            with self._lock:
-                self._since_feed += n
+        self._arrived += n
 
     def tick(self) -> bool:
         """Feed if due and data flowed; True when WATCHDOG=1 was sent."""
@@ -141,12 +141,11 @@ class WatchdogPolicy:
         now = self._clock()
         if now - self._last_feed < self.period_s:
             return False
-        with self._lock:
-            flowed = self._since_feed
-            if flowed == 0:
-                self.withheld += 1
-                return False
-            self._since_feed = 0
+        arrived = self._arrived
+        if arrived == self._at_feed:
+            self.withheld += 1
+            return False
+        self._at_feed = arrived
         self._last_feed = now
         self.feeds += 1
         self.notifier.watchdog()

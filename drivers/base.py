@@ -174,10 +174,14 @@ class Driver(ABC):
             except self.transient_errors as exc:
                 self._lost(exc)
                 continue
-            if block.shape[0]:
+            n = block.shape[0]
+            if n:
                 self._stamp(block, time.monotonic())
                 if self._flag_reconnect:
                     self._mark_reconnect(block)
+                if n <= max_samples:  # the usual case (a sample per read): handed over whole
+                    self.counters["samples"] += n
+                    return block
                 self._pending = block
                 return self._take(max_samples)
             if time.monotonic() >= deadline:
@@ -290,7 +294,8 @@ class Driver(ABC):
         never before a sample stamped earlier (reception jitter, a device reset or a wrong tick
         rate must not make ``t`` run backwards)."""
         if block.shape[0] == 1:  # the event-driven common case, without array arithmetic
-            self._last_t = block["t"][0] = max(t_recv, self._last_t)
+            self._last_t = t = max(t_recv, self._last_t)
+            block["t"] = t  # one field assignment
             self._rate.update(block, t_recv)
             return
         if self.tick_hz:
@@ -322,18 +327,26 @@ class FramedStreamDriver(Driver):
 
 
 class _RateEstimate:
-    """Sample rate [Hz] from unwrapped seq vs host time, for resolving long outages."""
+    """Sample rate [Hz] from unwrapped seq vs host time, for resolving long outages (updated every
+    UPDATE_S of host time: an outage is at least a reconnect backoff long)."""
+
+    UPDATE_S = 0.25
 
     def __init__(self) -> None:
         self._first: tuple[int, float] | None = None
+        self._next = -np.inf  # host time of the next update
         self.rate_hz: float | None = None
 
     def update(self, block: np.ndarray, t_recv: float) -> None:
+        if t_recv < self._next:
+            return
         seq = int(block["seq"][-1])
         if self._first is None:
             self._first = (seq, t_recv)
-        elif t_recv - self._first[1] > 1.0:
+            self._next = t_recv + 1.0
+        else:
             self.rate_hz = (seq - self._first[0]) / (t_recv - self._first[1])
+            self._next = t_recv + self.UPDATE_S
 
 
 # ---------------------------------------------------------------- specs

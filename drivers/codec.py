@@ -25,13 +25,12 @@ the next byte, so garbage, bit errors and truncated frames never hide the next g
 from __future__ import annotations
 
 import binascii
-import math
-import struct
 from dataclasses import dataclass, field, fields
 
 import numpy as np
 
 from ..core.samples import FLAG_GAP_BEFORE, SAMPLE_DTYPE
+from ._framekernel import frame_header, frame_to_row
 from .sequence import MAX_U16, SeqUnwrapper  # SeqUnwrapper: part of the codec's interface
 
 SYNC = b"\xa5\x5a"
@@ -151,19 +150,8 @@ def encode_frames(samples: np.ndarray) -> bytes:
     return to_wire(samples).tobytes()
 
 
-def _volts(code: int) -> float:
-    """_adc_volts for one code, the same float64 operations in Python."""
-    return code * (ADC_VREF_V / (1 << ADC_BITS)) if code <= ADC_FULL_SCALE else math.nan
-
-
 def wire_to_samples(rec: np.ndarray) -> np.ndarray:
     """SAMPLE_DTYPE block from wire records: seq is the raw 16-bit counter, t is NaN, flags 0."""
-    if rec.shape[0] == 1:  # one frame per wake-up is the common case: one record assignment, no array passes
-        _, _, seq, tick, t1, t2, gyro, temp_raw, vsupply_raw, _ = rec[0].item()
-        out = np.zeros(1, dtype=SAMPLE_DTYPE)
-        out[0] = (math.nan, seq, tick, t1, t2, gyro, (_volts(temp_raw) - TEMP_OFFSET_V) / TEMP_SLOPE_V_PER_C,
-                  _volts(vsupply_raw) * VSUPPLY_DIVIDER, 0)
-        return out
     out = np.zeros(rec.shape[0], dtype=SAMPLE_DTYPE)
     out["t"] = np.nan
     out["seq"] = rec["seq"]
@@ -264,11 +252,6 @@ class DecoderStats:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-_PAYLOAD = struct.Struct("<HI4H2H3H")  # frame bytes 3..26: seq, tick, t1[4], t2[2], gyro, temp_raw, vsupply_raw
-_SAMPLE = struct.Struct("<dqI4I2IHffH")  # SAMPLE_DTYPE's packed layout
-assert _SAMPLE.size == SAMPLE_DTYPE.itemsize
-
-
 @dataclass
 class FrameDecoder:
     """Streaming decoder: bytes in, SAMPLE_DTYPE samples out (t = NaN; the driver stamps it).
@@ -282,7 +265,7 @@ class FrameDecoder:
 
     def feed(self, data: bytes | bytearray | memoryview) -> np.ndarray:
         if not self.tail and len(data) == FRAME_LEN:  # one frame per read: the per-sample path
-            one = self._continue_one(bytes(data))
+            one = self._continue_one(data)
             if one is not None:
                 return one
         buf = self.tail + bytes(data) if self.tail else bytes(data)
@@ -303,21 +286,20 @@ class FrameDecoder:
         st.frames += samples.shape[0]
         return samples
 
-    def _continue_one(self, frame: bytes) -> np.ndarray | None:
-        """An intact frame that continues the stream, decoded in Python scalars and packed as one
-        SAMPLE_DTYPE row: the general path's values (wire_to_samples' one-frame arithmetic) without
-        its structured-array copies. None: anything else (the general path decides)."""
-        if frame[:2] != SYNC or frame[2] != PAYLOAD_LEN or binascii.crc_hqx(frame, 0xFFFF) != 0:
+    def _continue_one(self, frame: bytes | bytearray | memoryview) -> np.ndarray | None:
+        """An intact frame that continues the stream, as one SAMPLE_DTYPE row written by the C kernel
+        (_framekernel.c: wire_to_samples' values for one frame, without structured-array copies).
+        None: anything else (the general path decides)."""
+        head = frame_header(frame)
+        if head is None:
             return None
-        seq, tick, *t1, t2a, t2b, gyro, temp_raw, vsupply_raw = _PAYLOAD.unpack_from(frame, 3)
-        one = self.unwrapper.continue_one(seq, tick)
+        one = self.unwrapper.continue_one(*head)
         if one is None:
             return None
-        row = _SAMPLE.pack(math.nan, one[0], tick, *t1, t2a, t2b, gyro,
-                           (_volts(temp_raw) - TEMP_OFFSET_V) / TEMP_SLOPE_V_PER_C, _volts(vsupply_raw) * VSUPPLY_DIVIDER,
-                           FLAG_GAP_BEFORE if one[1] else 0)
+        row = np.empty(1, dtype=SAMPLE_DTYPE)
+        frame_to_row(frame, row, one[0], FLAG_GAP_BEFORE if one[1] else 0)
         self._stats.frames += 1
-        return np.frombuffer(bytearray(row), dtype=SAMPLE_DTYPE)
+        return row
 
     def discard_partial(self) -> None:
         """Forget a partial frame (after a reconnect the bytes that follow are unrelated)."""

@@ -111,6 +111,7 @@ class I2CDriver(FramedStreamDriver):
         self.address = int(address)
         self.rate = rate
         self.burst_frames = max(1, int(burst_frames))
+        self._msgs: dict[tuple[int, int], tuple] = {}  # (register, length) -> reusable i2c_msg pair
         self.poll_s = poll_s
         self.data_ready = data_ready  # the DRDY line: fileno() and wait(timeout) -> bool
         if not latency_budget_s >= 0:
@@ -208,15 +209,24 @@ class I2CDriver(FramedStreamDriver):
 
 
     # -- reading --------------------------------------------------------------------
+    def _messages(self, register: int, length: int) -> tuple:
+        """The (register write, read of ``length`` bytes) message pair, made once per shape and reused: its
+        read buffer is refilled by each transaction and copied out at once."""
+        key = (register, length)
+        got = self._msgs.get(key)
+        if got is None:
+            got = self._msgs[key] = (i2c_msg.write(self.address, [register]), i2c_msg.read(self.address, length))
+        return got
+
     def _status(self) -> tuple[int, int]:
-        w, r = i2c_msg.write(self.address, [REG_STATUS]), i2c_msg.read(self.address, 2)
+        w, r = self._messages(REG_STATUS, 2)
         self._smbus.i2c_rdwr(w, r)
         self.counters["polls"] += 1
         status, count = bytes(r)
         return status, count
 
     def _burst(self, frames: int) -> bytes:
-        w, r = i2c_msg.write(self.address, [REG_FIFO_DATA]), i2c_msg.read(self.address, frames * FRAME_LEN)
+        w, r = self._messages(REG_FIFO_DATA, frames * FRAME_LEN)
         self._smbus.i2c_rdwr(w, r)
         self.counters["bursts"] += 1
         return bytes(r)

@@ -59,6 +59,7 @@ class SerialDriver(FramedStreamDriver):
         self._fd: int | None = None
         self._timeout: float | None = None
         self._vmin: int | None = None  # the terminal's VMIN as set (None: not a terminal)
+        self._poll: select.poll | None = None  # the port's fd registered for POLLIN
 
     @classmethod
     def from_spec(cls, spec: DriverSpec) -> "SerialDriver":
@@ -91,6 +92,10 @@ class SerialDriver(FramedStreamDriver):
         except (AttributeError, OSError, serial.SerialException):  # io.UnsupportedOperation is an OSError
             self._fd = None
         self._ser = ser
+        self._poll = None
+        if self._fd is not None:  # registered once: a poll() per read costs less than building select()'s sets
+            self._poll = select.poll()
+            self._poll.register(self._fd, select.POLLIN)
         self._timeout = 0.1
         self._vmin = 0 if self._fd is not None and os.isatty(self._fd) else None  # 0: pyserial's, set at first read
 
@@ -104,9 +109,11 @@ class SerialDriver(FramedStreamDriver):
         fd = self._fd
         if fd is None:  # a pyserial URL without a file descriptor (loop://, socket://)
             return self._read_block_url(self._ser, deadline)
-        self._wake_at(FRAME_LEN - len(self.decoder.tail))
-        if not select.select([fd], [], [], max(0.0, deadline - time.monotonic()))[0]:
-            return np.zeros(0, dtype=SAMPLE_DTYPE)
+        need = FRAME_LEN - len(self.decoder.tail)
+        if need != self._vmin and self._vmin is not None:
+            self._wake_at(need)
+        if not self._poll.poll(max(0.0, deadline - time.monotonic()) * 1e3):
+            return _NOTHING
         data = _read_now(fd)  # everything that has arrived (the port is non-blocking)
         if self.latency_budget_s > 0:  # frames arriving within the budget go out together
             hold = time.monotonic() + self.latency_budget_s
@@ -136,6 +143,9 @@ class SerialDriver(FramedStreamDriver):
         if data and ser.in_waiting:
             data += ser.read(ser.in_waiting)
         return self.decoder.feed(data) if data else np.zeros(0, dtype=SAMPLE_DTYPE)
+
+
+_NOTHING = np.zeros(0, dtype=SAMPLE_DTYPE)
 
 
 def _read_now(fd: int) -> bytes:

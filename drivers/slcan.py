@@ -4,7 +4,7 @@ python-can's ``slcanBus._read`` asks the port for one byte per call and assemble
 line in a Python loop: at 200 Hz x 4 CAN frames that loop is most of the daemon's CPU.
 :class:`BufferedSlcanBus` keeps everything else of python-can (open/close commands, bitrate,
 frame parsing, ``recv``/``Notifier``/filters) and replaces only ``_read``: it waits on the
-port's file descriptor (select), takes every byte that has arrived in one read, and serves the
+port's file descriptor (poll), takes every byte that has arrived in one os.read, and serves the
 complete lines from memory. ``recv(timeout=0)`` never blocks.
 
 For a service running for days, socketcan (``slcand`` or a native CAN controller,
@@ -13,14 +13,17 @@ reads whole frames from a socket.
 """
 from __future__ import annotations
 
+import os
 import re
 import select
 import time
 from collections import deque
 
 from can.interfaces.slcan import slcanBus
+from serial import SerialException
 
 _LINE_END = re.compile(rb"[\r\a]")  # CR ends a line, BELL is an error reply
+READ_BYTES = 1 << 16  # more than the kernel's tty buffer holds
 
 
 class BufferedSlcanBus(slcanBus):
@@ -30,6 +33,7 @@ class BufferedSlcanBus(slcanBus):
         self._lines: deque[bytes] = deque()
         self._partial = bytearray()
         self._fd: int | None = None
+        self._poll: select.poll | None = None  # the port's descriptor registered for POLLIN
         super().__init__(channel, *args, **kwargs)
 
     def _port_fd(self) -> int | None:
@@ -38,22 +42,25 @@ class BufferedSlcanBus(slcanBus):
                 self._fd = self.serialPortOrig.fileno()
             except (AttributeError, OSError, ValueError):  # a URL port without a descriptor
                 self._fd = -1
+            else:
+                self._poll = select.poll()
+                self._poll.register(self._fd, select.POLLIN)
         return self._fd if self._fd >= 0 else None
 
     def _take_bytes(self, wait_s: float | None) -> bytes:
-        """What the port holds, waiting at most ``wait_s`` (None: forever) for the first byte."""
-        port = self.serialPortOrig
-        waiting = port.in_waiting
-        if waiting:
-            return port.read(waiting)
+        """What the port holds, waiting at most ``wait_s`` (None: forever) for the first byte: one poll()
+        on the registered descriptor and one os.read (pyserial's read costs more than both)."""
         fd = self._port_fd()
-        if fd is None:  # blocks up to the port's own timeout
-            return port.read(1)
-        if wait_s is not None and wait_s <= 0:
+        if fd is None:  # a URL port: pyserial's read, which blocks up to the port's own timeout
+            port = self.serialPortOrig
+            return port.read(max(1, port.in_waiting))
+        if not self._poll.poll(None if wait_s is None else max(0.0, wait_s) * 1e3):
             return b""
-        if not select.select([fd], [], [], wait_s)[0]:
-            return b""
-        return port.read(max(1, port.in_waiting))  # readable but empty: pyserial raises (unplugged)
+        data = os.read(fd, READ_BYTES)
+        if not data:  # readable but empty: unplugged (what pyserial raises)
+            raise SerialException("device reports readiness to read but returned no data "
+                                  "(device disconnected or multiple access on port?)")
+        return data
 
     def _split(self, data: bytes) -> None:
         self._partial += data

@@ -139,6 +139,7 @@ class FakeI2CDevice:
         self._lock = threading.Lock()
         self.corrupted: list[int] = []  # sample indices hit by a bit error in a burst
         self.accesses = 0
+        self.bus_cpu_s = 0.0  # thread CPU spent in this device's bus transactions (i2c_rdwr), in the caller's thread
         self.watermark = 1
         self.data_ready = DataReadyLine()
         self._sampling: threading.Thread | None = None
@@ -360,6 +361,15 @@ class FakeSMBus:
     def i2c_rdwr(self, *i2c_msgs) -> None:
         """Combined transaction: a write sets the register pointer (and writes the rest); a read
         reads from the pointer into the message's ctypes buffer."""
+        c0 = time.thread_time()
+        try:
+            self._rdwr(i2c_msgs)
+        finally:
+            dev = self.devices.get(i2c_msgs[0].addr) if i2c_msgs else None
+            if dev is not None:
+                dev.bus_cpu_s += time.thread_time() - c0
+
+    def _rdwr(self, i2c_msgs) -> None:
         pointer = None
         for msg in i2c_msgs:
             dev = self._dev(msg.addr)

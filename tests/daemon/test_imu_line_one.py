@@ -49,3 +49,49 @@ def test_one_sample_line_equals_block_line(case, raw):
             one = encode_imu_joined(s[i:i + 1], acc[i:i + 1], gyro[i:i + 1], static[i:i + 1], raw=raw)
             assert one == block[i]
             json.loads(one)  # valid JSON: non-finite numbers are null
+
+
+EDGE_FLOATS = [0.0, -0.0, -1e-9, 0.5e-5, -0.5e-5, 1e300, -1.7976931348623157e308, 5e-324, np.nan, np.inf, -np.inf,
+               123456.7890125, 2.5e-6]
+
+
+@pytest.mark.parametrize("raw", [False, True])
+def test_one_sample_line_equals_block_line_on_edge_values(raw):
+    """Every float field on extreme, signed-zero, rounding-tie and non-finite values, integer fields at their
+    limits and static codes far outside -1..1: the C line is the block encoder's, byte for byte."""
+    rng = np.random.default_rng(7)
+    n = 400
+    s = _block(rng, n)
+    pick = lambda: rng.choice(EDGE_FLOATS, n)  # noqa: E731
+    s["t"] = pick()
+    s["temp"] = rng.choice([0.0, -0.0, 3.4e38, -3.4e38, 0.005, np.nan, np.inf, -np.inf, 21.125], n)
+    s["vsupply"] = rng.choice([0.0, 1e-4, 0.0005, 5.0, np.nan, np.inf], n)
+    s["seq"] = rng.choice([0, -1, 2**63 - 1, -2**63, 65535], n)
+    s["tick"] = rng.choice([0, 2**32 - 1], n)
+    s["t1"] = rng.choice([0, 1, 2**32 - 1], (n, 4))
+    s["t2"] = rng.choice([0, 1, 2**32 - 1], (n, 2))
+    s["gyro"] = rng.choice([0, 65535], n)
+    s["flags"] = rng.choice([0, 65535], n)
+    acc = rng.choice(EDGE_FLOATS, (n, 3))
+    gyro = rng.choice(EDGE_FLOATS, n)
+    for static in (rng.choice([-2**62, -300, -1, 0, 1, 2, 300, 2**62], n), rng.integers(0, 2, n).astype(bool),
+                   rng.integers(-1, 2, n).astype(np.int8)):
+        block = encode_imu_joined(s, acc, gyro, static, raw=raw).splitlines(keepends=True)
+        for i in range(n):
+            one = encode_imu_joined(s[i:i + 1], acc[i:i + 1], gyro[i:i + 1], static[i:i + 1], raw=raw)
+            assert one == block[i]
+            json.loads(one)
+
+
+def test_line_kernel_rejects_wrong_buffers_with_a_clear_error():
+    from gravcal.daemon._linekernel import imu_line
+
+    row = empty(1)
+    with pytest.raises(ValueError, match="56-byte SAMPLE_DTYPE"):
+        imu_line(row.tobytes()[:40], np.zeros(3), 0.0, 1, True)
+    with pytest.raises(ValueError, match="3 float64"):
+        imu_line(row, np.zeros(2), 0.0, 1, True)
+    with pytest.raises(TypeError):
+        imu_line(row, np.zeros(3), 0.0, "still", True)
+    with pytest.raises(ValueError, match="not C-contiguous"):  # refused by the buffer protocol: nothing read
+        imu_line(row, np.zeros(6)[::2], 0.0, 1, True)

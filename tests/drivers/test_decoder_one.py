@@ -55,3 +55,46 @@ def test_one_frame_path_gives_the_general_paths_bytes_and_counters(seed):
     assert fast == slow
     assert fast_stats == slow_stats
     assert slow_stats["crc_errors"] > 0 and slow_stats["gaps"] > 0 and slow_stats["strays"] > 0
+
+
+def test_frame_kernel_judges_frames_and_rejects_wrong_buffers():
+    from gravcal.drivers._framekernel import frame_header, frame_to_row
+
+    s = next(pattern_blocks(seed=3, fs=200, duration=1, block=4))
+    frame = encode_frames(s[:1])
+    assert frame_header(frame) == (int(s["seq"][0]) & 0xFFFF, int(s["tick"][0]))
+    assert frame_header(frame[:-1]) is None and frame_header(frame + b"\0") is None
+    for k in range(FRAME_LEN):  # any damaged byte: sync, length or CRC fails
+        assert frame_header(frame[:k] + bytes([frame[k] ^ 0x01]) + frame[k + 1:]) is None
+    with pytest.raises(ValueError, match="56-byte SAMPLE_DTYPE"):
+        frame_to_row(frame, bytearray(55), 0, 0)
+    with pytest.raises(ValueError, match="intact 29-byte frame"):
+        frame_to_row(frame[:-1], bytearray(56), 0, 0)
+    with pytest.raises(ValueError, match="16 bits"):
+        frame_to_row(frame, bytearray(56), 0, 1 << 16)
+    with pytest.raises(TypeError):  # a read-only row
+        frame_to_row(frame, bytes(56), 0, 0)
+
+
+def test_frame_kernel_row_equals_wire_to_samples_at_every_adc_code():
+    """Each 12-bit temperature and supply code (and the reserved/missing ones, NaN) converts to the
+    float32 the numpy form stores, and every other field is carried over as it is."""
+    from gravcal.core.samples import SAMPLE_DTYPE
+    from gravcal.drivers._framekernel import frame_to_row
+    from gravcal.drivers.codec import crc16, to_wire, wire_to_samples
+
+    codes = np.concatenate([np.arange(4096), [4096, 40000, 0xFFFE, 0xFFFF]])
+    n = codes.shape[0]
+    rec = to_wire(next(pattern_blocks(seed=5, fs=200, duration=n / 200, block=n)))
+    rec["temp_raw"] = codes
+    rec["vsupply_raw"] = codes[::-1]
+    rec["tick"][:2] = [0, 0xFFFFFFFF]
+    rec["t1"][:2] = 0xFFFF
+    raw = rec.view(np.uint8).reshape(n, FRAME_LEN)
+    for i in range(n):
+        rec["crc"][i] = crc16(raw[i, :FRAME_LEN - 2].tobytes())
+    want = wire_to_samples(rec)
+    rows = np.zeros(n, dtype=SAMPLE_DTYPE)
+    for i in range(n):
+        frame_to_row(raw[i].tobytes(), rows[i:i + 1], int(rec["seq"][i]), 0)
+    assert rows.tobytes() == want.tobytes()

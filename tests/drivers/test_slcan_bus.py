@@ -16,15 +16,15 @@ def test_slcan_frames_arrive_whole_with_few_port_reads(tmp_path):
     link = SlcanPtyLink(tmp_path / "ttyCAN")
     link.connect()
     bus = BufferedSlcanBus(channel=str(link.link), bitrate=1_000_000, sleep_after_open=0.0, timeout=0.01)
-    port = bus.serialPortOrig
     reads = {"calls": 0}
-    real_read = port.read
+    real_take = bus._take_bytes
 
-    def counted(size=1):
-        reads["calls"] += 1
-        return real_read(size)
+    def counted(wait_s):
+        data = real_take(wait_s)
+        reads["calls"] += bool(data)  # reads of the port that returned bytes
+        return data
 
-    port.read = counted
+    bus._take_bytes = counted
     try:
         deadline = time.monotonic() + 5
         while not link.channel_open and time.monotonic() < deadline:

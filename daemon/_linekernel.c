@@ -1,0 +1,201 @@
+/* The IMU line of one sample (daemon/protocol.py encode_imu_joined's per-sample path).
+ *
+ * imu_line(row, acc, gyro, static, raw) -> bytes
+ *   row     one SAMPLE_DTYPE record (56 bytes, core/samples.py); acc 3 float64 [m/s²]; gyro float [rad/s]
+ *   static  a bool or an int code: 1 still, 0 moving, <= -1 unknown (protocol.static_words, clipped to -1..1)
+ *   raw     add the driver's raw fields
+ *
+ * The bytes are those of the block encoder's %-templates (protocol._HEAD_FIELDS / _RAW_FIELDS): each %.Nf
+ * is PyOS_double_to_string(x, 'f', N, 0) as Python's % does, each %d the integer, and a number that is
+ * not finite is the word null (what the block encoder's replacement of nan/inf/-inf gives). The duty cycles
+ * are core.samples.duty_ratios: T1 / T2 of the channel's chip, NaN where T2 = 0.
+ * The GIL is kept: PyOS_double_to_string allocates with PyMem (GIL required); a raw line takes ~5 µs warm.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#if defined(__BYTE_ORDER__) && __BYTE_ORDER__ != __ORDER_LITTLE_ENDIAN__
+#error "SAMPLE_DTYPE is little-endian: the records are read with native loads"
+#endif
+
+#define SAMPLE_SIZE 56
+/* 11 floats of at most 309 integer digits + 7, 12 integers of at most 20 digits, and the keys */
+#define IMU_LINE_MAX 8192
+
+static const int CHANNEL_CHIP[4] = {0, 0, 1, 1}; /* core.samples.CHANNEL_CHIP */
+
+typedef struct {
+    char buf[IMU_LINE_MAX];
+    size_t n;
+    int failed;
+} Line;
+
+static void put(Line *L, const char *s, size_t k)
+{
+    if (L->failed || L->n + k > IMU_LINE_MAX) {
+        L->failed = 1;
+        return;
+    }
+    memcpy(L->buf + L->n, s, k);
+    L->n += k;
+}
+
+static void put_s(Line *L, const char *s) { put(L, s, strlen(s)); }
+
+/* "%.{prec}f" % x, or null when x is not finite */
+static void put_f(Line *L, double x, int prec)
+{
+    if (!isfinite(x)) {
+        put_s(L, "null");
+        return;
+    }
+    char *s = PyOS_double_to_string(x, 'f', prec, 0, NULL);
+    if (s == NULL) {
+        L->failed = 1;
+        return;
+    }
+    put_s(L, s);
+    PyMem_Free(s);
+}
+
+static void put_i(Line *L, long long v)
+{
+    char s[32];
+    int k = snprintf(s, sizeof s, "%lld", v);
+    put(L, s, (size_t)k);
+}
+
+static const char *static_word(PyObject *code)
+{
+    if (!PyNumber_Check(code)) {
+        PyErr_SetString(PyExc_TypeError, "imu_line: static must be a bool or an integer code");
+        return NULL;
+    }
+    PyObject *v = PyNumber_Long(code); /* a bool is 0 or 1: the same words as the codes */
+    if (v == NULL)
+        return NULL;
+    int overflow;
+    long long c = PyLong_AsLongLongAndOverflow(v, &overflow);
+    Py_DECREF(v);
+    if (c == -1 && PyErr_Occurred())
+        return NULL;
+    if (overflow)
+        c = overflow;
+    return c >= 1 ? "true" : c == 0 ? "false" : "null"; /* protocol.static_words: clip(code, -1, 1) */
+}
+
+static PyObject *imu_line(PyObject *self, PyObject *args)
+{
+    Py_buffer row, acc;
+    double gyro_rate;
+    PyObject *code;
+    int raw;
+    if (!PyArg_ParseTuple(args, "y*y*dOp:imu_line", &row, &acc, &gyro_rate, &code, &raw))
+        return NULL;
+    if (row.len != SAMPLE_SIZE || acc.len != 3 * 8) {
+        PyErr_SetString(PyExc_ValueError, row.len != SAMPLE_SIZE
+                                              ? "imu_line: row must be one 56-byte SAMPLE_DTYPE record"
+                                              : "imu_line: acc must be 3 float64");
+        PyBuffer_Release(&row);
+        PyBuffer_Release(&acc);
+        return NULL;
+    }
+    const unsigned char *r = row.buf;
+    double t, a[3];
+    long long seq;
+    uint32_t tick, t1[4], t2[2];
+    uint16_t counts, flags;
+    float temp, vsupply;
+    memcpy(&t, r + 0, 8);
+    memcpy(&seq, r + 8, 8);
+    memcpy(&tick, r + 16, 4);
+    memcpy(t1, r + 20, 16);
+    memcpy(t2, r + 36, 8);
+    memcpy(&counts, r + 44, 2);
+    memcpy(&temp, r + 46, 4);
+    memcpy(&vsupply, r + 50, 4);
+    memcpy(&flags, r + 54, 2);
+    memcpy(a, acc.buf, 24);
+    PyBuffer_Release(&row);
+    PyBuffer_Release(&acc);
+    const char *word = static_word(code);
+    if (word == NULL)
+        return NULL;
+
+    Line *L = PyMem_Malloc(sizeof(Line));
+    if (L == NULL)
+        return PyErr_NoMemory();
+    L->n = 0;
+    L->failed = 0;
+    /* _HEAD_FIELDS: {"class":"IMU","seq":%d,"t":%.6f,"acc":[%.5f,%.5f,%.5f],"gyro":%.6f|null,"static":%s,
+       "temp":%.2f,"vsupply":%.3f */
+    put_s(L, "{\"class\":\"IMU\",\"seq\":");
+    put_i(L, seq);
+    put_s(L, ",\"t\":");
+    put_f(L, t, 6);
+    put_s(L, ",\"acc\":[");
+    for (int j = 0; j < 3; j++) {
+        if (j)
+            put_s(L, ",");
+        put_f(L, a[j], 5);
+    }
+    put_s(L, "],\"gyro\":");
+    put_f(L, gyro_rate, 6);
+    put_s(L, ",\"static\":");
+    put_s(L, word);
+    put_s(L, ",\"temp\":");
+    put_f(L, (double)temp, 2);
+    put_s(L, ",\"vsupply\":");
+    put_f(L, (double)vsupply, 3);
+    if (raw) {
+        /* _RAW_FIELDS: ,"duty":[%.6f x4],"t1":[%d x4],"t2":[%d,%d],"gyro_counts":%d,"tick":%d,"flags":%d} */
+        put_s(L, ",\"duty\":[");
+        for (int c = 0; c < 4; c++) {
+            uint32_t period = t2[CHANNEL_CHIP[c]];
+            if (c)
+                put_s(L, ",");
+            put_f(L, period ? (double)t1[c] / (double)period : NAN, 6);
+        }
+        put_s(L, "],\"t1\":[");
+        for (int c = 0; c < 4; c++) {
+            if (c)
+                put_s(L, ",");
+            put_i(L, t1[c]);
+        }
+        put_s(L, "],\"t2\":[");
+        put_i(L, t2[0]);
+        put_s(L, ",");
+        put_i(L, t2[1]);
+        put_s(L, "],\"gyro_counts\":");
+        put_i(L, counts);
+        put_s(L, ",\"tick\":");
+        put_i(L, tick);
+        put_s(L, ",\"flags\":");
+        put_i(L, flags);
+    }
+    put_s(L, "}\n");
+    PyObject *out = NULL;
+    if (L->failed) {
+        if (!PyErr_Occurred())
+            PyErr_SetString(PyExc_ValueError, "imu_line: the line does not fit its buffer");
+    } else {
+        out = PyBytes_FromStringAndSize(L->buf, (Py_ssize_t)L->n);
+    }
+    PyMem_Free(L);
+    return out;
+}
+
+static PyMethodDef methods[] = {
+    {"imu_line", imu_line, METH_VARARGS,
+     "imu_line(row, acc, gyro, static, raw) -> the IMU line (bytes) of one SAMPLE_DTYPE record, byte for byte "
+     "the block encoder's."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, .m_name = "_linekernel", .m_doc = "The IMU line of one sample.", .m_size = -1,
+                                    .m_methods = methods};
+
+PyMODINIT_FUNC PyInit__linekernel(void) { return PyModule_Create(&module); }
