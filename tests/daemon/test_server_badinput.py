@@ -18,6 +18,7 @@ from gravcal.daemon.gravcald import main
 from gravcal.daemon.service import Gravcald
 from gravcal.daemon.persistence import StateStore
 from gravcal.daemon.server import ServerConfig, SocketServer
+from support.silent_driver import SilentDriver
 
 
 def test_unreadable_state_is_moved_aside_with_the_reason(tmp_path):
@@ -36,7 +37,7 @@ def test_daemon_reports_an_unreadable_state_in_status_notes(tmp_path):
     cfg = Config()
     cfg.socket.path = str(tmp_path / "g.sock")
     cfg.state.directory = str(tmp_path / "state")
-    d = Gravcald(cfg, driver=_SilentDriver(), environ={})
+    d = Gravcald(cfg, driver=SilentDriver(), environ={})
     d.start()
     try:
         notes = d.status()["notes"]
@@ -46,17 +47,6 @@ def test_daemon_reports_an_unreadable_state_in_status_notes(tmp_path):
     assert any("is unusable (Is a directory); moved it to" in n for n in notes), notes
     assert "starting from ADXL210 datasheet values (no saved state, no lab calibration)" in notes
 
-
-class _SilentDriver:
-    def read(self, max_samples=256, timeout=0.1):
-        time.sleep(timeout)
-        return empty(0)
-
-    def stats(self):
-        return {}
-
-    def close(self):
-        pass
 
 
 def test_a_client_that_never_reads_is_disconnected_and_logged(tmp_path, caplog):

@@ -7,31 +7,20 @@ import time
 
 from smbus2 import i2c_msg
 
-from gravcal.core.samples import empty
 from gravcal.daemon.config import Config
 from gravcal.daemon.service import Gravcald
 from gravcal.drivers.i2c import CTRL_ENABLE, REG_CTRL, REG_FIFO_DATA
 from gravcal.drivers.rigs.fake_i2c import FakeI2CDevice, FakeSMBus, ManualClock
 from gravcal.drivers.rigs.sources import pattern_blocks
+from support.silent_driver import SilentDriver
 
-
-class _SilentDriver:
-    def read(self, max_samples=256, timeout=0.1):
-        time.sleep(timeout)
-        return empty(0)
-
-    def stats(self):
-        return {}
-
-    def close(self):
-        pass
 
 
 def test_status_names_the_os_thread_id_of_every_daemon_thread(tmp_path):
     cfg = Config()
     cfg.socket.path = str(tmp_path / "g.sock")
     cfg.state.directory = str(tmp_path / "state")
-    d = Gravcald(cfg, driver=_SilentDriver(), environ={})
+    d = Gravcald(cfg, driver=SilentDriver(), environ={})
     d.start()
     try:
         threads = d.status()["threads"]
