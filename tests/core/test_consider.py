@@ -15,6 +15,7 @@ from gravcal.core.estimators.recursive import LottersRecursive
 from gravcal.core.estimators.online import OnlineCalibrator
 from gravcal.core.estimators.observability import check_observable, is_observable
 from gravcal.core.estimators.parameterization import OffsetsOnly, SixParameter
+from seed_pool import pmap
 
 S0 = np.full(3, 0.04)  # ADXL210 nominal sensitivity [duty/g]
 O0 = np.full(3, 0.5)  # nominal zero-g duty
@@ -49,23 +50,24 @@ def upright_case(seed: int, rel_std: float):
     return truth, ws, start
 
 
+def offsets_nees(seed: int, rel_std: float) -> tuple[float, float, float, float]:
+    """One upright case's offsets NEES: (batch, batch noise-only, recursion, recursion noise-only)."""
+    truth, ws, start = upright_case(seed, rel_std)
+    c = LottersBatch("offsets").fit(ws.subset(np.arange(40)), start)
+    e = c.offset - truth.offset
+    rec = LottersRecursive(c, "offsets", sigma_floor_g=c.metadata["sigma_floor_g"])
+    cr = rec.update(ws.subset(np.arange(40, 80)))
+    er = cr.offset - truth.offset
+    return (nees(e, c.covariance), nees(e, np.asarray(c.metadata[CONSIDER_KEY]["covariance_noise_only"])),
+            nees(er, cr.covariance), nees(er, rec.P))
+
+
 @pytest.mark.parametrize("rel_std", [0.02, DATASHEET_SENSITIVITY_REL_STD])
 def test_offsets_nees_is_chi2_with_the_consider_term_and_not_without(rel_std):
     """Batch fit on 40 upright windows, then the recursion (seeded from it) on 40 more: with the consider term
     the offsets' NEES against the truth is chi² 3 dof; with the window noise alone (the old covariance) it is
     thousands: the offsets absorb the held sensitivities' error (the failure mode is real)."""
-    b, b0, r, r0 = [], [], [], []
-    for seed in range(SEEDS):
-        truth, ws, start = upright_case(seed, rel_std)
-        c = LottersBatch("offsets").fit(ws.subset(np.arange(40)), start)
-        e = c.offset - truth.offset
-        b.append(nees(e, c.covariance))
-        b0.append(nees(e, np.asarray(c.metadata[CONSIDER_KEY]["covariance_noise_only"])))
-        rec = LottersRecursive(c, "offsets", sigma_floor_g=c.metadata["sigma_floor_g"])
-        cr = rec.update(ws.subset(np.arange(40, 80)))
-        er = cr.offset - truth.offset
-        r.append(nees(er, cr.covariance))
-        r0.append(nees(er, rec.P))
+    b, b0, r, r0 = (list(v) for v in zip(*pmap(offsets_nees, [(seed, rel_std) for seed in range(SEEDS)])))
     assert_chi2_3(b)
     assert_chi2_3(r)
     for v in (b0, r0):  # without it: far outside chi² 3 (mean 3 +- 0.8), most seeds beyond the 95 % quantile

@@ -101,8 +101,12 @@ def impact(ws, idx, g_peak, dur_s, rng, clip_g=None):
     return ws
 
 
-@pytest.mark.parametrize("case", ["clean", "bumps", "saturation", "centripetal"])
-def test_abuse_inside_still_windows_never_gives_a_confidently_wrong_calibration(case):
+ABUSE = ("clean", "bumps", "saturation", "centripetal")
+
+
+def abused_run(case: str) -> tuple[list[tuple[int, float]], bool, str]:
+    """One abuse case through the Processor: (the checks' (i, max |z|), final acceptance, the estimator's reason)
+    (plain values: computed in a worker process)."""
     seed = 3
     rng = np.random.default_rng(100 + len(case))
     ws, info = base_session(seed)
@@ -125,8 +129,20 @@ def test_abuse_inside_still_windows_never_gives_a_confidently_wrong_calibration(
             ws.mean[i] = ws.mean[i] + K @ (ac * radial)
     p = processor()
     zs = feed(p, ws, lambda t: info["truth"](25.0))
+    return [(int(i), float(z)) for i, z in zs], bool(p.state.accepted), str(p.online.reason)
+
+
+@pytest.fixture(scope="module")
+def abused_runs() -> dict:
+    """Every abuse case, computed once for the parametrised test below, the cases side by side."""
+    return dict(zip(ABUSE, pmap(abused_run, [(case,) for case in ABUSE])))
+
+
+@pytest.mark.parametrize("case", ABUSE)
+def test_abuse_inside_still_windows_never_gives_a_confidently_wrong_calibration(case, abused_runs):
+    zs, accepted, reason = abused_runs[case]
     check(zs, case)
-    assert p.state.accepted, p.online.reason
+    assert accepted, reason
 
 
 def test_an_offset_jump_is_rejected_and_refitted():

@@ -20,6 +20,7 @@ from gravcal.core.gyro.pose import MIN_PAIRS, OFF_AXIS, Pair, PoseToPose
 from gravcal.core.model.enc03j import gyro_truth
 from gravcal.core.samples import raw_triad
 from gravcal.core.simulate import simulate
+from seed_pool import pmap
 
 FS = 100.0
 NOMINAL = 357.36  # counts per rad/s, the daemon's start without a [gyro] configuration
@@ -49,15 +50,19 @@ def assert_honest(cal, s_true):
     return True
 
 
+def fed_like_the_daemon(scenario: str, seed: int):
+    """(gyro calibration, gyro truth) of a 600 s simulation fed like the daemon (computed in a worker process)."""
+    sim = simulate(scenario, seed=seed, duration=600.0)
+    s = sim.samples
+    acc = Calibration.from_dict(sim.truth["calibration"])
+    truth = gyro_truth(sim.model, vsupply=float(np.median(s["vsupply"])))
+    return daemon_feed(s["gyro"].astype(float), s["seq"].astype(float), raw_triad(s), acc), truth
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("scenario", ["six_position", "loetters"])
 def test_online_calibrator_fed_like_the_daemon_never_claims_a_wrong_sensitivity(scenario):
-    for seed in range(3):
-        sim = simulate(scenario, seed=seed, duration=600.0)
-        s = sim.samples
-        acc = Calibration.from_dict(sim.truth["calibration"])
-        truth = gyro_truth(sim.model, vsupply=float(np.median(s["vsupply"])))
-        cal = daemon_feed(s["gyro"].astype(float), s["seq"].astype(float), raw_triad(s), acc)
+    for cal, truth in pmap(fed_like_the_daemon, [(scenario, seed) for seed in range(3)]):
         assert_honest(cal, truth["sensitivity_counts_per_rad_s"])
         assert cal.n_windows >= 5 and abs(cal.bias[0] - truth["bias_counts"]) < 5 * cal.bias_std[0]
 

@@ -20,6 +20,7 @@ from gravcal.core.gyro.pose import SATURATED
 from gravcal.core.gyro.scapellato import placements, step_height_search
 from gravcal.core.samples import raw_triad
 from gravcal.core.simulate import simulate
+from seed_pool import pmap
 
 FS = 100.0
 NOMINAL = 357.36  # counts per rad/s: 0.67 mV/(°/s) x 7.5 x 4096 / 3.3 V
@@ -41,15 +42,32 @@ def enc03j_calibration(s, ws, **kw):
                           range_rad_s=tr["range_rad_s"], rails=(0, 4095), folds=0, **kw)
 
 
+def foot_calibration(seed: int):
+    """(calibration, truth) of a 20-pose foot session (computed in a worker process)."""
+    s, ws = foot_session(seed, n_poses=20)
+    return enc03j_calibration(s, ws), s.truth
+
+
+def triaxial_calibration(seed: int):
+    """(calibration, true sensitivity matrix, true bias) of a DC-coupled triaxial gyro on a Lötters session
+    (computed in a worker process)."""
+    rng = np.random.default_rng(50 + seed)
+    sim = simulate("loetters", seed=seed, duration=300.0, theta_max_deg=120)
+    acc = Calibration.from_dict(sim.truth["calibration"])
+    S = np.diag(rng.uniform(0.8, 1.2, 3)) * 6000 + rng.normal(0, 60, (3, 3))
+    b = 32768 + rng.normal(0, 50, 3)
+    gyro = sim.motion.omega @ S.T + b + rng.normal(0, 3, (len(sim.motion), 3))
+    ws = detect(sim.samples["t"], raw_triad(sim.samples), fs=FS, to_g=acc)
+    return calibrate_gyro(sim.samples["t"], gyro, ws, acc, fs=FS, folds=0), S, b
+
+
 @pytest.mark.slow
 def test_pose_to_pose_recovers_enc03j_bias_and_sensitivity_within_uncertainty():
     z = []
-    for seed in range(8):
-        s, ws = foot_session(seed, n_poses=20)
-        cal = enc03j_calibration(s, ws)
+    for cal, truth in pmap(foot_calibration, [(seed,) for seed in range(8)]):
         assert cal.observable and cal.sensitivity is not None, cal.message
-        z.append((cal.sensitivity[0, 0] - s.truth["sensitivity_counts_per_rad_s"]) / cal.std["S"])
-        z.append((cal.bias[0] - s.truth["bias_counts"]) / cal.bias_std[0])
+        z.append((cal.sensitivity[0, 0] - truth["sensitivity_counts_per_rad_s"]) / cal.std["S"])
+        z.append((cal.bias[0] - truth["bias_counts"]) / cal.bias_std[0])
         assert cal.methods["sensitivity"].startswith("pose-to-pose")
     z = np.array(z)
     assert np.all(np.abs(z) < 3.5), z
@@ -61,15 +79,7 @@ def test_pose_to_pose_recovers_a_triaxial_gyro_matrix_within_uncertainty():
     """Lötters-style postures (random rotation axes) with a DC-coupled triaxial gyro whose
     3x3 sensitivity has +-20 % scale errors and ~1 % cross-axis terms."""
     z = []
-    for seed in range(3):
-        rng = np.random.default_rng(50 + seed)
-        sim = simulate("loetters", seed=seed, duration=300.0, theta_max_deg=120)
-        acc = Calibration.from_dict(sim.truth["calibration"])
-        S = np.diag(rng.uniform(0.8, 1.2, 3)) * 6000 + rng.normal(0, 60, (3, 3))
-        b = 32768 + rng.normal(0, 50, 3)
-        gyro = sim.motion.omega @ S.T + b + rng.normal(0, 3, (len(sim.motion), 3))
-        ws = detect(sim.samples["t"], raw_triad(sim.samples), fs=FS, to_g=acc)
-        cal = calibrate_gyro(sim.samples["t"], gyro, ws, acc, fs=FS, folds=0)
+    for cal, S, b in pmap(triaxial_calibration, [(seed,) for seed in range(3)]):
         assert cal.observable, cal.message
         sd = np.sqrt(np.diag(cal.sensitivity_cov)).reshape(3, 3)
         z += list(((cal.sensitivity - S) / sd).ravel()) + list((cal.bias - b) / cal.bias_std)

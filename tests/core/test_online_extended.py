@@ -24,6 +24,7 @@ from support.temperature_sessions import (
     run,
     session,
 )
+from seed_pool import pmap
 
 K_SIGMA = 4.0
 
@@ -32,63 +33,69 @@ def true_coefficient(info) -> np.ndarray:
     return info["truth"](26.0).offset - info["truth"](25.0).offset  # [raw/°C], exact: the term is linear
 
 
-_cache: dict = {}
-
-
-def planted_run(seed):
-    if seed not in _cache:
-        ws, info = session(seed, True)
-        _cache[seed] = (ws, info, run(ws, previous_calibration(info)))
-    return _cache[seed]
+def planted_summary(seed: int) -> dict:
+    """The online run over a planted session, as plain values (computed in a worker process)."""
+    ws, info = session(seed, True)
+    oc = run(ws, previous_calibration(info))
+    cal = oc.calibration
+    ext = cal.metadata.get("extended", {})
+    return {"model": oc.model, "reason": oc.reason, "extended_status": oc.extended_status,
+            "observable": cal.observable, "converged": cal.converged,
+            "est": [cal.metadata["params"].get(f"oT_{a}") for a in "xyz"], "std": [cal.std.get(f"oT_{a}") for a in "xyz"],
+            "truth": true_coefficient(info).tolist(), "terms": ext.get("terms"), "t_ref_c": ext.get("t_ref_c"),
+            "magnitude_axes": sorted(ext.get("magnitudes", {}).get("temperature_offset", {}).get("value", {}))}
 
 
 def test_planted_temperature_offset_is_selected_and_recovered_within_its_std():
     z = []
-    for seed in (0, 1, 2):
-        ws, info, oc = planted_run(seed)
-        cal = oc.calibration
-        assert oc.model == EXT, (seed, oc.reason, oc.extended_status)
-        assert cal.observable and cal.converged
-        assert oc.extended_status[EXT]["status"] == "chosen" and "held-out" in oc.extended_status[EXT]["reason"]
-        est = np.array([cal.metadata["params"][f"oT_{a}"] for a in "xyz"])
-        std = np.array([cal.std[f"oT_{a}"] for a in "xyz"])
-        z += ((est - true_coefficient(info)) / std).tolist()
+    for seed, r in zip((0, 1, 2), pmap(planted_summary, [(0,), (1,), (2,)])):
+        assert r["model"] == EXT, (seed, r["reason"], r["extended_status"])
+        assert r["observable"] and r["converged"]
+        assert r["extended_status"][EXT]["status"] == "chosen" and "held-out" in r["extended_status"][EXT]["reason"]
+        z += ((np.array(r["est"]) - np.array(r["truth"])) / np.array(r["std"])).tolist()
         # what apply_extended needs is in the calibration
-        ext = cal.metadata["extended"]
-        assert ext["terms"] == ["temperature_offset"] and ext["t_ref_c"] == 25.0
-        assert set(ext["magnitudes"]["temperature_offset"]["value"]) == {"x", "y", "z"}
+        assert r["terms"] == ["temperature_offset"] and r["t_ref_c"] == 25.0
+        assert r["magnitude_axes"] == ["x", "y", "z"]
     z = np.array(z)
     assert np.all(np.abs(z) < K_SIGMA), z
     # the std is not inflated either: the mean z^2 of 9 draws is chi2_9 / 9 (99.9 % quantile 3.1)
     assert np.mean(z * z) < 3.1, z
 
 
+def later_rms(seed: int, terms: tuple[str, ...]) -> tuple[str, float]:
+    """The model fitted on the first 75 % of a planted session's windows (with ``terms``), and its rms error of
+    |a| - 1 g [g] on the remaining (warmer) windows."""
+    ws, info = session(seed, True)
+    first = int(len(ws) * 0.75)
+    later = ws.subset(np.arange(first, len(ws)))
+    cal = run(ws, previous_calibration(info), terms=terms, upto=first).calibration
+    a = apply_extended(cal, later.mean, temp=later.aux[:, 0]) if terms else cal.apply(later.mean)
+    return cal.model, float(np.sqrt(np.mean((np.linalg.norm(a, axis=1) - 1) ** 2)))
+
+
 def test_the_temperature_term_lowers_the_error_on_later_windows_than_order_6():
+    runs = [(seed, terms) for seed in (0, 1) for terms in (("temperature_offset",), ())]
+    res = dict(zip(runs, pmap(later_rms, runs)))
     for seed in (0, 1):
-        ws, info, _ = planted_run(seed)
-        first = int(len(ws) * 0.75)
-        later = ws.subset(np.arange(first, len(ws)))
-        start = previous_calibration(info)
-        ext = run(ws, start, upto=first).calibration
-        six = run(ws, start, terms=(), upto=first).calibration
-        assert ext.model == EXT and six.model == "6", (ext.model, six.model)
-        a_ext = apply_extended(ext, later.mean, temp=later.aux[:, 0])
-        a_six = six.apply(later.mean)
-        rms_ext = float(np.sqrt(np.mean((np.linalg.norm(a_ext, axis=1) - 1) ** 2)))
-        rms_six = float(np.sqrt(np.mean((np.linalg.norm(a_six, axis=1) - 1) ** 2)))
+        (ext_model, rms_ext), (six_model, rms_six) = res[seed, ("temperature_offset",)], res[seed, ()]
+        assert ext_model == EXT and six_model == "6", (ext_model, six_model)
         # the later windows are warmer than any the fits saw (the ramp): the term must extrapolate
         assert rms_ext < 0.5 * rms_six, (seed, rms_ext, rms_six)
 
 
+def control_summary(seed: int) -> tuple[str, dict]:
+    ws, info = session(seed, False)
+    oc = run(ws, previous_calibration(info))
+    return oc.model, oc.extended_status
+
+
 def test_controls_without_the_term_never_select_it():
     chosen = []
-    for seed in range(10, 15):
-        ws, info = session(seed, False)
-        oc = run(ws, previous_calibration(info))
-        assert oc.model in ("6", "offsets"), (seed, oc.model)
-        if oc.model == "6":
-            assert oc.extended_status[EXT]["status"] in ("not warranted", "not observable"), oc.extended_status
-        chosen.append(oc.model == EXT)
+    for seed, (model, status) in zip(range(10, 15), pmap(control_summary, [(s,) for s in range(10, 15)])):
+        assert model in ("6", "offsets"), (seed, model)
+        if model == "6":
+            assert status[EXT]["status"] in ("not warranted", "not observable"), status
+        chosen.append(model == EXT)
     assert sum(chosen) == 0
 
 

@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 from scipy.stats import t as student_t
 
-from gravcal.core.reproduce import reproduce_cases
+from gravcal.core.reproduce import ReproduceResult, reproduce_cases
 from gravcal.core.reproduce_config import (DEFAULT_THETA_STEP_DEG, ReproduceConfig, paper_threshold_on_grid,
                                            theta_grid)
+from seed_pool import pmap
 
 ALPHA = 1e-3
 LIMIT = ReproduceConfig().threshold_pct
@@ -22,11 +23,37 @@ def margin_t(comparisons: int, seeds: int) -> float:
     return float(student_t.ppf(1.0 - ALPHA / comparisons, seeds - 1))
 
 
-def curve(key: str, theta, seeds: int, **settings) -> tuple[np.ndarray, np.ndarray, float | None]:
+def runs_at(key: str, theta: float, seeds: int, settings: dict) -> tuple[np.ndarray, np.ndarray]:
+    """reproduce_cases at one theta: (sensitivity runs (1, seeds, 3), offset runs (1, seeds, 3))."""
+    res = reproduce_cases((key,), ReproduceConfig(theta_deg=np.array([theta]), seeds=seeds, **settings))
+    return res.runs_sensitivity_pct[key], res.runs_offset_pct[key]
+
+
+def reproduce_by_theta(key: str, theta, seeds: int, **settings) -> ReproduceResult:
+    """reproduce_cases((key,), ...) with each theta run in a worker process: every (theta, seed) run draws from
+    its own generator, so the joined result is the one-call result run for run
+    (test_the_monte_carlo_split_by_theta_is_the_one_call_monte_carlo)."""
     cfg = ReproduceConfig(theta_deg=np.asarray(theta, dtype=float), seeds=seeds, **settings)
-    res = reproduce_cases((key,), cfg)
+    cfg.validate()
+    parts = pmap(runs_at, [(key, float(th), seeds, settings) for th in cfg.theta_deg])
+    return ReproduceResult(cfg.theta_deg, {key: np.concatenate([p[0] for p in parts])},
+                           {key: np.concatenate([p[1] for p in parts])}, cfg)
+
+
+def curve(key: str, theta, seeds: int, **settings) -> tuple[np.ndarray, np.ndarray, float | None]:
+    res = reproduce_by_theta(key, theta, seeds, **settings)
     err, se = res.error_and_se_pct(key)
     return err, se, res.thresholds_deg[key]
+
+
+@pytest.mark.parametrize("key, settings", [("o1_all", {}), ("o2_offsets", {"held_sensitivity_error": 0.05})])
+def test_the_monte_carlo_split_by_theta_is_the_one_call_monte_carlo(key, settings):
+    theta = [15.0, 90.0, 165.0]
+    whole = reproduce_cases((key,), ReproduceConfig(theta_deg=np.array(theta), seeds=4, **settings))
+    split = reproduce_by_theta(key, theta, 4, **settings)
+    np.testing.assert_array_equal(split.runs_offset_pct[key], whole.runs_offset_pct[key])
+    np.testing.assert_array_equal(split.runs_sensitivity_pct[key], whole.runs_sensitivity_pct[key])
+    assert split.thresholds_deg == whole.thresholds_deg
 
 
 def assert_above(err, se, t, theta):
