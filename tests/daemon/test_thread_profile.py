@@ -15,7 +15,6 @@ from gravcal.drivers.rigs.sources import pattern_blocks
 from support.silent_driver import SilentDriver
 
 
-
 def test_status_names_the_os_thread_id_of_every_daemon_thread(tmp_path):
     cfg = Config()
     cfg.socket.path = str(tmp_path / "g.sock")
