@@ -52,8 +52,16 @@ class Notifier:
         with self._lock:
             try:
                 if self._sock is None:
-                    self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
+                    # non-blocking: a manager that stops reading must not stall the caller (the main
+                    # thread, which also handles SIGTERM); a message it has no room for is dropped
+                    self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC
+                                               | socket.SOCK_NONBLOCK)
                 self._sock.sendto(msg, self.address)
+            except BlockingIOError:
+                if not self._warned:
+                    log.warning("sd_notify to %r: the service manager's queue is full; message dropped", self.address)
+                    self._warned = True
+                return False
             except OSError as exc:
                 if not self._warned:  # once: a notify failure must not flood the journal
                     log.warning("sd_notify to %r failed: %s", self.address, exc)

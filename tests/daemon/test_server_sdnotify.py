@@ -1,6 +1,7 @@
 """sd_notify over a real datagram socket, WATCHDOG_USEC parsing, and the watchdog policy."""
 import os
 import socket
+import threading
 import uuid
 
 import pytest
@@ -109,3 +110,23 @@ def test_watchdog_disabled_never_feeds():
     wd = WatchdogPolicy(Notifier({}), None)
     wd.samples_arrived(100)
     assert wd.tick() is False and wd.feeds == 0
+
+
+def test_a_manager_that_stops_reading_never_blocks_the_sender(tmp_path, caplog):
+    path = str(tmp_path / "notify")
+    r = receiver(path)  # bound, never read: its queue fills
+    n = Notifier({"NOTIFY_SOCKET": path})
+    results = []
+    sender = threading.Thread(target=lambda: results.extend(n.watchdog() for _ in range(5000)), daemon=True)
+    sender.start()  # 5000: more than any datagram queue holds
+    sender.join(30)
+    blocked = sender.is_alive()
+    if blocked:
+        r.close()  # the blocked send then fails, and the thread ends
+    assert not blocked, "a send blocked on the full queue"
+    assert results[0] and not results[-1]
+    assert n.sent == results.index(False) == sum(results)
+    assert sum("queue is full" in rec.getMessage() for rec in caplog.records) == 1  # warned once
+    assert r.recv(64) == b"WATCHDOG=1"  # what was queued is intact
+    n.close()
+    r.close()
