@@ -141,7 +141,6 @@ def _mapped_kb(path) -> int:
     return kb
 
 
-@pytest.mark.skipif(not __import__("os").path.exists("/proc/self/smaps"), reason="needs /proc/self/smaps")
 @pytest.mark.parametrize("layout", ["records", "columns"])
 def test_row_releaser_drops_every_field_once(tmp_path, layout):
     """Fields of the same records (a structured .npy) are released through one of them; separate
