@@ -45,10 +45,11 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ._blockkernels import block_pass, lotters_chain, sosfilt, variance_chain, window_sums
+from ._blockkernels import block_pass, lotters_chain, variance_chain, window_sums
 from .calibration import Calibration
 from .detectors import estimate_fs
 from .detectors.butterworth import butter_sos, sos_rest_state
+from .detectors.windowing import settle_samples
 from .windows import WindowSet
 
 BLOCK_S = 0.1  # block length [s]: 10 Hz detection, boundaries to 0.1 s
@@ -207,15 +208,6 @@ def _to_g_affine(to_g: Calibration | None) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(to_g.offset, dtype=float), np.linalg.inv(to_g.sensitivity)
 
 
-def _settle_blocks(sos: np.ndarray, final: float, corner_hz: float, fs_b: float, tol: float = 0.01) -> int:
-    n = int(round(20.0 / corner_hz * fs_b))
-    y = np.ones((1, n))
-    sosfilt(np.ascontiguousarray(sos, dtype=np.float64), y, np.zeros((1, sos.shape[0], 2)))
-    y = y[0]
-    bad = np.flatnonzero(np.abs(y - final) > tol)
-    return int(bad[-1] + 1) if bad.shape[0] else 0
-
-
 def lotters_still(bs: BlockStats, to_g: Calibration | None = None, *, hp_hz: float = 0.5, lp_hz: float = 0.5,
                   threshold_g: float = 0.02, settle_s: float | None = None, order: int = 2,
                   per_axis: bool = True) -> np.ndarray:
@@ -236,7 +228,7 @@ def lotters_still(bs: BlockStats, to_g: Calibration | None = None, *, hp_hz: flo
     sos_hp = butter_sos(order, hp_hz, "highpass", fs_b)
     sos_lp = butter_sos(order, lp_hz, "lowpass", fs_b)
     settle = (int(round(settle_s * fs_b)) if settle_s is not None
-              else _settle_blocks(sos_hp, 0.0, hp_hz, fs_b) + _settle_blocks(sos_lp, 1.0, lp_hz, fs_b))
+              else settle_samples(sos_hp, 0.0, fs_b, hp_hz) + settle_samples(sos_lp, 1.0, fs_b, lp_hz))
     # K^-1 (mean - o), |a| (eq. 1), high-pass, rectifier, low-pass, < threshold (eq. 2) on the norm
     # and (per_axis) the three axes, the within-block std gate; unusable blocks held at the last
     # usable one, the high-pass at rest on the first (core.detectors: the first finite sample)

@@ -16,7 +16,7 @@ from .windowing import (
     _diagonal_affine,
     _filter_rows,
     _forward_fill,
-    _settle_samples,
+    settle_samples,
     _unsettled,
     _Windower,
 )
@@ -89,7 +89,7 @@ class QuasiStaticDetector(_Windower):
         self.sos_hp = butter_sos(order, hp_hz, "highpass", fs)
         self.sos_lp = butter_sos(order, lp_hz, "lowpass", fs)
         self.settle_n = (int(round(settle_s * fs)) if settle_s is not None
-                         else _settle_samples(self.sos_hp, 0.0, fs, hp_hz) + _settle_samples(self.sos_lp, 1.0, fs, lp_hz))
+                         else settle_samples(self.sos_hp, 0.0, fs, hp_hz) + settle_samples(self.sos_lp, 1.0, fs, lp_hz))
         self._sos_hp = np.ascontiguousarray(self.sos_hp)
         self._sos_lp = np.ascontiguousarray(self.sos_lp)
         # high-pass state at rest for a unit input, (1, sections, 2): scaled by the first sample

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
+from .._blockkernels import sosfilt
 from ..calibration import Calibration
 from ..windows import Window
 
@@ -64,70 +65,10 @@ def _diagonal_affine(to_g: ToG) -> tuple[np.ndarray, np.ndarray] | None:
     return to_g.offset.copy(), np.diag(m).copy()
 
 
-_UNRESOLVED = object()
-# the compiled kernel behind signal.sosfilt: filters (signals, n) and zi (signals, sections, 2) in place;
-# None: another SciPy layout (the public function, same arithmetic). Resolved on first use: importing
-# scipy.signal costs more than half of `gravcal calibrate`'s imports, and most commands never filter.
-_sosfilt_kernel: Any = _UNRESOLVED
-
-
-def _kernel() -> Any:
-    global _sosfilt_kernel
-    if _sosfilt_kernel is _UNRESOLVED:
-        _sosfilt_kernel = _load_sosfilt_kernel()
-    return _sosfilt_kernel
-
-
-def _load_sosfilt_kernel() -> Any:
-    """SciPy's compiled sosfilt kernel, loaded from its extension file without running
-    scipy/signal/__init__ (which imports scipy.stats, interpolate, ...: ~0.3 s). Registered under
-    its own name, so a later ``import scipy.signal`` reuses this module. Falls back to the
-    ordinary import, then to None (signal.sosfilt)."""
-    import importlib.machinery
-    import importlib.util
-    import os
-    import sys
-
-    name = "scipy.signal._sosfilt"
-    try:
-        if name not in sys.modules and "scipy.signal" not in sys.modules:
-            import scipy
-
-            here = os.path.join(os.path.dirname(scipy.__file__), "signal")
-            for suffix in importlib.machinery.EXTENSION_SUFFIXES:
-                path = os.path.join(here, "_sosfilt" + suffix)
-                if os.path.exists(path):
-                    spec = importlib.util.spec_from_file_location(name, path)
-                    if spec is not None and spec.loader is not None:
-                        module = importlib.util.module_from_spec(spec)
-                        spec.loader.exec_module(module)
-                        sys.modules[name] = module
-                    break
-        from scipy.signal._sosfilt import _sosfilt as kernel  # the module above, or the ordinary import
-        return kernel
-    except (ImportError, OSError, AttributeError):  # pragma: no cover - another SciPy layout
-        return None
-
-
 def _filter_rows(sos_hp, sos_lp, v, zi_hp, zi_lp) -> None:
-    _sosfilt_inplace(sos_hp, v, zi_hp)
+    sosfilt(sos_hp, v, zi_hp)
     np.abs(v, out=v)
-    _sosfilt_inplace(sos_lp, v, zi_lp)  # eq. 2
-
-
-def _sosfilt_inplace(sos: np.ndarray, x: np.ndarray, zi: np.ndarray) -> None:
-    """signal.sosfilt along axis 1 of a C-contiguous x (signals, n), in place, with the state
-    zi (signals, sections, 2) updated in place. signal.sosfilt validates, copies x and moves
-    axes around the same kernel: ~50 µs per call, which dominated small blocks."""
-    kernel = _kernel()
-    if kernel is not None:
-        kernel(sos, x, zi)
-        return
-    from scipy import signal
-
-    y, z = signal.sosfilt(sos, x, axis=-1, zi=np.moveaxis(zi, 1, 0))
-    x[...] = y
-    zi[...] = np.moveaxis(z, 0, 1)
+    sosfilt(sos_lp, v, zi_lp)  # eq. 2
 
 
 def _forward_fill(values: np.ndarray, ok: np.ndarray, carry: np.ndarray) -> np.ndarray:
@@ -477,11 +418,11 @@ def _unsettled(still: np.ndarray, j0: int, start: int | None, settle_n: int) -> 
         still[:max(0, start + settle_n - j0)] = False
 
 
-def _settle_samples(sos: np.ndarray, final: float, fs: float, corner_hz: float, tol: float = 0.01) -> int:
+def settle_samples(sos: np.ndarray, final: float, fs: float, corner_hz: float, tol: float = 0.01) -> int:
     """Samples after which the filter's unit-step response stays within ``tol`` of ``final``."""
     n = int(round(20.0 / corner_hz * fs))
     y = np.ones((1, n))
-    _sosfilt_inplace(np.ascontiguousarray(sos), y, np.zeros((1, sos.shape[0], 2)))
+    sosfilt(np.ascontiguousarray(sos, dtype=np.float64), y, np.zeros((1, sos.shape[0], 2)))
     y = y[0]
     bad = np.flatnonzero(np.abs(y - final) > tol)
     return int(bad[-1] + 1) if bad.shape[0] else 0

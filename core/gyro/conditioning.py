@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from ..detectors.windowing import _sosfilt_inplace
+from .._blockkernels import sosfilt
 
 
 def highpass_ba(hp_hz: float, fs: float) -> tuple[np.ndarray, np.ndarray]:
@@ -55,7 +55,7 @@ class HighPassInverse:
             b, a = highpass_ba(hp_hz, fs)
             self.b = np.array([1.0, a[1]]) / b[0]  # numerator of 1/H(z)
             self.a = np.array([1.0, -1.0])  # denominator: the integrator
-            # the same filter as one second-order section, for SciPy's sosfilt kernel (same arithmetic as lfilter)
+            # the same filter as one second-order section, for the compiled sosfilt kernel (SciPy's arithmetic, as lfilter's)
             self._sos = np.array([[self.b[0], self.b[1], 0.0, 1.0, -1.0, 0.0]])
         self.zi: np.ndarray | None = None
 
@@ -71,7 +71,7 @@ class HighPassInverse:
         x = np.array(y.reshape(y.shape[0], -1).T, order="C")  # (signals, n), a copy: filtered in place
         zi = np.zeros((x.shape[0], 1, 2))
         zi[:, 0, 0] = self.zi.reshape(-1)
-        _sosfilt_inplace(self._sos, x, zi)
+        sosfilt(self._sos, x, zi)
         self.zi = zi[:, 0, 0].reshape(self.zi.shape)
         return x.T.reshape(y.shape)
 

@@ -14,6 +14,7 @@ import gravcal.core.fastdetect as fastdetect
 from gravcal.core._blockkernels import block_pass, lotters_chain, sosfilt, variance_chain
 from gravcal.core.calibration import Calibration
 from gravcal.core.detectors.butterworth import butter_sos, sos_rest_state
+from gravcal.core.detectors.windowing import settle_samples
 from gravcal.core.samples import raw_triad
 from gravcal.core.simulate import simulate
 
@@ -275,7 +276,7 @@ def test_lotters_chain_is_the_numpy_scipy_form_bit_for_bit(daily_blocks, per_axi
     assert 0.2 < still.mean() < 0.9  # the comparison covers both decisions
     # and lotters_still is the chain plus the settling blocks
     public = fastdetect.lotters_still(bs, to_g, threshold_g=thr, order=order, per_axis=per_axis)
-    settle = fastdetect._settle_blocks(sos_hp, 0.0, 0.5, fs_b) + fastdetect._settle_blocks(sos_lp, 1.0, 0.5, fs_b)
+    settle = settle_samples(sos_hp, 0.0, fs_b, 0.5) + settle_samples(sos_lp, 1.0, fs_b, 0.5)
     still[b0:b0 + settle] = False
     assert settle > 0
     np.testing.assert_array_equal(public, still)
