@@ -3,7 +3,8 @@
     python bench/calibrate_stages.py FILE.npy [--repeat 1]
 
 Stages: imports (the CLI's calibrate imports), read (daemon.recordings.read_recording: mapping,
-validating and finding exactly repeated runs in the same scan), filler (dropping those runs' rows,
+validating, finding exactly repeated runs and the block statistics in the same pass, as `gravcal
+calibrate` reads; "block pass" is then only a recomputation when reading dropped rows), filler (dropping those runs' rows,
 which `calibrate` does by default), start (the bootstrap calibration), block pass (core.fastdetect.block_stats), detection
 (detectors on the block statistics, window statistics, screening), fit (order and extended-term
 selection, re-detection's refit included), held-out (the contiguous folds). CPU time (all threads) and wall time per stage: on a shared
@@ -51,11 +52,11 @@ def main() -> int:
     timed(pipeline, "heldout_error", "held-out")
     timed(recordings, "_without_filler", "filler")
     c, w = time.process_time(), time.perf_counter()
-    rec = recordings.read_recording(args.file, exclude_filler=True)  # as `gravcal calibrate` reads
+    rec = recordings.read_recording(args.file, exclude_filler=True, blocks=True)  # as `gravcal calibrate` reads
     spent["read"] = time.process_time() - c - spent["filler"]
     wall["read"] = time.perf_counter() - w - wall["filler"]
     c, w = time.process_time(), time.perf_counter()
-    rep = pipeline.calibrate_recording(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, fs=rec.fs)
+    rep = pipeline.calibrate_recording(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, fs=rec.fs, blocks=rec.blocks)
     staged = ("imports", "read", "filler")
     spent["other"] = time.process_time() - c - sum(v for k, v in spent.items() if k not in staged)
     wall["other"] = time.perf_counter() - w - sum(v for k, v in wall.items() if k not in staged)
