@@ -22,7 +22,7 @@ import numpy as np
 from . import fastdetect
 from ._scankernel import scan_chunk
 from .fastdetect import BlockPass, BlockStats, block_length, row_releaser, run_lanes
-from .repeats import MIN_RUN, RunCollector, chunk_runs
+from .repeats import MIN_RUN, RunCollector
 from .samples import FLAG_SATURATED
 
 MEDIAN_EVERY = 64  # the sample rate is the median of the median steps of every 64th chunk
@@ -113,21 +113,23 @@ def scan_columns(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags:
         if stop.is_set():
             return
         if not hasattr(local, "state"):
-            local.state, local.same = _fresh_state(), np.empty(min(n, chunk), dtype=bool) if repeats else None
+            # room for every run chunk_runs keeps: runs of >= min_run steps are min_run + 1 steps apart
+            local.state = _fresh_state()
+            local.runs = np.empty((min(n, chunk) // min_run + 2, 2), dtype=np.int64) if repeats else None
             with lock:
                 states.append(local.state)
         j = min(i + chunk, n)
         tc = t[i:j] if t_native else np.asarray(t[i:j], dtype=np.float64)
         block = raw[i:j] if native else np.asarray(raw[i:j], dtype=np.float64)
         prev = None if i == 0 else np.array([t[i - 1], *raw[i - 1]], dtype=np.float64)  # the row before
-        sm = None if local.same is None else local.same[:j - i]
-        scan_chunk(tc, block[:, 0], block[:, 1], block[:, 2], prev, local.state, sm)  # releases the GIL
+        n_runs, n_repeats = scan_chunk(tc, block[:, 0], block[:, 1], block[:, 2], prev, local.state, local.runs,
+                                       min_run)  # releases the GIL
         if not (local.state[13] and all(np.isfinite(np.asarray(e[i:j], dtype=np.float64)).all() for e in extra)):
             stop.set()
             return
         n_flag = 0 if flags is None else int(np.count_nonzero(np.asarray(flags[i:j]).astype(np.int64) & FLAG_SATURATED))
-        if sm is not None:  # sm[k]: row i + k against the row before it, i.e. step i + k - 1
-            pieces[i] = chunk_runs(sm if i else sm[1:], min_run)
+        if local.runs is not None:  # the chunk's steps: its rows against the row before (the first has none at 0)
+            pieces[i] = (local.runs[:n_runs, 0].copy(), local.runs[:n_runs, 1].copy(), n_repeats)
         if bp is not None and i < bp.nb * bp.B:
             bp.chunk(i, min(j, bp.nb * bp.B))
         # a memory-mapped input stays in the page cache but leaves this process's resident set:
