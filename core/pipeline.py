@@ -2,7 +2,8 @@
 
     bootstrap start (start.bootstrap: raw data in unknown units)
       -> block statistics: ONE pass over the samples (core.fastdetect.block_stats: 0.1 s
-         block means and within-block scatters)
+         block means and within-block scatters), or those the reading pass computed with its
+         validation scan (core.datapass, ``blocks=``)
       -> quasi-static windows (detector on the block means, detection signal in g via the start)
       -> re-detection with the fitted calibration if it moved the start a lot (blocks only)
       -> LottersBatch fit (eq. 11a iterated; C_e eq. 11b)
