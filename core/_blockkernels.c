@@ -237,13 +237,18 @@ static inline __attribute__((always_inline)) void chain_run(const Chain *a, int 
             v[0] += v[2] * v[2];
             v[0] += v[3] * v[3];
             v[0] = sqrt(v[0]); /* eq. 1: |a| */
-            for (int i = 0; i < 3; i++) { /* the within-block std gate (what the block means cannot see) */
-                double w = 0.0;
-                for (int p = 0; p < 6; p++)
-                    w += cv[i][p] * (double)a->scatter[p * nb + b];
-                ok &= w < a->var_limit;
+            /* the within-block std gate (what the block means cannot see): the three axes' sums side
+             * by side, each in the order p = 0..5 from +0.0 as before (their additions overlap instead
+             * of waiting for one another) */
+            double w[3] = {0.0, 0.0, 0.0};
+            for (int p = 0; p < 6; p++) {
+                const double sp = (double)a->scatter[p * nb + b];
+                w[0] += cv[0][p] * sp, w[1] += cv[1][p] * sp, w[2] += cv[2][p] * sp;
+            }
+            for (int i = 0; i < 3; i++) {
+                ok &= w[i] < a->var_limit;
                 if (a->trace)
-                    a->trace[(4 + i) * nb + b] = w;
+                    a->trace[(4 + i) * nb + b] = w[i];
             }
             a->still[b] = (char)ok;
         }
