@@ -258,6 +258,7 @@ static inline __attribute__((always_inline)) void chain_run(const Chain *a, int 
                     zh[c][k] = a->rest[k] * u[0][c];
         for (Py_ssize_t k = 0; k < n; k++) {
             int s = 1;
+#pragma GCC unroll 4 /* the channels' filters interleaved: their dependency chains overlap */
             for (int c = 0; c < chans; c++) { /* high-pass, rectifier, low-pass (eq. 2), per channel */
                 double y = fabs(cascade(a->sos_hp, zh[c], ns_hp, u[k][c]));
                 y = cascade(a->sos_lp, zl[c], ns_lp, y);
