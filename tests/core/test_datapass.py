@@ -146,3 +146,25 @@ def test_calibrating_with_the_reading_pass_blocks_changes_nothing(tmp_path):
                             detection="blocks")
     with pytest.raises(ValueError, match="blocks are not this recording's"):
         calibrate_recording(rec.t, rec.raw, blocks=rec.blocks, temp=None, fs=rec.fs, detection="blocks")
+
+
+def _mapped_kb(path) -> int:
+    """Resident kB of this process's mappings of ``path`` (/proc/self/smaps)."""
+    kb, inside = 0, False
+    for line in open("/proc/self/smaps"):
+        if "-" in line.split(" ", 1)[0]:
+            inside = line.rstrip().endswith(str(path))
+        elif inside and line.startswith("Rss:"):
+            kb += int(line.split()[1])
+    return kb
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_pass_does_not_keep_the_mapped_file_resident(tmp_path, threads):
+    """Every chunk's pages leave the resident set after it (the file stays in the page cache)."""
+    path = _write_npy(tmp_path / "big.npy", _records(3, 1_500_000, gaps=False))  # 36 MB
+    mm = np.load(path, mmap_mode="r")
+    sc = scan_columns(mm["t"], _triad(mm), [mm["temp"]], None, chunk=1 << 16, repeats=True, blocks=True,
+                      aux=mm["temp"], threads=threads)
+    assert sc.finite and sc.blocks is not None
+    assert _mapped_kb(path) < 0.05 * path.stat().st_size / 1024
