@@ -168,3 +168,23 @@ def test_the_pass_does_not_keep_the_mapped_file_resident(tmp_path, threads):
                       aux=mm["temp"], threads=threads)
     assert sc.finite and sc.blocks is not None
     assert _mapped_kb(path) < 0.05 * path.stat().st_size / 1024
+
+
+@pytest.mark.parametrize("layout", [">f4", "<i4", "<f8"])
+def test_reading_pass_blocks_for_any_stored_type(tmp_path, layout):
+    """Big-endian floats, integer counts (converted per chunk) and float64 channels: the reading pass's
+    blocks equal block_stats' of the recording read."""
+    from gravcal.daemon.recordings import read_recording
+
+    sim = simulate("loetters", seed=2, duration=120.0).samples
+    end = ">" if layout[0] == ">" else "<"
+    rec = np.empty(len(sim), dtype=[("t", end + "f8"), ("ax", layout), ("ay", layout), ("az", layout),
+                                    ("temp", end + "f4")])
+    tri = raw_triad(sim)
+    rec["t"], rec["temp"] = sim["t"], sim["temp"]
+    rec["ax"], rec["ay"], rec["az"] = (np.round(tri * 1e6) if layout == "<i4" else tri).T
+    r = read_recording(_write_npy(tmp_path / "x.npy", rec), blocks=True)
+    ref = fastdetect.block_stats(r.t, lambda c, i, j: r.raw[i:j, c], r.n_samples, r.fs, aux=r.temp)
+    assert r.blocks is not None
+    for name in ("mean", "scatter", "aux", "usable"):
+        np.testing.assert_array_equal(getattr(r.blocks, name), getattr(ref, name), err_msg=name)
