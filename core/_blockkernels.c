@@ -223,13 +223,13 @@ static inline __attribute__((always_inline)) void chain_run(const Chain *a, int 
             const Py_ssize_t b = lo + k;
             int ok = a->usable[b] != 0;
             if (ok || b == a->b0) { /* K⁻¹ (mean - o) (fastdetect._in_g: column by column from +0.0) */
-                double g[3] = {0.0, 0.0, 0.0};
+                double g0 = 0.0, g1 = 0.0, g2 = 0.0; /* in registers, not an array the loop reloads */
+#pragma GCC unroll 3
                 for (int j = 0; j < 3; j++) {
                     double d = a->mean[j * nb + b] - a->o[j];
-                    for (int i = 0; i < 3; i++)
-                        g[i] += K[3 * i + j] * d;
+                    g0 += K[j] * d, g1 += K[3 + j] * d, g2 += K[6 + j] * d;
                 }
-                last[0] = g[0], last[1] = g[1], last[2] = g[2];
+                last[0] = g0, last[1] = g1, last[2] = g2;
             } /* an unusable block is held at the last usable one */
             double *v = u[k];
             v[1] = last[0], v[2] = last[1], v[3] = last[2];
