@@ -47,6 +47,26 @@ static inline void keep_run(Runs *r, Py_ssize_t start, Py_ssize_t len, Py_ssize_
 
 enum { S_LO = 0, S_HI = 3, S_NLO = 6, S_NHI = 9, S_MINDT = 12, S_FINITE = 13, SCAN_STATE = 14 };
 
+/* One row k of the scan against the row before it (tq, q0, q1, q2): finiteness, the step, the
+ * extremes and (TRACK) the run of repeated rows it continues or ends. */
+#define SCAN_ROW(T, k, tq, q0, q1, q2, TRACK)                                                       \
+    do {                                                                                            \
+        const double tk = *(const double *)(tp + (k) * ts), v0 = *(const T *)(p0 + (k) * s0),      \
+                     v1 = *(const T *)(p1 + (k) * s1), v2 = *(const T *)(p2 + (k) * s2);           \
+        f += (tk - tk) + ((v0 - v0) + ((v1 - v1) + (v2 - v2)));                                     \
+        const double dt = tk - (tq); /* NaN before the first row: never below min_dt */            \
+        min_dt = dt < min_dt ? dt : min_dt;                                                         \
+        lo0 = v0 < lo0 ? v0 : lo0, lo1 = v1 < lo1 ? v1 : lo1, lo2 = v2 < lo2 ? v2 : lo2;            \
+        hi0 = v0 > hi0 ? v0 : hi0, hi1 = v1 > hi1 ? v1 : hi1, hi2 = v2 > hi2 ? v2 : hi2;            \
+        if (TRACK) { /* a compile-time constant: the loop without runs does none of this */         \
+            const int same = (v0 == (double)(q0)) & (v1 == (double)(q1)) & (v2 == (double)(q2));    \
+            if (!same & (run_len > 0))                                                              \
+                keep_run(rr, run_start, run_len, n_steps);                                          \
+            run_start = run_len ? run_start : (k) - first;                                          \
+            run_len = same ? run_len + 1 : 0;                                                       \
+        }                                                                                           \
+    } while (0)
+
 /* One pass for the chunk's extremes (branch-free min/max), then, only for a channel whose chunk
  * extreme reaches the running one (rare after the first chunks), a pass counting the samples
  * exactly at it: the counts np.count_nonzero(x == extreme) give, as numpy did per chunk. The
@@ -59,33 +79,22 @@ enum { S_LO = 0, S_HI = 3, S_NLO = 6, S_NHI = 9, S_MINDT = 12, S_FINITE = 13, SC
         const char *tp = t->buf, *p0 = x[0].buf, *p1 = x[1].buf, *p2 = x[2].buf;                    \
         double lo0 = INFINITY, lo1 = INFINITY, lo2 = INFINITY, hi0 = -INFINITY, hi1 = -INFINITY,    \
                hi2 = -INFINITY, min_dt = st[S_MINDT];                                               \
-        double f = 0.0, f0 = 0.0, f1 = 0.0, f2 = 0.0; /* x - x: 0 when finite, NaN for NaN and ±inf */ \
-        double tq = prev ? prev[0] : NAN, q0 = prev ? prev[1] : NAN, q1 = prev ? prev[2] : NAN,     \
-               q2 = prev ? prev[3] : NAN;                                                           \
+        double f = 0.0; /* Σ (x - x) over t and the channels: 0 while all are finite, NaN from a NaN or ±inf */ \
         const Py_ssize_t first = prev ? 0 : 1, n_steps = m - first; /* row k is step k - first */    \
         /* the run being followed, in locals (no store through rr in the loop); emitted when it ends */ \
         Py_ssize_t run_start = 0, run_len = 0;                                                      \
-        for (Py_ssize_t k = 0; k < m; k++) {                                                        \
-            const double tk = *(const double *)(tp + k * ts), v0 = *(const T *)(p0 + k * s0),        \
-                         v1 = *(const T *)(p1 + k * s1), v2 = *(const T *)(p2 + k * s2);             \
-            f += tk - tk, f0 += v0 - v0, f1 += v1 - v1, f2 += v2 - v2;                              \
-            const double dt = tk - tq; /* NaN before the first row: never below min_dt */           \
-            min_dt = dt < min_dt ? dt : min_dt;                                                     \
-            lo0 = v0 < lo0 ? v0 : lo0, lo1 = v1 < lo1 ? v1 : lo1, lo2 = v2 < lo2 ? v2 : lo2;        \
-            hi0 = v0 > hi0 ? v0 : hi0, hi1 = v1 > hi1 ? v1 : hi1, hi2 = v2 > hi2 ? v2 : hi2;        \
-            if (TRACK) { /* a compile-time constant: the loop without runs does none of this */     \
-                const int same = (v0 == q0) & (v1 == q1) & (v2 == q2);                              \
-                if (!same & (run_len > 0))                                                          \
-                    keep_run(rr, run_start, run_len, n_steps);                                      \
-                run_start = run_len ? run_start : k - first;                                        \
-                run_len = same ? run_len + 1 : 0;                                                   \
-            }                                                                                       \
-            tq = tk, q0 = v0, q1 = v1, q2 = v2;                                                     \
-        }                                                                                           \
+        /* the first row against `prev` (NaN without: never a step, never a repeat), the others      \
+         * against the row before them, read again rather than kept (fewer registers to spill) */    \
+        if (m > 0)                                                                                  \
+            SCAN_ROW(T, 0, prev ? prev[0] : NAN, prev ? prev[1] : NAN, prev ? prev[2] : NAN,         \
+                     prev ? prev[3] : NAN, TRACK);                                                  \
+        for (Py_ssize_t k = 1; k < m; k++)                                                          \
+            SCAN_ROW(T, k, *(const double *)(tp + (k - 1) * ts), *(const T *)(p0 + (k - 1) * s0),    \
+                     *(const T *)(p1 + (k - 1) * s1), *(const T *)(p2 + (k - 1) * s2), TRACK);       \
         if (TRACK && run_len)                                                                       \
             keep_run(rr, run_start, run_len, n_steps);                                              \
         st[S_MINDT] = min_dt;                                                                       \
-        if (!(f + f0 + f1 + f2 == 0.0)) {                                                          \
+        if (!(f == 0.0)) {                                                                          \
             st[S_FINITE] = 0.0; /* extremes of non-finite data mean nothing: _scan stops here */    \
             return;                                                                                 \
         }                                                                                           \
