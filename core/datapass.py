@@ -94,7 +94,8 @@ def scan_columns(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags:
     threads = fastdetect.THREADS if threads is None else threads
     drop = row_releaser([c for c in (t, raw, *extra, flags, aux) if c is not None])
     # plain views of np.memmap columns: slicing a memmap runs its Python __getitem__ (~6 us a slice)
-    t, raw, aux = (a.view(np.ndarray) if isinstance(a, np.memmap) else a for a in (t, raw, aux))
+    t, raw, aux, flags, *extra = (a.view(np.ndarray) if isinstance(a, np.memmap) else a
+                                  for a in (t, raw, aux, flags, *extra))
     sc = ScanStats(repeats=RunCollector(min_run) if repeats else None)
     sc.dt_medians = step_medians(t, chunk)
     drop(0, n)  # the sampled chunks' pages
