@@ -56,10 +56,11 @@ def step_medians(t: np.ndarray, chunk: int) -> list[float]:
     chunk's first row); NaN where a chunk holds a NaN time."""
     n = int(t.shape[0])
     out = []
-    for i in range(0, n, chunk * MEDIAN_EVERY):
-        tc = np.asarray(t[max(i - 1, 0):min(i + chunk, n)], dtype=np.float64)
-        if tc.shape[0] > 1:
-            out.append(float(np.median(np.diff(tc))))
+    with np.errstate(invalid="ignore"):  # inf - inf: a non-finite time the pass reports as such
+        for i in range(0, n, chunk * MEDIAN_EVERY):
+            tc = np.asarray(t[max(i - 1, 0):min(i + chunk, n)], dtype=np.float64)
+            if tc.shape[0] > 1:
+                out.append(float(np.median(np.diff(tc))))
     return out
 
 

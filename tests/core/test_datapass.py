@@ -188,3 +188,17 @@ def test_reading_pass_blocks_for_any_stored_type(tmp_path, layout):
     assert r.blocks is not None
     for name in ("mean", "scatter", "aux", "usable"):
         np.testing.assert_array_equal(getattr(r.blocks, name), getattr(ref, name), err_msg=name)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_times_are_reported_without_numpy_warnings(bad):
+    """The sampled steps before the pass meet the bad times first: no RuntimeWarning on the way to the
+    pass's own finding."""
+    import warnings
+
+    rec = _records(4, 20_000, gaps=False)
+    rec["t"][[5, 6]] = bad
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sc = scan_columns(rec["t"], _triad(rec), [], None, chunk=1000, blocks=True)
+    assert not sc.finite and sc.blocks is None
