@@ -53,10 +53,10 @@ def main() -> int:
 
     def scan() -> None:
         st = np.array([np.inf] * 3 + [-np.inf] * 3 + [0.0] * 6 + [np.inf, 1.0])
-        same, prev = np.empty(1 << 16, bool), None
+        runs, prev = np.empty(((1 << 16) // 10 + 2, 2), np.int64), None
         for i in range(0, len(t), 1 << 16):
             j = min(i + (1 << 16), len(t))
-            scan_chunk(t[i:j], x[0][i:j], x[1][i:j], x[2][i:j], prev, st, same[:j - i])
+            scan_chunk(t[i:j], x[0][i:j], x[1][i:j], x[2][i:j], prev, st, runs, 10)
             prev = np.array([t[j - 1], x[0][j - 1], x[1][j - 1], x[2][j - 1]])
 
     blocks()

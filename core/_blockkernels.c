@@ -223,13 +223,13 @@ static inline __attribute__((always_inline)) void chain_run(const Chain *a, int 
             const Py_ssize_t b = lo + k;
             int ok = a->usable[b] != 0;
             if (ok || b == a->b0) { /* K⁻¹ (mean - o) (fastdetect._in_g: column by column from +0.0) */
-                double g[3] = {0.0, 0.0, 0.0};
+                double g0 = 0.0, g1 = 0.0, g2 = 0.0; /* in registers, not an array the loop reloads */
+#pragma GCC unroll 3
                 for (int j = 0; j < 3; j++) {
                     double d = a->mean[j * nb + b] - a->o[j];
-                    for (int i = 0; i < 3; i++)
-                        g[i] += K[3 * i + j] * d;
+                    g0 += K[j] * d, g1 += K[3 + j] * d, g2 += K[6 + j] * d;
                 }
-                last[0] = g[0], last[1] = g[1], last[2] = g[2];
+                last[0] = g0, last[1] = g1, last[2] = g2;
             } /* an unusable block is held at the last usable one */
             double *v = u[k];
             v[1] = last[0], v[2] = last[1], v[3] = last[2];
@@ -237,13 +237,18 @@ static inline __attribute__((always_inline)) void chain_run(const Chain *a, int 
             v[0] += v[2] * v[2];
             v[0] += v[3] * v[3];
             v[0] = sqrt(v[0]); /* eq. 1: |a| */
-            for (int i = 0; i < 3; i++) { /* the within-block std gate (what the block means cannot see) */
-                double w = 0.0;
-                for (int p = 0; p < 6; p++)
-                    w += cv[i][p] * (double)a->scatter[p * nb + b];
-                ok &= w < a->var_limit;
+            /* the within-block std gate (what the block means cannot see): the three axes' sums side
+             * by side, each in the order p = 0..5 from +0.0 as before (their additions overlap instead
+             * of waiting for one another) */
+            double w[3] = {0.0, 0.0, 0.0};
+            for (int p = 0; p < 6; p++) {
+                const double sp = (double)a->scatter[p * nb + b];
+                w[0] += cv[0][p] * sp, w[1] += cv[1][p] * sp, w[2] += cv[2][p] * sp;
+            }
+            for (int i = 0; i < 3; i++) {
+                ok &= w[i] < a->var_limit;
                 if (a->trace)
-                    a->trace[(4 + i) * nb + b] = w;
+                    a->trace[(4 + i) * nb + b] = w[i];
             }
             a->still[b] = (char)ok;
         }
@@ -253,6 +258,7 @@ static inline __attribute__((always_inline)) void chain_run(const Chain *a, int 
                     zh[c][k] = a->rest[k] * u[0][c];
         for (Py_ssize_t k = 0; k < n; k++) {
             int s = 1;
+#pragma GCC unroll 4 /* the channels' filters interleaved: their dependency chains overlap */
             for (int c = 0; c < chans; c++) { /* high-pass, rectifier, low-pass (eq. 2), per channel */
                 double y = fabs(cascade(a->sos_hp, zh[c], ns_hp, u[k][c]));
                 y = cascade(a->sos_lp, zl[c], ns_lp, y);

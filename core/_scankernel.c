@@ -1,7 +1,7 @@
-/* The validation scan of a recording's columns (daemon/recordings.py _scan), one chunk per call.
+/* The validation scan of a recording's columns (core/datapass.py scan_columns), one chunk per call.
  *
- * scan_chunk     extremes and their counts, the smallest time step, finiteness and the exactly
- *                repeated rows of t and three strided channel fields, read in place.
+ * scan_chunk     extremes and their counts, the smallest time step, finiteness and the runs of
+ *                exactly repeated rows of t and three strided channel fields, read in place.
  *
  * Buffers come through the buffer protocol only (no numpy C API); every length, format and
  * contiguity is checked before the loop runs, which runs without the GIL.
@@ -14,43 +14,87 @@
 
 /* ---- the reading scan ---------------------------------------------------------------------- */
 
-/* The validation scan of one chunk (daemon/recordings.py _scan), folded into `st` (SCAN_STATE
+/* The validation scan of one chunk (core/datapass.py scan_columns), folded into `st` (SCAN_STATE
  * doubles: per-channel minimum, maximum and the counts of samples exactly at each, the smallest
  * time step, 1 while every value is finite): what np.min / np.max, counting (x == extreme) and
- * np.diff(t).min() give over the whole recording. same[k] (optional): row k equals the row before
- * it in all three channels (core.repeats.repeated_steps); the first row is compared with `prev`
- * (t, x0, x1, x2 of the row before the chunk) when given, else same[0] = 0. */
+ * np.diff(t).min() give over the whole recording.
+ *
+ * Repeated rows (optional, `runs` not NULL): a step repeats when a row equals the row before it
+ * in all three channels (core.repeats.repeated_steps). The chunk's steps are its rows against the
+ * row before them, the first against `prev` (t, x0, x1, x2 of the row before the chunk) when
+ * given; without `prev` the first row has none (q = NaN never compares equal) and step s is row
+ * s + 1. The runs of repeated steps are those core.repeats.chunk_runs keeps: every run of at
+ * least min_run steps and the runs touching the chunk's first or last step, as (first step,
+ * steps) pairs; the other runs only add to the count of repeated steps. */
+typedef struct {
+    long long *runs; /* (cap, 2) */
+    Py_ssize_t cap, n_runs, n_repeats, min_run;
+    int overflow;
+} Runs;
+
+static inline void keep_run(Runs *r, Py_ssize_t start, Py_ssize_t len, Py_ssize_t n_steps)
+{
+    r->n_repeats += len;
+    if (len >= r->min_run || start == 0 || start + len == n_steps) {
+        if (r->n_runs == r->cap) {
+            r->overflow = 1;
+            return;
+        }
+        r->runs[2 * r->n_runs] = start, r->runs[2 * r->n_runs + 1] = len;
+        r->n_runs++;
+    }
+}
+
 enum { S_LO = 0, S_HI = 3, S_NLO = 6, S_NHI = 9, S_MINDT = 12, S_FINITE = 13, SCAN_STATE = 14 };
+
+/* One row k of the scan against the row before it (tq, q0, q1, q2): finiteness, the step, the
+ * extremes and (TRACK) the run of repeated rows it continues or ends. */
+#define SCAN_ROW(T, k, tq, q0, q1, q2, TRACK)                                                       \
+    do {                                                                                            \
+        const double tk = *(const double *)(tp + (k) * ts), v0 = *(const T *)(p0 + (k) * s0),      \
+                     v1 = *(const T *)(p1 + (k) * s1), v2 = *(const T *)(p2 + (k) * s2);           \
+        f += (tk - tk) + ((v0 - v0) + ((v1 - v1) + (v2 - v2)));                                     \
+        const double dt = tk - (tq); /* NaN before the first row: never below min_dt */            \
+        min_dt = dt < min_dt ? dt : min_dt;                                                         \
+        lo0 = v0 < lo0 ? v0 : lo0, lo1 = v1 < lo1 ? v1 : lo1, lo2 = v2 < lo2 ? v2 : lo2;            \
+        hi0 = v0 > hi0 ? v0 : hi0, hi1 = v1 > hi1 ? v1 : hi1, hi2 = v2 > hi2 ? v2 : hi2;            \
+        if (TRACK) { /* a compile-time constant: the loop without runs does none of this */         \
+            const int same = (v0 == (double)(q0)) & (v1 == (double)(q1)) & (v2 == (double)(q2));    \
+            if (!same & (run_len > 0))                                                              \
+                keep_run(rr, run_start, run_len, n_steps);                                          \
+            run_start = run_len ? run_start : (k) - first;                                          \
+            run_len = same ? run_len + 1 : 0;                                                       \
+        }                                                                                           \
+    } while (0)
 
 /* One pass for the chunk's extremes (branch-free min/max), then, only for a channel whose chunk
  * extreme reaches the running one (rare after the first chunks), a pass counting the samples
- * exactly at it: the counts np.count_nonzero(x == extreme) give, as _scan did per chunk. The
- * strides and bases are copied to locals: `same` is a char store, which may alias anything. */
-#define DEFINE_SCAN(NAME, T)                                                                        \
-    static void NAME(const Py_buffer *t, const Py_buffer *x, const double *prev, double *st, char *same) \
+ * exactly at it: the counts np.count_nonzero(x == extreme) give, as numpy did per chunk. The
+ * strides and bases are copied to locals. */
+#define DEFINE_SCAN(NAME, T, TRACK)                                                                 \
+    static void NAME(const Py_buffer *t, const Py_buffer *x, const double *prev, double *st, Runs *rr)   \
     {                                                                                               \
         const Py_ssize_t m = t->shape[0], ts = t->strides[0];                                       \
         const Py_ssize_t s0 = x[0].strides[0], s1 = x[1].strides[0], s2 = x[2].strides[0];          \
         const char *tp = t->buf, *p0 = x[0].buf, *p1 = x[1].buf, *p2 = x[2].buf;                    \
         double lo0 = INFINITY, lo1 = INFINITY, lo2 = INFINITY, hi0 = -INFINITY, hi1 = -INFINITY,    \
                hi2 = -INFINITY, min_dt = st[S_MINDT];                                               \
-        double f = 0.0, f0 = 0.0, f1 = 0.0, f2 = 0.0; /* x - x: 0 when finite, NaN for NaN and ±inf */ \
-        double tq = prev ? prev[0] : NAN, q0 = prev ? prev[1] : NAN, q1 = prev ? prev[2] : NAN,     \
-               q2 = prev ? prev[3] : NAN;                                                           \
-        for (Py_ssize_t k = 0; k < m; k++) {                                                        \
-            const double tk = *(const double *)(tp + k * ts), v0 = *(const T *)(p0 + k * s0),        \
-                         v1 = *(const T *)(p1 + k * s1), v2 = *(const T *)(p2 + k * s2);             \
-            f += tk - tk, f0 += v0 - v0, f1 += v1 - v1, f2 += v2 - v2;                              \
-            const double dt = tk - tq; /* NaN before the first row: never below min_dt */           \
-            min_dt = dt < min_dt ? dt : min_dt;                                                     \
-            lo0 = v0 < lo0 ? v0 : lo0, lo1 = v1 < lo1 ? v1 : lo1, lo2 = v2 < lo2 ? v2 : lo2;        \
-            hi0 = v0 > hi0 ? v0 : hi0, hi1 = v1 > hi1 ? v1 : hi1, hi2 = v2 > hi2 ? v2 : hi2;        \
-            if (same)                                                                               \
-                same[k] = (char)((v0 == q0) & (v1 == q1) & (v2 == q2));                             \
-            tq = tk, q0 = v0, q1 = v1, q2 = v2;                                                     \
-        }                                                                                           \
+        double f = 0.0; /* Σ (x - x) over t and the channels: 0 while all are finite, NaN from a NaN or ±inf */ \
+        const Py_ssize_t first = prev ? 0 : 1, n_steps = m - first; /* row k is step k - first */    \
+        /* the run being followed, in locals (no store through rr in the loop); emitted when it ends */ \
+        Py_ssize_t run_start = 0, run_len = 0;                                                      \
+        /* the first row against `prev` (NaN without: never a step, never a repeat), the others      \
+         * against the row before them, read again rather than kept (fewer registers to spill) */    \
+        if (m > 0)                                                                                  \
+            SCAN_ROW(T, 0, prev ? prev[0] : NAN, prev ? prev[1] : NAN, prev ? prev[2] : NAN,         \
+                     prev ? prev[3] : NAN, TRACK);                                                  \
+        for (Py_ssize_t k = 1; k < m; k++)                                                          \
+            SCAN_ROW(T, k, *(const double *)(tp + (k - 1) * ts), *(const T *)(p0 + (k - 1) * s0),    \
+                     *(const T *)(p1 + (k - 1) * s1), *(const T *)(p2 + (k - 1) * s2), TRACK);       \
+        if (TRACK && run_len)                                                                       \
+            keep_run(rr, run_start, run_len, n_steps);                                              \
         st[S_MINDT] = min_dt;                                                                       \
-        if (!(f + f0 + f1 + f2 == 0.0)) {                                                          \
+        if (!(f == 0.0)) {                                                                          \
             st[S_FINITE] = 0.0; /* extremes of non-finite data mean nothing: _scan stops here */    \
             return;                                                                                 \
         }                                                                                           \
@@ -75,16 +119,19 @@ enum { S_LO = 0, S_HI = 3, S_NLO = 6, S_NHI = 9, S_MINDT = 12, S_FINITE = 13, SC
         }                                                                                           \
     }
 
-DEFINE_SCAN(scan_f, float)
-DEFINE_SCAN(scan_d, double)
+DEFINE_SCAN(scan_f, float, 0)
+DEFINE_SCAN(scan_d, double, 0)
+DEFINE_SCAN(scan_runs_f, float, 1)
+DEFINE_SCAN(scan_runs_d, double, 1)
 
 static PyObject *scan_chunk(PyObject *self, PyObject *args)
 {
-    PyObject *ot, *ox[3], *oprev, *ost, *osame;
-    if (!PyArg_ParseTuple(args, "OOOOOOO:scan_chunk", &ot, &ox[0], &ox[1], &ox[2], &oprev, &ost, &osame))
+    PyObject *ot, *ox[3], *oprev, *ost, *oruns;
+    Py_ssize_t min_run = 1;
+    if (!PyArg_ParseTuple(args, "OOOOOOO|n:scan_chunk", &ot, &ox[0], &ox[1], &ox[2], &oprev, &ost, &oruns, &min_run))
         return NULL;
     Py_buffer v[7] = {{0}};
-    Py_buffer *t = v, *x = v + 1, *prev = v + 4, *st = v + 5, *same = v + 6;
+    Py_buffer *t = v, *x = v + 1, *prev = v + 4, *st = v + 5, *runs = v + 6;
     static const char *xname[3] = {"channel 0", "channel 1", "channel 2"};
     if (get_strided(ot, t, "t", "d", 1) < 0)
         goto fail;
@@ -103,18 +150,33 @@ static PyObject *scan_chunk(PyObject *self, PyObject *args)
         goto fail;
     if (get_contiguous(ost, st, "state", 'd', SCAN_STATE, 1) < 0)
         goto fail;
-    if (osame != Py_None && get_contiguous(osame, same, "same", '?', m, 1) < 0)
+    if (oruns != Py_None && get_contiguous(oruns, runs, "runs", 'q', -1, 1) < 0)
         goto fail;
+    if (oruns != Py_None && (runs->len / runs->itemsize) % 2 != 0) {
+        PyErr_SetString(PyExc_ValueError, "runs must hold (start, steps) pairs: an even number of int64");
+        goto fail;
+    }
+    if (min_run < 1) {
+        PyErr_Format(PyExc_ValueError, "min_run must be >= 1, got %zd", min_run);
+        goto fail;
+    }
     const double *pv = oprev != Py_None ? prev->buf : NULL;
-    char *sm = osame != Py_None ? same->buf : NULL;
+    Runs rr = {oruns != Py_None ? runs->buf : NULL, oruns != Py_None ? runs->len / runs->itemsize / 2 : 0, 0, 0,
+               min_run, 0};
+    Runs *rp = oruns != Py_None ? &rr : NULL;
     Py_BEGIN_ALLOW_THREADS
-    if (kind == 'f')
-        scan_f(t, x, pv, st->buf, sm);
+    if (rp)
+        (kind == 'f' ? scan_runs_f : scan_runs_d)(t, x, pv, st->buf, rp);
     else
-        scan_d(t, x, pv, st->buf, sm);
+        (kind == 'f' ? scan_f : scan_d)(t, x, pv, st->buf, NULL);
     Py_END_ALLOW_THREADS
+    if (rr.overflow) {
+        PyErr_Format(PyExc_ValueError, "runs holds room for %zd runs, the chunk has more: give it m // min_run + 2",
+                     rr.cap);
+        goto fail;
+    }
     release_all(v, 7);
-    Py_RETURN_NONE;
+    return Py_BuildValue("nn", rr.n_runs, rr.n_repeats);
 fail:
     release_all(v, 7);
     return NULL;
@@ -122,9 +184,10 @@ fail:
 
 static PyMethodDef methods[] = {
     {"scan_chunk", scan_chunk, METH_VARARGS,
-     "scan_chunk(t, x0, x1, x2, prev, state, same)\nThe reading scan of one chunk folded into state (14 float64:\n"
-     "min[3], max[3], count at min[3], count at max[3], smallest step, all finite); same (m,) bool, optional:\n"
-     "each row equal to the one before (prev: t, x0, x1, x2 of the row before the chunk, or None)."},
+     "scan_chunk(t, x0, x1, x2, prev, state, runs, min_run=1) -> (n_runs, n_repeated_steps)\nThe reading scan of "
+     "one chunk folded into state (14 float64: min[3], max[3], count at min[3], count at max[3], smallest\n"
+     "step, all finite); runs (cap, 2) int64 or None: (first step, steps) of the runs of rows equal to the row\n"
+     "before (prev: t, x0, x1, x2 of the row before the chunk, or None) of >= min_run steps or at the chunk's ends."},
     {NULL, NULL, 0, NULL},
 };
 

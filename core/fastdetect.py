@@ -131,6 +131,41 @@ def pass_chunks(n: int, block_n: int) -> int:
     return -(-(n // block_n) // CHUNK_BLOCKS)
 
 
+class BlockPass:
+    """block_stats' statistics filled chunk by chunk: ``chunk(i, j)`` reduces rows [i, j) (i a
+    multiple of block_n, j <= len(blocks) * block_n) and may run in any order and from several
+    threads at once (the kernel releases the GIL; chunks write disjoint blocks). The reading scan
+    (core.datapass) calls it on the rows it has just scanned; :func:`block_stats` on its own grid."""
+
+    def __init__(self, t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n: int, fs: float,
+                 aux: np.ndarray | None = None, block_n: int | None = None):
+        if not (fs > 0 and math.isfinite(fs)):
+            raise ValueError(f"sample rate fs must be a positive number of Hz, got {fs!r}")
+        self.t, self.channel, self.fs = t, channel, float(fs)
+        self.B = block_n or block_length(fs)
+        self.nb = n // self.B
+        self.aux = aux[:, None] if aux is not None and np.ndim(aux) == 1 else aux
+        k = 0 if self.aux is None else self.aux.shape[1]
+        self.mean = np.empty((3, self.nb))
+        self.scatter = np.empty((6, self.nb), dtype=np.float32)
+        self.aux_mean = np.empty((k, self.nb))
+        self.usable = np.empty(self.nb, dtype=bool)
+        self.step = 1.5 / fs
+
+    def chunk(self, i: int, j: int) -> None:
+        xs = [_floats(self.channel(c, i, j), (np.float32, np.float64)) for c in range(3)]
+        if len({x.dtype for x in xs}) > 1:
+            xs = [np.asarray(x, dtype=np.float64) for x in xs]
+        # the kernel checks each step into a sample: the chunk's times with the one before it
+        tc = _floats(self.t[max(i - 1, 0):j], (np.float64,))
+        a = None if self.aux is None else _floats(self.aux[i:j], (np.float64,))
+        block_pass(*xs, tc, a, self.B, i // self.B, self.step, self.mean, self.scatter, self.aux_mean,
+                   self.usable)  # releases the GIL
+
+    def result(self) -> BlockStats:
+        return BlockStats(self.fs, self.B, self.mean, self.scatter, self.aux_mean, self.usable)
+
+
 def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n: int, fs: float, *,
                 aux: np.ndarray | None = None, block_n: int | None = None, threads: int = THREADS,
                 release: Sequence[np.ndarray] = (),
@@ -140,43 +175,33 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
     aux (n,) or (n, k) optional. ``release``: arrays whose mapped pages are dropped per chunk.
     ``progress(done, total)``: called after each chunk with chunks done so far (increasing, from
     whichever thread finished it, one call at a time) and the chunk count."""
-    if not (fs > 0 and math.isfinite(fs)):
-        raise ValueError(f"sample rate fs must be a positive number of Hz, got {fs!r}")
-    B = block_n or block_length(fs)
-    nb = n // B
-    if aux is not None and np.ndim(aux) == 1:
-        aux = aux[:, None]
-    k = 0 if aux is None else aux.shape[1]
-    mean = np.empty((3, nb))
-    scatter = np.empty((6, nb), dtype=np.float32)
-    aux_mean = np.empty((k, nb))
-    usable = np.empty(nb, dtype=bool)
-    step = 1.5 / fs
-    chunk = CHUNK_BLOCKS * B
-    starts = list(range(0, nb * B, chunk))
+    bp = BlockPass(t, channel, n, fs, aux, block_n)
+    chunk = CHUNK_BLOCKS * bp.B
+    starts = list(range(0, bp.nb * bp.B, chunk))
     done = [0]
     lock = threading.Lock()
     drop = row_releaser(release)
 
     def work(i: int) -> None:
-        j = min(i + chunk, nb * B)
-        xs = [_floats(channel(c, i, j), (np.float32, np.float64)) for c in range(3)]
-        if len({x.dtype for x in xs}) > 1:
-            xs = [np.asarray(x, dtype=np.float64) for x in xs]
-        # the kernel checks each step into a sample: the chunk's times with the one before it
-        tc = _floats(t[max(i - 1, 0):j], (np.float64,))
-        a = None if aux is None else _floats(aux[i:j], (np.float64,))
-        block_pass(*xs, tc, a, B, i // B, step, mean, scatter, aux_mean, usable)  # releases the GIL
+        j = min(i + chunk, bp.nb * bp.B)
+        bp.chunk(i, j)
         drop(i, j)
         if progress is not None:
             with lock:
                 done[0] += 1
                 progress(done[0], len(starts))
 
-    if threads > 1 and len(starts) > 1:
+    run_lanes(starts, work, threads)
+    return bp.result()
+
+
+def run_lanes(items: Sequence[Any], work: Callable[[Any], None], threads: int = THREADS) -> None:
+    """``work(item)`` for every item, shared between ``threads`` threads (thread r takes items r,
+    r + threads, ...: the threads move through a file side by side); the calling thread is one."""
+    if threads > 1 and len(items) > 1:
         def lane(r: int) -> None:
-            for i in starts[r::threads]:
-                work(i)
+            for item in items[r::threads]:
+                work(item)
 
         with ThreadPoolExecutor(threads - 1, thread_name_prefix="gravcal-blocks") as pool:
             jobs = [pool.submit(lane, r) for r in range(1, threads)]
@@ -184,9 +209,8 @@ def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n
             for job in jobs:
                 job.result()
     else:
-        for i in starts:
-            work(i)
-    return BlockStats(float(fs), B, mean, scatter, aux_mean, usable)
+        for item in items:
+            work(item)
 
 
 def _floats(a: np.ndarray, kinds: tuple[type, ...]) -> np.ndarray:

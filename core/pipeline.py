@@ -2,7 +2,8 @@
 
     bootstrap start (start.bootstrap: raw data in unknown units)
       -> block statistics: ONE pass over the samples (core.fastdetect.block_stats: 0.1 s
-         block means and within-block scatters)
+         block means and within-block scatters), or those the reading pass computed with its
+         validation scan (core.datapass, ``blocks=``)
       -> quasi-static windows (detector on the block means, detection signal in g via the start)
       -> re-detection with the fitted calibration if it moved the start a lot (blocks only)
       -> LottersBatch fit (eq. 11a iterated; C_e eq. 11b)
@@ -35,7 +36,7 @@ from gravcal.core.estimators.order import extended_terms
 from gravcal.core.estimators.order_fit import AUTO_EXTENDED_TERMS, OrderNotDetermined  # noqa: F401 (the pipeline's API)
 from gravcal.core.estimators.order_fit import fit_order as _fit_order
 from gravcal.core.estimators.start import bootstrap
-from gravcal.core.fastdetect import block_length, block_stats, detect_blocks, pass_chunks
+from gravcal.core.fastdetect import BlockStats, block_length, block_stats, detect_blocks, pass_chunks
 from gravcal.core.model.effect import needed_covariates
 from gravcal.core.model.terms import COVARIATES
 from gravcal.core.heldout import HeldoutResult, heldout_error
@@ -224,6 +225,14 @@ def _block_stats(t: np.ndarray, cols: _Columns, fs: float, temp: Any, progress: 
     return block_stats(t, channel, cols.n, fs, aux=aux, release=release, progress=progress)
 
 
+def _check_blocks(bs: BlockStats, n: int, fs: float, aux: Any) -> None:
+    """Refuse block statistics of other samples: another rate, length or aux channel count."""
+    k = 0 if aux is None else (1 if np.ndim(aux) == 1 else np.shape(aux)[1])
+    if not (bs.fs == fs and bs.block_n == block_length(fs) and len(bs) == n // bs.block_n and bs.aux.shape[0] == k):
+        raise ValueError(f"blocks are not this recording's: {len(bs)} blocks of {bs.block_n} samples at {bs.fs} Hz with "
+                         f"{bs.aux.shape[0]} aux channel(s), for {n} samples at {fs} Hz with {k}")
+
+
 def _detect(t: np.ndarray, cols: _Columns, fs: float, detector: str, to_g: Calibration, temp: Any,
             detector_kw: dict[str, Any], blocks: Any = None, detection: str = "blocks") -> WindowSet:
     """Quasi-static windows: on block statistics (``blocks``, computed when None) or, with
@@ -318,6 +327,7 @@ def calibrate_recording(
     lab: Calibration | None = None,
     detection: str = "auto",
     progress: Callable[[int, int], None] | None = None,
+    blocks: BlockStats | None = None,
 ) -> CalibrationReport:
     """Calibrate a recording: t (N,) [s], raw (N, 3) or three (N,) columns [raw units: ax, ay, az],
     optional temp (N,) [°C] and vsupply (N,) [V] (kept as the windows' aux means). Raises ValueError with a precise
@@ -335,7 +345,9 @@ def calibrate_recording(
     BLOCKS_MIN_SAMPLES samples on, where the streaming detector's cost matters; stream below, where
     its sample-exact edges are cheap). ``progress(done, total)``: called with increasing ``done`` up to
     ``total`` (fixed for the call): one unit per chunk of the block pass, then one per stage
-    (detection, fit, re-detection, held-out error)."""
+    (detection, fit, re-detection, held-out error). ``blocks``: the block statistics of exactly
+    these samples at ``fs`` when already computed (daemon.recordings.read_recording(blocks=True):
+    the reading pass computes them), used instead of a pass over the samples."""
     cols = _Columns(raw)
     t = t if isinstance(t, np.ndarray) else np.asarray(t)
     if t.ndim != 1 or t.shape[0] != cols.n:
@@ -370,8 +382,13 @@ def calibrate_recording(
     if start is None:
         start = _bootstrap(t, cols, fs)
         notes.append(f"start: {start.message or 'bootstrap'}")
-    steps = _Steps(progress, pass_chunks(cols.n, block_length(fs)) if detection == "blocks" else 0)
-    blocks = _block_stats(t, cols, fs, temp, steps.pass_progress) if detection == "blocks" else None
+    if detection == "blocks" and blocks is not None:
+        _check_blocks(blocks, cols.n, fs, temp)
+    else:
+        blocks = None
+    steps = _Steps(progress, pass_chunks(cols.n, block_length(fs)) if detection == "blocks" and blocks is None else 0)
+    if detection == "blocks" and blocks is None:
+        blocks = _block_stats(t, cols, fs, temp, steps.pass_progress)
 
     def detect(name: str, to_g: Calibration, kw: dict[str, Any]) -> WindowSet:
         return _detect(t, cols, fs, name, to_g, temp, kw, blocks, detection)

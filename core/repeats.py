@@ -83,6 +83,19 @@ def flat_stretches(raw: np.ndarray, min_run: int = MIN_RUN) -> FlatStretches:
     return select_flat(n, int(lengths.sum()), starts, lengths, min_run)
 
 
+def chunk_runs(same: np.ndarray, min_run: int = MIN_RUN) -> tuple[np.ndarray, np.ndarray, int]:
+    """(starts, lengths, repeated steps) of one chunk's ``same``: the runs :class:`RunCollector`
+    needs (every run of >= min_run steps, and the runs at the chunk's ends, which may join its
+    neighbours'); shorter runs inside the chunk only count."""
+    starts, lengths = true_runs(same)
+    n_repeats = int(lengths.sum())
+    keep = lengths >= min_run
+    if keep.size:
+        keep[0] |= starts[0] == 0
+        keep[-1] |= starts[-1] + lengths[-1] == same.shape[0]
+    return starts[keep], lengths[keep], n_repeats
+
+
 class RunCollector:
     """Builds ``select_flat``'s input chunk by chunk: ``add(same, first_step)`` with consecutive
     chunks of ``repeated_steps``; runs across chunk borders are joined, short ones only counted."""
@@ -95,15 +108,21 @@ class RunCollector:
         self._open = (0, 0)  # (start, steps) of a run reaching the last chunk's end
 
     def add(self, same: np.ndarray, first_step: int) -> None:
-        starts, lengths = true_runs(same)
+        self.add_runs(*chunk_runs(same, self.min_run), first_step, same.shape[0])
+
+    def add_runs(self, starts: np.ndarray, lengths: np.ndarray, n_repeats: int, first_step: int,
+                 n_steps: int) -> None:
+        """``add`` from what :func:`chunk_runs` kept of a chunk of ``n_steps`` steps (run starts
+        relative to the chunk): chunks summarised in any order, e.g. by several threads, are added
+        in order."""
         starts = starts + first_step
-        self.n_repeats += int(lengths.sum())
+        self.n_repeats += n_repeats
         o_start, o_len = self._open
         if o_len and starts.size and starts[0] == first_step:
             starts[0], lengths[0] = o_start, lengths[0] + o_len
         elif o_len:
             self._keep(np.array([o_start]), np.array([o_len]))
-        end = first_step + same.shape[0]
+        end = first_step + n_steps
         if starts.size and starts[-1] + lengths[-1] == end:
             self._open = (int(starts[-1]), int(lengths[-1]))
             starts, lengths = starts[:-1], lengths[:-1]

@@ -67,7 +67,7 @@ def read(path: str | Path, opts: Options, progress: Progress = None) -> tuple[Re
     """The validated recording and the wall and CPU seconds its reading took."""
     t0, c0 = time.perf_counter(), time.process_time()
     rec = read_recording(path, check_saturation=opts.check_saturation, columns=opts.columns,
-                         exclude_filler=opts.exclude_filler, progress=progress)
+                         exclude_filler=opts.exclude_filler, progress=progress, blocks=not opts.lab_session)
     return rec, time.perf_counter() - t0, time.process_time() - c0
 
 
@@ -85,7 +85,7 @@ def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0,
     else:
         report = calibrate_recording(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, model=opts.model, fs=rec.fs,
                                      detector=opts.detector, start=opts.start, folds=opts.folds, lab=opts.lab,
-                                     progress=progress)
+                                     progress=progress, blocks=rec.blocks)
     t_cal, c_cal = time.perf_counter() - t0, time.process_time() - c0
     cal = report.calibration
     out = dict(report.to_json_dict())

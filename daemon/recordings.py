@@ -33,8 +33,8 @@ import numpy as np
 
 from gravcal.core.calibration import jsonable  # noqa: F401  (re-exported for the cmd_* modules)
 from gravcal.core.samples import CHANNELS, FLAG_SATURATED, duty_ratios, raw_triad
-from gravcal.core._scankernel import scan_chunk
-from gravcal.core.fastdetect import release_mapped, row_releaser
+from gravcal.core.datapass import ScanStats, fs_from, scan_columns
+from gravcal.core.fastdetect import BlockStats, release_mapped
 from gravcal.core.repeats import MIN_RUN, FlatStretches, RunCollector, repeated_steps
 
 from .errors import InputError
@@ -85,6 +85,7 @@ class Recording:
     units: str = "raw"
     metadata: dict[str, Any] = field(default_factory=dict)
     n_filler: int = 0  # rows excluded as exactly repeated filler (exclude_filler)
+    blocks: BlockStats | None = None  # block statistics of exactly these rows at fs (read with blocks=True)
 
     @property
     def acc(self) -> np.ndarray:
@@ -104,12 +105,15 @@ class Recording:
 # ---------------------------------------------------------------------------------------
 def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_saturation: bool = True,
                    columns: str | dict[str, str] | None = None, exclude_filler: bool = False,
-                   progress: Callable[[int, int], None] | None = None) -> Recording:
+                   progress: Callable[[int, int], None] | None = None, blocks: bool = False) -> Recording:
     """Read and validate a recording of any format in ``FORMATS`` (recognised by content).
 
     ``columns``: other CSV header names, ``"t=t_unix,ax=x_counts"`` or a dict. ``exclude_filler``:
     drop runs of exactly repeated samples (idle-sleep filler, a frozen bus) and say so in ``warnings``.
-    ``progress(done, total)``: chunks of the validation pass done, as it goes.
+    ``progress(done, total)``: chunks of the validation pass done, as it goes. ``blocks``: the
+    validation pass also computes the block detector's statistics (``Recording.blocks``, for
+    core.pipeline.calibrate_recording), kept when no row is dropped (else None: calibrating
+    computes them on the rows it gets).
     """
     path = Path(path)
     mapping = parse_columns(columns)
@@ -140,7 +144,7 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
     else:
         raise InputError(f"{path}: {found.what}; not a recording gravcal reads ({', '.join(FORMATS)})")
     rec = _validate(path, cols, where, names, min_samples=min_samples, check_saturation=check_saturation,
-                    progress=progress, exclude_filler=exclude_filler)
+                    progress=progress, exclude_filler=exclude_filler, blocks=blocks)
     rec.units, rec.metadata = units, meta
     return rec
 
@@ -257,67 +261,17 @@ def _chunks(n: int, size: int = CHUNK) -> Iterator[slice]:
         yield slice(i, min(n, i + size))
 
 
-@dataclass
-class _Scan:
-    """What one chunked pass over the columns finds (the fast path reads every byte once)."""
-
-    finite: bool = True
-    min_dt: float = math.inf  # smallest time step (<= 0: time not increasing somewhere)
-    dt_medians: list[float] = field(default_factory=list)  # median step of sampled chunks
-    lo: np.ndarray = field(default_factory=lambda: np.full(3, np.inf))  # per-channel minimum
-    hi: np.ndarray = field(default_factory=lambda: np.full(3, -np.inf))  # per-channel maximum
-    n_lo: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))  # samples exactly at the minimum
-    n_hi: np.ndarray = field(default_factory=lambda: np.zeros(3, np.int64))  # samples exactly at the maximum
-    n_flagged: int = 0  # samples flagged saturated by the logger
-    repeats: RunCollector | None = None  # exactly repeated rows, when asked for
-
-
 def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None,
-          progress: Callable[[int, int], None] | None = None, repeats: bool = False) -> _Scan:
-    n = int(t.shape[0])
-    n_chunks = -(-n // SCAN_CHUNK)
-    sc = _Scan(repeats=RunCollector() if repeats else None)
-    # one compiled pass per chunk over the columns in place (strided fields of a mapped file too):
-    # extremes and their counts, the smallest step, finiteness and the repeated rows
-    state = np.empty(14)
-    state[0:3], state[3:6], state[6:12], state[12], state[13] = np.inf, -np.inf, 0.0, np.inf, 1.0
-    prev: np.ndarray | None = None  # t and the triad of the row before the chunk
-    same = np.empty(min(n, SCAN_CHUNK), dtype=bool) if repeats else None
-    drop = row_releaser([c for c in (t, raw, *extra, flags) if c is not None])
-    native = raw.dtype.type in (np.float32, np.float64) and raw.dtype.isnative
-    t_native = t.dtype.type is np.float64 and t.dtype.isnative
-    for k, s in enumerate(_chunks(n, SCAN_CHUNK)):
-        m = s.stop - s.start
-        tc = t[s] if t_native else np.asarray(t[s], dtype=np.float64)
-        block = raw[s] if native else np.asarray(raw[s], dtype=np.float64)
-        sm = None if same is None else same[:m]
-        scan_chunk(tc, block[:, 0], block[:, 1], block[:, 2], prev, state, sm)
-        if not (state[13] and all(np.isfinite(np.asarray(e[s], dtype=np.float64)).all() for e in extra)):
-            sc.finite = False
-            return sc  # the caller drops the bad rows and scans again
-        if k % 64 == 0:  # the step distribution, sampled
-            steps = np.diff(tc) if prev is None else np.diff(tc, prepend=prev[0])
-            if steps.size:
-                sc.dt_medians.append(float(np.median(steps)))
-        if flags is not None:
-            sc.n_flagged += int(np.count_nonzero(np.asarray(flags[s]).astype(np.int64) & FLAG_SATURATED))
-        if sm is not None:  # same[i]: row s.start + i against the row before it (step s.start + i - 1)
-            sc.repeats.add(sm if prev is not None else sm[1:], max(s.start - 1, 0))
-        prev = np.array([tc[-1], block[-1, 0], block[-1, 1], block[-1, 2]], dtype=np.float64)
-        # a memory-mapped input stays in the page cache but leaves this process's resident set:
-        # the scan must not hold the whole file before calibration reads it again
-        drop(s.start, s.stop)
-        if progress is not None:
-            progress(k + 1, n_chunks)
-    sc.lo, sc.hi = state[0:3].copy(), state[3:6].copy()
-    sc.n_lo, sc.n_hi = state[6:9].astype(np.int64), state[9:12].astype(np.int64)
-    sc.min_dt = float(state[12])
-    return sc
+          progress: Callable[[int, int], None] | None = None, repeats: bool = False, blocks: bool = False,
+          aux: np.ndarray | None = None) -> ScanStats:
+    """core.datapass.scan_columns in chunks of SCAN_CHUNK rows (of block_stats' grid with ``blocks``)."""
+    return scan_columns(t, raw, extra, flags, chunk=SCAN_CHUNK, progress=progress, repeats=repeats, blocks=blocks,
+                        aux=aux)
 
 
 def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tuple[str, ...], *,
               min_samples: int, check_saturation: bool, progress: Callable[[int, int], None] | None = None,
-              exclude_filler: bool = False) -> Recording:
+              exclude_filler: bool = False, blocks: bool = False) -> Recording:
     t = cols["t"]
     raw = cols.pop("_triad", None)
     if raw is None:
@@ -333,7 +287,10 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
     notes: list[str] = []
     extra = ([v for v in (temp, vsupply) if v is not None]
              + ([gyro[:, i] for i in range(3)] if gyro is not None else []))
-    scan = _scan(t, raw, extra, flags, progress, repeats=exclude_filler)
+    # the block statistics' aux channel is temp alone (calibrate_recording's covariate columns
+    # without a supply voltage); with one, calibrating computes them
+    blocks = blocks and vsupply is None
+    scan = _scan(t, raw, extra, flags, progress, repeats=exclude_filler, blocks=blocks, aux=temp)
 
     # 1. NaN / inf in any column we use: drop the rows (a copy; only when there are any).
     keep: np.ndarray | None = None
@@ -396,11 +353,12 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
     # 3. Time strictly increasing (the scan's smallest step; locate the culprit only when needed).
     if not scan.min_dt > 0:
         _check_time(path, t, where, orig_index)  # raises with the line
-    fs = 1.0 / float(np.median(scan.dt_medians))
+    fs = fs_from(scan.dt_medians)
     for note in notes:
         log.warning("%s: %s", path, note)
     rec = Recording(t=t, raw=raw, temp=temp, vsupply=vsupply, gyro=gyro, fs=fs, source=path, n_dropped=n_dropped,
-                    n_saturated=n_saturated, columns=columns, warnings=notes)
+                    n_saturated=n_saturated, columns=columns, warnings=notes,
+                    blocks=scan.blocks if keep is None else None)
     if not exclude_filler:
         return rec
     return _without_filler(rec, min_samples, scan.repeats.result(n_kept) if scan.repeats is not None else None)
@@ -416,7 +374,7 @@ def _nonfinite_rows(used: dict[str, np.ndarray], n: int) -> np.ndarray:
 
 
 def _saturated_rows(raw: np.ndarray, flags: np.ndarray | None, keep: np.ndarray | None,
-                    scan: _Scan) -> tuple[np.ndarray | None, str]:
+                    scan: ScanStats) -> tuple[np.ndarray | None, str]:
     """Mask of saturated rows (None when there are none) and what marked them.
 
     Uses the scan's per-channel extremes and their counts; builds a mask only when needed.

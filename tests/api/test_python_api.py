@@ -103,3 +103,28 @@ def test_json_round_trip_keeps_report_and_start_accepts_it(six, tmp_path, capsys
     p.write_text(cal.to_json())
     assert main(["calibrate", str(six), "--start", str(p), "--model", "6", "--json"]) == 0
     capsys.readouterr()
+
+
+def test_calibrate_from_a_path_reuses_the_reading_pass_blocks(tmp_path, monkeypatch):
+    """gravcal.calibrate(path) reads with the block statistics and does not pass over the samples
+    again; the result is that of reading without them."""
+    from gravcal.core import pipeline
+    from gravcal.core.samples import raw_triad
+    from gravcal.core.simulate import simulate
+
+    sim = simulate("six_position", seed=7, duration=600.0).samples
+    rec = np.empty(len(sim), dtype=[("t", "<f8"), ("ax", "<f4"), ("ay", "<f4"), ("az", "<f4"), ("temp", "<f4")])
+    rec["t"], rec["temp"] = sim["t"], sim["temp"]
+    rec["ax"], rec["ay"], rec["az"] = raw_triad(sim).T
+    path = tmp_path / "no_supply.npy"
+    np.save(path, rec)
+    monkeypatch.setattr(pipeline, "BLOCKS_MIN_SAMPLES", 0)  # block detection for this short file
+    plain = gravcal.calibrate(gravcal.read(path))  # no blocks from reading: calibrating passes over the samples
+
+    def no_second_pass(*args, **kwargs):
+        raise AssertionError("calibrate(path) passed over the samples again")
+
+    monkeypatch.setattr(pipeline, "_block_stats", no_second_pass)
+    cal = gravcal.calibrate(path)
+    assert cal.offset.tolist() == plain.offset.tolist() and cal.n_windows == plain.n_windows > 0
+    assert cal.heldout_rms_mg == plain.heldout_rms_mg

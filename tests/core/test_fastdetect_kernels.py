@@ -365,7 +365,7 @@ def test_scan_chunk_refuses_bad_buffers_by_name():
     from gravcal.core._scankernel import scan_chunk
 
     good = dict(t=np.arange(10.0), x0=np.zeros(10), x1=np.zeros(10), x2=np.zeros(10), prev=None, state=np.zeros(14),
-                same=np.zeros(10, bool))
+                runs=np.zeros((2, 2), np.int64))
     cases = [
         (dict(t=np.arange(10, dtype=np.int64)), TypeError, "t must hold native float64"),
         (dict(x1=np.zeros(9)), ValueError, "must have one length (10)"),
@@ -373,13 +373,45 @@ def test_scan_chunk_refuses_bad_buffers_by_name():
         (dict(prev=np.zeros(3)), ValueError, "prev must hold 4 items"),
         (dict(state=np.zeros(13)), ValueError, "state must hold 14 items"),
         (dict(state=np.zeros(28)[::2]), TypeError, "state must be a C-contiguous writable float64"),
-        (dict(same=np.zeros(11, bool)), ValueError, "same must hold 10 items"),
+        (dict(runs=np.zeros((2, 2), np.int32)), TypeError, "runs must hold int64"),
+        (dict(runs=np.zeros(5, np.int64)), ValueError, "an even number of int64"),
+        (dict(runs=np.zeros((0, 2), np.int64)), ValueError, "room for 0 runs"),  # the zeros are one run
     ]
     for change, error, words in cases:
         with pytest.raises(error) as exc:
             scan_chunk(*{**good, **change}.values())
         assert words in str(exc.value), change
-    scan_chunk(*good.values())  # and the good arguments pass
+    assert scan_chunk(*good.values()) == (1, 9)  # and the good arguments pass: one run of 9 steps
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("min_run", [1, 3, 10])
+@pytest.mark.parametrize("with_prev", [False, True])
+def test_scan_chunk_runs_are_chunk_runs_of_the_repeated_steps(seed, dtype, min_run, with_prev):
+    """The kernel's runs equal core.repeats.chunk_runs of repeated_steps (the numpy form), runs at the
+    chunk's ends and a first row equal to ``prev`` included."""
+    from gravcal.core._scankernel import scan_chunk
+    from gravcal.core.repeats import chunk_runs, repeated_steps
+
+    rng = np.random.default_rng(seed)
+    m = 3000
+    x = rng.integers(0, 3, size=(m + 1, 3)).astype(dtype)  # row 0: the row before the chunk
+    for start in rng.integers(0, m - 40, 12):
+        x[start:start + rng.integers(2, 40)] = x[start]
+    x[:6] = x[0]  # a run at the chunk's start (and across it, with prev)
+    x[-5:] = x[-5]  # and at its end
+    t = np.arange(m + 1, dtype=np.float64)
+    rows, prev = (x[1:], np.array([t[0], *x[0]], dtype=np.float64)) if with_prev else (x[1:], None)
+    same = repeated_steps(x if with_prev else x[1:])  # the chunk's steps
+    starts, lengths, n_rep = chunk_runs(same, min_run)
+    runs = np.empty((m // min_run + 2, 2), dtype=np.int64)
+    n_runs, got_rep = scan_chunk(t[1:], rows[:, 0], rows[:, 1], rows[:, 2], prev, np.array(
+        [np.inf] * 3 + [-np.inf] * 3 + [0.0] * 6 + [np.inf, 1.0]), runs, min_run)
+    assert got_rep == n_rep > 0
+    np.testing.assert_array_equal(runs[:n_runs, 0], starts)
+    np.testing.assert_array_equal(runs[:n_runs, 1], lengths)
+    assert starts[0] == 0 and starts[-1] + lengths[-1] == same.shape[0]
 
 
 # ---- window statistics ---------------------------------------------------------------------------
