@@ -1,0 +1,173 @@
+"""core/estimators/_extjacobian.c: the extended models' a = K(c)^-1 (raw - o(c)) and J = da/dp per window.
+
+Three oracles: the numpy form written out operation by operation in the kernel's order (equal bit for bit:
+the kernel is built without fused multiply-add), the batched-matmul form it replaced (OpenBLAS adds the
+three-term products in another order: equal to a bound derived from the rounding of those sums), and
+LAPACK's solve (the adjugate inverse against LU, to the condition number). Bad buffers are clear errors.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gravcal.core.calibration import Calibration
+from gravcal.core.estimators import _extjacobian
+from gravcal.core.estimators.extended import combine_rows, parameterization
+from gravcal.core.windows import WindowSet
+
+EPS = np.finfo(float).eps
+
+
+def inverse_3x3(K: np.ndarray) -> np.ndarray:
+    """Adjugate / determinant of a stack (M, 3, 3), elementwise (the kernel's operations, in its order)."""
+    a, b, c = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2]
+    d, e, f = K[:, 1, 0], K[:, 1, 1], K[:, 1, 2]
+    g, h, i = K[:, 2, 0], K[:, 2, 1], K[:, 2, 2]
+    out = np.empty_like(K, dtype=float)
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = e * i - f * h, c * h - b * i, b * f - c * e
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = f * g - d * i, a * i - c * g, c * d - a * f
+    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = d * h - e * g, b * g - a * h, a * e - b * d
+    det = a * out[:, 0, 0] + b * out[:, 1, 0] + c * out[:, 2, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out /= det[:, None, None]
+    return out
+
+
+def dot3(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """A (..., 3, 3) @ x (..., 3), each row's three products added left to right."""
+    return A[..., 0] * x[..., None, 0] + A[..., 1] * x[..., None, 1] + A[..., 2] * x[..., None, 2]
+
+
+def ordered_form(Kc, oc, p, dK, do, raw):
+    K = Kc[None] + combine_rows(p, dK)
+    o = oc[None] + combine_rows(p, do)
+    inv = inverse_3x3(K)
+    a = dot3(inv, raw - o)
+    inner = dot3(dK, np.broadcast_to(a[:, None, :], do.shape)) + do  # (M, P, 3)
+    J = -dot3(inv[:, None], inner)  # (M, P, 3)
+    return a, J.transpose(0, 2, 1), K, o, inv
+
+
+def matmul_form(Kc, oc, p, dK, do, raw):
+    K = Kc[None] + combine_rows(p, dK)
+    o = oc[None] + combine_rows(p, do)
+    inv = inverse_3x3(K)
+    a = np.matmul(inv, (raw - o)[:, :, None])[:, :, 0]
+    m, P = dK.shape[:2]
+    inner = np.matmul(dK.reshape(m, 3 * P, 3), a[:, :, None]).reshape(m, P, 3) + do
+    return a, -np.matmul(inv, inner.transpose(0, 2, 1))
+
+
+def kernel(Kc, oc, p, dK, do, raw):
+    m, P = dK.shape[:2]
+    a, J = np.empty((m, 3)), np.empty((m, 3, P))
+    _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, m, P)
+    return a, J
+
+
+def sensor_like(rng: np.random.Generator, M: int, P: int):
+    """K near 0.04 raw/g with ~1 % cross terms, per-window derivative rows of mixed magnitudes (drifts,
+    temperature slopes), means on the ellipsoid: what the extended fits evaluate."""
+    Kc = 0.04 * (np.eye(3) + 0.01 * rng.standard_normal((3, 3)))
+    oc = 0.5 + 0.01 * rng.standard_normal(3)
+    p = rng.standard_normal(P) * 10.0 ** rng.integers(-4, 0, size=P)
+    dK = rng.standard_normal((M, P, 3, 3)) * 10.0 ** rng.integers(-6, -1, size=(M, P, 1, 1))
+    do = rng.standard_normal((M, P, 3)) * 10.0 ** rng.integers(-6, -1, size=(M, P, 1))
+    u = rng.standard_normal((M, 3))
+    raw = (u / np.linalg.norm(u, axis=1, keepdims=True)) @ Kc.T + oc
+    return Kc, oc, p, dK, do, raw
+
+
+@pytest.mark.parametrize("M, P", [(0, 3), (1, 1), (1, 9), (7, 6), (1001, 9), (4000, 12), (333, 15)])
+def test_kernel_equals_the_ordered_numpy_form_bit_for_bit(M, P):
+    rng = np.random.default_rng(10 * M + P)
+    args = sensor_like(rng, M, P)
+    a, J = kernel(*args)
+    wa, wJ, *_ = ordered_form(*args)
+    assert np.array_equal(a, wa) and np.array_equal(J, wJ)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_kernel_agrees_with_the_batched_matmul_form_to_rounding(seed):
+    rng = np.random.default_rng(seed)
+    args = sensor_like(rng, 5000, 9)
+    Kc, oc, p, dK, do, raw = args
+    a, J = kernel(*args)
+    ma, mJ = matmul_form(*args)
+    _, _, K, o, inv = ordered_form(*args)
+    # a three-term sum in any order is within 2 * 2 eps of the exact sum of the rounded products' magnitudes
+    # (products rounded alike); J inherits a's difference through |dK| and adds its own two sums
+    bound_a = 4 * EPS * dot3(np.abs(inv), np.abs(raw - o))
+    assert np.all(np.abs(a - ma) <= bound_a)
+    inner_mag = dot3(np.abs(dK), np.broadcast_to((np.abs(a) + bound_a)[:, None, :], do.shape)) + np.abs(do)
+    inner_err = dot3(np.abs(dK), np.broadcast_to(bound_a[:, None, :], do.shape)) + 4 * EPS * inner_mag
+    bound_J = (dot3(np.abs(inv)[:, None], inner_err) + 4 * EPS * dot3(np.abs(inv)[:, None], inner_mag)).transpose(0, 2, 1)
+    assert np.all(np.abs(J - mJ) <= bound_J)
+    assert np.any(a != ma) or np.any(J != mJ)  # the orders do differ somewhere: the bound is what is tested
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_accel_is_lapacks_solution_to_the_condition_number(seed):
+    rng = np.random.default_rng(seed)
+    Kc, oc, p, dK, do, raw = sensor_like(rng, 2000, 6)
+    raw = np.concatenate([raw[:1000], rng.standard_normal((1000, 3))])
+    dK[1000:] = rng.standard_normal((1000, 6, 3, 3))  # general matrices too
+    a, _ = kernel(Kc, oc, p, dK, do, raw)
+    K = Kc[None] + combine_rows(p, dK)
+    o = oc[None] + combine_rows(p, do)
+    ref = np.linalg.solve(K, (raw - o)[:, :, None])[:, :, 0]
+    cond = np.linalg.cond(K)
+    err = np.abs(a - ref).max(axis=1) / np.abs(ref).max(axis=1)
+    assert np.all(err <= 1e-13 * cond)
+
+
+def test_a_singular_K_gives_non_finite_values_not_an_error():
+    Kc, oc = np.zeros((3, 3)), np.zeros(3)
+    dK = np.zeros((2, 1, 3, 3))
+    dK[0, 0] = np.eye(3)
+    dK[1, 0, 0] = dK[1, 0, 1] = [1.0, 2.0, 3.0]
+    a, J = kernel(Kc, oc, np.ones(1), dK, np.zeros((2, 1, 3)), np.ones((2, 3)))
+    assert np.array_equal(a[0], np.ones(3)) and np.array_equal(J[0, :, 0], -np.ones(3))
+    assert not np.all(np.isfinite(a[1]))
+
+
+def test_the_bound_parameterization_uses_it():
+    rng = np.random.default_rng(4)
+    M = 50
+    mean = 0.5 + 0.04 * rng.standard_normal((M, 3))
+    ws = WindowSet(mean, np.zeros((M, 3, 3)), np.ones(M), np.linspace(0, 7200, M), 25 + rng.standard_normal((M, 1)),
+                   np.arange(M), np.arange(M) + 1)
+    start = Calibration("6", [0.5, 0.5, 0.5], np.diag([0.04, 0.041, 0.039]))
+    for model in ("6+temperature_offset+offset_drift", "9+sensitivity_drift", "6+nonlinearity"):
+        par = parameterization(model, start.sensitivity, start.offset)
+        bound = par.at_windows(ws)
+        q = par.pack(start.sensitivity, start.offset) + 1e-3 * rng.standard_normal(par.n_params)
+        a, J = bound.accel_and_jacobian(q, mean)
+        wa, wJ, *_ = ordered_form(bound.K_const, bound.o_const, q, bound.dK_rows, bound.do_rows, mean)
+        assert np.array_equal(a, wa) and np.array_equal(J, wJ)
+
+
+def test_bad_buffers_are_clear_errors():
+    Kc, oc, p, dK, do, raw = sensor_like(np.random.default_rng(5), 4, 2)
+    a, J = np.empty((4, 3)), np.empty((4, 3, 2))
+    _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4, 2)
+    with pytest.raises(TypeError, match="raw must be float64"):
+        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw.astype(np.float32), a, J, 4, 2)
+    with pytest.raises(TypeError, match="dK must be a C-contiguous float64"):
+        _extjacobian.accel_jacobian(Kc, oc, p, dK.transpose(0, 1, 3, 2), do, raw, a, J, 4, 2)
+    with pytest.raises(TypeError, match="J must be a C-contiguous writable"):
+        ro = np.empty((4, 3, 2))
+        ro.flags.writeable = False
+        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, ro, 4, 2)
+    with pytest.raises(ValueError, match="do holds 24 values, expected 36"):
+        _extjacobian.accel_jacobian(Kc, oc, np.ones(3), np.ones((4, 3, 3, 3)), do, raw, a, J, 4, 3)
+    with pytest.raises(ValueError, match="p holds 2 values, expected 3"):
+        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4, 3)
+    with pytest.raises(ValueError, match="P >= 1"):
+        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4, 0)
+    with pytest.raises(ValueError, match="too large"):
+        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 2**60, 2)
+    with pytest.raises(TypeError):
+        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, [1.0] * 12, a, J, 4, 2)
+    with pytest.raises(TypeError):
+        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4)
