@@ -30,9 +30,10 @@ from typing import Any, ClassVar
 import numpy as np
 
 from gravcal.core import _fitsums
-from gravcal.core.estimators import _extjacobian
+from gravcal.core.estimators import _jacobians
 from gravcal.core.calibration import Calibration
-from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, Parameterization
+from gravcal.core.crlb import h_variance
+from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, Parameterization, norm_and_projection
 from gravcal.core.model.effect import (LAG_KEY, constant_rows, covariate_deviation, default_lag_tau_s,
                                        lagged_deviations, needed_covariates, references, term_rows)
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
@@ -162,6 +163,16 @@ class _Bound(Parameterization):
         """K (M, 3, 3), o (M, 3) of every bound window at p."""
         return self.K_const[None] + combine_rows(p, self.dK_rows), self.o_const[None] + combine_rows(p, self.do_rows)
 
+    def norm_jacobian_variance(self, p: np.ndarray, raw: np.ndarray, cov_mean: np.ndarray | None = None
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """As Parameterization's, with each window's own K(c), o(c) for a and dh/dp; the variance of h uses
+        K^-1 at the references (``unpack``), as the batch fit weighs the windows."""
+        a, J = self.accel_and_jacobian(p, raw)
+        h, B = norm_and_projection(a, J)
+        if cov_mean is None:
+            return h, B, a, None
+        return h, B, a, h_variance(a, np.linalg.inv(self.unpack(p)[0]), cov_mean, h)
+
     def accel_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raw = np.ascontiguousarray(raw, dtype=float).reshape(-1, 3)
         if raw.shape[0] != self.n_rows:
@@ -169,7 +180,7 @@ class _Bound(Parameterization):
         m, P = self.dK_rows.shape[:2]
         a, J = np.empty((m, 3)), np.empty((m, 3, P))
         # K(c), o(c), K(c)^-1, a and J = -K^-1 (dK_p a + do_p) in one compiled pass over the windows
-        _extjacobian.accel_jacobian(np.ascontiguousarray(self.K_const, dtype=float),
+        _jacobians.extended_accel_jacobian(np.ascontiguousarray(self.K_const, dtype=float),
                                     np.ascontiguousarray(self.o_const, dtype=float),
                                     np.ascontiguousarray(p, dtype=float), self.dK_rows, self.do_rows, raw, a, J, m, P)
         return a, J

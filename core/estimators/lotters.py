@@ -205,10 +205,8 @@ class LottersBatch:
         w_prior = 1.0 / (ANCHOR_STD_G * scale) ** 2
 
         def evaluate(p):
-            K, _ = par.unpack(p)
-            Kinv = np.linalg.inv(K)
-            h, B, a = par.norm_and_jacobian(p, mean)
-            var = np.maximum(h_variance(a, Kinv, cov_mean, h) + floor2, _TINY_VAR_G2)  # C_mu diagonal
+            h, B, _, var_h = par.norm_jacobian_variance(p, mean, cov_mean)
+            var = np.maximum(var_h + floor2, _TINY_VAR_G2)  # C_mu diagonal
             xi = 1.0 - h  # eq. 14
             cost = float(np.sum(xi**2 / var) + w_prior * np.sum((p - anchor) ** 2))
             return xi, B, var, cost

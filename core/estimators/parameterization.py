@@ -18,6 +18,7 @@ from typing import ClassVar
 import numpy as np
 
 from gravcal.core import _fitsums
+from gravcal.core.estimators import _jacobians
 
 AXES = ("x", "y", "z")
 
@@ -85,8 +86,34 @@ class Parameterization(ABC):
 
     def norm_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """h = |a| (eq. 8), dh/dp (M, P) (eq. 13a generalised), and a itself."""
-        a, J = self.accel_and_jacobian(p, raw)
-        return (*norm_and_projection(a, J), a)
+        h, B, a, _ = self.norm_jacobian_variance(p, raw)
+        return h, B, a
+
+    def norm_jacobian_variance(self, p: np.ndarray, raw: np.ndarray, cov_mean: np.ndarray | None = None
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """norm_and_jacobian's h, dh/dp, a and, given the windows' covariance of the mean (M, 3, 3), the
+        delta-method variance of h with K^-1 of p (crlb.h_variance, Lötters' C_mu before any floor), else None.
+        From 2 rows on in one compiled pass (core/estimators/_jacobians.c, equal bit for bit); one row, as the
+        online estimator's, is a dgemv in numpy's products and keeps numpy's form."""
+        raw = np.ascontiguousarray(raw, dtype=float)
+        K, o = self.unpack(p)
+        Kinv = np.linalg.inv(K)
+        if raw.ndim != 2 or raw.shape[0] < 2:
+            a, J = self.accel_and_jacobian(p, raw)
+            h, B = norm_and_projection(a, J)
+            if cov_mean is None:
+                return h, B, a, None
+            from gravcal.core.crlb import h_variance  # noqa: PLC0415 (crlb imports this module)
+            return h, B, a, h_variance(a, Kinv, cov_mean, h)
+        M, P = raw.shape[0], self.dK.shape[0]
+        G = np.matmul(Kinv, self.dK)  # (P, 3, 3), as accel_and_jacobian
+        C = np.ascontiguousarray((self.do @ Kinv.T).T)
+        h, B, a = np.empty(M), np.empty((M, P)), np.empty((M, 3))
+        var = None if cov_mean is None else np.empty(M)
+        cov = None if cov_mean is None else np.ascontiguousarray(cov_mean, dtype=float)
+        _jacobians.linear_norm_jacobian(np.ascontiguousarray(Kinv), o, np.ascontiguousarray(G), C, raw, cov, h, B, a,
+                                        var, M, P)
+        return h, B, a, var
 
 
 def norm_and_projection(a: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,9 +1,15 @@
-"""core/estimators/_extjacobian.c: the extended models' a = K(c)^-1 (raw - o(c)) and J = da/dp per window.
+"""core/estimators/_jacobians.c: the batch fit's corrected accelerations and Jacobians, window by window.
 
-Three oracles: the numpy form written out operation by operation in the kernel's order (equal bit for bit:
-the kernel is built without fused multiply-add), the batched-matmul form it replaced (OpenBLAS adds the
-three-term products in another order: equal to a bound derived from the rounding of those sums), and
-LAPACK's solve (the adjugate inverse against LU, to the condition number). Bad buffers are clear errors.
+linear_norm_jacobian (offsets, 6, 9, 12): equal bit for bit to the numpy form it replaced
+(Parameterization.accel_and_jacobian's products, norm_and_projection, crlb.h_variance), whose (M, 3) @ (3, n)
+products OpenBLAS adds as one fused chain; one row (numpy's dgemv) keeps the numpy form.
+
+extended_accel_jacobian: three oracles: the numpy form written out operation by operation in the kernel's
+order (equal bit for bit: the kernel is built without fused multiply-add), the batched-matmul form it
+replaced (OpenBLAS adds the three-term products in another order: equal to a bound derived from the
+rounding of those sums), and LAPACK's solve (the adjugate inverse against LU, to the condition number).
+
+Bad buffers are clear errors.
 """
 from __future__ import annotations
 
@@ -11,8 +17,10 @@ import numpy as np
 import pytest
 
 from gravcal.core.calibration import Calibration
-from gravcal.core.estimators import _extjacobian
+from gravcal.core.estimators import _jacobians
+from gravcal.core.crlb import h_variance
 from gravcal.core.estimators.extended import combine_rows, parameterization
+from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, norm_and_projection
 from gravcal.core.windows import WindowSet
 
 EPS = np.finfo(float).eps
@@ -61,7 +69,7 @@ def matmul_form(Kc, oc, p, dK, do, raw):
 def kernel(Kc, oc, p, dK, do, raw):
     m, P = dK.shape[:2]
     a, J = np.empty((m, 3)), np.empty((m, 3, P))
-    _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, m, P)
+    _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, m, P)
     return a, J
 
 
@@ -150,24 +158,92 @@ def test_the_bound_parameterization_uses_it():
 def test_bad_buffers_are_clear_errors():
     Kc, oc, p, dK, do, raw = sensor_like(np.random.default_rng(5), 4, 2)
     a, J = np.empty((4, 3)), np.empty((4, 3, 2))
-    _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4, 2)
+    _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4, 2)
     with pytest.raises(TypeError, match="raw must be float64"):
-        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw.astype(np.float32), a, J, 4, 2)
+        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw.astype(np.float32), a, J, 4, 2)
     with pytest.raises(TypeError, match="dK must be a C-contiguous float64"):
-        _extjacobian.accel_jacobian(Kc, oc, p, dK.transpose(0, 1, 3, 2), do, raw, a, J, 4, 2)
+        _jacobians.extended_accel_jacobian(Kc, oc, p, dK.transpose(0, 1, 3, 2), do, raw, a, J, 4, 2)
     with pytest.raises(TypeError, match="J must be a C-contiguous writable"):
         ro = np.empty((4, 3, 2))
         ro.flags.writeable = False
-        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, ro, 4, 2)
+        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, ro, 4, 2)
     with pytest.raises(ValueError, match="do holds 24 values, expected 36"):
-        _extjacobian.accel_jacobian(Kc, oc, np.ones(3), np.ones((4, 3, 3, 3)), do, raw, a, J, 4, 3)
+        _jacobians.extended_accel_jacobian(Kc, oc, np.ones(3), np.ones((4, 3, 3, 3)), do, raw, a, J, 4, 3)
     with pytest.raises(ValueError, match="p holds 2 values, expected 3"):
-        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4, 3)
+        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4, 3)
     with pytest.raises(ValueError, match="P >= 1"):
-        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4, 0)
+        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4, 0)
     with pytest.raises(ValueError, match="too large"):
-        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 2**60, 2)
+        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 2**60, 2)
     with pytest.raises(TypeError):
-        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, [1.0] * 12, a, J, 4, 2)
+        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, [1.0] * 12, a, J, 4, 2)
     with pytest.raises(TypeError):
-        _extjacobian.accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4)
+        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4)
+
+
+# -- linear_norm_jacobian --------------------------------------------------------------------------------
+def linear_numpy_form(par, p, raw, cov_mean):
+    a, J = par.accel_and_jacobian(p, raw)
+    h, B = norm_and_projection(a, J)
+    return h, B, a, h_variance(a, np.linalg.inv(par.unpack(p)[0]), cov_mean, h)
+
+
+@pytest.mark.parametrize("M", [1, 2, 3, 17, 1754, 12000])
+@pytest.mark.parametrize("model", ["offsets", "6", "9", "12"])
+def test_linear_kernel_equals_the_numpy_form_bit_for_bit(model, M):
+    rng = np.random.default_rng(M)
+    K0 = np.array([[0.043, 0.0004, -0.0007], [0.0002, 0.0405, 0.0011], [-0.0009, 0.0006, 0.038]])
+    par = PARAMETERIZATIONS[model](K0, [0.46, 0.51, 0.5])
+    p = par.pack(K0, [0.46, 0.51, 0.5]) * (1 + 1e-3 * rng.standard_normal(par.n_params))
+    u = rng.standard_normal((M, 3))
+    raw = (u / np.linalg.norm(u, axis=1, keepdims=True)) @ K0.T + 0.5 + 1e-3 * rng.standard_normal((M, 3))
+    L = rng.standard_normal((M, 3, 3)) * 1e-4
+    cov = L @ L.transpose(0, 2, 1)
+    got = par.norm_jacobian_variance(p, raw, cov)
+    want = linear_numpy_form(par, p, raw, cov)
+    for g, w in zip(got, want):
+        assert g.shape == w.shape and np.array_equal(g, w)
+    h, B, a = par.norm_and_jacobian(p, raw)
+    assert np.array_equal(h, want[0]) and np.array_equal(B, want[1]) and np.array_equal(a, want[2])
+    assert par.norm_jacobian_variance(p, raw)[3] is None
+
+
+def test_linear_kernel_propagates_non_finite_values_as_numpy():
+    par = PARAMETERIZATIONS["6"](np.diag([0.04, 0.041, 0.039]), [0.5, 0.5, 0.5])
+    p = par.pack(par.K0, par.o0)
+    raw = np.full((6, 3), 0.55)
+    raw[1, 0], raw[2], raw[3, 2] = np.nan, 0.5, np.inf  # row 2 at the offset: |a| = 0
+    cov = np.broadcast_to(np.eye(3) * 1e-8, (6, 3, 3)).copy()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        got = par.norm_jacobian_variance(p, raw, cov)
+        want = linear_numpy_form(par, p, raw, cov)
+    for g, w in zip(got, want):
+        assert np.array_equal(g, w, equal_nan=True)
+
+
+def test_linear_kernel_bad_buffers_are_clear_errors():
+    M, P = 4, 6
+    Ki, o, G, C = np.eye(3), np.zeros(3), np.zeros((P, 3, 3)), np.zeros((3, P))
+    raw, cov = np.ones((M, 3)), np.zeros((M, 3, 3))
+    h, B, a, v = np.empty(M), np.empty((M, P)), np.empty((M, 3)), np.empty(M)
+    _jacobians.linear_norm_jacobian(Ki, o, G, C, raw, cov, h, B, a, v, M, P)
+    assert np.array_equal(h, np.full(M, np.sqrt(3.0))) and np.array_equal(v, np.zeros(M))
+    _jacobians.linear_norm_jacobian(Ki, o, G, C, raw, None, h, B, a, None, M, P)
+    with pytest.raises(ValueError, match="M >= 2"):
+        _jacobians.linear_norm_jacobian(Ki, o, G, C, raw[:1], None, h[:1], B[:1], a[:1], None, 1, P)
+    with pytest.raises(ValueError, match="both be given or both be None"):
+        _jacobians.linear_norm_jacobian(Ki, o, G, C, raw, cov, h, B, a, None, M, P)
+    with pytest.raises(ValueError, match="G holds 54 values, expected 63"):
+        _jacobians.linear_norm_jacobian(Ki, o, G, np.zeros((3, 7)), raw, None, h, B, a, None, M, 7)
+    with pytest.raises(ValueError, match="cov holds 36 values, expected 45"):
+        _jacobians.linear_norm_jacobian(Ki, o, G, C, np.ones((5, 3)), cov, h, B, a, v, 5, P)
+    with pytest.raises(TypeError, match="B must be a C-contiguous writable"):
+        ro = np.empty((M, P))
+        ro.flags.writeable = False
+        _jacobians.linear_norm_jacobian(Ki, o, G, C, raw, None, h, ro, a, None, M, P)
+    with pytest.raises(TypeError, match="Kinv must be float64"):
+        _jacobians.linear_norm_jacobian(Ki.astype(np.float32), o, G, C, raw, None, h, B, a, None, M, P)
+    with pytest.raises(TypeError, match="raw must be a C-contiguous"):
+        _jacobians.linear_norm_jacobian(Ki, o, G, C, np.ones((3, M)).T, None, h, B, a, None, M, P)
+    with pytest.raises(ValueError, match="too large"):
+        _jacobians.linear_norm_jacobian(Ki, o, G, C, raw, None, h, B, a, None, 2**60, P)

@@ -1,0 +1,252 @@
+/* The batch fit's corrected accelerations and Jacobians, window by window (parameterization.py, extended.py).
+ *
+ * Both functions are one pass over the windows with no temporaries, replacing numpy forms that build
+ * (M, 3, P) and (M, P, 3, 3) arrays. Built with -ffp-contract=off: every a * b + c rounds twice, as numpy's
+ * elementwise operations do; the one fused multiply-add is written out (fma) where it reproduces OpenBLAS.
+ * Every buffer must be C-contiguous float64 of the length the dimensions imply; anything else is a
+ * TypeError/ValueError, never an access out of bounds. tests/core/test_jacobians.py holds the numpy forms.
+ *
+ * linear_norm_jacobian: a parameterization with constant derivatives (offsets, 6, 9, 12; parameterization.py):
+ *
+ *     a = K^-1 (raw - o)                      h = |a|                               (Lötters eq. 8)
+ *     J[:, q] = -(K^-1 dK_q a + K^-1 do_q)    B[q] = (a / h)^T J[:, q]             (eq. 13a generalised)
+ *     var = g C g^T,  g = (a / h)^T K^-1      (crlb.h_variance: the delta-method variance of h, C_mu)
+ *
+ * numpy computes a, J and g as (M, 3) @ (3, n) products, which OpenBLAS's dgemm kernel adds as one fused
+ * chain fma(x2, y2, fma(x1, y1, x0 y0)) for M >= 2 windows (a single row goes to dgemv, which adds in
+ * another order: the caller keeps numpy's form there); the norm, the projection and the quadratic form add
+ * as numpy's norm and einsum do (core/_fitsums.c). So each result equals numpy's bit for bit on this BLAS.
+ *
+ * extended_accel_jacobian: the extended models (extended.py), whose derivative rows depend on the window:
+ *
+ *     K = K_const + sum_q p_q dK_q,   o = o_const + sum_q p_q do_q          (extended.py module docstring)
+ *     a = K^-1 (raw - o),   J[:, q] = da/dp_q = -K^-1 (dK_q a + do_q)
+ *
+ * The sums over q start from 0.0 and add in q order, as numpy's einsum("p,mpij->mij") does; K^-1 is the
+ * adjugate over the determinant, operation for operation as the numpy form in the test; the three-term
+ * products add left to right (numpy's batched matmul hands those 3 x 3 products to dgemv / dgemm one window
+ * at a time, whose order differs: the results agree to rounding, the test derives the bound).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+/* Get a C-contiguous float64 buffer of exactly n doubles (writable if asked); 0 on success. */
+static int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t n, int writable, const char *name)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) < 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s must be a C-contiguous%s float64 array", name, writable ? " writable" : "");
+        return -1;
+    }
+    const char *f = view->format;
+    if (f != NULL && (f[0] == '<' || f[0] == '=' || f[0] == '@'))
+        f++;
+    if (view->itemsize != 8 || f == NULL || strcmp(f, "d") != 0) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s must be float64", name);
+        return -1;
+    }
+    if (view->len != n * 8) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_ValueError, "%s holds %zd values, expected %zd", name, view->len / 8, n);
+        return -1;
+    }
+    return 0;
+}
+
+#define N_BUF 8
+
+/* extended_accel_jacobian(K_const (3, 3), o_const (3,), p (P,), dK (M, P, 3, 3), do (M, P, 3), raw (M, 3),
+ *                a (M, 3) out, J (M, 3, P) out, M, P) */
+static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
+{
+    PyObject *obj[N_BUF];
+    Py_ssize_t m, p;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOnn", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5], &obj[6],
+                          &obj[7], &m, &p))
+        return NULL;
+    if (m < 0 || p < 1) {
+        PyErr_SetString(PyExc_ValueError, "need M >= 0 windows and P >= 1 parameters");
+        return NULL;
+    }
+    if (m > PY_SSIZE_T_MAX / 8 / 9 / p) {
+        PyErr_SetString(PyExc_ValueError, "dimensions too large");
+        return NULL;
+    }
+    static const char *names[N_BUF] = {"K_const", "o_const", "p", "dK", "do", "raw", "a", "J"};
+    const Py_ssize_t len[N_BUF] = {9, 3, p, m * p * 9, m * p * 3, m * 3, m * 3, m * 3 * p};
+    Py_buffer buf[N_BUF];
+    int got = 0;
+    for (; got < N_BUF; got++)
+        if (get_doubles(obj[got], &buf[got], len[got], got >= 6, names[got]) < 0)
+            break;
+    if (got < N_BUF) {
+        while (got-- > 0)
+            PyBuffer_Release(&buf[got]);
+        return NULL;
+    }
+    const double *Kc = buf[0].buf, *oc = buf[1].buf, *c = buf[2].buf, *dK = buf[3].buf, *dO = buf[4].buf,
+                 *raw = buf[5].buf;
+    double *A = buf[6].buf, *J = buf[7].buf;
+    Py_BEGIN_ALLOW_THREADS
+    for (Py_ssize_t w = 0; w < m; w++) {
+        const double *dKw = dK + w * p * 9, *dOw = dO + w * p * 3;
+        double K[9], o[3], inv[9], d[3], a[3];
+        /* K(c), o(c): einsum("p,mpij->mij") and ("p,mpi->mi") from 0.0 in q order, then the constant part */
+        for (int j = 0; j < 9; j++)
+            K[j] = 0.0;
+        for (int j = 0; j < 3; j++)
+            o[j] = 0.0;
+        for (Py_ssize_t q = 0; q < p; q++) {
+            for (int j = 0; j < 9; j++)
+                K[j] += c[q] * dKw[q * 9 + j];
+            for (int j = 0; j < 3; j++)
+                o[j] += c[q] * dOw[q * 3 + j];
+        }
+        for (int j = 0; j < 9; j++)
+            K[j] = Kc[j] + K[j];
+        for (int j = 0; j < 3; j++)
+            o[j] = oc[j] + o[j];
+        /* K^-1 = adjugate / determinant (a singular K gives inf/NaN, as the numpy form does) */
+        const double ka = K[0], kb = K[1], kc = K[2], kd = K[3], ke = K[4], kf = K[5], kg = K[6], kh = K[7], ki = K[8];
+        inv[0] = ke * ki - kf * kh, inv[1] = kc * kh - kb * ki, inv[2] = kb * kf - kc * ke;
+        inv[3] = kf * kg - kd * ki, inv[4] = ka * ki - kc * kg, inv[5] = kc * kd - ka * kf;
+        inv[6] = kd * kh - ke * kg, inv[7] = kb * kg - ka * kh, inv[8] = ka * ke - kb * kd;
+        const double det = ka * inv[0] + kb * inv[3] + kc * inv[6];
+        for (int j = 0; j < 9; j++)
+            inv[j] /= det;
+        /* a = K^-1 (raw - o) */
+        for (int j = 0; j < 3; j++)
+            d[j] = raw[3 * w + j] - o[j];
+        for (int i = 0; i < 3; i++)
+            a[i] = A[3 * w + i] = inv[3 * i] * d[0] + inv[3 * i + 1] * d[1] + inv[3 * i + 2] * d[2];
+        /* J[:, q] = -K^-1 (dK_q a + do_q) */
+        double *Jw = J + w * 3 * p;
+        for (Py_ssize_t q = 0; q < p; q++) {
+            const double *G = dKw + q * 9, *g = dOw + q * 3;
+            double t[3];
+            for (int j = 0; j < 3; j++)
+                t[j] = (G[3 * j] * a[0] + G[3 * j + 1] * a[1] + G[3 * j + 2] * a[2]) + g[j];
+            for (int i = 0; i < 3; i++)
+                Jw[i * p + q] = -(inv[3 * i] * t[0] + inv[3 * i + 1] * t[1] + inv[3 * i + 2] * t[2]);
+        }
+    }
+    Py_END_ALLOW_THREADS
+    for (int k = 0; k < N_BUF; k++)
+        PyBuffer_Release(&buf[k]);
+    Py_RETURN_NONE;
+}
+
+/* fma(x2, y2, fma(x1, y1, x0 y0)): OpenBLAS dgemm's sum of a row (x0, x1, x2) times a column (y0, y1, y2).
+ * Compiled twice (target_clones): with FMA instructions where the CPU has them, else through libm's fma,
+ * which rounds the same (correctly, once). */
+#define GEMM3(x0, x1, x2, y0, y1, y2) fma((x2), (y2), fma((x1), (y1), (x0) * (y0)))
+
+__attribute__((target_clones("fma", "default")))
+static void linear_loop(const double *Ki, const double *o, const double *G, const double *C, const double *raw,
+                        const double *cov, double *H, double *B, double *A, double *V, Py_ssize_t m, Py_ssize_t p)
+{
+    for (Py_ssize_t w = 0; w < m; w++) {
+        const double d0 = raw[3 * w] - o[0], d1 = raw[3 * w + 1] - o[1], d2 = raw[3 * w + 2] - o[2];
+        double a[3], u[3];
+        /* a = (raw - o) @ K^-1.T */
+        for (int i = 0; i < 3; i++)
+            a[i] = A[3 * w + i] = GEMM3(d0, d1, d2, Ki[3 * i], Ki[3 * i + 1], Ki[3 * i + 2]);
+        /* h = sqrt(a0² + a1² + a2²) as np.linalg.norm(a, axis=1); u = a / h */
+        const double h = sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]);
+        H[w] = h;
+        for (int i = 0; i < 3; i++)
+            u[i] = a[i] / h;
+        /* B[q] = sum_i u_i J[i, q] from 0.0 in i order (einsum "mi,mip->mp"), with
+         * J[i, q] = -((a @ G')[i, q] + C[i, q]), G' = G.transpose(2, 1, 0): row k, column (i, q) = G[q, i, k] */
+        double *Bw = B + w * p;
+        for (Py_ssize_t q = 0; q < p; q++) {
+            const double *Gq = G + 9 * q;
+            double b = 0.0;
+            for (int i = 0; i < 3; i++) {
+                const double j = -(GEMM3(a[0], a[1], a[2], Gq[3 * i], Gq[3 * i + 1], Gq[3 * i + 2]) + C[i * p + q]);
+                b += u[i] * j;
+            }
+            Bw[q] = b;
+        }
+        if (V != NULL) {
+            /* g = u @ K^-1, var = sum_ij (g_i C_ij) g_j from 0.0 (einsum "mi,mij,mj->m") */
+            double g[3], s = 0.0;
+            for (int j = 0; j < 3; j++)
+                g[j] = GEMM3(u[0], u[1], u[2], Ki[j], Ki[3 + j], Ki[6 + j]);
+            const double *Cw = cov + 9 * w;
+            for (int i = 0; i < 3; i++)
+                for (int j = 0; j < 3; j++) {
+                    const double t = g[i] * Cw[3 * i + j];
+                    s += t * g[j];
+                }
+            V[w] = s;
+        }
+    }
+}
+
+/* linear_norm_jacobian(Kinv (3, 3), o (3,), G (P, 3, 3) = K^-1 dK, C (3, P) = (do @ K^-1.T).T, raw (M, 3),
+ *                      cov (M, 3, 3) or None, h (M,) out, B (M, P) out, a (M, 3) out, var (M,) out or None, M, P) */
+static PyObject *linear_norm_jacobian(PyObject *self, PyObject *args)
+{
+    PyObject *obj[10];
+    Py_ssize_t m, p;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOnn", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5], &obj[6],
+                          &obj[7], &obj[8], &obj[9], &m, &p))
+        return NULL;
+    if (m < 2 || p < 1) {
+        PyErr_SetString(PyExc_ValueError, "need M >= 2 windows (one row is dgemv's, not dgemm's, order) and P >= 1");
+        return NULL;
+    }
+    if (m > PY_SSIZE_T_MAX / 8 / 9 / p) {
+        PyErr_SetString(PyExc_ValueError, "dimensions too large");
+        return NULL;
+    }
+    const int with_var = obj[5] != Py_None;
+    if (with_var != (obj[9] != Py_None)) {
+        PyErr_SetString(PyExc_ValueError, "cov and var must both be given or both be None");
+        return NULL;
+    }
+    static const char *names[10] = {"Kinv", "o", "G", "C", "raw", "cov", "h", "B", "a", "var"};
+    const Py_ssize_t len[10] = {9, 3, 9 * p, 3 * p, 3 * m, 9 * m, m, m * p, 3 * m, m};
+    Py_buffer buf[10];
+    int held[10] = {0};
+    int ok = 1;
+    for (int k = 0; k < 10 && ok; k++) {
+        if ((k == 5 || k == 9) && !with_var)
+            continue;
+        ok = get_doubles(obj[k], &buf[k], len[k], k >= 6, names[k]) == 0;
+        held[k] = ok;
+    }
+    if (ok) {
+        const double *cov = with_var ? buf[5].buf : NULL;
+        double *V = with_var ? buf[9].buf : NULL;
+        Py_BEGIN_ALLOW_THREADS
+        linear_loop(buf[0].buf, buf[1].buf, buf[2].buf, buf[3].buf, buf[4].buf, cov, buf[6].buf, buf[7].buf,
+                    buf[8].buf, V, m, p);
+        Py_END_ALLOW_THREADS
+    }
+    for (int k = 0; k < 10; k++)
+        if (held[k])
+            PyBuffer_Release(&buf[k]);
+    if (!ok)
+        return NULL;
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef methods[] = {
+    {"linear_norm_jacobian", linear_norm_jacobian, METH_VARARGS,
+     "linear_norm_jacobian(Kinv, o, G, C, raw, cov or None, h, B, a, var or None, M, P): h = |a|, B = dh/dp, a, var h"},
+    {"extended_accel_jacobian", extended_accel_jacobian, METH_VARARGS,
+     "extended_accel_jacobian(K_const, o_const, p, dK, do, raw, a, J, M, P): a = K(c)^-1 (raw - o(c)), J = da/dp"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_jacobians",
+                                    "The batch fit's corrected accelerations and Jacobians, window by window.", -1,
+                                    methods, NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__jacobians(void) { return PyModule_Create(&module); }
