@@ -155,6 +155,13 @@ class _Bound(Parameterization):
         self.dK_rows, self.do_rows = par.row_derivatives(ws)
         self.dK, self.do = (self.dK_rows[0], self.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
         self.n_rows = len(ws)
+        # which entries of the rows may be nonzero in some window: the constant rows' and where term_rows
+        # writes a covariate (NaN there marks it), for the kernel to leave out the products that are 0
+        may_K, may_o = par.dK[None].copy(), par.do[None].copy()
+        term_rows(par.terms, par.base.n_params, may_K, may_o,
+                  {calibration_view(t).deviation_key: np.full((1, 3), np.nan) for t in par.terms
+                   if calibration_view(t).acts_on != "cross"})
+        self.may_K, self.may_o = (may_K[0] != 0).astype(float), (may_o[0] != 0).astype(float)
 
     def pack(self, K, o):
         return self.parent.pack(K, o)
@@ -181,8 +188,9 @@ class _Bound(Parameterization):
         a, J = np.empty((m, 3)), np.empty((m, 3, P))
         # K(c), o(c), K(c)^-1, a and J = -K^-1 (dK_p a + do_p) in one compiled pass over the windows
         _jacobians.extended_accel_jacobian(np.ascontiguousarray(self.K_const, dtype=float),
-                                    np.ascontiguousarray(self.o_const, dtype=float),
-                                    np.ascontiguousarray(p, dtype=float), self.dK_rows, self.do_rows, raw, a, J, m, P)
+                                           np.ascontiguousarray(self.o_const, dtype=float),
+                                           np.ascontiguousarray(p, dtype=float), self.dK_rows, self.do_rows, raw, a, J,
+                                           self.may_K, self.may_o, m, P)
         return a, J
 
 
