@@ -57,129 +57,156 @@ static int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t n, int writabl
     return 0;
 }
 
-#define N_BUF 10
+#define N_BUF 9
 
-/* extended_accel_jacobian(K_const (3, 3), o_const (3,), p (P,), dK (M, P, 3, 3), do (M, P, 3), raw (M, 3),
- *                         a (M, 3) out, J (M, 3, P) out, may_K (P, 3, 3), may_o (P, 3), M, P)
- * may_K, may_o: nonzero where an entry of dK / do may be nonzero in some window (the rows' structure,
- * extended.py _Bound); elsewhere every window holds 0 there. Leaving such a product out changes no bit:
- * with p finite it is ±0, which added to a partial sum of the einsum order (never -0: it starts at +0.0 and
- * rounds to nearest) leaves it unchanged; a row of dK_q that is all 0 gives dK_q a + do_q = do_q exactly when
- * a is finite and do_q is not 0. Otherwise (p or a not finite, do_q 0) the full sums run. */
+/* extended_accel_jacobian(K_const (3, 3), o_const (3,), p (P,), rows (P, 12), entries (n, 2), values (M, n),
+ *                         raw (M, 3), a (M, 3) out, J (M, 3, P) out, M, P, n)
+ * rows: each parameter's constant dK_q (9, row-major) and do_q (3) (extended.py: the reference rows);
+ * entries: (q, e) of the n entries that depend on the window (e 0-8 in dK_q, 9-11 in do_q), whose values are
+ * values[w]. The window's rows are the constant ones with those entries replaced, as term_rows builds them.
+ * Entries 0 in every row (constant 0, no window value) are left out of the sums: with p finite the product
+ * is ±0, which added to a partial sum of the einsum order (never -0: it starts at +0.0 and rounds to
+ * nearest) leaves it unchanged; a row of dK_q that is all 0 gives dK_q a + do_q = do_q exactly when a is
+ * finite and do_q is not 0. Otherwise (p or a not finite, do_q 0) the full sums run. */
 static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
 {
     PyObject *obj[N_BUF];
-    Py_ssize_t m, p;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOnn", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5], &obj[6],
-                          &obj[7], &obj[8], &obj[9], &m, &p))
+    Py_ssize_t m, p, n;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOnnn", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5], &obj[6],
+                          &obj[7], &obj[8], &m, &p, &n))
         return NULL;
-    if (m < 0 || p < 1) {
-        PyErr_SetString(PyExc_ValueError, "need M >= 0 windows and P >= 1 parameters");
+    if (m < 0 || p < 1 || n < 0) {
+        PyErr_SetString(PyExc_ValueError, "need M >= 0 windows, P >= 1 parameters and 0 <= n <= 12 P entries");
         return NULL;
     }
-    if (m > PY_SSIZE_T_MAX / 8 / 9 / p) {
+    if (p > PY_SSIZE_T_MAX / 8 / 24 || m > PY_SSIZE_T_MAX / 8 / 12 / p) {
         PyErr_SetString(PyExc_ValueError, "dimensions too large");
         return NULL;
     }
-    static const char *names[N_BUF] = {"K_const", "o_const", "p", "dK", "do", "raw", "a", "J", "may_K", "may_o"};
-    const Py_ssize_t len[N_BUF] = {9, 3, p, m * p * 9, m * p * 3, m * 3, m * 3, m * 3 * p, p * 9, p * 3};
+    if (n > 12 * p) {
+        PyErr_SetString(PyExc_ValueError, "need M >= 0 windows, P >= 1 parameters and 0 <= n <= 12 P entries");
+        return NULL;
+    }
+    static const char *names[N_BUF] = {"K_const", "o_const", "p", "rows", "entries", "values", "raw", "a", "J"};
+    const Py_ssize_t len[N_BUF] = {9, 3, p, 12 * p, 2 * n, m * n, m * 3, m * 3, m * 3 * p};
     Py_buffer buf[N_BUF];
     int got = 0;
     for (; got < N_BUF; got++)
-        if (get_doubles(obj[got], &buf[got], len[got], got == 6 || got == 7, names[got]) < 0)
+        if (get_doubles(obj[got], &buf[got], len[got], got >= 7, names[got]) < 0)
             break;
-    /* the (q, entry) pairs of dK and do that may be nonzero, q-major (each entry's sum keeps q order),
-     * and the rows of dK_q that are 0 in every window */
-    Py_ssize_t *kq = NULL;
-    if (got == N_BUF && (kq = PyMem_Malloc(sizeof(Py_ssize_t) * (size_t)p * 24)) == NULL)
-        PyErr_NoMemory();
-    if (kq == NULL) {
+    if (got < N_BUF) {
         while (got-- > 0)
             PyBuffer_Release(&buf[got]);
         return NULL;
     }
-    Py_ssize_t *ke = kq + 9 * p, *oq = kq + 18 * p, *oe = kq + 21 * p, nk = 0, no = 0;
+    /* work: the window's rows (12 P), the positions of the window entries (n), the (q, e) pairs of dK and do
+     * that may be nonzero, q-major (each entry's sum keeps q order), the dK rows that are 0 in every window */
+    double *R = PyMem_Malloc(sizeof(double) * (size_t)p * 12);
+    Py_ssize_t *pos = PyMem_Malloc(sizeof(Py_ssize_t) * ((size_t)n + 24 * (size_t)p + 1));
     char *row_zero = PyMem_Malloc((size_t)p * 3);
-    if (row_zero == NULL) {
-        PyMem_Free(kq);
-        for (int k = 0; k < N_BUF; k++)
-            PyBuffer_Release(&buf[k]);
-        return PyErr_NoMemory();
-    }
-    const double *Kc = buf[0].buf, *oc = buf[1].buf, *c = buf[2].buf, *dK = buf[3].buf, *dO = buf[4].buf,
-                 *raw = buf[5].buf, *mayK = buf[8].buf, *mayO = buf[9].buf;
-    double *A = buf[6].buf, *J = buf[7].buf;
+    const double *Kc = buf[0].buf, *oc = buf[1].buf, *c = buf[2].buf, *rows = buf[3].buf, *ent = buf[4].buf,
+                 *V = buf[5].buf, *raw = buf[6].buf;
+    double *A = buf[7].buf, *J = buf[8].buf;
+    int ok = R != NULL && pos != NULL && row_zero != NULL;
+    if (!ok)
+        PyErr_NoMemory();
+    Py_ssize_t *kq = pos + n, *ke = kq + 9 * p, *oq = kq + 18 * p, *oe = kq + 21 * p, nk = 0, no = 0;
     int finite_p = 1;
-    for (Py_ssize_t q = 0; q < p; q++) {
-        finite_p &= isfinite(c[q]) != 0;
-        for (int e = 0; e < 9; e++)
-            if (mayK[9 * q + e] != 0.0)
-                kq[nk] = q, ke[nk++] = e;
-        for (int e = 0; e < 3; e++) {
-            if (mayO[3 * q + e] != 0.0)
-                oq[no] = q, oe[no++] = e;
-            row_zero[3 * q + e] = mayK[9 * q + 3 * e] == 0.0 && mayK[9 * q + 3 * e + 1] == 0.0 &&
-                                  mayK[9 * q + 3 * e + 2] == 0.0;
-        }
-    }
-    Py_BEGIN_ALLOW_THREADS
-    for (Py_ssize_t w = 0; w < m; w++) {
-        const double *dKw = dK + w * p * 9, *dOw = dO + w * p * 3;
-        double K[9], o[3], inv[9], d[3], a[3];
-        /* K(c), o(c): einsum("p,mpij->mij") and ("p,mpi->mi") from 0.0 in q order, then the constant part */
-        for (int j = 0; j < 9; j++)
-            K[j] = 0.0;
-        for (int j = 0; j < 3; j++)
-            o[j] = 0.0;
-        if (finite_p) {
-            for (Py_ssize_t t = 0; t < nk; t++)
-                K[ke[t]] += c[kq[t]] * dKw[kq[t] * 9 + ke[t]];
-            for (Py_ssize_t t = 0; t < no; t++)
-                o[oe[t]] += c[oq[t]] * dOw[oq[t] * 3 + oe[t]];
-        } else {
-            for (Py_ssize_t q = 0; q < p; q++) {
-                for (int j = 0; j < 9; j++)
-                    K[j] += c[q] * dKw[q * 9 + j];
-                for (int j = 0; j < 3; j++)
-                    o[j] += c[q] * dOw[q * 3 + j];
+    if (ok) {
+        memcpy(R, rows, sizeof(double) * (size_t)p * 12);
+        for (Py_ssize_t t = 0; t < n && ok; t++) {
+            const double q = ent[2 * t], e = ent[2 * t + 1];
+            if (!(q >= 0 && q < (double)p && e >= 0 && e < 12 && q == (Py_ssize_t)q && e == (Py_ssize_t)e)) {
+                PyErr_Format(PyExc_ValueError, "entry %zd is (%g, %g): need an integer q < P and e < 12", t, q, e);
+                ok = 0;
+            } else {
+                pos[t] = 12 * (Py_ssize_t)q + (Py_ssize_t)e;
             }
         }
-        for (int j = 0; j < 9; j++)
-            K[j] = Kc[j] + K[j];
-        for (int j = 0; j < 3; j++)
-            o[j] = oc[j] + o[j];
-        /* K^-1 = adjugate / determinant (a singular K gives inf/NaN, as the numpy form does) */
-        const double ka = K[0], kb = K[1], kc = K[2], kd = K[3], ke_ = K[4], kf = K[5], kg = K[6], kh = K[7], ki = K[8];
-        inv[0] = ke_ * ki - kf * kh, inv[1] = kc * kh - kb * ki, inv[2] = kb * kf - kc * ke_;
-        inv[3] = kf * kg - kd * ki, inv[4] = ka * ki - kc * kg, inv[5] = kc * kd - ka * kf;
-        inv[6] = kd * kh - ke_ * kg, inv[7] = kb * kg - ka * kh, inv[8] = ka * ke_ - kb * kd;
-        const double det = ka * inv[0] + kb * inv[3] + kc * inv[6];
-        for (int j = 0; j < 9; j++)
-            inv[j] /= det;
-        /* a = K^-1 (raw - o) */
-        for (int j = 0; j < 3; j++)
-            d[j] = raw[3 * w + j] - o[j];
-        for (int i = 0; i < 3; i++)
-            a[i] = A[3 * w + i] = inv[3 * i] * d[0] + inv[3 * i + 1] * d[1] + inv[3 * i + 2] * d[2];
-        const int finite_a = isfinite(a[0]) && isfinite(a[1]) && isfinite(a[2]);
-        /* J[:, q] = -K^-1 (dK_q a + do_q) */
-        double *Jw = J + w * 3 * p;
-        for (Py_ssize_t q = 0; q < p; q++) {
-            const double *G = dKw + q * 9, *g = dOw + q * 3;
-            double t[3];
-            for (int j = 0; j < 3; j++)
-                t[j] = row_zero[3 * q + j] && finite_a && g[j] != 0.0
-                           ? g[j]
-                           : (G[3 * j] * a[0] + G[3 * j + 1] * a[1] + G[3 * j + 2] * a[2]) + g[j];
-            for (int i = 0; i < 3; i++)
-                Jw[i * p + q] = -(inv[3 * i] * t[0] + inv[3 * i + 1] * t[1] + inv[3 * i + 2] * t[2]);
-        }
     }
-    Py_END_ALLOW_THREADS
-    PyMem_Free(kq);
+    if (ok) {
+        for (Py_ssize_t q = 0; q < p; q++) {
+            char mark[12] = {0};
+            for (Py_ssize_t t = 0; t < n; t++)
+                if (pos[t] / 12 == q)
+                    mark[pos[t] % 12] = 1;
+            finite_p &= isfinite(c[q]) != 0;
+            for (int e = 0; e < 9; e++)
+                if (mark[e] || rows[12 * q + e] != 0.0)
+                    kq[nk] = q, ke[nk++] = e;
+            for (int e = 0; e < 3; e++) {
+                if (mark[9 + e] || rows[12 * q + 9 + e] != 0.0)
+                    oq[no] = q, oe[no++] = e;
+                int z = 1;
+                for (int k = 0; k < 3; k++)
+                    z &= !mark[3 * e + k] && rows[12 * q + 3 * e + k] == 0.0;
+                row_zero[3 * q + e] = (char)z;
+            }
+        }
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t w = 0; w < m; w++) {
+            double K[9], o[3], inv[9], d[3], a[3];
+            for (Py_ssize_t t = 0; t < n; t++)  /* the window's rows: the other entries stay the constant ones */
+                R[pos[t]] = V[w * n + t];
+            /* K(c), o(c): einsum("p,mpij->mij") and ("p,mpi->mi") from 0.0 in q order, then the constant part */
+            for (int j = 0; j < 9; j++)
+                K[j] = 0.0;
+            for (int j = 0; j < 3; j++)
+                o[j] = 0.0;
+            if (finite_p) {
+                for (Py_ssize_t t = 0; t < nk; t++)
+                    K[ke[t]] += c[kq[t]] * R[12 * kq[t] + ke[t]];
+                for (Py_ssize_t t = 0; t < no; t++)
+                    o[oe[t]] += c[oq[t]] * R[12 * oq[t] + 9 + oe[t]];
+            } else {
+                for (Py_ssize_t q = 0; q < p; q++) {
+                    for (int j = 0; j < 9; j++)
+                        K[j] += c[q] * R[12 * q + j];
+                    for (int j = 0; j < 3; j++)
+                        o[j] += c[q] * R[12 * q + 9 + j];
+                }
+            }
+            for (int j = 0; j < 9; j++)
+                K[j] = Kc[j] + K[j];
+            for (int j = 0; j < 3; j++)
+                o[j] = oc[j] + o[j];
+            /* K^-1 = adjugate / determinant (a singular K gives inf/NaN, as the numpy form does) */
+            const double ka = K[0], kb = K[1], kc = K[2], kd = K[3], ke_ = K[4], kf = K[5], kg = K[6], kh = K[7],
+                         ki = K[8];
+            inv[0] = ke_ * ki - kf * kh, inv[1] = kc * kh - kb * ki, inv[2] = kb * kf - kc * ke_;
+            inv[3] = kf * kg - kd * ki, inv[4] = ka * ki - kc * kg, inv[5] = kc * kd - ka * kf;
+            inv[6] = kd * kh - ke_ * kg, inv[7] = kb * kg - ka * kh, inv[8] = ka * ke_ - kb * kd;
+            const double det = ka * inv[0] + kb * inv[3] + kc * inv[6];
+            for (int j = 0; j < 9; j++)
+                inv[j] /= det;
+            /* a = K^-1 (raw - o) */
+            for (int j = 0; j < 3; j++)
+                d[j] = raw[3 * w + j] - o[j];
+            for (int i = 0; i < 3; i++)
+                a[i] = A[3 * w + i] = inv[3 * i] * d[0] + inv[3 * i + 1] * d[1] + inv[3 * i + 2] * d[2];
+            const int finite_a = isfinite(a[0]) && isfinite(a[1]) && isfinite(a[2]);
+            /* J[:, q] = -K^-1 (dK_q a + do_q) */
+            double *Jw = J + w * 3 * p;
+            for (Py_ssize_t q = 0; q < p; q++) {
+                const double *G = R + 12 * q, *g = G + 9;
+                double t[3];
+                for (int j = 0; j < 3; j++)
+                    t[j] = row_zero[3 * q + j] && finite_a && g[j] != 0.0
+                               ? g[j]
+                               : (G[3 * j] * a[0] + G[3 * j + 1] * a[1] + G[3 * j + 2] * a[2]) + g[j];
+                for (int i = 0; i < 3; i++)
+                    Jw[i * p + q] = -(inv[3 * i] * t[0] + inv[3 * i + 1] * t[1] + inv[3 * i + 2] * t[2]);
+            }
+        }
+        Py_END_ALLOW_THREADS
+    }
+    PyMem_Free(R);
+    PyMem_Free(pos);
     PyMem_Free(row_zero);
     for (int k = 0; k < N_BUF; k++)
         PyBuffer_Release(&buf[k]);
+    if (!ok)
+        return NULL;
     Py_RETURN_NONE;
 }
 
@@ -284,7 +311,7 @@ static PyMethodDef methods[] = {
     {"linear_norm_jacobian", linear_norm_jacobian, METH_VARARGS,
      "linear_norm_jacobian(Kinv, o, G, C, raw, cov or None, h, B, a, var or None, M, P): h = |a|, B = dh/dp, a, var h"},
     {"extended_accel_jacobian", extended_accel_jacobian, METH_VARARGS,
-     "extended_accel_jacobian(K_const, o_const, p, dK, do, raw, a, J, may_K, may_o, M, P): a = K(c)^-1 (raw - o(c)), J = da/dp"},
+     "extended_accel_jacobian(K_const, o_const, p, rows, entries, values, raw, a, J, M, P, n): a = K(c)^-1 (raw - o(c)), J = da/dp"},
     {NULL, NULL, 0, NULL},
 };
 

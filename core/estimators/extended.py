@@ -35,7 +35,7 @@ from gravcal.core.calibration import Calibration
 from gravcal.core.crlb import h_variance
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, Parameterization, norm_and_projection
 from gravcal.core.model.effect import (LAG_KEY, constant_rows, covariate_deviation, default_lag_tau_s,
-                                       lagged_deviations, needed_covariates, references, term_rows)
+                                       lagged_deviations, needed_covariates, references, term_entries, term_rows)
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.windows import WindowSet
 
@@ -152,16 +152,32 @@ class _Bound(Parameterization):
         self.model = par.model
         self.names = list(par.names)
         self.K_const, self.o_const = par.K_const, par.o_const
-        self.dK_rows, self.do_rows = par.row_derivatives(ws)
-        self.dK, self.do = (self.dK_rows[0], self.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
         self.n_rows = len(ws)
-        # which entries of the rows may be nonzero in some window: the constant rows' and where term_rows
-        # writes a covariate (NaN there marks it), for the kernel to leave out the products that are 0
-        may_K, may_o = par.dK[None].copy(), par.do[None].copy()
-        term_rows(par.terms, par.base.n_params, may_K, may_o,
-                  {calibration_view(t).deviation_key: np.full((1, 3), np.nan) for t in par.terms
-                   if calibration_view(t).acts_on != "cross"})
-        self.may_K, self.may_o = (may_K[0] != 0).astype(float), (may_o[0] != 0).astype(float)
+        self._ws = ws
+        self._rows: tuple[np.ndarray, np.ndarray] | None = None
+        # for the kernel: the constant rows (dK_q | do_q) and the entries term_rows fills per window, with values
+        entries = list(term_entries(par.terms, par.base.n_params, par.window_covariates(ws)))
+        self.const_rows = np.ascontiguousarray(np.concatenate([par.dK.reshape(-1, 9), par.do], axis=1))
+        self.entries = np.array([(q, 9 + i if on_offset else 4 * i) for q, on_offset, i, _ in entries],
+                                dtype=float).reshape(-1, 2)
+        self.values = np.ascontiguousarray(np.column_stack([z for *_, z in entries]) if entries
+                                           else np.zeros((len(ws), 0)), dtype=float)
+        self.dK, self.do = (self.dK_rows[0], self.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
+
+    @property
+    def dK_rows(self) -> np.ndarray:
+        """Per-window dK (M, P, 3, 3) (row_derivatives; built on first use)."""
+        return self._full_rows()[0]
+
+    @property
+    def do_rows(self) -> np.ndarray:
+        """Per-window do (M, P, 3)."""
+        return self._full_rows()[1]
+
+    def _full_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._rows is None:
+            self._rows = self.parent.row_derivatives(self._ws)
+        return self._rows
 
     def pack(self, K, o):
         return self.parent.pack(K, o)
@@ -184,13 +200,13 @@ class _Bound(Parameterization):
         raw = np.ascontiguousarray(raw, dtype=float).reshape(-1, 3)
         if raw.shape[0] != self.n_rows:
             raise ValueError(f"bound to {self.n_rows} windows, got {raw.shape[0]} means: bind with at_windows(ws)")
-        m, P = self.dK_rows.shape[:2]
+        m, P, n = self.n_rows, len(self.names), len(self.entries)
         a, J = np.empty((m, 3)), np.empty((m, 3, P))
         # K(c), o(c), K(c)^-1, a and J = -K^-1 (dK_p a + do_p) in one compiled pass over the windows
         _jacobians.extended_accel_jacobian(np.ascontiguousarray(self.K_const, dtype=float),
                                            np.ascontiguousarray(self.o_const, dtype=float),
-                                           np.ascontiguousarray(p, dtype=float), self.dK_rows, self.do_rows, raw, a, J,
-                                           self.may_K, self.may_o, m, P)
+                                           np.ascontiguousarray(p, dtype=float), self.const_rows, self.entries,
+                                           self.values, raw, a, J, m, P, n)
         return a, J
 
 

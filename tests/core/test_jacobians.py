@@ -66,12 +66,18 @@ def matmul_form(Kc, oc, p, dK, do, raw):
     return a, -np.matmul(inv, inner.transpose(0, 2, 1))
 
 
-def kernel(Kc, oc, p, dK, do, raw, may_K=None, may_o=None):
+def kernel(Kc, oc, p, dK, do, raw, const=None, entries=None):
+    """The kernel on rows given in full (M, P, 3, 3), (M, P, 3): every entry a window value, unless ``entries``
+    ((q, e) pairs, e 0-8 in dK_q, 9-11 in do_q) names the ones that vary and ``const`` (P, 12) holds the rest."""
     m, P = dK.shape[:2]
+    full = np.concatenate([dK.reshape(m, P, 9), do], axis=2)
+    if entries is None:
+        entries = np.array([(q, e) for q in range(P) for e in range(12)], dtype=float).reshape(-1, 2)
+        const = np.zeros((P, 12))
+    idx = entries.astype(int)
+    values = np.ascontiguousarray(full[:, idx[:, 0], idx[:, 1]])
     a, J = np.empty((m, 3)), np.empty((m, 3, P))
-    may_K = np.ones((P, 3, 3)) if may_K is None else may_K
-    may_o = np.ones((P, 3)) if may_o is None else may_o
-    _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, may_K, may_o, m, P)
+    _jacobians.extended_accel_jacobian(Kc, oc, p, const, entries, values, raw, a, J, m, P, len(entries))
     return a, J
 
 
@@ -155,74 +161,92 @@ def test_the_bound_parameterization_uses_it():
         a, J = bound.accel_and_jacobian(q, mean)
         wa, wJ, *_ = ordered_form(bound.K_const, bound.o_const, q, bound.dK_rows, bound.do_rows, mean)
         assert np.array_equal(a, wa) and np.array_equal(J, wJ)
-        assert np.all(bound.may_K[None].astype(bool) | (bound.dK_rows == 0))
-        assert np.all(bound.may_o[None].astype(bool) | (bound.do_rows == 0))
-        assert 0 < bound.may_K.sum() < bound.may_K.size  # structure to exploit
+        # the kernel's form of the rows (constant rows, the entries term_rows fills per window) is the full one
+        rows = np.broadcast_to(bound.const_rows, (M,) + bound.const_rows.shape).copy()
+        idx = bound.entries.astype(int)
+        rows[:, idx[:, 0], idx[:, 1]] = bound.values
+        assert np.array_equal(rows[:, :, :9].reshape(bound.dK_rows.shape), bound.dK_rows)
+        assert np.array_equal(rows[:, :, 9:], bound.do_rows)
+        assert 0 < len(idx) < rows[0].size  # structure to exploit
 
 
 @pytest.mark.parametrize("seed", range(4))
 def test_leaving_out_the_structural_zeros_changes_no_bit(seed):
-    """Rows as the extended models build them (base diagonal rows, one covariate entry per extra parameter,
-    zeros elsewhere, some covariates exactly 0, signed zeros), p with zeros, and the cases that must take
-    the full sums: a NaN mean (a not finite), do_q = 0 with a zero dK_q row, a non-finite p."""
+    """Rows as the extended models build them (constant base rows, one covariate entry per extra parameter,
+    some exactly 0 or -0.0, signed zeros in the constant rows), p with zeros, and the cases that must take the
+    full sums: a NaN mean (a not finite), do_q = 0 with a zero dK_q row, a non-finite p."""
     rng = np.random.default_rng(seed)
     M, P = 3000, 12
-    dK, do = np.zeros((M, P, 3, 3)), np.zeros((M, P, 3))
+    const = np.zeros((P, 12))
     for i in range(3):
-        dK[:, i, i, i] = 1.0
-        do[:, 3 + i, i] = 1.0
-        dK[:, 6 + i, i, i] = rng.standard_normal(M) * (rng.random(M) < 0.9)  # a drift with exact zeros
-        do[:, 9 + i, i] = rng.standard_normal(M) * (rng.random(M) < 0.9)
-    do[:, 3, 1:] = 2.0 + rng.standard_normal((M, 2))  # a parameter moving all three offsets
-    dK[rng.random((M, P, 3, 3)) < 0.01] *= -1.0  # signed zeros among the structural ones
-    do[:, 9, 0][rng.random(M) < 0.05] = -0.0
-    may_K, may_o = np.zeros((P, 3, 3)), np.zeros((P, 3))
-    for i in range(3):
-        may_K[i, i, i] = may_o[3 + i, i] = may_K[6 + i, i, i] = may_o[9 + i, i] = 1.0
-    may_o[3] = 1.0
-    Kc = np.diag([0.0, 0.0, 0.0]) + 0.0004 * rng.standard_normal((3, 3)) * (seed % 2)
+        const[i, 4 * i] = 1.0  # base sensitivities: dK_i = e_i e_i^T
+        const[3 + i, 9 + i] = 1.0  # base offsets: do = e_i
+    const[rng.random((P, 12)) < 0.2] *= -1.0  # -0.0 among the constant zeros
+    entries = np.array([(6 + i, 4 * i) for i in range(3)] + [(9 + i, 9 + i) for i in range(3)] + [(3, 10), (3, 11)],
+                       dtype=float)
+    values = rng.standard_normal((M, len(entries))) * (rng.random((M, len(entries))) < 0.9)
+    values[rng.random((M, len(entries))) < 0.05] = -0.0
+    values[:, -2:] += 2.0  # a parameter moving all three offsets
+    dK = np.broadcast_to(const[:, :9].reshape(P, 3, 3), (M, P, 3, 3)).copy()
+    do = np.broadcast_to(const[:, 9:], (M, P, 3)).copy()
+    idx = entries.astype(int)
+    for t, (q, e) in enumerate(idx):
+        if e < 9:
+            dK[:, q, e // 3, e % 3] = values[:, t]
+        else:
+            do[:, q, e - 9] = values[:, t]
+    Kc = 0.0004 * rng.standard_normal((3, 3)) * (seed % 2)
     oc = np.zeros(3)
     p = np.concatenate([[0.043, 0.0405, 0.038], [0.46, 0.51, 0.5], 1e-4 * rng.standard_normal(6)])
     p[rng.integers(6, P)] = 0.0
     u = rng.standard_normal((M, 3))
     raw = (u / np.linalg.norm(u, axis=1, keepdims=True)) * p[:3] + p[3:6]
     raw[5] = np.nan
-    for q in (p, np.where(np.arange(P) == 7, np.inf, p)):
+    for q in (p, np.where(np.arange(P) == 7, np.inf, p), np.where(np.arange(P) == 9, -np.inf, p)):
         full = kernel(Kc, oc, q, dK, do, raw)
         with np.errstate(invalid="ignore"):
             wa, wJ, *_ = ordered_form(Kc, oc, q, dK, do, raw)
-        sparse = kernel(Kc, oc, q, dK, do, raw, may_K, may_o)
+        sparse = kernel(Kc, oc, q, dK, do, raw, const, entries)
         for f, s_, w in zip(full, sparse, (wa, wJ)):
             assert np.array_equal(f, s_, equal_nan=True) and np.array_equal(np.signbit(f), np.signbit(s_))
             assert np.array_equal(f, w, equal_nan=True)
 
 
 def test_bad_buffers_are_clear_errors():
-    Kc, oc, p, dK, do, raw = sensor_like(np.random.default_rng(5), 4, 2)
-    a, J, mK, mo = np.empty((4, 3)), np.empty((4, 3, 2)), np.ones((2, 3, 3)), np.ones((2, 3))
-    _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, mK, mo, 4, 2)
+    Kc, oc, p, *_, raw = sensor_like(np.random.default_rng(5), 4, 2)
+    rows, ent, val = np.zeros((2, 12)), np.array([[0.0, 0.0], [1.0, 10.0]]), np.ones((4, 2))
+    a, J = np.empty((4, 3)), np.empty((4, 3, 2))
+    f = _jacobians.extended_accel_jacobian
+    f(Kc, oc, p, rows, ent, val, raw, a, J, 4, 2, 2)
     with pytest.raises(TypeError, match="raw must be float64"):
-        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw.astype(np.float32), a, J, mK, mo, 4, 2)
-    with pytest.raises(TypeError, match="dK must be a C-contiguous float64"):
-        _jacobians.extended_accel_jacobian(Kc, oc, p, dK.transpose(0, 1, 3, 2), do, raw, a, J, mK, mo, 4, 2)
+        f(Kc, oc, p, rows, ent, val, raw.astype(np.float32), a, J, 4, 2, 2)
+    with pytest.raises(TypeError, match="values must be a C-contiguous float64"):
+        f(Kc, oc, p, rows, ent, np.ones((2, 4)).T, raw, a, J, 4, 2, 2)
     with pytest.raises(TypeError, match="J must be a C-contiguous writable"):
         ro = np.empty((4, 3, 2))
         ro.flags.writeable = False
-        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, ro, mK, mo, 4, 2)
-    with pytest.raises(ValueError, match="do holds 24 values, expected 36"):
-        _jacobians.extended_accel_jacobian(Kc, oc, np.ones(3), np.ones((4, 3, 3, 3)), do, raw, a, J, mK, mo, 4, 3)
+        f(Kc, oc, p, rows, ent, val, raw, a, ro, 4, 2, 2)
+    with pytest.raises(ValueError, match="rows holds 24 values, expected 36"):
+        f(Kc, oc, np.ones(3), rows, ent, val, raw, a, J, 4, 3, 2)
     with pytest.raises(ValueError, match="p holds 2 values, expected 3"):
-        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, mK, mo, 4, 3)
-    with pytest.raises(ValueError, match="may_K holds 9 values, expected 18"):
-        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, np.ones(9), mo, 4, 2)
+        f(Kc, oc, p, np.zeros((3, 12)), ent, val, raw, a, J, 4, 3, 2)
+    with pytest.raises(ValueError, match="entries holds 4 values, expected 6"):
+        f(Kc, oc, p, rows, ent, val, raw, a, J, 4, 2, 3)
+    for bad in ([[2.0, 0.0]], [[0.0, 12.0]], [[0.5, 0.0]], [[-1.0, 3.0]], [[0.0, np.nan]]):
+        with pytest.raises(ValueError, match="need an integer q < P and e < 12"):
+            f(Kc, oc, p, rows, np.array(bad), np.ones((4, 1)), raw, a, J, 4, 2, 1)
     with pytest.raises(ValueError, match="P >= 1"):
-        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, mK, mo, 4, 0)
+        f(Kc, oc, p, rows, ent, val, raw, a, J, 4, 0, 2)
+    with pytest.raises(ValueError, match="12 P entries"):
+        f(Kc, oc, p, rows, ent, val, raw, a, J, 4, 2, 25)
     with pytest.raises(ValueError, match="too large"):
-        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, mK, mo, 2**60, 2)
+        f(Kc, oc, p, rows, ent, val, raw, a, J, 2**60, 2, 2)
+    with pytest.raises(ValueError, match="too large"):
+        f(Kc, oc, p, rows, ent, val, raw, a, J, 0, 2**60, 2)
     with pytest.raises(TypeError):
-        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, [1.0] * 12, a, J, mK, mo, 4, 2)
+        f(Kc, oc, p, rows, ent, val, [1.0] * 12, a, J, 4, 2, 2)
     with pytest.raises(TypeError):
-        _jacobians.extended_accel_jacobian(Kc, oc, p, dK, do, raw, a, J, 4)
+        f(Kc, oc, p, rows, ent, val, raw, a, J, 4)
 
 
 # -- linear_norm_jacobian --------------------------------------------------------------------------------
