@@ -32,8 +32,8 @@ import numpy as np
 from gravcal.core import _fitsums
 from gravcal.core.estimators import _jacobians
 from gravcal.core.calibration import Calibration
-from gravcal.core.crlb import h_variance
-from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, Parameterization, norm_and_projection
+from gravcal.core.estimators.parameterization import (PARAMETERIZATIONS, Parameterization, h_variance,
+                                                      norm_and_projection)
 from gravcal.core.model.effect import (LAG_KEY, constant_rows, covariate_deviation, default_lag_tau_s,
                                        lagged_deviations, needed_covariates, references, term_entries, term_rows)
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view

@@ -30,7 +30,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..calibration import Calibration
-from ..crlb import h_variance
 from ..windows import WindowSet
 from .consider import (CONSIDER_KEY, HELD_KEY, consider_gain, consider_metadata, held_jacobian, held_std_note,
                        held_uncertainty)

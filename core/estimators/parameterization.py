@@ -92,7 +92,7 @@ class Parameterization(ABC):
     def norm_jacobian_variance(self, p: np.ndarray, raw: np.ndarray, cov_mean: np.ndarray | None = None
                                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
         """norm_and_jacobian's h, dh/dp, a and, given the windows' covariance of the mean (M, 3, 3), the
-        delta-method variance of h with K^-1 of p (crlb.h_variance, Lötters' C_mu before any floor), else None.
+        delta-method variance of h with K^-1 of p (h_variance, Lötters' C_mu before any floor), else None.
         From 2 rows on in one compiled pass (core/estimators/_jacobians.c, equal bit for bit); one row, as the
         online estimator's, is a dgemv in numpy's products and keeps numpy's form."""
         raw = np.ascontiguousarray(raw, dtype=float)
@@ -103,7 +103,6 @@ class Parameterization(ABC):
             h, B = norm_and_projection(a, J)
             if cov_mean is None:
                 return h, B, a, None
-            from gravcal.core.crlb import h_variance  # noqa: PLC0415 (crlb imports this module)
             return h, B, a, h_variance(a, Kinv, cov_mean, h)
         M, P = raw.shape[0], self.dK.shape[0]
         G = np.matmul(Kinv, self.dK)  # (P, 3, 3), as accel_and_jacobian
@@ -123,6 +122,17 @@ def norm_and_projection(a: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.nd
     h, B = np.empty(M), np.empty((M, P))
     _fitsums.norm_project(np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(J, dtype=float), h, B, M, P)
     return h, B
+
+
+def h_variance(a: np.ndarray, Kinv: np.ndarray, cov_mean: np.ndarray, h: np.ndarray | None = None) -> np.ndarray:
+    """Delta-method variance [g²] of h = |a| from the covariance of the window mean (raw units²):
+    dh/dm = (a/|a|)^T K^-1, so var h = g cov g^T with g that row vector (Lötters' C_mu, per window).
+    ``h``: |a| when the caller has it (np.linalg.norm(a, axis=1) or the equal norm_and_projection)."""
+    u = a / (np.linalg.norm(a, axis=1, keepdims=True) if h is None else h[:, None])
+    g = u @ Kinv
+    out = np.empty(g.shape[0])  # numpy's einsum("mi,mij,mj->m", g, cov_mean, g), compiled
+    _fitsums.quadratic(np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(cov_mean, dtype=float), out, g.shape[0])
+    return out
 
 
 class OffsetsOnly(Parameterization):
