@@ -330,11 +330,12 @@ def fit_extended(par: Parameterization, ws: WindowSet, p0: np.ndarray, var_g2: n
     B = B[:, free]
     converged, it = False, 0
     for it in range(1, max_iter + 1):
-        F = (B.T * w) @ B
+        Bw = B.T * w
+        F = Bw @ B
         scale = np.sqrt(np.maximum(np.diag(F), 1e-300))
         Fn = F / np.outer(scale, scale)
         step = np.zeros(len(p))
-        step[free] = np.linalg.lstsq(Fn, ((B.T * w) @ xi) / scale, rcond=1e-12)[0] / scale
+        step[free] = np.linalg.lstsq(Fn, (Bw @ xi) / scale, rcond=1e-12)[0] / scale
         lam = 1.0
         while lam > 1e-6:
             try:

@@ -494,10 +494,10 @@ class LottersBatch:
 def _mvu_solve(B: np.ndarray, var: np.ndarray, xi: np.ndarray, w_prior: float, dev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """q_hat of eq. 11a with C_mu = diag(var), plus the weak prior w_prior |p - anchor|² (dev = p - anchor);
     also the std of each parameter under that regularised information."""
-    W = 1.0 / var
-    F = (B.T * W) @ B
+    BW = B.T * (1.0 / var)
+    F = BW @ B
     F[np.diag_indices_from(F)] += w_prior
-    b = (B.T * W) @ xi - w_prior * dev
+    b = BW @ xi - w_prior * dev
     Finv = np.linalg.inv(F)
     return Finv @ b, np.sqrt(np.diag(Finv))
 
