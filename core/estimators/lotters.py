@@ -132,6 +132,7 @@ class _Solve:
     converged: bool
     fisher_eig: np.ndarray  # eigenvalues of B^T C_mu^-1 B for parameters in fractions of 1 g
     B: np.ndarray
+    var_h: np.ndarray | None = None  # C_mu before the floor at p: a refit from p with another floor starts from it
 
 
 class LottersBatch:
@@ -195,7 +196,7 @@ class LottersBatch:
 
     # -- core iteration --------------------------------------------------------------
     def _solve(self, par: Parameterization, p0: np.ndarray, anchor: np.ndarray, mean: np.ndarray,
-               cov_mean: np.ndarray, floor2: float) -> _Solve:
+               cov_mean: np.ndarray, floor2: float, at_p0: _Solve | None = None) -> _Solve:
         """Iterate eq. 11a from p0. ``anchor`` (the start) enters as a weak prior of ANCHOR_STD_G
         (0.3 g as a std, in fractions of 1 g): negligible for any determined parameter (a std of 1e-3 g
         is changed by ~1e-5 relative, the 3 % observability limit by 1 %), but it keeps combinations the windows cannot determine at the start instead
@@ -203,15 +204,19 @@ class LottersBatch:
         scale = float(np.mean(np.abs(np.diag(par.unpack(anchor)[0])))) or 1.0
         w_prior = 1.0 / (ANCHOR_STD_G * scale) ** 2
 
-        def evaluate(p):
-            h, B, _, var_h = par.norm_jacobian_variance(p, mean, cov_mean)
+        def evaluate(p, known=None):
+            if known is None:
+                h, B, _, var_h = par.norm_jacobian_variance(p, mean, cov_mean)
+                xi = 1.0 - h  # eq. 14
+            else:  # the same p's residuals, Jacobian and C_mu before the floor (``at_p0``)
+                xi, B, var_h = known
             var = np.maximum(var_h + floor2, _TINY_VAR_G2)  # C_mu diagonal
-            xi = 1.0 - h  # eq. 14
             cost = float(np.sum(xi**2 / var) + w_prior * np.sum((p - anchor) ** 2))
-            return xi, B, var, cost
+            return xi, B, var, cost, var_h
 
         p = np.array(p0, dtype=float)
-        xi, B, var, cost = evaluate(p)
+        xi, B, var, cost, var_h = evaluate(p, None if at_p0 is None or at_p0.var_h is None
+                                           else (at_p0.resid_g, at_p0.B, at_p0.var_h))
         converged = False
         it = 0
         for it in range(1, self.max_iter + 1):
@@ -222,7 +227,7 @@ class LottersBatch:
             # (along a direction the windows barely determine, Gauss-Newton crawls; that crawl is noise)
             if np.max(np.abs(step)) / scale < self.tol or np.max(np.abs(step) / std) < STEP_TOL_STD:
                 p = p + step  # at the optimum: the cost no longer resolves such steps
-                xi, B, var, cost = evaluate(p)
+                xi, B, var, cost, var_h = evaluate(p)
                 converged = True
                 break
             # step halving: the linearisation (eq. 9) only holds near p; never accept a worse fit
@@ -242,13 +247,13 @@ class LottersBatch:
             else:
                 break
             p = p + lam * step
-            xi, B, var, cost = trial
+            xi, B, var, cost, var_h = trial
             cost = float(np.sum(xi**2 / var) + w_prior * np.sum((p - anchor) ** 2))
             if np.max(np.abs(lam * step)) / scale < self.tol:
                 converged = True
                 break
         cov, eig = _mvu_covariance(B, var, scale)  # eq. 11b (data only: no prior in the reported C_e)
-        return _Solve(p, cov, float(np.sum(xi**2 / var)), xi, var, it, converged, eig, B)
+        return _Solve(p, cov, float(np.sum(xi**2 / var)), xi, var, it, converged, eig, B, var_h)
 
     # -- public ------------------------------------------------------------------------
     def fit(self, ws: WindowSet, start: Calibration | None = None) -> Calibration:
@@ -353,7 +358,7 @@ class LottersBatch:
             r2 = sol.resid_g**2
             floor2 = quasi_static_floor(r2, v0, dof, _TINY_VAR_G2)
             floor_used = math.sqrt(floor2)
-            sol2 = self._solve(par, sol.p, anchor, mean, cov_mean, floor2)
+            sol2 = self._solve(par, sol.p, anchor, mean, cov_mean, floor2, at_p0=sol)
             sol = _Solve(sol2.p, sol2.cov, sol2.chi2, sol2.resid_g, sol2.var_g2, sol.iterations + sol2.iterations,
                          sol.converged and sol2.converged, sol2.fisher_eig, sol2.B)
             notes.append(f"reduced chi² {chi2_red_stat:.3g} from window noise alone: added a quasi-static floor "
