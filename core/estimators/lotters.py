@@ -85,7 +85,13 @@ def validate_windows(ws: WindowSet, n_params: int | None = None) -> None:
         raise ValueError(f"{idx.size} window covariance(s) are NaN/inf (windows {idx[:5].tolist()})")
     if np.any(ws.n <= 0):
         raise ValueError("window sample counts must be positive")
-    if n_params is not None and m < n_params:
+    if n_params is not None:
+        require_windows(m, n_params)
+
+
+def require_windows(m: int, n_params: int) -> None:
+    """Raise ValueError unless ``m`` windows can determine ``n_params`` parameters."""
+    if m < n_params:
         raise ValueError(
             f"{m} quasi-static window(s) for {n_params} parameters: need at least {n_params} "
             f"(more, spread over orientations, for a useful estimate)"
@@ -310,7 +316,7 @@ class LottersBatch:
         if abs(np.linalg.det(start.sensitivity)) < 1e-300:
             raise ValueError("start calibration has a singular sensitivity matrix")
         par = resolve_parameterization(self.model, start).at_windows(ws)  # per-window covariates, if any
-        validate_windows(ws, par.n_params)
+        require_windows(len(ws), par.n_params)  # the rest validate_windows checked above
 
         mean = ws.mean
         cov_mean = ws.cov_of_mean
