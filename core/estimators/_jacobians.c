@@ -211,11 +211,17 @@ static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
 }
 
 /* fma(x2, y2, fma(x1, y1, x0 y0)): OpenBLAS dgemm's sum of a row (x0, x1, x2) times a column (y0, y1, y2).
- * Compiled twice (target_clones): with FMA instructions where the CPU has them, else through libm's fma,
+ * On x86 compiled twice (target_clones): with FMA instructions where the CPU has them, else through libm's fma,
  * which rounds the same (correctly, once). */
 #define GEMM3(x0, x1, x2, y0, y1, y2) fma((x2), (y2), fma((x1), (y1), (x0) * (y0)))
 
-__attribute__((target_clones("fma", "default")))
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+#define FMA_CLONES __attribute__((target_clones("fma", "default")))
+#else
+#define FMA_CLONES /* other architectures: fma is one instruction in the base set, or libm's */
+#endif
+
+FMA_CLONES
 static void linear_loop(const double *Ki, const double *o, const double *G, const double *C, const double *raw,
                         const double *cov, double *H, double *B, double *A, double *V, Py_ssize_t m, Py_ssize_t p)
 {
