@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .calibration import Calibration
-from .estimators.parameterization import PARAMETERIZATIONS, Parameterization, h_variance  # noqa: F401 (also crlb's)
+from .estimators.parameterization import PARAMETERIZATIONS, Parameterization, h_variance  # noqa: F401 (re-exported: crlb.h_variance)
 from .windows import WindowSet
 
 # Relative eigenvalue below which a direction of parameter space counts as not determined.
