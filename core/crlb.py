@@ -24,9 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _fitsums
 from .calibration import Calibration
-from .estimators.parameterization import PARAMETERIZATIONS, Parameterization
+from .estimators.parameterization import PARAMETERIZATIONS, Parameterization, h_variance  # noqa: F401 (re-exported: crlb.h_variance)
 from .windows import WindowSet
 
 # Relative eigenvalue below which a direction of parameter space counts as not determined.
@@ -58,17 +57,6 @@ def on_ellipsoid(ws: WindowSet, cal: Calibration) -> tuple[np.ndarray, np.ndarra
     a = cal.apply_reference(ws.mean)
     a = a / np.linalg.norm(a, axis=1, keepdims=True)
     return a, a @ cal.sensitivity.T + cal.offset
-
-
-def h_variance(a: np.ndarray, Kinv: np.ndarray, cov_mean: np.ndarray, h: np.ndarray | None = None) -> np.ndarray:
-    """Delta-method variance [g²] of h = |a| from the covariance of the window mean (raw units²):
-    dh/dm = (a/|a|)^T K^-1, so var h = g cov g^T with g that row vector (Lötters' C_mu, per window).
-    ``h``: |a| when the caller has it (np.linalg.norm(a, axis=1) or the equal norm_and_projection)."""
-    u = a / (np.linalg.norm(a, axis=1, keepdims=True) if h is None else h[:, None])
-    g = u @ Kinv
-    out = np.empty(g.shape[0])  # numpy's einsum("mi,mij,mj->m", g, cov_mean, g), compiled
-    _fitsums.quadratic(np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(cov_mean, dtype=float), out, g.shape[0])
-    return out
 
 
 def norm_noise_var(ws: WindowSet, cal: Calibration, *, sigma_floor_g: float = 0.0) -> np.ndarray:

@@ -30,10 +30,12 @@ from typing import Any, ClassVar
 import numpy as np
 
 from gravcal.core import _fitsums
+from gravcal.core.estimators import _jacobians
 from gravcal.core.calibration import Calibration
-from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, Parameterization
+from gravcal.core.estimators.parameterization import (PARAMETERIZATIONS, Parameterization, h_variance,
+                                                      norm_and_projection)
 from gravcal.core.model.effect import (LAG_KEY, constant_rows, covariate_deviation, default_lag_tau_s,
-                                       lagged_deviations, needed_covariates, references, term_rows)
+                                       lagged_deviations, needed_covariates, references, term_entries, term_rows)
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.windows import WindowSet
 
@@ -150,9 +152,32 @@ class _Bound(Parameterization):
         self.model = par.model
         self.names = list(par.names)
         self.K_const, self.o_const = par.K_const, par.o_const
-        self.dK_rows, self.do_rows = par.row_derivatives(ws)
-        self.dK, self.do = (self.dK_rows[0], self.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
         self.n_rows = len(ws)
+        self._ws = ws
+        self._rows: tuple[np.ndarray, np.ndarray] | None = None
+        # for the kernel: the constant rows (dK_q | do_q) and the entries term_rows fills per window, with values
+        entries = list(term_entries(par.terms, par.base.n_params, par.window_covariates(ws)))
+        self.const_rows = np.ascontiguousarray(np.concatenate([par.dK.reshape(-1, 9), par.do], axis=1))
+        self.entries = np.array([(q, 9 + i if on_offset else 4 * i) for q, on_offset, i, _ in entries],
+                                dtype=float).reshape(-1, 2)
+        self.values = np.ascontiguousarray(np.column_stack([z for *_, z in entries]) if entries
+                                           else np.zeros((len(ws), 0)), dtype=float)
+        self.dK, self.do = (self.dK_rows[0], self.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
+
+    @property
+    def dK_rows(self) -> np.ndarray:
+        """Per-window dK (M, P, 3, 3) (row_derivatives; built on first use)."""
+        return self._full_rows()[0]
+
+    @property
+    def do_rows(self) -> np.ndarray:
+        """Per-window do (M, P, 3)."""
+        return self._full_rows()[1]
+
+    def _full_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._rows is None:
+            self._rows = self.parent.row_derivatives(self._ws)
+        return self._rows
 
     def pack(self, K, o):
         return self.parent.pack(K, o)
@@ -161,18 +186,27 @@ class _Bound(Parameterization):
         """K (M, 3, 3), o (M, 3) of every bound window at p."""
         return self.K_const[None] + combine_rows(p, self.dK_rows), self.o_const[None] + combine_rows(p, self.do_rows)
 
+    def norm_jacobian_variance(self, p: np.ndarray, raw: np.ndarray, cov_mean: np.ndarray | None = None
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """As Parameterization's, with each window's own K(c), o(c) for a and dh/dp; the variance of h uses
+        K^-1 at the references (``unpack``), as the batch fit weighs the windows."""
+        a, J = self.accel_and_jacobian(p, raw)
+        h, B = norm_and_projection(a, J)
+        if cov_mean is None:
+            return h, B, a, None
+        return h, B, a, h_variance(a, np.linalg.inv(self.unpack(p)[0]), cov_mean, h)
+
     def accel_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        raw = np.asarray(raw, dtype=float).reshape(-1, 3)
+        raw = np.ascontiguousarray(raw, dtype=float).reshape(-1, 3)
         if raw.shape[0] != self.n_rows:
             raise ValueError(f"bound to {self.n_rows} windows, got {raw.shape[0]} means: bind with at_windows(ws)")
-        K, o = self.rows_K_o(p)
-        Kinv = inverse_3x3(K)
-        # batched matmul: ~2.5x faster than the same contractions as einsum (M x 3 x 3 blocks)
-        a = np.matmul(Kinv, (raw - o)[:, :, None])[:, :, 0]
-        m, P = self.dK_rows.shape[:2]
-        inner = np.matmul(self.dK_rows.reshape(m, 3 * P, 3), a[:, :, None]).reshape(m, P, 3) + self.do_rows
-        J = np.matmul(Kinv, inner.transpose(0, 2, 1))  # (M, 3, P)
-        np.negative(J, out=J)
+        m, P, n = self.n_rows, len(self.names), len(self.entries)
+        a, J = np.empty((m, 3)), np.empty((m, 3, P))
+        # K(c), o(c), K(c)^-1, a and J = -K^-1 (dK_p a + do_p) in one compiled pass over the windows
+        _jacobians.extended_accel_jacobian(np.ascontiguousarray(self.K_const, dtype=float),
+                                           np.ascontiguousarray(self.o_const, dtype=float),
+                                           np.ascontiguousarray(p, dtype=float), self.const_rows, self.entries,
+                                           self.values, raw, a, J, m, P, n)
         return a, J
 
 
@@ -182,23 +216,6 @@ def combine_rows(p: np.ndarray, rows: np.ndarray) -> np.ndarray:
     out = np.empty((M,) + rows.shape[2:])
     _fitsums.combine(np.ascontiguousarray(p, dtype=float), np.ascontiguousarray(rows, dtype=float), out, M, P,
                      int(np.prod(rows.shape[2:], dtype=np.int64)))
-    return out
-
-
-def inverse_3x3(K: np.ndarray) -> np.ndarray:
-    """Inverses of a stack of 3 x 3 matrices (M, 3, 3) as adjugate / determinant: ~6x faster than
-    np.linalg.inv's LU per matrix for thousands of windows, equal to it to ~1e-15 for the
-    well-conditioned sensitivity matrices here (a singular K gives inf/NaN rather than an error)."""
-    a, b, c = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2]
-    d, e, f = K[:, 1, 0], K[:, 1, 1], K[:, 1, 2]
-    g, h, i = K[:, 2, 0], K[:, 2, 1], K[:, 2, 2]
-    out = np.empty_like(K, dtype=float)
-    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = e * i - f * h, c * h - b * i, b * f - c * e
-    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = f * g - d * i, a * i - c * g, c * d - a * f
-    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = d * h - e * g, b * g - a * h, a * e - b * d
-    det = a * out[:, 0, 0] + b * out[:, 1, 0] + c * out[:, 2, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out /= det[:, None, None]
     return out
 
 
@@ -313,11 +330,12 @@ def fit_extended(par: Parameterization, ws: WindowSet, p0: np.ndarray, var_g2: n
     B = B[:, free]
     converged, it = False, 0
     for it in range(1, max_iter + 1):
-        F = (B.T * w) @ B
+        Bw = B.T * w
+        F = Bw @ B
         scale = np.sqrt(np.maximum(np.diag(F), 1e-300))
         Fn = F / np.outer(scale, scale)
         step = np.zeros(len(p))
-        step[free] = np.linalg.lstsq(Fn, ((B.T * w) @ xi) / scale, rcond=1e-12)[0] / scale
+        step[free] = np.linalg.lstsq(Fn, (Bw @ xi) / scale, rcond=1e-12)[0] / scale
         lam = 1.0
         while lam > 1e-6:
             try:

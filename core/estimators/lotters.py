@@ -30,7 +30,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..calibration import Calibration
-from ..crlb import h_variance
 from ..windows import WindowSet
 from .consider import (CONSIDER_KEY, HELD_KEY, consider_gain, consider_metadata, held_jacobian, held_std_note,
                        held_uncertainty)
@@ -86,7 +85,13 @@ def validate_windows(ws: WindowSet, n_params: int | None = None) -> None:
         raise ValueError(f"{idx.size} window covariance(s) are NaN/inf (windows {idx[:5].tolist()})")
     if np.any(ws.n <= 0):
         raise ValueError("window sample counts must be positive")
-    if n_params is not None and m < n_params:
+    if n_params is not None:
+        require_windows(m, n_params)
+
+
+def require_windows(m: int, n_params: int) -> None:
+    """Raise ValueError unless ``m`` windows can determine ``n_params`` parameters."""
+    if m < n_params:
         raise ValueError(
             f"{m} quasi-static window(s) for {n_params} parameters: need at least {n_params} "
             f"(more, spread over orientations, for a useful estimate)"
@@ -133,6 +138,7 @@ class _Solve:
     converged: bool
     fisher_eig: np.ndarray  # eigenvalues of B^T C_mu^-1 B for parameters in fractions of 1 g
     B: np.ndarray
+    var_h: np.ndarray | None = None  # C_mu before the floor at p: a refit from p with another floor starts from it
 
 
 class LottersBatch:
@@ -196,7 +202,7 @@ class LottersBatch:
 
     # -- core iteration --------------------------------------------------------------
     def _solve(self, par: Parameterization, p0: np.ndarray, anchor: np.ndarray, mean: np.ndarray,
-               cov_mean: np.ndarray, floor2: float) -> _Solve:
+               cov_mean: np.ndarray, floor2: float, at_p0: _Solve | None = None) -> _Solve:
         """Iterate eq. 11a from p0. ``anchor`` (the start) enters as a weak prior of ANCHOR_STD_G
         (0.3 g as a std, in fractions of 1 g): negligible for any determined parameter (a std of 1e-3 g
         is changed by ~1e-5 relative, the 3 % observability limit by 1 %), but it keeps combinations the windows cannot determine at the start instead
@@ -204,17 +210,19 @@ class LottersBatch:
         scale = float(np.mean(np.abs(np.diag(par.unpack(anchor)[0])))) or 1.0
         w_prior = 1.0 / (ANCHOR_STD_G * scale) ** 2
 
-        def evaluate(p):
-            K, _ = par.unpack(p)
-            Kinv = np.linalg.inv(K)
-            h, B, a = par.norm_and_jacobian(p, mean)
-            var = np.maximum(h_variance(a, Kinv, cov_mean, h) + floor2, _TINY_VAR_G2)  # C_mu diagonal
-            xi = 1.0 - h  # eq. 14
+        def evaluate(p, known=None):
+            if known is None:
+                h, B, _, var_h = par.norm_jacobian_variance(p, mean, cov_mean)
+                xi = 1.0 - h  # eq. 14
+            else:  # the same p's residuals, Jacobian and C_mu before the floor (``at_p0``)
+                xi, B, var_h = known
+            var = np.maximum(var_h + floor2, _TINY_VAR_G2)  # C_mu diagonal
             cost = float(np.sum(xi**2 / var) + w_prior * np.sum((p - anchor) ** 2))
-            return xi, B, var, cost
+            return xi, B, var, cost, var_h
 
         p = np.array(p0, dtype=float)
-        xi, B, var, cost = evaluate(p)
+        xi, B, var, cost, var_h = evaluate(p, None if at_p0 is None or at_p0.var_h is None
+                                           else (at_p0.resid_g, at_p0.B, at_p0.var_h))
         converged = False
         it = 0
         for it in range(1, self.max_iter + 1):
@@ -225,7 +233,7 @@ class LottersBatch:
             # (along a direction the windows barely determine, Gauss-Newton crawls; that crawl is noise)
             if np.max(np.abs(step)) / scale < self.tol or np.max(np.abs(step) / std) < STEP_TOL_STD:
                 p = p + step  # at the optimum: the cost no longer resolves such steps
-                xi, B, var, cost = evaluate(p)
+                xi, B, var, cost, var_h = evaluate(p)
                 converged = True
                 break
             # step halving: the linearisation (eq. 9) only holds near p; never accept a worse fit
@@ -245,13 +253,13 @@ class LottersBatch:
             else:
                 break
             p = p + lam * step
-            xi, B, var, cost = trial
+            xi, B, var, cost, var_h = trial
             cost = float(np.sum(xi**2 / var) + w_prior * np.sum((p - anchor) ** 2))
             if np.max(np.abs(lam * step)) / scale < self.tol:
                 converged = True
                 break
         cov, eig = _mvu_covariance(B, var, scale)  # eq. 11b (data only: no prior in the reported C_e)
-        return _Solve(p, cov, float(np.sum(xi**2 / var)), xi, var, it, converged, eig, B)
+        return _Solve(p, cov, float(np.sum(xi**2 / var)), xi, var, it, converged, eig, B, var_h)
 
     # -- public ------------------------------------------------------------------------
     def fit(self, ws: WindowSet, start: Calibration | None = None) -> Calibration:
@@ -308,7 +316,7 @@ class LottersBatch:
         if abs(np.linalg.det(start.sensitivity)) < 1e-300:
             raise ValueError("start calibration has a singular sensitivity matrix")
         par = resolve_parameterization(self.model, start).at_windows(ws)  # per-window covariates, if any
-        validate_windows(ws, par.n_params)
+        require_windows(len(ws), par.n_params)  # the rest validate_windows checked above
 
         mean = ws.mean
         cov_mean = ws.cov_of_mean
@@ -356,7 +364,7 @@ class LottersBatch:
             r2 = sol.resid_g**2
             floor2 = quasi_static_floor(r2, v0, dof, _TINY_VAR_G2)
             floor_used = math.sqrt(floor2)
-            sol2 = self._solve(par, sol.p, anchor, mean, cov_mean, floor2)
+            sol2 = self._solve(par, sol.p, anchor, mean, cov_mean, floor2, at_p0=sol)
             sol = _Solve(sol2.p, sol2.cov, sol2.chi2, sol2.resid_g, sol2.var_g2, sol.iterations + sol2.iterations,
                          sol.converged and sol2.converged, sol2.fisher_eig, sol2.B)
             notes.append(f"reduced chi² {chi2_red_stat:.3g} from window noise alone: added a quasi-static floor "
@@ -497,10 +505,10 @@ class LottersBatch:
 def _mvu_solve(B: np.ndarray, var: np.ndarray, xi: np.ndarray, w_prior: float, dev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """q_hat of eq. 11a with C_mu = diag(var), plus the weak prior w_prior |p - anchor|² (dev = p - anchor);
     also the std of each parameter under that regularised information."""
-    W = 1.0 / var
-    F = (B.T * W) @ B
+    BW = B.T * (1.0 / var)
+    F = BW @ B
     F[np.diag_indices_from(F)] += w_prior
-    b = (B.T * W) @ xi - w_prior * dev
+    b = BW @ xi - w_prior * dev
     Finv = np.linalg.inv(F)
     return Finv @ b, np.sqrt(np.diag(Finv))
 

@@ -83,7 +83,9 @@ def coverage(ws: WindowSet, cal: Calibration) -> dict[str, Any]:
     c = u.sum(axis=0)
     nc = np.linalg.norm(c)
     spread = 180.0 if nc < 1e-12 else float(np.degrees(np.arccos(np.clip(u @ (c / nc), -1, 1).min())))
-    cells = np.argmax(u @ sphere_directions(POSTURE_CELLS).T, axis=1)
+    # the nearest cell of each direction, in blocks of windows: the (M, cells) products of a week are 40 MB
+    cells_T = sphere_directions(POSTURE_CELLS).T
+    cells = np.concatenate([np.argmax(b @ cells_T, axis=1) for b in np.array_split(u, max(1, len(u) // 2048))])
     return {
         "n_windows": len(ws),
         "spread_deg": round(spread, 2),

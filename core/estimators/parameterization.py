@@ -18,6 +18,7 @@ from typing import ClassVar
 import numpy as np
 
 from gravcal.core import _fitsums
+from gravcal.core.estimators import _jacobians
 
 AXES = ("x", "y", "z")
 
@@ -85,8 +86,33 @@ class Parameterization(ABC):
 
     def norm_and_jacobian(self, p: np.ndarray, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """h = |a| (eq. 8), dh/dp (M, P) (eq. 13a generalised), and a itself."""
-        a, J = self.accel_and_jacobian(p, raw)
-        return (*norm_and_projection(a, J), a)
+        h, B, a, _ = self.norm_jacobian_variance(p, raw)
+        return h, B, a
+
+    def norm_jacobian_variance(self, p: np.ndarray, raw: np.ndarray, cov_mean: np.ndarray | None = None
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """norm_and_jacobian's h, dh/dp, a and, given the windows' covariance of the mean (M, 3, 3), the
+        delta-method variance of h with K^-1 of p (h_variance, Lötters' C_mu before any floor), else None.
+        From 2 rows on in one compiled pass (core/estimators/_jacobians.c, equal bit for bit); one row, as the
+        online estimator's, is a dgemv in numpy's products and keeps numpy's form."""
+        raw = np.ascontiguousarray(raw, dtype=float)
+        K, o = self.unpack(p)
+        Kinv = np.linalg.inv(K)
+        if raw.ndim != 2 or raw.shape[0] < 2:
+            a, J = self.accel_and_jacobian(p, raw)
+            h, B = norm_and_projection(a, J)
+            if cov_mean is None:
+                return h, B, a, None
+            return h, B, a, h_variance(a, Kinv, cov_mean, h)
+        M, P = raw.shape[0], self.dK.shape[0]
+        G = np.matmul(Kinv, self.dK)  # (P, 3, 3), as accel_and_jacobian
+        C = np.ascontiguousarray((self.do @ Kinv.T).T)
+        h, B, a = np.empty(M), np.empty((M, P)), np.empty((M, 3))
+        var = None if cov_mean is None else np.empty(M)
+        cov = None if cov_mean is None else np.ascontiguousarray(cov_mean, dtype=float)
+        _jacobians.linear_norm_jacobian(np.ascontiguousarray(Kinv), o, np.ascontiguousarray(G), C, raw, cov, h, B, a,
+                                        var, M, P)
+        return h, B, a, var
 
 
 def norm_and_projection(a: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -96,6 +122,17 @@ def norm_and_projection(a: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.nd
     h, B = np.empty(M), np.empty((M, P))
     _fitsums.norm_project(np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(J, dtype=float), h, B, M, P)
     return h, B
+
+
+def h_variance(a: np.ndarray, Kinv: np.ndarray, cov_mean: np.ndarray, h: np.ndarray | None = None) -> np.ndarray:
+    """Delta-method variance [g²] of h = |a| from the covariance of the window mean (raw units²):
+    dh/dm = (a/|a|)^T K^-1, so var h = g cov g^T with g that row vector (Lötters' C_mu, per window).
+    ``h``: |a| when the caller has it (np.linalg.norm(a, axis=1) or the equal norm_and_projection)."""
+    u = a / (np.linalg.norm(a, axis=1, keepdims=True) if h is None else h[:, None])
+    g = u @ Kinv
+    out = np.empty(g.shape[0])  # numpy's einsum("mi,mij,mj->m", g, cov_mean, g), compiled
+    _fitsums.quadratic(np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(cov_mean, dtype=float), out, g.shape[0])
+    return out
 
 
 class OffsetsOnly(Parameterization):

@@ -11,7 +11,7 @@ term it carries without knowing which exist.
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -135,21 +135,30 @@ def constant_rows(terms: tuple[str, ...], n_base: int, n_params: int) -> tuple[n
     return dK, do
 
 
-def term_rows(terms: tuple[str, ...], n_base: int, dK: np.ndarray, do: np.ndarray,
-              deviations: dict[str, np.ndarray]) -> None:
-    """Fill the per-row derivatives dK (M, P, 3, 3), do (M, P, 3) of the extra parameters in place;
-    ``deviations``: covariate name -> (M, 3) deviations from :func:`covariate_deviation`."""
+def term_entries(terms: tuple[str, ...], n_base: int, deviations: dict[str, np.ndarray]
+                 ) -> Iterator[tuple[int, bool, int, np.ndarray]]:
+    """The entries of the extra parameters' derivative rows that depend on the row's covariates: (parameter
+    index, on the offset (do) rather than the sensitivity (dK's diagonal), axis, the values (M,)), in parameter
+    order; ``deviations`` as for :func:`term_rows`. Every other entry is the constant rows' (constant_rows)."""
     k = n_base
     for term in terms:
         view = calibration_view(term)
         if view.acts_on != "cross":
             z = deviations[view.deviation_key]
             for i in range(3):
-                if view.on_offset:
-                    do[:, k + i, i] = z[:, i]
-                else:
-                    dK[:, k + i, i, i] = z[:, i]
+                yield k + i, bool(view.on_offset), i, z[:, i]
         k += 3
+
+
+def term_rows(terms: tuple[str, ...], n_base: int, dK: np.ndarray, do: np.ndarray,
+              deviations: dict[str, np.ndarray]) -> None:
+    """Fill the per-row derivatives dK (M, P, 3, 3), do (M, P, 3) of the extra parameters in place;
+    ``deviations``: covariate name -> (M, 3) deviations from :func:`covariate_deviation`."""
+    for q, on_offset, i, z in term_entries(terms, n_base, deviations):
+        if on_offset:
+            do[:, q, i] = z
+        else:
+            dK[:, q, i, i] = z
 
 
 def apply_terms(K: np.ndarray, o: np.ndarray, terms: tuple[str, ...], extra: np.ndarray, raw: np.ndarray,

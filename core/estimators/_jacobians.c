@@ -1,0 +1,328 @@
+/* The batch fit's corrected accelerations and Jacobians, window by window (parameterization.py, extended.py).
+ *
+ * Both functions are one pass over the windows with no temporaries, replacing numpy forms that build
+ * (M, 3, P) and (M, P, 3, 3) arrays. Built with -ffp-contract=off: every a * b + c rounds twice, as numpy's
+ * elementwise operations do; the one fused multiply-add is written out (fma) where it reproduces OpenBLAS.
+ * Every buffer must be C-contiguous float64 of the length the dimensions imply; anything else is a
+ * TypeError/ValueError, never an access out of bounds. tests/core/test_jacobians.py holds the numpy forms.
+ *
+ * linear_norm_jacobian: a parameterization with constant derivatives (offsets, 6, 9, 12; parameterization.py):
+ *
+ *     a = K^-1 (raw - o)                      h = |a|                               (Lötters eq. 8)
+ *     J[:, q] = -(K^-1 dK_q a + K^-1 do_q)    B[q] = (a / h)^T J[:, q]             (eq. 13a generalised)
+ *     var = g C g^T,  g = (a / h)^T K^-1      (crlb.h_variance: the delta-method variance of h, C_mu)
+ *
+ * numpy computes a, J and g as (M, 3) @ (3, n) products, which OpenBLAS's dgemm kernel adds as one fused
+ * chain fma(x2, y2, fma(x1, y1, x0 y0)) for M >= 2 windows (a single row goes to dgemv, which adds in
+ * another order: the caller keeps numpy's form there); the norm, the projection and the quadratic form add
+ * as numpy's norm and einsum do (core/_fitsums.c). So each result equals numpy's bit for bit on this BLAS.
+ *
+ * extended_accel_jacobian: the extended models (extended.py), whose derivative rows depend on the window:
+ *
+ *     K = K_const + sum_q p_q dK_q,   o = o_const + sum_q p_q do_q          (extended.py module docstring)
+ *     a = K^-1 (raw - o),   J[:, q] = da/dp_q = -K^-1 (dK_q a + do_q)
+ *
+ * The sums over q start from 0.0 and add in q order, as numpy's einsum("p,mpij->mij") does; K^-1 is the
+ * adjugate over the determinant, operation for operation as the numpy form in the test; the three-term
+ * products add left to right (numpy's batched matmul hands those 3 x 3 products to dgemv / dgemm one window
+ * at a time, whose order differs: the results agree to rounding, the test derives the bound).
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+/* Get a C-contiguous float64 buffer of exactly n doubles (writable if asked); 0 on success. */
+static int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t n, int writable, const char *name)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) < 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s must be a C-contiguous%s float64 array", name, writable ? " writable" : "");
+        return -1;
+    }
+    const char *f = view->format;
+    if (f != NULL && (f[0] == '<' || f[0] == '=' || f[0] == '@'))
+        f++;
+    if (view->itemsize != 8 || f == NULL || strcmp(f, "d") != 0) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s must be float64", name);
+        return -1;
+    }
+    if (view->len != n * 8) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_ValueError, "%s holds %zd values, expected %zd", name, view->len / 8, n);
+        return -1;
+    }
+    return 0;
+}
+
+#define N_BUF 9
+
+/* extended_accel_jacobian(K_const (3, 3), o_const (3,), p (P,), rows (P, 12), entries (n, 2), values (M, n),
+ *                         raw (M, 3), a (M, 3) out, J (M, 3, P) out, M, P, n)
+ * rows: each parameter's constant dK_q (9, row-major) and do_q (3) (extended.py: the reference rows);
+ * entries: (q, e) of the n entries that depend on the window (e 0-8 in dK_q, 9-11 in do_q), whose values are
+ * values[w]. The window's rows are the constant ones with those entries replaced, as term_rows builds them.
+ * Entries 0 in every row (constant 0, no window value) are left out of the sums: with p finite the product
+ * is ±0, which added to a partial sum of the einsum order (never -0: it starts at +0.0 and rounds to
+ * nearest) leaves it unchanged; a row of dK_q that is all 0 gives dK_q a + do_q = do_q exactly when a is
+ * finite and do_q is not 0. Otherwise (p or a not finite, do_q 0) the full sums run. */
+static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
+{
+    PyObject *obj[N_BUF];
+    Py_ssize_t m, p, n;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOnnn", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5], &obj[6],
+                          &obj[7], &obj[8], &m, &p, &n))
+        return NULL;
+    if (m < 0 || p < 1 || n < 0) {
+        PyErr_SetString(PyExc_ValueError, "need M >= 0 windows, P >= 1 parameters and 0 <= n <= 12 P entries");
+        return NULL;
+    }
+    if (p > PY_SSIZE_T_MAX / 8 / 24 || m > PY_SSIZE_T_MAX / 8 / 12 / p) {
+        PyErr_SetString(PyExc_ValueError, "dimensions too large");
+        return NULL;
+    }
+    if (n > 12 * p) {
+        PyErr_SetString(PyExc_ValueError, "need M >= 0 windows, P >= 1 parameters and 0 <= n <= 12 P entries");
+        return NULL;
+    }
+    static const char *names[N_BUF] = {"K_const", "o_const", "p", "rows", "entries", "values", "raw", "a", "J"};
+    const Py_ssize_t len[N_BUF] = {9, 3, p, 12 * p, 2 * n, m * n, m * 3, m * 3, m * 3 * p};
+    Py_buffer buf[N_BUF];
+    int got = 0;
+    for (; got < N_BUF; got++)
+        if (get_doubles(obj[got], &buf[got], len[got], got >= 7, names[got]) < 0)
+            break;
+    if (got < N_BUF) {
+        while (got-- > 0)
+            PyBuffer_Release(&buf[got]);
+        return NULL;
+    }
+    /* work: the window's rows (12 P), the positions of the window entries (n), the (q, e) pairs of dK and do
+     * that may be nonzero, q-major (each entry's sum keeps q order), the dK rows that are 0 in every window */
+    double *R = PyMem_Malloc(sizeof(double) * (size_t)p * 12);
+    Py_ssize_t *pos = PyMem_Malloc(sizeof(Py_ssize_t) * ((size_t)n + 24 * (size_t)p + 1));
+    char *row_zero = PyMem_Malloc((size_t)p * 3);
+    const double *Kc = buf[0].buf, *oc = buf[1].buf, *c = buf[2].buf, *rows = buf[3].buf, *ent = buf[4].buf,
+                 *V = buf[5].buf, *raw = buf[6].buf;
+    double *A = buf[7].buf, *J = buf[8].buf;
+    int ok = R != NULL && pos != NULL && row_zero != NULL;
+    if (!ok)
+        PyErr_NoMemory();
+    Py_ssize_t *kq = pos + n, *ke = kq + 9 * p, *oq = kq + 18 * p, *oe = kq + 21 * p, nk = 0, no = 0;
+    int finite_p = 1;
+    if (ok) {
+        memcpy(R, rows, sizeof(double) * (size_t)p * 12);
+        for (Py_ssize_t t = 0; t < n && ok; t++) {
+            const double q = ent[2 * t], e = ent[2 * t + 1];
+            if (!(q >= 0 && q < (double)p && e >= 0 && e < 12 && q == (Py_ssize_t)q && e == (Py_ssize_t)e)) {
+                PyErr_Format(PyExc_ValueError, "entry %zd is (%g, %g): need an integer q < P and e < 12", t, q, e);
+                ok = 0;
+            } else {
+                pos[t] = 12 * (Py_ssize_t)q + (Py_ssize_t)e;
+            }
+        }
+    }
+    if (ok) {
+        for (Py_ssize_t q = 0; q < p; q++) {
+            char mark[12] = {0};
+            for (Py_ssize_t t = 0; t < n; t++)
+                if (pos[t] / 12 == q)
+                    mark[pos[t] % 12] = 1;
+            finite_p &= isfinite(c[q]) != 0;
+            for (int e = 0; e < 9; e++)
+                if (mark[e] || rows[12 * q + e] != 0.0)
+                    kq[nk] = q, ke[nk++] = e;
+            for (int e = 0; e < 3; e++) {
+                if (mark[9 + e] || rows[12 * q + 9 + e] != 0.0)
+                    oq[no] = q, oe[no++] = e;
+                int z = 1;
+                for (int k = 0; k < 3; k++)
+                    z &= !mark[3 * e + k] && rows[12 * q + 3 * e + k] == 0.0;
+                row_zero[3 * q + e] = (char)z;
+            }
+        }
+        Py_BEGIN_ALLOW_THREADS
+        for (Py_ssize_t w = 0; w < m; w++) {
+            double K[9], o[3], inv[9], d[3], a[3];
+            for (Py_ssize_t t = 0; t < n; t++)  /* the window's rows: the other entries stay the constant ones */
+                R[pos[t]] = V[w * n + t];
+            /* K(c), o(c): einsum("p,mpij->mij") and ("p,mpi->mi") from 0.0 in q order, then the constant part */
+            for (int j = 0; j < 9; j++)
+                K[j] = 0.0;
+            for (int j = 0; j < 3; j++)
+                o[j] = 0.0;
+            if (finite_p) {
+                for (Py_ssize_t t = 0; t < nk; t++)
+                    K[ke[t]] += c[kq[t]] * R[12 * kq[t] + ke[t]];
+                for (Py_ssize_t t = 0; t < no; t++)
+                    o[oe[t]] += c[oq[t]] * R[12 * oq[t] + 9 + oe[t]];
+            } else {
+                for (Py_ssize_t q = 0; q < p; q++) {
+                    for (int j = 0; j < 9; j++)
+                        K[j] += c[q] * R[12 * q + j];
+                    for (int j = 0; j < 3; j++)
+                        o[j] += c[q] * R[12 * q + 9 + j];
+                }
+            }
+            for (int j = 0; j < 9; j++)
+                K[j] = Kc[j] + K[j];
+            for (int j = 0; j < 3; j++)
+                o[j] = oc[j] + o[j];
+            /* K^-1 = adjugate / determinant (a singular K gives inf/NaN, as the numpy form does) */
+            const double ka = K[0], kb = K[1], kc = K[2], kd = K[3], ke_ = K[4], kf = K[5], kg = K[6], kh = K[7],
+                         ki = K[8];
+            inv[0] = ke_ * ki - kf * kh, inv[1] = kc * kh - kb * ki, inv[2] = kb * kf - kc * ke_;
+            inv[3] = kf * kg - kd * ki, inv[4] = ka * ki - kc * kg, inv[5] = kc * kd - ka * kf;
+            inv[6] = kd * kh - ke_ * kg, inv[7] = kb * kg - ka * kh, inv[8] = ka * ke_ - kb * kd;
+            const double det = ka * inv[0] + kb * inv[3] + kc * inv[6];
+            for (int j = 0; j < 9; j++)
+                inv[j] /= det;
+            /* a = K^-1 (raw - o) */
+            for (int j = 0; j < 3; j++)
+                d[j] = raw[3 * w + j] - o[j];
+            for (int i = 0; i < 3; i++)
+                a[i] = A[3 * w + i] = inv[3 * i] * d[0] + inv[3 * i + 1] * d[1] + inv[3 * i + 2] * d[2];
+            const int finite_a = isfinite(a[0]) && isfinite(a[1]) && isfinite(a[2]);
+            /* J[:, q] = -K^-1 (dK_q a + do_q) */
+            double *Jw = J + w * 3 * p;
+            for (Py_ssize_t q = 0; q < p; q++) {
+                const double *G = R + 12 * q, *g = G + 9;
+                double t[3];
+                for (int j = 0; j < 3; j++)
+                    t[j] = row_zero[3 * q + j] && finite_a && g[j] != 0.0
+                               ? g[j]
+                               : (G[3 * j] * a[0] + G[3 * j + 1] * a[1] + G[3 * j + 2] * a[2]) + g[j];
+                for (int i = 0; i < 3; i++)
+                    Jw[i * p + q] = -(inv[3 * i] * t[0] + inv[3 * i + 1] * t[1] + inv[3 * i + 2] * t[2]);
+            }
+        }
+        Py_END_ALLOW_THREADS
+    }
+    PyMem_Free(R);
+    PyMem_Free(pos);
+    PyMem_Free(row_zero);
+    for (int k = 0; k < N_BUF; k++)
+        PyBuffer_Release(&buf[k]);
+    if (!ok)
+        return NULL;
+    Py_RETURN_NONE;
+}
+
+/* fma(x2, y2, fma(x1, y1, x0 y0)): OpenBLAS dgemm's sum of a row (x0, x1, x2) times a column (y0, y1, y2).
+ * On x86 compiled twice (target_clones): with FMA instructions where the CPU has them, else through libm's fma,
+ * which rounds the same (correctly, once). */
+#define GEMM3(x0, x1, x2, y0, y1, y2) fma((x2), (y2), fma((x1), (y1), (x0) * (y0)))
+
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__))
+#define FMA_CLONES __attribute__((target_clones("fma", "default")))
+#else
+#define FMA_CLONES /* other architectures: fma is one instruction in the base set, or libm's */
+#endif
+
+FMA_CLONES
+static void linear_loop(const double *Ki, const double *o, const double *G, const double *C, const double *raw,
+                        const double *cov, double *H, double *B, double *A, double *V, Py_ssize_t m, Py_ssize_t p)
+{
+    for (Py_ssize_t w = 0; w < m; w++) {
+        const double d0 = raw[3 * w] - o[0], d1 = raw[3 * w + 1] - o[1], d2 = raw[3 * w + 2] - o[2];
+        double a[3], u[3];
+        /* a = (raw - o) @ K^-1.T */
+        for (int i = 0; i < 3; i++)
+            a[i] = A[3 * w + i] = GEMM3(d0, d1, d2, Ki[3 * i], Ki[3 * i + 1], Ki[3 * i + 2]);
+        /* h = sqrt(a0² + a1² + a2²) as np.linalg.norm(a, axis=1); u = a / h */
+        const double h = sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2]);
+        H[w] = h;
+        for (int i = 0; i < 3; i++)
+            u[i] = a[i] / h;
+        /* B[q] = sum_i u_i J[i, q] from 0.0 in i order (einsum "mi,mip->mp"), with
+         * J[i, q] = -((a @ G')[i, q] + C[i, q]), G' = G.transpose(2, 1, 0): row k, column (i, q) = G[q, i, k] */
+        double *Bw = B + w * p;
+        for (Py_ssize_t q = 0; q < p; q++) {
+            const double *Gq = G + 9 * q;
+            double b = 0.0;
+            for (int i = 0; i < 3; i++) {
+                const double j = -(GEMM3(a[0], a[1], a[2], Gq[3 * i], Gq[3 * i + 1], Gq[3 * i + 2]) + C[i * p + q]);
+                b += u[i] * j;
+            }
+            Bw[q] = b;
+        }
+        if (V != NULL) {
+            /* g = u @ K^-1, var = sum_ij (g_i C_ij) g_j from 0.0 (einsum "mi,mij,mj->m") */
+            double g[3], s = 0.0;
+            for (int j = 0; j < 3; j++)
+                g[j] = GEMM3(u[0], u[1], u[2], Ki[j], Ki[3 + j], Ki[6 + j]);
+            const double *Cw = cov + 9 * w;
+            for (int i = 0; i < 3; i++)
+                for (int j = 0; j < 3; j++) {
+                    const double t = g[i] * Cw[3 * i + j];
+                    s += t * g[j];
+                }
+            V[w] = s;
+        }
+    }
+}
+
+/* linear_norm_jacobian(Kinv (3, 3), o (3,), G (P, 3, 3) = K^-1 dK, C (3, P) = (do @ K^-1.T).T, raw (M, 3),
+ *                      cov (M, 3, 3) or None, h (M,) out, B (M, P) out, a (M, 3) out, var (M,) out or None, M, P) */
+static PyObject *linear_norm_jacobian(PyObject *self, PyObject *args)
+{
+    PyObject *obj[10];
+    Py_ssize_t m, p;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOnn", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5], &obj[6],
+                          &obj[7], &obj[8], &obj[9], &m, &p))
+        return NULL;
+    if (m < 2 || p < 1) {
+        PyErr_SetString(PyExc_ValueError, "need M >= 2 windows (one row is dgemv's, not dgemm's, order) and P >= 1");
+        return NULL;
+    }
+    if (m > PY_SSIZE_T_MAX / 8 / 9 / p) {
+        PyErr_SetString(PyExc_ValueError, "dimensions too large");
+        return NULL;
+    }
+    const int with_var = obj[5] != Py_None;
+    if (with_var != (obj[9] != Py_None)) {
+        PyErr_SetString(PyExc_ValueError, "cov and var must both be given or both be None");
+        return NULL;
+    }
+    static const char *names[10] = {"Kinv", "o", "G", "C", "raw", "cov", "h", "B", "a", "var"};
+    const Py_ssize_t len[10] = {9, 3, 9 * p, 3 * p, 3 * m, 9 * m, m, m * p, 3 * m, m};
+    Py_buffer buf[10];
+    int held[10] = {0};
+    int ok = 1;
+    for (int k = 0; k < 10 && ok; k++) {
+        if ((k == 5 || k == 9) && !with_var)
+            continue;
+        ok = get_doubles(obj[k], &buf[k], len[k], k >= 6, names[k]) == 0;
+        held[k] = ok;
+    }
+    if (ok) {
+        const double *cov = with_var ? buf[5].buf : NULL;
+        double *V = with_var ? buf[9].buf : NULL;
+        Py_BEGIN_ALLOW_THREADS
+        linear_loop(buf[0].buf, buf[1].buf, buf[2].buf, buf[3].buf, buf[4].buf, cov, buf[6].buf, buf[7].buf,
+                    buf[8].buf, V, m, p);
+        Py_END_ALLOW_THREADS
+    }
+    for (int k = 0; k < 10; k++)
+        if (held[k])
+            PyBuffer_Release(&buf[k]);
+    if (!ok)
+        return NULL;
+    Py_RETURN_NONE;
+}
+
+static PyMethodDef methods[] = {
+    {"linear_norm_jacobian", linear_norm_jacobian, METH_VARARGS,
+     "linear_norm_jacobian(Kinv, o, G, C, raw, cov or None, h, B, a, var or None, M, P): h = |a|, B = dh/dp, a, var h"},
+    {"extended_accel_jacobian", extended_accel_jacobian, METH_VARARGS,
+     "extended_accel_jacobian(K_const, o_const, p, rows, entries, values, raw, a, J, M, P, n): a = K(c)^-1 (raw - o(c)), J = da/dp"},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_jacobians",
+                                    "The batch fit's corrected accelerations and Jacobians, window by window.", -1,
+                                    methods, NULL, NULL, NULL, NULL};
+
+PyMODINIT_FUNC PyInit__jacobians(void) { return PyModule_Create(&module); }
