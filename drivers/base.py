@@ -338,9 +338,13 @@ class _RateEstimate:
         self.rate_hz: float | None = None
 
     def update(self, block: np.ndarray, t_recv: float) -> None:
+        if t_recv >= self._next:
+            self.update_seq(int(block["seq"][-1]), t_recv)
+
+    def update_seq(self, seq: int, t_recv: float) -> None:
+        """As :meth:`update`, from the newest sample's seq."""
         if t_recv < self._next:
             return
-        seq = int(block["seq"][-1])
         if self._first is None:
             self._first = (seq, t_recv)
             self._next = t_recv + 1.0

@@ -1,0 +1,564 @@
+/* gravcald's latency path in one C call per wake-up: bus bytes -> frames -> correction -> IMU lines -> sockets.
+ *
+ * step(fd, seconds, max_frames, ist, fst, staged, server, processor, rows, acc, gyro, static)
+ *     -> (leftover bytes, the watcher snapshot of a stopped delivery or None)
+ *
+ * It composes the per-layer kernels in pipeline order, each imported from its own module as a capsule:
+ * the frame check and record (drivers/_framekernel.c), the plain correction (core/_correctkernel.c), the
+ * IMU line (daemon/_linekernel.c). daemon/fastpath.py calls it and does everything else; it takes only the
+ * common case and returns, having consumed nothing of it, whatever the Python path must decide:
+ *
+ *   - bytes: a read that is not exactly whole intact frames, each continuing the stream by one (the
+ *     SeqUnwrapper's rule 2 with a step of 1: no gap, no stray, no restart; the 16-bit counter may wrap),
+ *     or more frames than max_frames: returned as leftover, the driver decodes them as it always does;
+ *   - watchers: delivery only to the snapshot ``server.fast_watchers`` (watching every sample, read per
+ *     wake-up; None: some watcher is not plain). A watcher whose output is not empty, whose policy changed,
+ *     or whose socket does not take the whole block stops the delivery: its lock stays held and the
+ *     snapshot is returned, so fastpath.py queues the rest in order (fanout's bookkeeping);
+ *   - an extended calibration (processor._correction[1] is not None), end of file or a read error.
+ *
+ * Per batch (the frames of one read) it does what the Python path does for the same block:
+ *   Driver._stamp: t = max(t_recv, last t) for one frame; for several, t_recv minus each frame's tick
+ *   distance to the last (32-bit, a backwards step counts 0) / tick_hz, then never before the last t;
+ *   Processor.correct: the plain correction and the static code (the detector's decision while at most
+ *   max_age samples old, else unknown); SocketServer.publish: one joined block of lines per encoding, sent
+ *   with one non-blocking send() per watcher in snapshot order under the client's lock; Gravcald._acquire:
+ *   the records appended to ``staged`` (the analysis' bytes). It returns at the latest after ``seconds``
+ *   or once ``staged`` holds ist[IST_STAGE_LIMIT] bytes, for the Python loop's housekeeping.
+ * The GIL is released only while waiting in poll().
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <errno.h>
+#include <math.h>
+#include <poll.h>
+#include <stdint.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "../core/_correctkernel.h"
+#include "../drivers/_framekernel.h"
+#include "_linekernel.h"
+
+#define READ_BYTES 65536 /* drivers/serial.py READ_BYTES: more than the kernel's tty buffer holds */
+#define MAX_FRAMES_LIMIT 4096
+
+/* ist (int64) and fst (float64) slots: the state shared with daemon/fastpath.py */
+enum { IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH,
+       IST_STAGE_LIMIT, IST_N };
+enum { FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N };
+enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
+
+/* attribute and method names, interned once: a lookup is then a pointer comparison */
+static PyObject *s_fast_watchers, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t, *s_acquire,
+    *s_release, *s_closed, *s_watch, *s_queue, *s_size, *s_out, *s_dropped_unreported, *s_sent_messages, *s_sent_bytes,
+    *s_last_progress;
+
+/* release a lock keeping the pending exception, if any: 0, or -1 when the release itself failed */
+static int release_keeping_error(PyObject *lock)
+{
+    PyObject *type, *value, *tb;
+    PyErr_Fetch(&type, &value, &tb);
+    PyObject *r = PyObject_CallMethodNoArgs(lock, s_release);
+    if (r == NULL) {
+        Py_XDECREF(type);
+        Py_XDECREF(value);
+        Py_XDECREF(tb);
+        return -1;
+    }
+    Py_DECREF(r);
+    PyErr_Restore(type, value, tb);
+    return 0;
+}
+
+static const GravcalFrameAPI *frame_api;
+static const GravcalCorrectAPI *correct_api;
+static const GravcalLineAPI *line_api;
+
+static double now_s(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts); /* time.monotonic()'s clock */
+    return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
+}
+
+typedef struct {
+    char *buf;
+    Py_ssize_t n, cap;
+} Bytes;
+
+static int reserve(Bytes *b, Py_ssize_t more)
+{
+    if (b->n + more <= b->cap)
+        return 0;
+    Py_ssize_t cap = b->cap ? b->cap : 4096;
+    while (cap < b->n + more)
+        cap *= 2;
+    char *p = PyMem_Realloc(b->buf, (size_t)cap);
+    if (p == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    b->buf = p;
+    b->cap = cap;
+    return 0;
+}
+
+/* What Processor.correct reads per block: the plain correction's offset and K^-T, the gyro's (bias, sens), the
+   detector's latest decision. The arrays are copied only when the processor swaps its tuples. */
+typedef struct {
+    PyObject *correction, *gyro; /* the tuples the values below were copied from (strong references) */
+    double o[3], k[9], bias, sens;
+    int have_last, still;
+    long long last;
+} Params;
+
+static int copy_floats(PyObject *owner, PyObject *name, double *out, Py_ssize_t n)
+{
+    PyObject *a = PyObject_GetAttr(owner, name);
+    if (a == NULL)
+        return -1;
+    Py_buffer v;
+    int rc = PyObject_GetBuffer(a, &v, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT);
+    Py_DECREF(a);
+    if (rc < 0)
+        return -1;
+    rc = 0;
+    if (v.len != n * 8 || v.itemsize != 8 || v.format == NULL || strchr(v.format, 'd') == NULL) {
+        PyErr_Format(PyExc_TypeError, "fastpath: %U must hold %zd float64", name, n);
+        rc = -1;
+    } else {
+        memcpy(out, v.buf, (size_t)(n * 8));
+    }
+    PyBuffer_Release(&v);
+    return rc;
+}
+
+static PyObject *pair_of(PyObject *owner, PyObject *name)
+{
+    PyObject *t = PyObject_GetAttr(owner, name);
+    if (t != NULL && (!PyTuple_Check(t) || PyTuple_GET_SIZE(t) != 2)) {
+        PyErr_Format(PyExc_TypeError, "fastpath: %U must be a pair", name);
+        Py_CLEAR(t);
+    }
+    return t;
+}
+
+/* 1 plain, 0 extended (the Python path's), -1 error */
+static int load_params(PyObject *processor, Params *p)
+{
+    PyObject *corr = pair_of(processor, s_correction);
+    if (corr == NULL)
+        return -1;
+    if (PyTuple_GET_ITEM(corr, 1) != Py_None) {
+        Py_DECREF(corr);
+        return 0;
+    }
+    if (corr != p->correction) {
+        PyObject *plain = PyTuple_GET_ITEM(corr, 0);
+        if (copy_floats(plain, s_offset, p->o, 3) < 0 || copy_floats(plain, s_kinv_t, p->k, 9) < 0) {
+            Py_DECREF(corr);
+            return -1;
+        }
+        Py_XSETREF(p->correction, corr);
+    } else {
+        Py_DECREF(corr);
+    }
+    PyObject *gyro = pair_of(processor, s_gyro_correction);
+    if (gyro == NULL)
+        return -1;
+    if (gyro != p->gyro) {
+        p->bias = PyFloat_AsDouble(PyTuple_GET_ITEM(gyro, 0));
+        p->sens = PyFloat_AsDouble(PyTuple_GET_ITEM(gyro, 1));
+        Py_XSETREF(p->gyro, gyro);
+        if (PyErr_Occurred()) {
+            Py_CLEAR(p->gyro);
+            return -1;
+        }
+    } else {
+        Py_DECREF(gyro);
+    }
+    PyObject *analysed = pair_of(processor, s_analysed);
+    if (analysed == NULL)
+        return -1;
+    PyObject *last = PyTuple_GET_ITEM(analysed, 0);
+    p->have_last = last != Py_None;
+    p->last = p->have_last ? PyLong_AsLongLong(last) : 0;
+    p->still = PyObject_IsTrue(PyTuple_GET_ITEM(analysed, 1));
+    Py_DECREF(analysed);
+    return PyErr_Occurred() || p->still < 0 ? -1 : 1;
+}
+
+/* Processor._static_code: the detector's decision while at most max_age samples older than seq, else unknown */
+static long long static_code(const Params *p, long long seq, double max_age)
+{
+    return p->have_last && (double)(seq - p->last) <= max_age ? p->still : -1;
+}
+
+/* k > 0 when buf[0..n) is exactly k intact frames whose seq continue ``expect`` one by one, else 0 */
+static Py_ssize_t common_frames(const unsigned char *buf, Py_ssize_t n, long long expect, Py_ssize_t max_frames,
+                                uint32_t *ticks)
+{
+    if (n == 0 || n % GRAVCAL_FRAME_LEN != 0 || n / GRAVCAL_FRAME_LEN > max_frames)
+        return 0;
+    Py_ssize_t k = n / GRAVCAL_FRAME_LEN;
+    for (Py_ssize_t i = 0; i < k; i++) {
+        unsigned int seq;
+        if (!frame_api->header(buf + i * GRAVCAL_FRAME_LEN, GRAVCAL_FRAME_LEN, &seq, &ticks[i]))
+            return 0;
+        if (seq != (unsigned int)((expect + i) & 0xFFFF))
+            return 0;
+    }
+    return k;
+}
+
+static int int_attr_nonzero(PyObject *o, PyObject *name)
+{
+    PyObject *v = PyObject_GetAttr(o, name);
+    if (v == NULL)
+        return -1;
+    int r = PyObject_IsTrue(v);
+    Py_DECREF(v);
+    return r;
+}
+
+static int add_attr(PyObject *o, PyObject *name, long long k)
+{
+    PyObject *v = PyObject_GetAttr(o, name);
+    if (v == NULL)
+        return -1;
+    PyObject *d = PyLong_FromLongLong(k);
+    PyObject *s = d ? PyNumber_Add(v, d) : NULL;
+    Py_DECREF(v);
+    Py_XDECREF(d);
+    if (s == NULL)
+        return -1;
+    int rc = PyObject_SetAttr(o, name, s);
+    Py_DECREF(s);
+    return rc;
+}
+
+/* fanout.deliver's plain case for one watcher: 1 sent whole (counted), 0 skipped (closed), 2 stopped with the
+   lock held (*sent: bytes the socket took, -1: not tried), -1 error (lock released) */
+static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double now, Py_ssize_t *sent)
+{
+    if (!PyTuple_Check(entry) || PyTuple_GET_SIZE(entry) != 5) {
+        PyErr_SetString(PyExc_TypeError, "fastpath: a watcher entry is (client, fd, raw, watch, lock)");
+        return -1;
+    }
+    PyObject *c = PyTuple_GET_ITEM(entry, 0), *watch = PyTuple_GET_ITEM(entry, 3), *lock = PyTuple_GET_ITEM(entry, 4);
+    long fd = PyLong_AsLong(PyTuple_GET_ITEM(entry, 1));
+    int raw = PyObject_IsTrue(PyTuple_GET_ITEM(entry, 2));
+    if ((fd == -1 && PyErr_Occurred()) || raw < 0)
+        return -1;
+    PyObject *r = PyObject_CallMethodNoArgs(lock, s_acquire);
+    if (r == NULL)
+        return -1;
+    Py_DECREF(r);
+    int state = -1;
+    *sent = -1;
+    int closed = int_attr_nonzero(c, s_closed);
+    PyObject *now_watch = closed == 0 ? PyObject_GetAttr(c, s_watch) : NULL;
+    if (closed == 1) {
+        state = 0;
+    } else if (now_watch != NULL) {
+        PyObject *queue = PyObject_GetAttr(c, s_queue);
+        int out = int_attr_nonzero(c, s_out), unreported = int_attr_nonzero(c, s_dropped_unreported);
+        int queued = queue ? int_attr_nonzero(queue, s_size) : -1;
+        Py_XDECREF(queue);
+        if (out >= 0 && unreported >= 0 && queued >= 0) {
+            if (now_watch != watch || out || unreported || queued) {
+                state = 2; /* fanout decides: a changed policy, or output that goes first */
+            } else {
+                const Bytes *b = &lines[raw];
+                ssize_t s = send((int)fd, b->buf, (size_t)b->n, MSG_NOSIGNAL | MSG_DONTWAIT);
+                if (s == b->n) {
+                    PyObject *t = PyFloat_FromDouble(now);
+                    state = t && add_attr(c, s_sent_messages, k) == 0 && add_attr(c, s_sent_bytes, s) == 0 &&
+                                    PyObject_SetAttr(c, s_last_progress, t) == 0
+                                ? 1
+                                : -1;
+                    Py_XDECREF(t);
+                } else {
+                    *sent = s > 0 ? s : 0; /* EAGAIN, EPIPE, a partial send: fanout's bookkeeping */
+                    state = 2;
+                }
+            }
+        }
+    }
+    Py_XDECREF(now_watch);
+    if (state == 2)
+        return 2;
+    return release_keeping_error(lock) < 0 ? -1 : state;
+}
+
+typedef struct {
+    long long ist[IST_N];
+    double fst[FST_N];
+} State;
+
+/* One read's frames through the pipeline: records, stamps, correction, staging, lines. 0 ok, -1 error. */
+static int run_batch(State *S, long long *live_ist, const unsigned char *buf, Py_ssize_t k, const uint32_t *ticks,
+                     const Params *P, double t_recv, unsigned char *rows, double *acc, double *gyro, signed char *codes,
+                     PyObject *staged, PyObject *snapshot, Bytes lines[2])
+{
+    long long seq0 = S->ist[IST_SEQ];
+    double tick_hz = S->fst[FST_TICK_HZ], last_t = S->fst[FST_LAST_T];
+    for (Py_ssize_t i = 0; i < k; i++) {
+        unsigned char *row = rows + i * GRAVCAL_SAMPLE_SIZE;
+        frame_api->to_row(buf + i * GRAVCAL_FRAME_LEN, row, seq0 + i, 0);
+        double t = t_recv; /* Driver._stamp */
+        if (k > 1 && tick_hz > 0) {
+            uint32_t back = ticks[k - 1] - ticks[i];
+            t = t_recv - (double)(back > 0x7FFFFFFFu ? 0u : back) / tick_hz;
+        }
+        if (t < last_t)
+            t = last_t;
+        last_t = t;
+        memcpy(row, &t, 8);
+        long long seq = correct_api->correct(row, P->o, P->k, P->bias, P->sens, acc + 3 * i, gyro + i);
+        long long code = static_code(P, seq, S->fst[FST_MAX_AGE]);
+        codes[i] = (signed char)code;
+        S->ist[IST_UNKNOWN] += code < 0;
+    }
+    Py_ssize_t had = PyByteArray_GET_SIZE(staged);
+    if (PyByteArray_Resize(staged, had + k * GRAVCAL_SAMPLE_SIZE) < 0)
+        return -1;
+    memcpy(PyByteArray_AS_STRING(staged) + had, rows, (size_t)(k * GRAVCAL_SAMPLE_SIZE));
+    S->ist[IST_EXPECT] = (S->ist[IST_EXPECT] + k) & 0xFFFF;
+    S->ist[IST_SEQ] += k;
+    S->ist[IST_FRAMES] += k;
+    S->ist[IST_BATCH] = k;
+    memcpy(live_ist + IST_BATCH, &S->ist[IST_BATCH], 8); /* ?POLL reads the newest batch's last record meanwhile */
+    S->ist[IST_TICK] = ticks[k - 1];
+    if (k >= 2) /* SeqUnwrapper._learn_ticks: device ticks per sample */
+        S->fst[FST_TICK_PERIOD] = (double)(uint32_t)(ticks[k - 1] - ticks[0]) / (double)(k - 1);
+    S->fst[FST_LAST_T] = last_t;
+    S->fst[FST_T_RECV] = t_recv;
+    int need[2] = {0, 0};
+    for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot); j++) {
+        PyObject *e = PyTuple_GET_ITEM(snapshot, j);
+        int raw = PyTuple_Check(e) && PyTuple_GET_SIZE(e) == 5 ? PyObject_IsTrue(PyTuple_GET_ITEM(e, 2)) : 0;
+        if (raw < 0)
+            return -1;
+        need[raw] = 1;
+    }
+    for (int raw = 0; raw < 2; raw++) {
+        lines[raw].n = 0;
+        for (Py_ssize_t i = 0; need[raw] && i < k; i++) {
+            if (reserve(&lines[raw], GRAVCAL_IMU_LINE_MAX) < 0)
+                return -1;
+            Py_ssize_t m = line_api->line(rows + i * GRAVCAL_SAMPLE_SIZE, acc + 3 * i, gyro[i], codes[i], raw,
+                                          lines[raw].buf + lines[raw].n, lines[raw].cap - lines[raw].n);
+            if (m < 0)
+                return -1;
+            lines[raw].n += m;
+        }
+    }
+    return 0;
+}
+
+static int check_len(const Py_buffer *b, Py_ssize_t need, const char *what)
+{
+    if (b->len >= need)
+        return 0;
+    PyErr_Format(PyExc_ValueError, "fastpath.step: %s holds %zd bytes, needs %zd", what, b->len, need);
+    return -1;
+}
+
+static PyObject *step(PyObject *self, PyObject *args)
+{
+    int fd, max_frames;
+    double seconds;
+    Py_buffer ist, fst, rows, acc, gyro, codes;
+    PyObject *staged, *server, *processor;
+    if (!PyArg_ParseTuple(args, "idiw*w*O!OOw*w*w*w*:step", &fd, &seconds, &max_frames, &ist, &fst,
+                          &PyByteArray_Type, &staged, &server, &processor, &rows, &acc, &gyro, &codes))
+        return NULL;
+    PyObject *result = NULL, *leftover = NULL, *stopped = Py_NewRef(Py_None);
+    unsigned char *buf = NULL;
+    uint32_t *ticks = NULL;
+    Bytes lines[2] = {{NULL, 0, 0}, {NULL, 0, 0}};
+    State S;
+    Params P = {NULL, NULL};
+    if (fd < 0 || max_frames < 1 || max_frames > MAX_FRAMES_LIMIT || !(seconds >= 0)) {
+        PyErr_SetString(PyExc_ValueError, "fastpath.step: needs fd >= 0, 1 <= max_frames <= 4096, seconds >= 0");
+        goto done;
+    }
+    if (check_len(&ist, IST_N * 8, "ist") || check_len(&fst, FST_N * 8, "fst") ||
+        check_len(&rows, (Py_ssize_t)max_frames * GRAVCAL_SAMPLE_SIZE, "rows") ||
+        check_len(&acc, (Py_ssize_t)max_frames * 24, "acc") || check_len(&gyro, (Py_ssize_t)max_frames * 8, "gyro") ||
+        check_len(&codes, max_frames, "static"))
+        goto done;
+    memcpy(S.ist, ist.buf, sizeof S.ist);
+    memcpy(S.fst, fst.buf, sizeof S.fst);
+    S.ist[IST_FRAMES] = S.ist[IST_UNKNOWN] = 0;
+    S.ist[IST_CLIENT] = S.ist[IST_SENT] = -1;
+    S.ist[IST_REASON] = R_DUE;
+    buf = PyMem_Malloc(READ_BYTES);
+    ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)max_frames);
+    if (buf == NULL || ticks == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    double deadline = now_s() + seconds;
+    for (;;) {
+        if (PyByteArray_GET_SIZE(staged) >= S.ist[IST_STAGE_LIMIT])
+            break;
+        double left = deadline - now_s();
+        if (left <= 0)
+            break;
+        struct pollfd pfd = {fd, POLLIN, 0};
+        int r;
+        Py_BEGIN_ALLOW_THREADS
+        r = poll(&pfd, 1, (int)ceil(left * 1e3));
+        Py_END_ALLOW_THREADS
+        if (r < 0 && errno == EINTR)
+            continue;
+        if (r < 0) {
+            S.ist[IST_REASON] = R_ERROR;
+            break;
+        }
+        if (r == 0)
+            continue;
+        if (!(pfd.revents & POLLIN)) { /* hang-up or error alone: the driver's read reports it */
+            S.ist[IST_REASON] = R_EOF;
+            break;
+        }
+        PyObject *snapshot = PyObject_GetAttr(server, s_fast_watchers);
+        if (snapshot == NULL)
+            goto done;
+        if (snapshot != Py_None && !PyTuple_Check(snapshot)) {
+            Py_DECREF(snapshot);
+            PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_watchers must be a tuple or None");
+            goto done;
+        }
+        int plain = snapshot == Py_None ? 0 : load_params(processor, &P);
+        if (plain != 1) {
+            Py_DECREF(snapshot);
+            if (plain < 0)
+                goto done;
+            S.ist[IST_REASON] = R_NOT_PLAIN;
+            break;
+        }
+        ssize_t n = read(fd, buf, READ_BYTES);
+        if (n < 0 && (errno == EAGAIN || errno == EINTR)) {
+            Py_DECREF(snapshot);
+            continue;
+        }
+        if (n <= 0) {
+            Py_DECREF(snapshot);
+            S.ist[IST_REASON] = n == 0 ? R_EOF : R_ERROR;
+            break;
+        }
+        Py_ssize_t k = common_frames(buf, n, S.ist[IST_EXPECT], max_frames, ticks);
+        if (k == 0) {
+            Py_DECREF(snapshot);
+            leftover = PyBytes_FromStringAndSize((const char *)buf, n);
+            if (leftover == NULL)
+                goto done;
+            S.ist[IST_REASON] = R_BYTES;
+            break;
+        }
+        double t_recv = now_s();
+        if (run_batch(&S, ist.buf, buf, k, ticks, &P, t_recv, rows.buf, acc.buf, gyro.buf, codes.buf, staged, snapshot,
+                      lines) < 0) {
+            Py_DECREF(snapshot);
+            goto done;
+        }
+        int stop = 0;
+        for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot) && !stop; j++) {
+            Py_ssize_t sent;
+            int d = deliver_one(PyTuple_GET_ITEM(snapshot, j), lines, k, t_recv, &sent);
+            if (d < 0) {
+                Py_DECREF(snapshot);
+                goto done;
+            }
+            if (d == 2) {
+                S.ist[IST_CLIENT] = j;
+                S.ist[IST_SENT] = sent;
+                S.ist[IST_REASON] = R_DELIVERY;
+                Py_SETREF(stopped, Py_NewRef(snapshot));
+                stop = 1;
+            }
+        }
+        Py_DECREF(snapshot);
+        if (stop)
+            break;
+    }
+    if (leftover == NULL)
+        leftover = PyBytes_FromStringAndSize(NULL, 0);
+    if (leftover != NULL)
+        result = PyTuple_Pack(2, leftover, stopped);
+done:
+    if (result == NULL && stopped != Py_None) { /* the stopped watcher's lock is not handed over: release it */
+        release_keeping_error(PyTuple_GET_ITEM(PyTuple_GET_ITEM(stopped, S.ist[IST_CLIENT]), 4));
+    }
+    if (ist.len >= IST_N * 8 && fst.len >= FST_N * 8 && result != NULL) {
+        memcpy(ist.buf, S.ist, sizeof S.ist);
+        memcpy(fst.buf, S.fst, sizeof S.fst);
+    } else if (result == NULL && ist.len >= IST_N * 8 && buf != NULL) {
+        memcpy(ist.buf, S.ist, sizeof S.ist); /* what was consumed before the error stays accounted */
+        memcpy(fst.buf, S.fst, sizeof S.fst);
+    }
+    Py_XDECREF(leftover);
+    Py_DECREF(stopped);
+    Py_XDECREF(P.correction);
+    Py_XDECREF(P.gyro);
+    PyMem_Free(buf);
+    PyMem_Free(ticks);
+    PyMem_Free(lines[0].buf);
+    PyMem_Free(lines[1].buf);
+    PyBuffer_Release(&ist);
+    PyBuffer_Release(&fst);
+    PyBuffer_Release(&rows);
+    PyBuffer_Release(&acc);
+    PyBuffer_Release(&gyro);
+    PyBuffer_Release(&codes);
+    return result;
+}
+
+static PyMethodDef methods[] = {
+    {"step", step, METH_VARARGS,
+     "step(fd, seconds, max_frames, ist, fst, staged, server, processor, rows, acc, gyro, static) -> (leftover, "
+     "stopped snapshot or None): the latency path's common case from the bus to the sockets (see daemon/fastpath.py)."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, .m_name = "_fastpath",
+                                    .m_doc = "gravcald's latency path in one C call per wake-up.", .m_size = -1,
+                                    .m_methods = methods};
+
+/* the capsule of a kernel module, imported first (PyCapsule_Import walks attributes the import sets) */
+static void *import_api(const char *module, const char *capsule)
+{
+    PyObject *m = PyImport_ImportModule(module);
+    if (m == NULL)
+        return NULL;
+    Py_DECREF(m);
+    return PyCapsule_Import(capsule, 0);
+}
+
+PyMODINIT_FUNC PyInit__fastpath(void)
+{
+    struct {
+        PyObject **name;
+        const char *text;
+    } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_correction, "_correction"},
+                 {&s_gyro_correction, "_gyro_correction"}, {&s_analysed, "analysed"}, {&s_offset, "offset"},
+                 {&s_kinv_t, "kinv_t"}, {&s_acquire, "acquire"}, {&s_release, "release"}, {&s_closed, "closed"},
+                 {&s_watch, "watch"}, {&s_queue, "queue"}, {&s_size, "size"}, {&s_out, "out"},
+                 {&s_dropped_unreported, "dropped_unreported"}, {&s_sent_messages, "sent_messages"},
+                 {&s_sent_bytes, "sent_bytes"}, {&s_last_progress, "last_progress"}};
+    for (size_t i = 0; i < sizeof names / sizeof names[0]; i++)
+        if (*names[i].name == NULL && (*names[i].name = PyUnicode_InternFromString(names[i].text)) == NULL)
+            return NULL;
+    frame_api = import_api("gravcal.drivers._framekernel", GRAVCAL_FRAME_CAPSULE);
+    correct_api = frame_api ? import_api("gravcal.core._correctkernel", GRAVCAL_CORRECT_CAPSULE) : NULL;
+    line_api = correct_api ? import_api("gravcal.daemon._linekernel", GRAVCAL_LINE_CAPSULE) : NULL;
+    if (line_api == NULL)
+        return NULL;
+    return PyModule_Create(&module);
+}
