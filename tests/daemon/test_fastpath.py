@@ -218,3 +218,56 @@ def test_clients_receive_the_same_bytes_with_and_without_the_c_step(tmp_path):
     assert np.all(np.diff(seqs) >= 1)
     assert any(m["flags"] & 1 for m in imu)  # a gap flagged (FLAG_GAP_BEFORE)
     assert sum(m["class"] == "CALIB" for m in lines) == 2  # at WATCH, and the change
+
+
+def test_a_slow_reader_beside_the_c_step_loses_only_whole_counted_lines(tmp_path):
+    """A reader that stops reading fills its socket: the C step hands the rest of each block to fanout, which
+    queues it behind what is pending (bounded, the oldest dropped and announced); a plain reader beside it
+    gets every sample, and the slow one, once it reads again, whole lines in order with the loss counted."""
+    link = PtyLink(tmp_path / "tty" / "ttyGRAVCAL0")
+    link.connect()
+    cfg = Config()
+    cfg.socket.path = str(tmp_path / "g.sock")
+    cfg.socket.queue_messages = 50
+    cfg.state.directory = str(tmp_path / "state")
+    d = Gravcald(cfg, driver=open_driver(link.spec), environ={}, detector=NoWindows())
+    d.start()
+    try:
+        good = Reader(cfg.socket.path, '?WATCH={"enable":true};')
+        slow = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        slow.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        slow.connect(cfg.socket.path)
+        slow.sendall(b'?WATCH={"enable":true,"raw":true};\n')
+        time.sleep(0.3)
+        for k in range(0, 600, 2):
+            link.write(frames(range(k, k + 2)), True)
+            time.sleep(0.002)
+        settle(d, good)
+        n = d.server.published_samples
+        taken = d._fast.taken
+        slow.settimeout(1.0)
+        data = b""
+        while True:
+            try:
+                got = slow.recv(1 << 16)
+            except socket.timeout:
+                break
+            if not got:
+                break
+            data += got
+    finally:
+        d.request_stop()
+        d.shutdown()
+        link.close()
+        good.close()
+    assert good.imu() == n == 600 and taken > 0
+    msgs = [json.loads(x) for x in data.splitlines()]  # whole lines only
+    seqs = [m["seq"] for m in msgs if m["class"] == "IMU"]
+    dropped = sum(m["count"] for m in msgs if m["class"] == "DROPPED")
+    assert dropped > 0 and np.all(np.diff(seqs) > 0)
+    assert len(seqs) + dropped == n
+    assert seqs[-1] == good_last_seq(good)
+
+
+def good_last_seq(r: Reader) -> int:
+    return [json.loads(x) for x in bytes(r.data).splitlines() if b'"IMU"' in x][-1]["seq"]
