@@ -2,6 +2,7 @@
  *
  * step(fd, seconds, max_frames, ist, fst, staged, server, processor, rows, acc, gyro, static)
  *     -> (leftover bytes, the watcher snapshot of a stopped delivery or None)
+ * take(data, max_frames, ist, ...)  the same for the bytes of one read the caller made (the I2C FIFO)
  *
  * It composes the per-layer kernels in pipeline order, each imported from its own module as a capsule:
  * the frame check and record (drivers/_framekernel.c), the plain correction (core/_correctkernel.c), the
@@ -364,48 +365,172 @@ static int check_len(const Py_buffer *b, Py_ssize_t need, const char *what)
 {
     if (b->len >= need)
         return 0;
-    PyErr_Format(PyExc_ValueError, "fastpath.step: %s holds %zd bytes, needs %zd", what, b->len, need);
+    PyErr_Format(PyExc_ValueError, "fastpath: %s holds %zd bytes, needs %zd", what, b->len, need);
     return -1;
 }
 
+/* One call's arguments and scratch (step and take share everything after the bytes are in hand). */
+typedef struct {
+    int max_frames;
+    Py_buffer ist, fst, rows, acc, gyro, codes;
+    PyObject *staged, *server, *processor, *leftover, *stopped;
+    uint32_t *ticks;
+    Bytes lines[2];
+    State S;
+    Params P;
+    int started; /* S holds the caller's state (copied back at the end) */
+} Call;
+
+static int call_open(Call *C)
+{
+    C->leftover = NULL;
+    C->stopped = Py_NewRef(Py_None);
+    C->ticks = NULL;
+    C->lines[0] = C->lines[1] = (Bytes){NULL, 0, 0};
+    C->P = (Params){NULL, NULL};
+    C->started = 0;
+    if (C->max_frames < 1 || C->max_frames > MAX_FRAMES_LIMIT) {
+        PyErr_SetString(PyExc_ValueError, "fastpath: needs 1 <= max_frames <= 4096");
+        return -1;
+    }
+    if (check_len(&C->ist, IST_N * 8, "ist") || check_len(&C->fst, FST_N * 8, "fst") ||
+        check_len(&C->rows, (Py_ssize_t)C->max_frames * GRAVCAL_SAMPLE_SIZE, "rows") ||
+        check_len(&C->acc, (Py_ssize_t)C->max_frames * 24, "acc") ||
+        check_len(&C->gyro, (Py_ssize_t)C->max_frames * 8, "gyro") || check_len(&C->codes, C->max_frames, "static"))
+        return -1;
+    C->ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)C->max_frames);
+    if (C->ticks == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    State *S = &C->S;
+    memcpy(S->ist, C->ist.buf, sizeof S->ist);
+    memcpy(S->fst, C->fst.buf, sizeof S->fst);
+    S->ist[IST_FRAMES] = S->ist[IST_UNKNOWN] = 0;
+    S->ist[IST_CLIENT] = S->ist[IST_SENT] = -1;
+    S->ist[IST_REASON] = R_DUE;
+    C->started = 1;
+    return 0;
+}
+
+/* The watcher snapshot and the correction for the next bytes: 1 plain (*snapshot set), 0 not (the Python
+   path's: reason R_NOT_PLAIN), -1 error */
+static int call_prepare(Call *C, PyObject **snapshot)
+{
+    PyObject *snap = PyObject_GetAttr(C->server, s_fast_watchers);
+    if (snap == NULL)
+        return -1;
+    if (snap != Py_None && !PyTuple_Check(snap)) {
+        Py_DECREF(snap);
+        PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_watchers must be a tuple or None");
+        return -1;
+    }
+    int plain = snap == Py_None ? 0 : load_params(C->processor, &C->P);
+    if (plain != 1) {
+        Py_DECREF(snap);
+        if (plain == 0)
+            C->S.ist[IST_REASON] = R_NOT_PLAIN;
+        return plain;
+    }
+    *snapshot = snap;
+    return 1;
+}
+
+/* One read's bytes: 1 taken and delivered, 0 stopped (bytes handed back, or a delivery for fanout), -1 error.
+   Consumes the reference to ``snapshot``. */
+static int call_process(Call *C, const unsigned char *buf, Py_ssize_t n, PyObject *snapshot)
+{
+    State *S = &C->S;
+    Py_ssize_t k = common_frames(buf, n, S->ist[IST_EXPECT], C->max_frames, C->ticks);
+    if (k == 0) {
+        Py_DECREF(snapshot);
+        C->leftover = PyBytes_FromStringAndSize((const char *)buf, n);
+        S->ist[IST_REASON] = R_BYTES;
+        return C->leftover == NULL ? -1 : 0;
+    }
+    double t_recv = now_s();
+    if (run_batch(S, C->ist.buf, buf, k, C->ticks, &C->P, t_recv, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf,
+                  C->staged, snapshot, C->lines) < 0) {
+        Py_DECREF(snapshot);
+        return -1;
+    }
+    for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot); j++) {
+        Py_ssize_t sent;
+        int d = deliver_one(PyTuple_GET_ITEM(snapshot, j), C->lines, k, t_recv, &sent);
+        if (d < 0) {
+            Py_DECREF(snapshot);
+            return -1;
+        }
+        if (d == 2) {
+            S->ist[IST_CLIENT] = j;
+            S->ist[IST_SENT] = sent;
+            S->ist[IST_REASON] = R_DELIVERY;
+            Py_SETREF(C->stopped, snapshot);
+            return 0;
+        }
+    }
+    Py_DECREF(snapshot);
+    return 1;
+}
+
+/* (leftover, stopped) or NULL; the state copied back either way (what was consumed stays accounted) */
+static PyObject *call_close(Call *C, int ok)
+{
+    PyObject *result = NULL;
+    if (ok) {
+        if (C->leftover == NULL)
+            C->leftover = PyBytes_FromStringAndSize(NULL, 0);
+        if (C->leftover != NULL)
+            result = PyTuple_Pack(2, C->leftover, C->stopped);
+    }
+    if (result == NULL && C->stopped != Py_None) /* the stopped watcher's lock is not handed over: release it */
+        release_keeping_error(PyTuple_GET_ITEM(PyTuple_GET_ITEM(C->stopped, C->S.ist[IST_CLIENT]), 4));
+    if (C->started) {
+        memcpy(C->ist.buf, C->S.ist, sizeof C->S.ist);
+        memcpy(C->fst.buf, C->S.fst, sizeof C->S.fst);
+    }
+    Py_XDECREF(C->leftover);
+    Py_DECREF(C->stopped);
+    Py_XDECREF(C->P.correction);
+    Py_XDECREF(C->P.gyro);
+    PyMem_Free(C->ticks);
+    PyMem_Free(C->lines[0].buf);
+    PyMem_Free(C->lines[1].buf);
+    PyBuffer_Release(&C->ist);
+    PyBuffer_Release(&C->fst);
+    PyBuffer_Release(&C->rows);
+    PyBuffer_Release(&C->acc);
+    PyBuffer_Release(&C->gyro);
+    PyBuffer_Release(&C->codes);
+    return result;
+}
+
+/* step(fd, seconds, ...): wait on fd (the GIL released) and read it, until due or stopped */
 static PyObject *step(PyObject *self, PyObject *args)
 {
-    int fd, max_frames;
+    int fd;
     double seconds;
-    Py_buffer ist, fst, rows, acc, gyro, codes;
-    PyObject *staged, *server, *processor;
-    if (!PyArg_ParseTuple(args, "idiw*w*O!OOw*w*w*w*:step", &fd, &seconds, &max_frames, &ist, &fst,
-                          &PyByteArray_Type, &staged, &server, &processor, &rows, &acc, &gyro, &codes))
+    Call C;
+    if (!PyArg_ParseTuple(args, "idiw*w*O!OOw*w*w*w*:step", &fd, &seconds, &C.max_frames, &C.ist, &C.fst,
+                          &PyByteArray_Type, &C.staged, &C.server, &C.processor, &C.rows, &C.acc, &C.gyro, &C.codes))
         return NULL;
-    PyObject *result = NULL, *leftover = NULL, *stopped = Py_NewRef(Py_None);
     unsigned char *buf = NULL;
-    uint32_t *ticks = NULL;
-    Bytes lines[2] = {{NULL, 0, 0}, {NULL, 0, 0}};
-    State S;
-    Params P = {NULL, NULL};
-    if (fd < 0 || max_frames < 1 || max_frames > MAX_FRAMES_LIMIT || !(seconds >= 0)) {
-        PyErr_SetString(PyExc_ValueError, "fastpath.step: needs fd >= 0, 1 <= max_frames <= 4096, seconds >= 0");
+    int ok = 0;
+    if (call_open(&C) < 0)
+        goto done;
+    if (fd < 0 || !(seconds >= 0)) {
+        PyErr_SetString(PyExc_ValueError, "fastpath.step: needs fd >= 0 and seconds >= 0");
         goto done;
     }
-    if (check_len(&ist, IST_N * 8, "ist") || check_len(&fst, FST_N * 8, "fst") ||
-        check_len(&rows, (Py_ssize_t)max_frames * GRAVCAL_SAMPLE_SIZE, "rows") ||
-        check_len(&acc, (Py_ssize_t)max_frames * 24, "acc") || check_len(&gyro, (Py_ssize_t)max_frames * 8, "gyro") ||
-        check_len(&codes, max_frames, "static"))
-        goto done;
-    memcpy(S.ist, ist.buf, sizeof S.ist);
-    memcpy(S.fst, fst.buf, sizeof S.fst);
-    S.ist[IST_FRAMES] = S.ist[IST_UNKNOWN] = 0;
-    S.ist[IST_CLIENT] = S.ist[IST_SENT] = -1;
-    S.ist[IST_REASON] = R_DUE;
     buf = PyMem_Malloc(READ_BYTES);
-    ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)max_frames);
-    if (buf == NULL || ticks == NULL) {
+    if (buf == NULL) {
         PyErr_NoMemory();
         goto done;
     }
+    State *S = &C.S;
     double deadline = now_s() + seconds;
     for (;;) {
-        if (PyByteArray_GET_SIZE(staged) >= S.ist[IST_STAGE_LIMIT])
+        if (PyByteArray_GET_SIZE(C.staged) >= S->ist[IST_STAGE_LIMIT])
             break;
         double left = deadline - now_s();
         if (left <= 0)
@@ -418,31 +543,21 @@ static PyObject *step(PyObject *self, PyObject *args)
         if (r < 0 && errno == EINTR)
             continue;
         if (r < 0) {
-            S.ist[IST_REASON] = R_ERROR;
+            S->ist[IST_REASON] = R_ERROR;
             break;
         }
         if (r == 0)
             continue;
         if (!(pfd.revents & POLLIN)) { /* hang-up or error alone: the driver's read reports it */
-            S.ist[IST_REASON] = R_EOF;
+            S->ist[IST_REASON] = R_EOF;
             break;
         }
-        PyObject *snapshot = PyObject_GetAttr(server, s_fast_watchers);
-        if (snapshot == NULL)
+        PyObject *snapshot;
+        int plain = call_prepare(&C, &snapshot); /* before reading: bytes for the Python path stay unread */
+        if (plain < 0)
             goto done;
-        if (snapshot != Py_None && !PyTuple_Check(snapshot)) {
-            Py_DECREF(snapshot);
-            PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_watchers must be a tuple or None");
-            goto done;
-        }
-        int plain = snapshot == Py_None ? 0 : load_params(processor, &P);
-        if (plain != 1) {
-            Py_DECREF(snapshot);
-            if (plain < 0)
-                goto done;
-            S.ist[IST_REASON] = R_NOT_PLAIN;
+        if (plain == 0)
             break;
-        }
         ssize_t n = read(fd, buf, READ_BYTES);
         if (n < 0 && (errno == EAGAIN || errno == EINTR)) {
             Py_DECREF(snapshot);
@@ -450,80 +565,48 @@ static PyObject *step(PyObject *self, PyObject *args)
         }
         if (n <= 0) {
             Py_DECREF(snapshot);
-            S.ist[IST_REASON] = n == 0 ? R_EOF : R_ERROR;
+            S->ist[IST_REASON] = n == 0 ? R_EOF : R_ERROR;
             break;
         }
-        Py_ssize_t k = common_frames(buf, n, S.ist[IST_EXPECT], max_frames, ticks);
-        if (k == 0) {
-            Py_DECREF(snapshot);
-            leftover = PyBytes_FromStringAndSize((const char *)buf, n);
-            if (leftover == NULL)
-                goto done;
-            S.ist[IST_REASON] = R_BYTES;
-            break;
-        }
-        double t_recv = now_s();
-        if (run_batch(&S, ist.buf, buf, k, ticks, &P, t_recv, rows.buf, acc.buf, gyro.buf, codes.buf, staged, snapshot,
-                      lines) < 0) {
-            Py_DECREF(snapshot);
+        int more = call_process(&C, buf, n, snapshot);
+        if (more < 0)
             goto done;
-        }
-        int stop = 0;
-        for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot) && !stop; j++) {
-            Py_ssize_t sent;
-            int d = deliver_one(PyTuple_GET_ITEM(snapshot, j), lines, k, t_recv, &sent);
-            if (d < 0) {
-                Py_DECREF(snapshot);
-                goto done;
-            }
-            if (d == 2) {
-                S.ist[IST_CLIENT] = j;
-                S.ist[IST_SENT] = sent;
-                S.ist[IST_REASON] = R_DELIVERY;
-                Py_SETREF(stopped, Py_NewRef(snapshot));
-                stop = 1;
-            }
-        }
-        Py_DECREF(snapshot);
-        if (stop)
+        if (more == 0)
             break;
     }
-    if (leftover == NULL)
-        leftover = PyBytes_FromStringAndSize(NULL, 0);
-    if (leftover != NULL)
-        result = PyTuple_Pack(2, leftover, stopped);
+    ok = 1;
 done:
-    if (result == NULL && stopped != Py_None) { /* the stopped watcher's lock is not handed over: release it */
-        release_keeping_error(PyTuple_GET_ITEM(PyTuple_GET_ITEM(stopped, S.ist[IST_CLIENT]), 4));
-    }
-    if (ist.len >= IST_N * 8 && fst.len >= FST_N * 8 && result != NULL) {
-        memcpy(ist.buf, S.ist, sizeof S.ist);
-        memcpy(fst.buf, S.fst, sizeof S.fst);
-    } else if (result == NULL && ist.len >= IST_N * 8 && buf != NULL) {
-        memcpy(ist.buf, S.ist, sizeof S.ist); /* what was consumed before the error stays accounted */
-        memcpy(fst.buf, S.fst, sizeof S.fst);
-    }
-    Py_XDECREF(leftover);
-    Py_DECREF(stopped);
-    Py_XDECREF(P.correction);
-    Py_XDECREF(P.gyro);
     PyMem_Free(buf);
-    PyMem_Free(ticks);
-    PyMem_Free(lines[0].buf);
-    PyMem_Free(lines[1].buf);
-    PyBuffer_Release(&ist);
-    PyBuffer_Release(&fst);
-    PyBuffer_Release(&rows);
-    PyBuffer_Release(&acc);
-    PyBuffer_Release(&gyro);
-    PyBuffer_Release(&codes);
-    return result;
+    return call_close(&C, ok);
+}
+
+/* take(data, ...): the bytes of one read made by the caller (the I2C FIFO's bursts, read by smbus2) */
+static PyObject *take(PyObject *self, PyObject *args)
+{
+    Py_buffer data;
+    Call C;
+    if (!PyArg_ParseTuple(args, "y*iw*w*O!OOw*w*w*w*:take", &data, &C.max_frames, &C.ist, &C.fst, &PyByteArray_Type,
+                          &C.staged, &C.server, &C.processor, &C.rows, &C.acc, &C.gyro, &C.codes))
+        return NULL;
+    int ok = 0;
+    if (call_open(&C) == 0) {
+        PyObject *snapshot;
+        int plain = call_prepare(&C, &snapshot);
+        if (plain == 0)
+            C.leftover = PyBytes_FromStringAndSize(data.buf, data.len);
+        ok = plain == 0 ? C.leftover != NULL : plain == 1 && call_process(&C, data.buf, data.len, snapshot) >= 0;
+    }
+    PyBuffer_Release(&data);
+    return call_close(&C, ok);
 }
 
 static PyMethodDef methods[] = {
     {"step", step, METH_VARARGS,
      "step(fd, seconds, max_frames, ist, fst, staged, server, processor, rows, acc, gyro, static) -> (leftover, "
      "stopped snapshot or None): the latency path's common case from the bus to the sockets (see daemon/fastpath.py)."},
+    {"take", take, METH_VARARGS,
+     "take(data, max_frames, ist, fst, staged, server, processor, rows, acc, gyro, static) -> (leftover, stopped "
+     "snapshot or None): as step for the bytes of one read made by the caller."},
     {NULL, NULL, 0, NULL},
 };
 
