@@ -17,12 +17,13 @@ a partial frame, samples waiting, a latency budget, a pyserial URL) or while a w
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import numpy as np
 
 from ..core.samples import SAMPLE_DTYPE
-from ._fastpath import step
+from ._fastpath import step, take
 from .processing import STATIC_MAX_AGE_S
 from .protocol import ImuBlock
 
@@ -55,43 +56,89 @@ class FastPath:
 
     @classmethod
     def for_driver(cls, driver: Any, *args: Any, **kwargs: Any) -> "FastPath | None":
-        """A FastPath when the driver offers its bytes to the C step (drivers/serial.py fast_entry), else None."""
-        return cls(driver, *args, **kwargs) if hasattr(driver, "fast_entry") else None
+        """A FastPath when the driver offers its bytes to the C step: its descriptor (drivers/serial.py
+        ``fast_entry``) or the bytes it reads (drivers/i2c.py ``fast_ready``); else None."""
+        ok = hasattr(driver, "fast_entry") or hasattr(driver, "fast_ready")
+        return cls(driver, *args, **kwargs) if ok else None
 
     def run(self, staged: bytearray, seconds: float = HOUSEKEEPING_S) -> tuple[int, bool]:
         """Run the C step for up to ``seconds``, appending the records to ``staged``: (samples taken, whether
         the Python path reads next: bytes or a case the step does not take are waiting)."""
+        if self.server.fast_watchers is None or self.processor._correction[1] is not None:
+            return 0, True
+        if hasattr(self.driver, "fast_ready"):
+            return self._run_fed(staged, seconds)
         entry = self.driver.fast_entry()
-        if entry is None or self.server.fast_watchers is None or self.processor._correction[1] is not None:
+        if entry is None:
             return 0, True
         fd, raw, seq, last_t = entry
+        self._start(raw, seq, last_t)
+        try:
+            leftover, stopped = step(fd, seconds, self.max_frames, self.ist, self.fst, staged, self.server,
+                                     self.processor, self.rows, self.acc, self.gyro, self.codes)
+        finally:
+            n = self._account(int(self.ist[IST_FRAMES]), int(self.ist[IST_UNKNOWN]))
+        self._finish(stopped)
+        if leftover:
+            self.driver.unread(leftover)
+        return n, int(self.ist[IST_REASON]) != R_DUE
+
+    def _run_fed(self, staged: bytearray, seconds: float) -> tuple[int, bool]:
+        """As :meth:`run` for a driver whose reads are Python calls (I2C: smbus2): each read's bytes go to the
+        C step's ``take``; the counters are applied once at the end."""
+        drv = self.driver
+        entry = drv.fast_ready()
+        if entry is None:
+            return 0, True
+        self._start(*entry)
+        end = time.monotonic() + seconds
+        ist, n, unknown, read_next = self.ist, 0, 0, False
+        try:
+            while len(staged) < ist[IST_STAGE_LIMIT] and time.monotonic() < end:
+                bursts = drv.fast_read(end)
+                if bursts is None:  # the bus failed: the Python path reconnects
+                    read_next = True
+                    break
+                if not bursts:
+                    continue
+                ist[IST_FRAMES] = ist[IST_UNKNOWN] = 0
+                try:
+                    leftover, stopped = take(b"".join(bursts), self.max_frames, ist, self.fst, staged, self.server,
+                                             self.processor, self.rows, self.acc, self.gyro, self.codes)
+                finally:
+                    n, unknown = n + int(ist[IST_FRAMES]), unknown + int(ist[IST_UNKNOWN])
+                self._finish(stopped)
+                if leftover:
+                    drv.unread(bursts)
+                if ist[IST_REASON] != R_DUE:
+                    read_next = True
+                    break
+        finally:
+            self._account(n, unknown)
+        return n, read_next
+
+    def _start(self, raw: int, seq: int, last_t: float) -> None:
         ist, fst = self.ist, self.fst
         ist[IST_EXPECT], ist[IST_SEQ], ist[IST_FRAMES] = raw, seq, 0
         fst[FST_LAST_T], fst[FST_TICK_HZ], fst[FST_TICK_PERIOD] = last_t, self.driver.tick_hz or 0.0, math.nan
-        try:
-            leftover, stopped = step(fd, seconds, self.max_frames, ist, fst, staged, self.server, self.processor,
-                                     self.rows, self.acc, self.gyro, self.codes)
-        finally:
-            n = self._account()
-        if stopped is not None:
-            k = int(ist[IST_BATCH])
-            block = ImuBlock(self.rows[:k].copy(), self.acc[:k].copy(), self.gyro[:k].copy(), self.codes[:k].copy())
-            self.server.finish_publish(block, stopped, int(ist[IST_CLIENT]), int(ist[IST_SENT]))
-        if leftover:
-            self.driver.unread(leftover)
-        return n, int(ist[IST_REASON]) != R_DUE
 
-    def _account(self) -> int:
-        """What the Python path counts per sample, for the samples the step took."""
+    def _finish(self, stopped: Any) -> None:
+        """A delivery the step stopped: the server's fanout delivers the rest of the batch."""
+        if stopped is not None:
+            k = int(self.ist[IST_BATCH])
+            block = ImuBlock(self.rows[:k].copy(), self.acc[:k].copy(), self.gyro[:k].copy(), self.codes[:k].copy())
+            self.server.finish_publish(block, stopped, int(self.ist[IST_CLIENT]), int(self.ist[IST_SENT]))
+
+    def _account(self, n: int, unknown: int) -> int:
+        """What the Python path counts per sample, for the ``n`` samples the step took."""
         ist, fst = self.ist, self.fst
-        n = int(ist[IST_FRAMES])
         if n <= 0:
             return 0
         period = float(fst[FST_TICK_PERIOD])
         self.driver.fast_consumed(n, int(ist[IST_TICK]), None if math.isnan(period) else period,
                                   float(fst[FST_LAST_T]), float(fst[FST_T_RECV]))
         self.processor.corrected_seq = int(ist[IST_SEQ]) - 1
-        self.processor.static_unknown += int(ist[IST_UNKNOWN])
+        self.processor.static_unknown += unknown
         self.server.count_published(n, self.latest)
         self.taken += n
         return n

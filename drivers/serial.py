@@ -122,15 +122,6 @@ class SerialDriver(FramedStreamDriver):
         self._wake_at(FRAME_LEN)
         return self._fd, nxt[0], nxt[1], self._last_t
 
-    def fast_consumed(self, n: int, tick: int, tick_period: float | None, last_t: float, t_recv: float) -> None:
-        """The C step took ``n`` frames from :meth:`fast_entry` on: the state :meth:`read` leaves after them."""
-        u = self.decoder.unwrapper
-        u.continued(n, tick, tick_period)
-        self.decoder.count_frames(n)
-        self.counters["samples"] += n
-        self._last_t = last_t
-        self._rate.update_seq(u.last + u.offset, t_recv)
-
     def unread(self, data: bytes) -> None:
         """Bytes the C step read but did not take: the next :meth:`read` decodes them first, as if just read."""
         self._unread += data
