@@ -18,10 +18,9 @@
  *     snapshot is returned, so fastpath.py queues the rest in order (fanout's bookkeeping);
  *   - an extended calibration (processor._correction[1] is not None), end of file or a read error.
  *
- * Per batch (the frames of one read) it does what the Python path does for the same block:
- *   Driver._stamp: t = max(t_recv, last t) for one frame; for several, t_recv minus each frame's tick
- *   distance to the last (32-bit, a backwards step counts 0) / tick_hz, then never before the last t;
- *   Processor.correct: the plain correction and the static code (the detector's decision while at most
+ * Per batch (the frames of one read) it does what the Python path does for the same block, in order:
+ *   the frame kernel checks the frames continue the stream and writes their records, stamped as
+ *   Driver._stamp does; Processor.correct: the plain correction and the static code (the detector's decision while at most
  *   max_age samples old, else unknown); SocketServer.publish: one joined block of lines per encoding, sent
  *   with one non-blocking send() per watcher in snapshot order under the client's lock; Gravcald._acquire:
  *   the records appended to ``staged`` (the analysis' bytes). It returns at the latest after ``seconds``
@@ -198,23 +197,6 @@ static long long static_code(const Params *p, long long seq, double max_age)
     return p->have_last && (double)(seq - p->last) <= max_age ? p->still : -1;
 }
 
-/* k > 0 when buf[0..n) is exactly k intact frames whose seq continue ``expect`` one by one, else 0 */
-static Py_ssize_t common_frames(const unsigned char *buf, Py_ssize_t n, long long expect, Py_ssize_t max_frames,
-                                uint32_t *ticks)
-{
-    if (n == 0 || n % GRAVCAL_FRAME_LEN != 0 || n / GRAVCAL_FRAME_LEN > max_frames)
-        return 0;
-    Py_ssize_t k = n / GRAVCAL_FRAME_LEN;
-    for (Py_ssize_t i = 0; i < k; i++) {
-        unsigned int seq;
-        if (!frame_api->header(buf + i * GRAVCAL_FRAME_LEN, GRAVCAL_FRAME_LEN, &seq, &ticks[i]))
-            return 0;
-        if (seq != (unsigned int)((expect + i) & 0xFFFF))
-            return 0;
-    }
-    return k;
-}
-
 static int int_attr_nonzero(PyObject *o, PyObject *name)
 {
     PyObject *v = PyObject_GetAttr(o, name);
@@ -301,25 +283,14 @@ typedef struct {
 } State;
 
 /* One read's frames through the pipeline: records, stamps, correction, staging, lines. 0 ok, -1 error. */
-static int run_batch(State *S, long long *live_ist, const unsigned char *buf, Py_ssize_t k, const uint32_t *ticks,
-                     const Params *P, double t_recv, unsigned char *rows, double *acc, double *gyro, signed char *codes,
+/* One read's records (already written and stamped by the frame kernel) through correction, staging and the lines */
+static int run_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t *ticks, const Params *P,
+                     double t_recv, unsigned char *rows, double *acc, double *gyro, signed char *codes,
                      PyObject *staged, PyObject *snapshot, Bytes lines[2])
 {
-    long long seq0 = S->ist[IST_SEQ];
-    double tick_hz = S->fst[FST_TICK_HZ], last_t = S->fst[FST_LAST_T];
     for (Py_ssize_t i = 0; i < k; i++) {
-        unsigned char *row = rows + i * GRAVCAL_SAMPLE_SIZE;
-        frame_api->to_row(buf + i * GRAVCAL_FRAME_LEN, row, seq0 + i, 0);
-        double t = t_recv; /* Driver._stamp */
-        if (k > 1 && tick_hz > 0) {
-            uint32_t back = ticks[k - 1] - ticks[i];
-            t = t_recv - (double)(back > 0x7FFFFFFFu ? 0u : back) / tick_hz;
-        }
-        if (t < last_t)
-            t = last_t;
-        last_t = t;
-        memcpy(row, &t, 8);
-        long long seq = correct_api->correct(row, P->o, P->k, P->bias, P->sens, acc + 3 * i, gyro + i);
+        long long seq = correct_api->correct(rows + i * GRAVCAL_SAMPLE_SIZE, P->o, P->k, P->bias, P->sens, acc + 3 * i,
+                                             gyro + i);
         long long code = static_code(P, seq, S->fst[FST_MAX_AGE]);
         codes[i] = (signed char)code;
         S->ist[IST_UNKNOWN] += code < 0;
@@ -336,7 +307,6 @@ static int run_batch(State *S, long long *live_ist, const unsigned char *buf, Py
     S->ist[IST_TICK] = ticks[k - 1];
     if (k >= 2) /* SeqUnwrapper._learn_ticks: device ticks per sample */
         S->fst[FST_TICK_PERIOD] = (double)(uint32_t)(ticks[k - 1] - ticks[0]) / (double)(k - 1);
-    S->fst[FST_LAST_T] = last_t;
     S->fst[FST_T_RECV] = t_recv;
     int need[2] = {0, 0};
     for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot); j++) {
@@ -441,15 +411,16 @@ static int call_prepare(Call *C, PyObject **snapshot)
 static int call_process(Call *C, const unsigned char *buf, Py_ssize_t n, PyObject *snapshot)
 {
     State *S = &C->S;
-    Py_ssize_t k = common_frames(buf, n, S->ist[IST_EXPECT], C->max_frames, C->ticks);
+    double t_recv = now_s();
+    Py_ssize_t k = frame_api->continuing(buf, n, S->ist[IST_EXPECT], C->max_frames, S->ist[IST_SEQ],
+                                         S->fst[FST_TICK_HZ], t_recv, &S->fst[FST_LAST_T], C->rows.buf, C->ticks);
     if (k == 0) {
         Py_DECREF(snapshot);
         C->leftover = PyBytes_FromStringAndSize((const char *)buf, n);
         S->ist[IST_REASON] = R_BYTES;
         return C->leftover == NULL ? -1 : 0;
     }
-    double t_recv = now_s();
-    if (run_batch(S, C->ist.buf, buf, k, C->ticks, &C->P, t_recv, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf,
+    if (run_batch(S, C->ist.buf, k, C->ticks, &C->P, t_recv, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf,
                   C->staged, snapshot, C->lines) < 0) {
         Py_DECREF(snapshot);
         return -1;

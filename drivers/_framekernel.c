@@ -9,7 +9,8 @@
  * temp/vsupply are codec.temp_from_raw / vsupply_from_raw in float64 then stored as float32.
  * Built with -ffp-contract=off so each operation rounds as numpy's elementwise ops do.
  * One sample is well under a microsecond of work: the GIL is kept (dropping and retaking it costs more).
- * The same two steps are exported to other kernels as a capsule (_framekernel.h; daemon/_fastpath.c).
+ * The record writer, and a whole read's records when it only continues the stream (stamped as the driver
+ * stamps them), are exported to other kernels as a capsule (_framekernel.h; daemon/_fastpath.c).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -79,15 +80,6 @@ static void write_row(unsigned char *r, long long seq, uint32_t tick, const uint
     memcpy(r + 54, &flags, 2);
 }
 
-static int header_c(const unsigned char *p, Py_ssize_t n, unsigned int *seq, uint32_t *tick)
-{
-    if (!intact_bytes(p, n))
-        return 0;
-    *seq = u16le(p + 3);
-    *tick = u32le(p + 5);
-    return 1;
-}
-
 static void to_row_c(const unsigned char *p, unsigned char *row, long long seq, uint16_t flags)
 {
     uint32_t t1[4], t2[2];
@@ -98,7 +90,42 @@ static void to_row_c(const unsigned char *p, unsigned char *row, long long seq, 
     write_row(row, seq, u32le(p + 5), t1, t2, (uint16_t)u16le(p + 21), u16le(p + 23), u16le(p + 25), flags);
 }
 
-static const GravcalFrameAPI c_api = {header_c, to_row_c};
+/* The records of a read that only continues the stream (the unwrapper's rule 2 with a step of 1, sequence.py
+   SeqUnwrapper.continue_one: no gap, no stray, no restart; the 16-bit counter may wrap), stamped as
+   base.py Driver._stamp: one frame at t_recv, several back from the newest by their tick distance (32-bit;
+   a backwards step counts 0) / tick_hz (tick_hz 0: all at t_recv), never before the newest stamp so far. */
+static Py_ssize_t continuing_c(const unsigned char *buf, Py_ssize_t n, long long expect, Py_ssize_t max_frames,
+                               long long seq0, double tick_hz, double t_recv, double *last_t, unsigned char *rows,
+                               uint32_t *ticks)
+{
+    if (n == 0 || n % FRAME_LEN != 0 || n / FRAME_LEN > max_frames)
+        return 0;
+    Py_ssize_t k = n / FRAME_LEN;
+    for (Py_ssize_t i = 0; i < k; i++) {
+        const unsigned char *p = buf + i * FRAME_LEN;
+        if (!intact_bytes(p, FRAME_LEN) || u16le(p + 3) != (unsigned int)((expect + i) & 0xFFFF))
+            return 0;
+        ticks[i] = u32le(p + 5);
+    }
+    double newest = *last_t;
+    for (Py_ssize_t i = 0; i < k; i++) {
+        unsigned char *row = rows + i * SAMPLE_SIZE;
+        to_row_c(buf + i * FRAME_LEN, row, seq0 + i, 0);
+        double t = t_recv;
+        if (k > 1 && tick_hz > 0) {
+            uint32_t back = ticks[k - 1] - ticks[i];
+            t = t_recv - (double)(back > 0x7FFFFFFFu ? 0u : back) / tick_hz;
+        }
+        if (t < newest)
+            t = newest;
+        newest = t;
+        memcpy(row, &t, 8);
+    }
+    *last_t = newest;
+    return k;
+}
+
+static const GravcalFrameAPI c_api = {to_row_c, continuing_c};
 
 static PyObject *frame_header(PyObject *self, PyObject *args)
 {
