@@ -20,6 +20,7 @@ import pytest
 
 from gravcal.core.calibration import Calibration
 from gravcal.core.samples import SAMPLE_DTYPE
+from gravcal.daemon.client import Client
 from gravcal.daemon.config import Config
 from gravcal.daemon.service import Gravcald
 from gravcal.drivers import open_driver
@@ -172,7 +173,9 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
         write(frames(range(60, 120), ticks=np.arange(60, 120) * TICKS_PER_SAMPLE), per_write=2)
         settle(d, a)
         taken = d._fast.taken if d._fast is not None else 0
-        stats = {**d.driver.stats(), "taken_by_c": taken, "published": d.server.published_samples}
+        with Client(cfg.socket.path) as c:
+            polled = c.poll()["imu"][0]["seq"]
+        stats = {**d.driver.stats(), "taken_by_c": taken, "published": d.server.published_samples, "polled": polled}
     finally:
         for name, r in readers.items():
             r.close()
@@ -215,6 +218,7 @@ def test_clients_receive_the_same_bytes_with_and_without_the_c_step(tmp_path):
     lines = [json.loads(x) for x in fast["raw"].splitlines()]
     imu = [m for m in lines if m["class"] == "IMU"]
     seqs = np.array([m["seq"] for m in imu])
+    assert fast_stats["polled"] == slow_stats["polled"] == seqs[-1]  # ?POLL: the newest sample
     assert np.all(np.diff(seqs) >= 1)
     assert any(m["flags"] & 1 for m in imu)  # a gap flagged (FLAG_GAP_BEFORE)
     assert sum(m["class"] == "CALIB" for m in lines) == 2  # at WATCH, and the change
@@ -245,6 +249,8 @@ def test_a_slow_reader_beside_the_c_step_loses_only_whole_counted_lines(tmp_path
         settle(d, good)
         n = d.server.published_samples
         taken = d._fast.taken
+        with Client(cfg.socket.path) as c:  # ?POLL answers with the newest sample the C step published
+            polled = c.poll()["imu"][0]
         slow.settimeout(1.0)
         data = b""
         while True:
@@ -266,7 +272,8 @@ def test_a_slow_reader_beside_the_c_step_loses_only_whole_counted_lines(tmp_path
     dropped = sum(m["count"] for m in msgs if m["class"] == "DROPPED")
     assert dropped > 0 and np.all(np.diff(seqs) > 0)
     assert len(seqs) + dropped == n
-    assert seqs[-1] == good_last_seq(good)
+    assert seqs[-1] == good_last_seq(good) == polled["seq"]
+    assert polled["class"] == "IMU" and len(polled["acc"]) == 3
 
 
 def good_last_seq(r: Reader) -> int:
