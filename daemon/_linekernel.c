@@ -64,11 +64,19 @@ static void put_f(Line *L, double x, int prec)
     PyMem_Free(s);
 }
 
+/* "%d" % v: decimal digits, a leading '-' when negative (no snprintf: its format parsing is most of the cost) */
 static void put_i(Line *L, long long v)
 {
-    char s[32];
-    int k = snprintf(s, sizeof s, "%lld", v);
-    put(L, s, (size_t)k);
+    char s[24];
+    int k = sizeof s;
+    unsigned long long u = v < 0 ? 0ull - (unsigned long long)v : (unsigned long long)v;
+    do {
+        s[--k] = (char)('0' + u % 10);
+        u /= 10;
+    } while (u);
+    if (v < 0)
+        s[--k] = '-';
+    put(L, s + k, sizeof s - (size_t)k);
 }
 
 /* protocol.static_words: clip(code, -1, 1) */
