@@ -52,16 +52,15 @@ enum { FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N 
 enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
 
 /* attribute and method names, interned once: a lookup is then a pointer comparison */
-static PyObject *s_fast_watchers, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t, *s_acquire,
-    *s_release, *s_closed, *s_watch, *s_queue, *s_size, *s_out, *s_dropped_unreported, *s_sent_messages, *s_sent_bytes,
-    *s_last_progress;
+static PyObject *s_fast_watchers, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t, *s_closed,
+    *s_watch, *s_queue, *s_size, *s_out, *s_dropped_unreported, *s_sent_messages, *s_sent_bytes, *s_last_progress;
 
-/* release a lock keeping the pending exception, if any: 0, or -1 when the release itself failed */
-static int release_keeping_error(PyObject *lock)
+/* call a lock's bound ``release`` keeping the pending exception, if any: 0, or -1 when the release failed */
+static int release_keeping_error(PyObject *release)
 {
     PyObject *type, *value, *tb;
     PyErr_Fetch(&type, &value, &tb);
-    PyObject *r = PyObject_CallMethodNoArgs(lock, s_release);
+    PyObject *r = PyObject_CallNoArgs(release);
     if (r == NULL) {
         Py_XDECREF(type);
         Py_XDECREF(value);
@@ -227,16 +226,18 @@ static int add_attr(PyObject *o, PyObject *name, long long k)
    lock held (*sent: bytes the socket took, -1: not tried), -1 error (lock released) */
 static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double now, Py_ssize_t *sent)
 {
-    if (!PyTuple_Check(entry) || PyTuple_GET_SIZE(entry) != 5) {
-        PyErr_SetString(PyExc_TypeError, "fastpath: a watcher entry is (client, fd, raw, watch, lock)");
+    if (!PyTuple_Check(entry) || PyTuple_GET_SIZE(entry) != 6) {
+        PyErr_SetString(PyExc_TypeError,
+                        "fastpath: a watcher entry is (client, fd, raw, watch, lock.acquire, lock.release)");
         return -1;
     }
-    PyObject *c = PyTuple_GET_ITEM(entry, 0), *watch = PyTuple_GET_ITEM(entry, 3), *lock = PyTuple_GET_ITEM(entry, 4);
+    PyObject *c = PyTuple_GET_ITEM(entry, 0), *watch = PyTuple_GET_ITEM(entry, 3);
+    PyObject *acquire = PyTuple_GET_ITEM(entry, 4), *release = PyTuple_GET_ITEM(entry, 5);
     long fd = PyLong_AsLong(PyTuple_GET_ITEM(entry, 1));
     int raw = PyObject_IsTrue(PyTuple_GET_ITEM(entry, 2));
     if ((fd == -1 && PyErr_Occurred()) || raw < 0)
         return -1;
-    PyObject *r = PyObject_CallMethodNoArgs(lock, s_acquire);
+    PyObject *r = PyObject_CallNoArgs(acquire);
     if (r == NULL)
         return -1;
     Py_DECREF(r);
@@ -274,7 +275,7 @@ static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double 
     Py_XDECREF(now_watch);
     if (state == 2)
         return 2;
-    return release_keeping_error(lock) < 0 ? -1 : state;
+    return release_keeping_error(release) < 0 ? -1 : state;
 }
 
 typedef struct {
@@ -311,7 +312,7 @@ static int run_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t
     int need[2] = {0, 0};
     for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot); j++) {
         PyObject *e = PyTuple_GET_ITEM(snapshot, j);
-        int raw = PyTuple_Check(e) && PyTuple_GET_SIZE(e) == 5 ? PyObject_IsTrue(PyTuple_GET_ITEM(e, 2)) : 0;
+        int raw = PyTuple_Check(e) && PyTuple_GET_SIZE(e) == 6 ? PyObject_IsTrue(PyTuple_GET_ITEM(e, 2)) : 0;
         if (raw < 0)
             return -1;
         need[raw] = 1;
@@ -455,7 +456,7 @@ static PyObject *call_close(Call *C, int ok)
             result = PyTuple_Pack(2, C->leftover, C->stopped);
     }
     if (result == NULL && C->stopped != Py_None) /* the stopped watcher's lock is not handed over: release it */
-        release_keeping_error(PyTuple_GET_ITEM(PyTuple_GET_ITEM(C->stopped, C->S.ist[IST_CLIENT]), 4));
+        release_keeping_error(PyTuple_GET_ITEM(PyTuple_GET_ITEM(C->stopped, C->S.ist[IST_CLIENT]), 5));
     if (C->started) {
         memcpy(C->ist.buf, C->S.ist, sizeof C->S.ist);
         memcpy(C->fst.buf, C->S.fst, sizeof C->S.fst);
@@ -602,7 +603,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
         const char *text;
     } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_correction, "_correction"},
                  {&s_gyro_correction, "_gyro_correction"}, {&s_analysed, "analysed"}, {&s_offset, "offset"},
-                 {&s_kinv_t, "kinv_t"}, {&s_acquire, "acquire"}, {&s_release, "release"}, {&s_closed, "closed"},
+                 {&s_kinv_t, "kinv_t"}, {&s_closed, "closed"},
                  {&s_watch, "watch"}, {&s_queue, "queue"}, {&s_size, "size"}, {&s_out, "out"},
                  {&s_dropped_unreported, "dropped_unreported"}, {&s_sent_messages, "sent_messages"},
                  {&s_sent_bytes, "sent_bytes"}, {&s_last_progress, "last_progress"}};

@@ -89,8 +89,8 @@ class SocketServer:
         self._calib_lock = threading.Lock()  # a new watcher gets the CALIB that is current
         self._clients: dict[int, _Client] = {}
         self._watchers: tuple[_Client, ...] = ()  # replaced, never mutated: publish() reads it unlocked
-        # The watchers as the latency path's C step sends to them (daemon/_fastpath.c), replaced with
-        # _watchers: (client, fd, raw, watch policy, lock) each; None while one of them is decimated.
+        # The watchers as the latency path's C step sends to them (fanout.fast_snapshot), replaced with
+        # _watchers; None while one of them is decimated.
         self.fast_watchers: tuple[tuple[Any, ...], ...] | None = ()
         self._next_id = 1
         self._calib: dict[str, Any] | None = None

@@ -41,7 +41,8 @@ class Rig:
                                       out=None, dropped_unreported=0, sent_messages=0, sent_bytes=0,
                                       last_progress=0.0, lock=threading.RLock())
         c = self.client
-        self.server = SimpleNamespace(fast_watchers=((c, self.mine.fileno(), raw, c.watch, c.lock),))
+        self.server = SimpleNamespace(fast_watchers=((c, self.mine.fileno(), raw, c.watch, c.lock.acquire,
+                                                      c.lock.release),))
         plain = PlainCorrection(np.array([0.5, 0.51, 0.49]), np.diag([0.04, 0.041, 0.039]), STANDARD_GRAVITY)
         self.processor = SimpleNamespace(_correction=(plain, None), _gyro_correction=(2048.0, 357.36),
                                          analysed=(900, True))
