@@ -59,6 +59,10 @@ class Reader:
         self.data = bytearray()
         self._t = threading.Thread(target=self._run, daemon=True)
         self._t.start()
+        end = time.monotonic() + 20
+        while b'"class":"WATCH"' not in self.data:  # the server has its policy: what follows is sent to it
+            assert time.monotonic() < end, "no WATCH reply"
+            time.sleep(0.01)
 
     def _run(self) -> None:
         while True:
@@ -113,7 +117,6 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
     try:
         readers["plain"] = a = Reader(cfg.socket.path, '?WATCH={"enable":true};')
         readers["raw"] = Reader(cfg.socket.path, '?WATCH={"enable":true,"raw":true};')
-        time.sleep(0.3)
         seq = 65400
         write(frames(range(seq, seq + 200)))  # through the 16-bit wrap, one frame per read
         seq += 200
@@ -148,7 +151,6 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
         seq += 40
         settle(d, a)
         readers["decimated"] = Reader(cfg.socket.path, '?WATCH={"enable":true,"rate":20};')
-        time.sleep(0.3)
         write(frames(range(seq, seq + 40)))
         seq += 40
         settle(d, a)
@@ -160,7 +162,6 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
         seq += 40
         settle(d, a)
         readers["late"] = Reader(cfg.socket.path, '?WATCH={"enable":true,"raw":true};')
-        time.sleep(0.3)
         write(frames(range(seq, seq + 40)))
         seq += 40
         settle(d, a)

@@ -40,7 +40,6 @@ def run(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
     try:
         readers["plain"] = a = Reader(cfg.socket.path, '?WATCH={"enable":true};')
         readers["raw"] = Reader(cfg.socket.path, '?WATCH={"enable":true,"raw":true};')
-        time.sleep(0.3)
         for _ in range(samples.shape[0]):
             clock.advance(1 / FS)
             time.sleep(0.004)
