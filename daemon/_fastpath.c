@@ -283,8 +283,8 @@ typedef struct {
     double fst[FST_N];
 } State;
 
-/* One read's frames through the pipeline: records, stamps, correction, staging, lines. 0 ok, -1 error. */
-/* One read's records (already written and stamped by the frame kernel) through correction, staging and the lines */
+/* One read's records (written and stamped by the frame kernel) through correction, staging and the lines:
+   0, or -1 with an exception */
 static int run_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t *ticks, const Params *P,
                      double t_recv, unsigned char *rows, double *acc, double *gyro, signed char *codes,
                      PyObject *staged, PyObject *snapshot, Bytes lines[2])
