@@ -18,12 +18,12 @@
  *     snapshot is returned, so fastpath.py queues the rest in order (fanout's bookkeeping);
  *   - an extended calibration (processor._correction[1] is not None), end of file or a read error.
  *
- * Per batch (the frames of one read) it does what the Python path does for the same block, in order:
- *   the frame kernel checks the frames continue the stream and writes their records, stamped as
- *   Driver._stamp does; Processor.correct: the plain correction and the static code (the detector's decision while at most
- *   max_age samples old, else unknown); SocketServer.publish: one joined block of lines per encoding, sent
- *   with one non-blocking send() per watcher in snapshot order under the client's lock; Gravcald._acquire:
- *   the records appended to ``staged`` (the analysis' bytes). It returns at the latest after ``seconds``
+ * Per batch (the frames of one read) it does what the Python path does for the same block, in order: the
+ *   frame kernel checks that the frames continue the stream and writes their records, stamped as
+ *   Driver._stamp does; Processor.correct: the plain correction and the static code (the detector's decision
+ *   while at most max_age samples old, else unknown); SocketServer.publish: one joined block of lines per
+ *   encoding, one non-blocking send() per watcher in snapshot order under the client's lock;
+ *   Gravcald._acquire: the records appended to ``staged`` (the analysis' bytes). It returns at the latest after ``seconds``
  *   or once ``staged`` holds ist[IST_STAGE_LIMIT] bytes, for the Python loop's housekeeping.
  * The GIL is released only while waiting in poll().
  */
