@@ -23,8 +23,8 @@
  *   Driver._stamp does; Processor.correct: the plain correction and the static code (the detector's decision
  *   while at most max_age samples old, else unknown); SocketServer.publish: one joined block of lines per
  *   encoding, one non-blocking send() per watcher in snapshot order under the client's lock;
- *   Gravcald._acquire: the records appended to ``staged`` (the analysis' bytes). It returns at the latest after ``seconds``
- *   or once ``staged`` holds ist[IST_STAGE_LIMIT] bytes, for the Python loop's housekeeping.
+ *   Gravcald._acquire: the records appended to ``staged`` (the analysis' bytes). It returns at the latest
+ *   after ``seconds`` or once ``staged`` holds ist[IST_STAGE_LIMIT] bytes, for the Python loop's housekeeping.
  * The GIL is released only while waiting in poll().
  */
 #define PY_SSIZE_T_CLEAN

@@ -4,8 +4,8 @@ The same byte stream goes through gravcald twice, on a pty, with the C step and 
 client must receive the same bytes (sample time ``t`` apart: it is the host's reception time, checked to
 never run backwards). The stream holds the cases the C step hands to the Python path: a 16-bit wrap,
 a gap, a CRC error, garbage, a frame split across writes, several frames in one read, a device restart,
-a reconnect, a calibration change, a decimated watcher (its samples are chosen by reception time: checked apart) and a raw one joining and
-leaving mid-stream.
+a reconnect, a calibration change, a decimated watcher (its samples are chosen by reception time:
+checked apart) and a raw one joining and leaving mid-stream.
 """
 from __future__ import annotations
 
