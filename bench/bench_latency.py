@@ -172,7 +172,8 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
         rows = _lines(s, seconds)
         wall = time.monotonic() - t0
         cpu, task1 = _cpu_s(proc.pid) - cpu0, _task_cpu_s(proc.pid)
-        threads, device = _thread_cpu(proc.pid, status0, _status(path), task0, task1, wall)
+        status1 = _status(path)
+        threads, device = _thread_cpu(proc.pid, status0, status1, task0, task1, wall)
         rss, hwm = _rss_mb(proc.pid)
         s.close()
     finally:
@@ -188,7 +189,11 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
     delay = a[:, 0] - a[:, 1] / FS
     spread = (delay - delay.min()) * 1e3
     pct = {f"p{q:g}": float(np.percentile(spread, q)) for q in (50, 99, 99.9)}
-    return {"bus": bus, "clients": clients, "samples": int(a.shape[0]), "seconds": wall,
+    # the share of the samples the latency path's C step delivered (None: a tree without it)
+    dev0, dev1 = status0.get("device", {}), status1.get("device", {})
+    in_c = None if "samples_in_c" not in dev1 else (
+        (dev1["samples_in_c"] - dev0["samples_in_c"]) / max(1, dev1["samples"] - dev0["samples"]))
+    return {"bus": bus, "clients": clients, "samples": int(a.shape[0]), "seconds": wall, "share_in_c": in_c,
             "samples_per_s": a.shape[0] / wall, "latency_ms": pct, "cpu_percent": cpu / wall * 100,
             "cpu_percent_daemon": None if device is None else cpu / wall * 100 - device,
             "cpu_percent_emulated_device": device,
@@ -201,7 +206,8 @@ def _show(r: dict) -> str:
     budget = "" if r.get("latency_budget_s") is None else f"budget {r['latency_budget_s'] * 1e3:g} ms  "
     return (f"{budget}{r['bus']:6s} {r['clients']:3d} client(s)  {r['samples_per_s']:6.1f}/s  latency p50 {lat['p50']:7.2f} "
             f"p99 {lat['p99']:7.2f} p99.9 {lat['p99.9']:7.2f} ms  CPU {r['cpu_percent']:5.2f} %  "
-            f"RSS {r['rss_mb']:6.1f} MB (peak {r['rss_peak_mb']:.1f})\n"
+            f"RSS {r['rss_mb']:6.1f} MB (peak {r['rss_peak_mb']:.1f})"
+            + ("" if r.get("share_in_c") is None else f"  C step {r['share_in_c'] * 100:.1f} % of samples") + "\n"
             f"{'':9s}CPU by thread:" + "".join(f" {k} {v:.2f} %" for k, v in sorted(
                 r["cpu_percent_by_thread"].items(), key=lambda kv: -kv[1]) if v >= 0.005)
             + (f"\n{'':9s}CPU of the process {r['cpu_percent']:.2f} % = gravcald's own {r['cpu_percent_daemon']:.2f} % "

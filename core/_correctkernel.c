@@ -11,12 +11,15 @@
  * raw = T1 / T2 of the triad's chips (core.samples.duty_ratios, NaN where T2 = 0), x = raw - o,
  * a_j = (x0 * k[0][j] + x1 * k[1][j]) + x2 * k[2][j]. Built with -ffp-contract=off (no fused multiply-add).
  * One sample is well under a microsecond of work: the GIL is kept (dropping and retaking it costs more).
+ * The same step is exported to other kernels as a capsule (_correctkernel.h; daemon/_fastpath.c).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+
+#include "_correctkernel.h"
 
 #if defined(__BYTE_ORDER__) && __BYTE_ORDER__ != __ORDER_LITTLE_ENDIAN__
 #error "SAMPLE_DTYPE is little-endian: the records are read with native loads"
@@ -29,6 +32,33 @@
 #define GYRO_AT 44
 
 static const int TRIAD_CHIP[3] = {0, 0, 1}; /* core.samples: channels ax, ay, az; CHANNEL_CHIP of each */
+
+static long long correct_c(const unsigned char *r, const double *off, const double *kin, double bias, double sens,
+                           double *acc, double *gyro)
+{
+    uint32_t t1[4], t2[2];
+    uint16_t counts;
+    long long seq;
+    double o[3], k[9], x[3], a[3], g;
+    memcpy(&seq, r + SEQ_AT, 8);
+    memcpy(t1, r + T1_AT, 16);
+    memcpy(t2, r + T2_AT, 8);
+    memcpy(&counts, r + GYRO_AT, 2);
+    memcpy(o, off, 24);
+    memcpy(k, kin, 72);
+    for (int i = 0; i < 3; i++) {
+        uint32_t period = t2[TRIAD_CHIP[i]];
+        x[i] = (period ? (double)t1[i] / (double)period : NAN) - o[i];
+    }
+    for (int j = 0; j < 3; j++)
+        a[j] = x[0] * k[j] + x[1] * k[3 + j] + x[2] * k[6 + j];
+    g = ((double)counts - bias) / sens;
+    memcpy(acc, a, 24);
+    memcpy(gyro, &g, 8);
+    return seq;
+}
+
+static const GravcalCorrectAPI c_api = {correct_c};
 
 static PyObject *correct_row(PyObject *self, PyObject *args)
 {
@@ -43,27 +73,8 @@ static PyObject *correct_row(PyObject *self, PyObject *args)
                       : acc.len != 3 * 8     ? "correct_row: acc must be 3 float64"
                       : gyr.len != 8         ? "correct_row: gyro must be 1 float64"
                                              : NULL;
-    if (why == NULL) {
-        const unsigned char *r = row.buf;
-        uint32_t t1[4], t2[2];
-        uint16_t counts;
-        double o[3], k[9], x[3], a[3], g;
-        memcpy(&seq, r + SEQ_AT, 8);
-        memcpy(t1, r + T1_AT, 16);
-        memcpy(t2, r + T2_AT, 8);
-        memcpy(&counts, r + GYRO_AT, 2);
-        memcpy(o, off.buf, 24);
-        memcpy(k, kin.buf, 72);
-        for (int i = 0; i < 3; i++) {
-            uint32_t period = t2[TRIAD_CHIP[i]];
-            x[i] = (period ? (double)t1[i] / (double)period : NAN) - o[i];
-        }
-        for (int j = 0; j < 3; j++)
-            a[j] = x[0] * k[j] + x[1] * k[3 + j] + x[2] * k[6 + j];
-        g = ((double)counts - bias) / sens;
-        memcpy(acc.buf, a, 24);
-        memcpy(gyr.buf, &g, 8);
-    }
+    if (why == NULL)
+        seq = correct_c(row.buf, off.buf, kin.buf, bias, sens, acc.buf, gyr.buf);
     PyBuffer_Release(&row);
     PyBuffer_Release(&off);
     PyBuffer_Release(&kin);
@@ -86,4 +97,16 @@ static PyMethodDef methods[] = {
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, .m_name = "_correctkernel", .m_doc = "The plain correction of one sample.", .m_size = -1,
                                     .m_methods = methods};
 
-PyMODINIT_FUNC PyInit__correctkernel(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__correctkernel(void)
+{
+    PyObject *m = PyModule_Create(&module);
+    if (m == NULL)
+        return NULL;
+    PyObject *cap = PyCapsule_New((void *)&c_api, GRAVCAL_CORRECT_CAPSULE, NULL);
+    if (cap == NULL || PyModule_AddObject(m, "_C_API", cap) < 0) {
+        Py_XDECREF(cap);
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}

@@ -36,7 +36,7 @@ from typing import Any, Callable
 import numpy as np
 
 from . import protocol
-from .fanout import deliver, deliver_line
+from .fanout import deliver, deliver_line, fast_snapshot, finish_delivery
 from .client_limits import ClientState as _Client
 from .client_limits import RequestBudget, ServerConfig, hung_up, return_memory_to_os
 from .output_queue import OutputQueue
@@ -47,6 +47,8 @@ log = logging.getLogger("gravcal.server")
 
 ROOM_IDLE_S = 5.0  # a full table closes the longest-idle non-watcher idle at least this long
 TRIM_AFTER_BYTES = 1 << 20  # a client leaving with this much queued hands the memory back
+_COUNTERS = ("clients_total", "clients_rejected", "clients_stalled", "clients_idle", "clients_hung_up",
+             "clients_flooding", "requests_refused", "published_samples", "inbox_overruns")  # in STATUS's server
 
 
 class SocketServer:
@@ -87,6 +89,9 @@ class SocketServer:
         self._calib_lock = threading.Lock()  # a new watcher gets the CALIB that is current
         self._clients: dict[int, _Client] = {}
         self._watchers: tuple[_Client, ...] = ()  # replaced, never mutated: publish() reads it unlocked
+        # The watchers as the latency path's C step sends to them (fanout.fast_snapshot), replaced with
+        # _watchers; None while one of them is decimated.
+        self.fast_watchers: tuple[tuple[Any, ...], ...] | None = ()
         self._next_id = 1
         self._calib: dict[str, Any] | None = None
         self._last_block: ImuBlock | None = None
@@ -170,6 +175,20 @@ class SocketServer:
         if wake:
             self._wake_once()
 
+    def finish_publish(self, block: ImuBlock, snapshot: tuple[tuple[Any, ...], ...], index: int, sent: int) -> None:
+        """The rest of ``block``, whose delivery the C step (daemon/fastpath.py) stopped at watcher ``index`` of
+        ``snapshot`` (fanout.finish_delivery; that client's lock is held by this thread and released there)."""
+        self._last_block = block
+        wake, dropped = finish_delivery(block, snapshot, index, sent, time.monotonic())
+        self._dropped_direct += dropped
+        if wake:
+            self._wake_once()
+
+    def count_published(self, n: int, latest: Any) -> None:
+        """``n`` samples were delivered by the C step; ``latest`` answers ?POLL (``last_message(raw)``)."""
+        self.published_samples += n
+        self._last_block = latest
+
     def set_calibration(self, message: dict[str, Any]) -> None:
         """Set the current CALIB message (see protocol.calib_message); pushed to watchers at once,
         in order with the samples published by the same thread."""
@@ -183,6 +202,11 @@ class SocketServer:
             self._dropped_direct += dropped
         if wake:
             self._wake_once()
+
+    def _set_watchers(self) -> None:
+        """Rebuild the watcher tuples after a change (under the changing client's lock, or as it closes)."""
+        self._watchers = tuple(w for w in self._clients.values() if w.watch.enable)
+        self.fast_watchers = fast_snapshot(self._watchers)
 
     def _wake_once(self) -> None:
         with self._wake_lock:
@@ -211,20 +235,8 @@ class SocketServer:
     def stats(self) -> dict[str, Any]:
         now = time.monotonic()
         clients = [c.stats(now) for c in list(self._clients.values())]
-        return {
-            "clients": len(clients),
-            "clients_total": self.clients_total,
-            "clients_rejected": self.clients_rejected,
-            "clients_stalled": self.clients_stalled,
-            "clients_idle": self.clients_idle,
-            "clients_hung_up": self.clients_hung_up,
-            "clients_flooding": self.clients_flooding,
-            "requests_refused": self.requests_refused,
-            "published_samples": self.published_samples,
-            "inbox_overruns": self.inbox_overruns,
-            "dropped_messages": self.dropped_total + self._dropped_direct,
-            "per_client": clients,
-        }
+        return {"clients": len(clients), **{name: getattr(self, name) for name in _COUNTERS},
+                "dropped_messages": self.dropped_total + self._dropped_direct, "per_client": clients}
 
     # -- event loop ------------------------------------------------------------------
     def _run(self) -> None:
@@ -303,7 +315,7 @@ class SocketServer:
         if self._clients.pop(c.id, None) is None:
             return
         if c.watch.enable:
-            self._watchers = tuple(w for w in self._watchers if w is not c)
+            self._set_watchers()
         log.log(logging.INFO if why not in ("eof", "server stopping") else logging.DEBUG,
                 "client %d disconnected: %s (sent %d, dropped %d)", c.id, why, c.sent_messages, c.dropped_total)
         try:
@@ -443,8 +455,7 @@ class SocketServer:
                 self._reply(c, watch.to_message(), flush=False)
                 if watch.enable and not was and self._calib is not None:
                     self._reply(c, self._calib, flush=False)
-                if watch.enable != was:
-                    self._watchers = tuple(w for w in self._clients.values() if w.watch.enable)
+                self._set_watchers()
             self._flush(c)
         elif req.command == "POLL":
             imu = []

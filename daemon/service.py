@@ -33,6 +33,7 @@ from . import config as config_mod
 from . import privileges
 from .config import Config, ConfigError
 from .emulation import EmulatedBus
+from .fastpath import FastPath
 from .persistence import CalibrationState, RateLimitedSaver, StateStore, load_lab_calibration
 from .processing import Processor, nominal_calibration
 from .protocol import calib_message
@@ -96,6 +97,8 @@ class Gravcald:
         self.process_errors = 0  # sample blocks lost to an exception in the processing chain
         self.driver_reopens = 0  # reopened after REOPEN_AFTER_READ_ERRORS read exceptions in a row
         self.reload_error: str | None = None  # why the last reload was refused (None: it worked)
+        self.fast_path = True  # the latency path's common case in C (daemon/fastpath.py); False: all in Python
+        self._fast: FastPath | None = None
 
     # -- start ---------------------------------------------------------------------------
     def _initial_state(self) -> tuple[CalibrationState, bool]:
@@ -186,7 +189,23 @@ class Gravcald:
         # samples for the analysis, as bytes until a block's worth: one ring-buffer write per
         # ANALYSIS_BLOCK_S instead of a structured-array copy per sample (the analysis runs no sooner)
         staged = bytearray()
+        stage_bytes = analysis_n * SAMPLE_DTYPE.itemsize
+        fast = self._fast = FastPath.for_driver(self.driver, p, self.server, max_frames=d.read_block, stage_bytes=stage_bytes,
+                                   fs_hz=d.fs_hz) if self.fast_path else None
         while not self._acq_stop.is_set():
+            if fast is not None:  # the common case in C, until a case it does not take (daemon/fastpath.py)
+                try:
+                    n, read_next = fast.run(staged)
+                except Exception:  # a bug there must not stop acquisition: the Python path carries on
+                    log.exception("the C step of the latency path failed; continuing without it")
+                    fast, n, read_next = None, 0, True
+                if n:
+                    self.samples_in += n
+                    self.watchdog.samples_arrived(n)
+                if len(staged) >= stage_bytes or not (n or read_next):
+                    self._stage_for_analysis(staged)
+                if not read_next:
+                    continue
             try:
                 block = self.driver.read(max_samples=d.read_block, timeout=d.read_timeout_s)
             except Exception as exc:  # the driver should absorb bus errors; survive anything else
@@ -213,7 +232,7 @@ class Gravcald:
             else:
                 self.server.publish(block, acc, gyro, static)
             staged += block.data  # its bytes (a driver's block is C-contiguous)
-            if len(staged) >= analysis_n * SAMPLE_DTYPE.itemsize:
+            if len(staged) >= stage_bytes:
                 self._stage_for_analysis(staged)
         self._stage_for_analysis(staged)
 
@@ -277,6 +296,7 @@ class Gravcald:
         st = p.state
         return {
             "device": {"spec": self.cfg.device.spec, "rate_hz": round(self._rate_hz, 2), "samples": self.samples_in,
+                       "samples_in_c": self._fast.taken if self._fast is not None else 0,
                        "read_errors": self.read_errors, "reopens": self.driver_reopens, **drv_stats},
             "ring": self.ring.stats(),
             "processing": {"errors": self.process_errors, **self._lag()},

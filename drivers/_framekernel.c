@@ -9,12 +9,16 @@
  * temp/vsupply are codec.temp_from_raw / vsupply_from_raw in float64 then stored as float32.
  * Built with -ffp-contract=off so each operation rounds as numpy's elementwise ops do.
  * One sample is well under a microsecond of work: the GIL is kept (dropping and retaking it costs more).
+ * The record writer, and a whole read's records when it only continues the stream (stamped as the driver
+ * stamps them), are exported to other kernels as a capsule (_framekernel.h; daemon/_fastpath.c).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+
+#include "_framekernel.h"
 
 #if defined(__BYTE_ORDER__) && __BYTE_ORDER__ != __ORDER_LITTLE_ENDIAN__
 #error "SAMPLE_DTYPE is little-endian: the records are written with native stores"
@@ -44,11 +48,12 @@ static unsigned int crc_ccitt(const unsigned char *p, Py_ssize_t n)
     return crc;
 }
 
-static int intact(const Py_buffer *f)
+static int intact_bytes(const unsigned char *p, Py_ssize_t n)
 {
-    const unsigned char *p = f->buf;
-    return f->len == FRAME_LEN && p[0] == 0xA5 && p[1] == 0x5A && p[2] == PAYLOAD_LEN && crc_ccitt(p, FRAME_LEN) == 0;
+    return n == FRAME_LEN && p[0] == 0xA5 && p[1] == 0x5A && p[2] == PAYLOAD_LEN && crc_ccitt(p, FRAME_LEN) == 0;
 }
+
+static int intact(const Py_buffer *f) { return intact_bytes(f->buf, f->len); }
 
 /* codec._adc_volts: code * (2.5 V / 4096), NaN above the 12-bit full scale */
 static double adc_volts(unsigned int code)
@@ -74,6 +79,53 @@ static void write_row(unsigned char *r, long long seq, uint32_t tick, const uint
     memcpy(r + 50, &vsupply, 4);
     memcpy(r + 54, &flags, 2);
 }
+
+static void to_row_c(const unsigned char *p, unsigned char *row, long long seq, uint16_t flags)
+{
+    uint32_t t1[4], t2[2];
+    for (int c = 0; c < 4; c++)
+        t1[c] = u16le(p + 9 + 2 * c);
+    for (int k = 0; k < 2; k++)
+        t2[k] = u16le(p + 17 + 2 * k);
+    write_row(row, seq, u32le(p + 5), t1, t2, (uint16_t)u16le(p + 21), u16le(p + 23), u16le(p + 25), flags);
+}
+
+/* The records of a read that only continues the stream (the unwrapper's rule 2 with a step of 1, sequence.py
+   SeqUnwrapper.continue_one: no gap, no stray, no restart; the 16-bit counter may wrap), stamped as
+   base.py Driver._stamp: one frame at t_recv, several back from the newest by their tick distance (32-bit;
+   a backwards step counts 0) / tick_hz (tick_hz 0: all at t_recv), never before the newest stamp so far. */
+static Py_ssize_t continuing_c(const unsigned char *buf, Py_ssize_t n, long long expect, Py_ssize_t max_frames,
+                               long long seq0, double tick_hz, double t_recv, double *last_t, unsigned char *rows,
+                               uint32_t *ticks)
+{
+    if (n == 0 || n % FRAME_LEN != 0 || n / FRAME_LEN > max_frames)
+        return 0;
+    Py_ssize_t k = n / FRAME_LEN;
+    for (Py_ssize_t i = 0; i < k; i++) {
+        const unsigned char *p = buf + i * FRAME_LEN;
+        if (!intact_bytes(p, FRAME_LEN) || u16le(p + 3) != (unsigned int)((expect + i) & 0xFFFF))
+            return 0;
+        ticks[i] = u32le(p + 5);
+    }
+    double newest = *last_t;
+    for (Py_ssize_t i = 0; i < k; i++) {
+        unsigned char *row = rows + i * SAMPLE_SIZE;
+        to_row_c(buf + i * FRAME_LEN, row, seq0 + i, 0);
+        double t = t_recv;
+        if (k > 1 && tick_hz > 0) {
+            uint32_t back = ticks[k - 1] - ticks[i];
+            t = t_recv - (double)(back > 0x7FFFFFFFu ? 0u : back) / tick_hz;
+        }
+        if (t < newest)
+            t = newest;
+        newest = t;
+        memcpy(row, &t, 8);
+    }
+    *last_t = newest;
+    return k;
+}
+
+static const GravcalFrameAPI c_api = {to_row_c, continuing_c};
 
 static PyObject *frame_header(PyObject *self, PyObject *args)
 {
@@ -106,14 +158,7 @@ static PyObject *frame_to_row(PyObject *self, PyObject *args)
         PyErr_SetString(PyExc_ValueError, why);
         return NULL;
     }
-    const unsigned char *p = f.buf;
-    uint32_t t1[4], t2[2];
-    for (int c = 0; c < 4; c++)
-        t1[c] = u16le(p + 9 + 2 * c);
-    for (int k = 0; k < 2; k++)
-        t2[k] = u16le(p + 17 + 2 * k);
-    write_row(row.buf, seq, u32le(p + 5), t1, t2, (uint16_t)u16le(p + 21), u16le(p + 23), u16le(p + 25),
-              (uint16_t)flags);
+    to_row_c(f.buf, row.buf, seq, (uint16_t)flags);
     PyBuffer_Release(&f);
     PyBuffer_Release(&row);
     Py_RETURN_NONE;
@@ -159,4 +204,16 @@ static PyMethodDef methods[] = {
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, .m_name = "_framekernel", .m_doc = "The frame decoder's per-frame kernel.", .m_size = -1,
                                     .m_methods = methods};
 
-PyMODINIT_FUNC PyInit__framekernel(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__framekernel(void)
+{
+    PyObject *m = PyModule_Create(&module);
+    if (m == NULL)
+        return NULL;
+    PyObject *cap = PyCapsule_New((void *)&c_api, GRAVCAL_FRAME_CAPSULE, NULL);
+    if (cap == NULL || PyModule_AddObject(m, "_C_API", cap) < 0) {
+        Py_XDECREF(cap);
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
+}

@@ -325,6 +325,16 @@ class FramedStreamDriver(Driver):
     def _codec_stats(self) -> dict[str, Any]:
         return self.decoder.stats()
 
+    def fast_consumed(self, n: int, tick: int, tick_period: float | None, last_t: float, t_recv: float) -> None:
+        """The daemon's C step (daemon/fastpath.py) took ``n`` frames, each continuing the stream by one, the
+        last with device ``tick`` and host time ``last_t``: the state :meth:`read` leaves after them."""
+        u = self.decoder.unwrapper
+        u.continued(n, tick, tick_period)
+        self.decoder.count_frames(n)
+        self.counters["samples"] += n
+        self._last_t = last_t
+        self._rate.update_seq(u.last + u.offset, t_recv)
+
 
 class _RateEstimate:
     """Sample rate [Hz] from unwrapped seq vs host time, for resolving long outages (updated every
@@ -338,9 +348,13 @@ class _RateEstimate:
         self.rate_hz: float | None = None
 
     def update(self, block: np.ndarray, t_recv: float) -> None:
+        if t_recv >= self._next:
+            self.update_seq(int(block["seq"][-1]), t_recv)
+
+    def update_seq(self, seq: int, t_recv: float) -> None:
+        """As :meth:`update`, from the newest sample's seq."""
         if t_recv < self._next:
             return
-        seq = int(block["seq"][-1])
         if self._first is None:
             self._first = (seq, t_recv)
             self._next = t_recv + 1.0

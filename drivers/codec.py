@@ -301,6 +301,10 @@ class FrameDecoder:
         self._stats.frames += 1
         return row
 
+    def count_frames(self, n: int) -> None:
+        """``n`` intact frames were decoded outside (the daemon's C step, drivers/serial.py fast_entry)."""
+        self._stats.frames += n
+
     def discard_partial(self) -> None:
         """Forget a partial frame (after a reconnect the bytes that follow are unrelated)."""
         self._stats.bytes_skipped += len(self.tail)

@@ -125,6 +125,7 @@ class I2CDriver(FramedStreamDriver):
         self._fifo_at_connect = 0
         self._poll = 0.02
         self.counters.update(fifo_overflows=0, polls=0, bursts=0)
+        self._unread: list[bytes] = []  # bursts read for the daemon's C step and handed back undecoded
 
     @classmethod
     def from_spec(cls, spec: DriverSpec) -> "I2CDriver":
@@ -232,6 +233,20 @@ class I2CDriver(FramedStreamDriver):
         return bytes(r)
 
     def _read_block(self, deadline: float) -> np.ndarray:
+        bursts, self._unread = self._unread or self._read_fifo(deadline), []
+        if not bursts:
+            return np.zeros(0, SAMPLE_DTYPE)
+        blocks = [self.decoder.feed(b) for b in bursts]
+        samples = np.concatenate(blocks) if len(blocks) > 1 else blocks[0]
+        if self._overflow_pending and samples.shape[0]:
+            gaps = np.flatnonzero(samples["flags"] & FLAG_GAP_BEFORE)
+            if gaps.shape[0]:
+                samples["flags"][gaps[0]] |= FLAG_FIFO_OVERFLOW
+                self._overflow_pending = False
+        return samples
+
+    def _read_fifo(self, deadline: float) -> list[bytes]:
+        """The FIFO's content as bursts of whole frames, once it holds any ([] if not by ``deadline``)."""
         while True:
             if self.data_ready is not None:  # sleep until the FIFO reaches the watermark
                 self.data_ready.wait(max(0.0, min(deadline - time.monotonic(), DRDY_RECHECK_S)))
@@ -243,21 +258,41 @@ class I2CDriver(FramedStreamDriver):
                 break
             remaining = deadline - time.monotonic()
             if remaining <= 0 or self._closing.is_set():
-                return np.zeros(0, SAMPLE_DTYPE)
+                return []
             if self.data_ready is None and self._closing.wait(min(self._poll, remaining)):
-                return np.zeros(0, SAMPLE_DTYPE)
-        blocks = []
+                return []
+        bursts = []
         while count > 0:
             n = min(count, self.burst_frames)
-            blocks.append(self.decoder.feed(self._burst(n)))
+            bursts.append(self._burst(n))
             count -= n
-        samples = np.concatenate(blocks) if len(blocks) > 1 else blocks[0]
-        if self._overflow_pending and samples.shape[0]:
-            gaps = np.flatnonzero(samples["flags"] & FLAG_GAP_BEFORE)
-            if gaps.shape[0]:
-                samples["flags"][gaps[0]] |= FLAG_FIFO_OVERFLOW
-                self._overflow_pending = False
-        return samples
+        return bursts
+
+    # -- the daemon's latency path (daemon/fastpath.py) -----------------------------------
+    def fast_ready(self) -> tuple[int, int, float] | None:
+        """(raw seq, output seq, last t) when the FIFO's next frames may go to the daemon's C step
+        (daemon/_fastpath.c ``take``), which takes only whole intact frames each continuing the stream by one
+        (``raw seq`` the next) and hands anything else back (:meth:`unread`); None: they go through
+        :meth:`read` (an outage or a reconnect in hand, a partial frame or samples waiting, a sequence
+        question open)."""
+        if (not self._connected or self._closing.is_set() or self._pending.shape[0] or self._flag_reconnect
+                or self.decoder.tail or self._unread):
+            return None
+        nxt = self.decoder.unwrapper.next_frame()
+        return None if nxt is None else (nxt[0], nxt[1], self._last_t)
+
+    def fast_read(self, deadline: float) -> list[bytes] | None:
+        """The FIFO's bursts as :meth:`read` reads them ([]: none by ``deadline``); None: the bus failed
+        (handled as :meth:`read` does: the next read reconnects)."""
+        try:
+            return self._read_fifo(deadline)
+        except self.transient_errors as exc:
+            self._lost(exc)
+            return None
+
+    def unread(self, bursts: list[bytes]) -> None:
+        """Bursts the C step did not take: the next :meth:`read` decodes them first, as if just read."""
+        self._unread = self._unread + list(bursts)
 
 
 class SysfsDataReady:

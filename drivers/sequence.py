@@ -125,6 +125,25 @@ class SeqUnwrapper:
             self._tick_last = tick
         return self._head + self.offset, step > 1
 
+    def next_frame(self) -> tuple[int, int] | None:
+        """(raw 16-bit seq, output seq) of the frame that continues the stream by one in the case
+        :meth:`continue_one` takes (nothing pending, no outage); None: not that case."""
+        if self._pending or self._head is None or self._after_outage or self._expected is not None:
+            return None
+        return (self._head + 1) & MAX_U16, self._head + 1 + self.offset
+
+    def continued(self, n: int, tick: int, tick_period: float | None) -> None:
+        """``n`` frames from :meth:`next_frame` on continued the stream one by one (taken by the daemon's C
+        step): the state :meth:`unwrap` leaves after them. ``tick``: the last one's; ``tick_period``: learnt
+        from a read of several (None: none had several)."""
+        if n <= 0:
+            return
+        self._fallback, self._jumped = None, []
+        self._head = self.last = self._head + n
+        self._tick_last = tick
+        if tick_period is not None:
+            self._tick_period = tick_period
+
     # -------------------------------------------------------- device restarts (sequence and tick from 0)
     def _learn_ticks(self, s: np.ndarray, t: np.ndarray, keep: np.ndarray) -> None:
         if s.shape[0] >= 2 and bool((((s[1:] - s[:-1]) & MAX_U16) == 1).all()):

@@ -60,6 +60,7 @@ class SerialDriver(FramedStreamDriver):
         self._timeout: float | None = None
         self._vmin: int | None = None  # the terminal's VMIN as set (None: not a terminal)
         self._poll: select.poll | None = None  # the port's fd registered for POLLIN
+        self._unread = b""  # bytes read by the daemon's C step and handed back undecoded (fast_entry)
 
     @classmethod
     def from_spec(cls, spec: DriverSpec) -> "SerialDriver":
@@ -105,7 +106,30 @@ class SerialDriver(FramedStreamDriver):
             ser.close()
 
 
+    # -- the daemon's latency path (daemon/fastpath.py) -----------------------------------
+    def fast_entry(self) -> tuple[int, int, int, float] | None:
+        """(fd, raw seq, output seq, last t) when the next bytes may go to the daemon's C step
+        (daemon/_fastpath.c), which takes only whole intact frames each continuing the stream by one
+        (``raw seq`` the next), and hands anything else back undecoded (:meth:`unread`); None: they go
+        through :meth:`read` (a pyserial URL, an outage or a reconnect in hand, a partial frame or
+        samples waiting, a latency budget, a sequence question open)."""
+        if (self._fd is None or not self._connected or self._closing.is_set() or self._pending.shape[0]
+                or self._flag_reconnect or self.decoder.tail or self._unread or self.latency_budget_s > 0):
+            return None
+        nxt = self.decoder.unwrapper.next_frame()
+        if nxt is None:
+            return None
+        self._wake_at(FRAME_LEN)
+        return self._fd, nxt[0], nxt[1], self._last_t
+
+    def unread(self, data: bytes) -> None:
+        """Bytes the C step read but did not take: the next :meth:`read` decodes them first, as if just read."""
+        self._unread += data
+
     def _read_block(self, deadline: float) -> np.ndarray:
+        if self._unread:
+            data, self._unread = self._unread, b""
+            return self.decoder.feed(data)
         fd = self._fd
         if fd is None:  # a pyserial URL without a file descriptor (loop://, socket://)
             return self._read_block_url(self._ser, deadline)

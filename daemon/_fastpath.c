@@ -1,0 +1,619 @@
+/* gravcald's latency path in one C call per wake-up: bus bytes -> frames -> correction -> IMU lines -> sockets.
+ *
+ * step(fd, seconds, max_frames, ist, fst, staged, server, processor, rows, acc, gyro, static)
+ *     -> (leftover bytes, the watcher snapshot of a stopped delivery or None)
+ * take(data, max_frames, ist, ...)  the same for the bytes of one read the caller made (the I2C FIFO)
+ *
+ * It composes the per-layer kernels in pipeline order, each imported from its own module as a capsule:
+ * the frame check and record (drivers/_framekernel.c), the plain correction (core/_correctkernel.c), the
+ * IMU line (daemon/_linekernel.c). daemon/fastpath.py calls it and does everything else; it takes only the
+ * common case and returns, having consumed nothing of it, whatever the Python path must decide:
+ *
+ *   - bytes: a read that is not exactly whole intact frames, each continuing the stream by one (the
+ *     SeqUnwrapper's rule 2 with a step of 1: no gap, no stray, no restart; the 16-bit counter may wrap),
+ *     or more frames than max_frames: returned as leftover, the driver decodes them as it always does;
+ *   - watchers: delivery only to the snapshot ``server.fast_watchers`` (watching every sample, read per
+ *     wake-up; None: some watcher is not plain). A watcher whose output is not empty, whose policy changed,
+ *     or whose socket does not take the whole block stops the delivery: its lock stays held and the
+ *     snapshot is returned, so fastpath.py queues the rest in order (fanout's bookkeeping);
+ *   - an extended calibration (processor._correction[1] is not None), end of file or a read error.
+ *
+ * Per batch (the frames of one read) it does what the Python path does for the same block, in order: the
+ *   frame kernel checks that the frames continue the stream and writes their records, stamped as
+ *   Driver._stamp does; Processor.correct: the plain correction and the static code (the detector's decision
+ *   while at most max_age samples old, else unknown); SocketServer.publish: one joined block of lines per
+ *   encoding, one non-blocking send() per watcher in snapshot order under the client's lock;
+ *   Gravcald._acquire: the records appended to ``staged`` (the analysis' bytes). It returns at the latest
+ *   after ``seconds`` or once ``staged`` holds ist[IST_STAGE_LIMIT] bytes, for the Python loop's housekeeping.
+ * The GIL is released only while waiting in poll().
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <errno.h>
+#include <math.h>
+#include <poll.h>
+#include <stdint.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "../core/_correctkernel.h"
+#include "../drivers/_framekernel.h"
+#include "_linekernel.h"
+
+#define READ_BYTES 65536 /* drivers/serial.py READ_BYTES: more than the kernel's tty buffer holds */
+#define MAX_FRAMES_LIMIT 4096
+
+/* ist (int64) and fst (float64) slots: the state shared with daemon/fastpath.py */
+enum { IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH,
+       IST_STAGE_LIMIT, IST_N };
+enum { FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N };
+enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
+
+/* attribute and method names, interned once: a lookup is then a pointer comparison */
+static PyObject *s_fast_watchers, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t, *s_closed,
+    *s_watch, *s_queue, *s_size, *s_out, *s_dropped_unreported, *s_sent_messages, *s_sent_bytes, *s_last_progress;
+
+/* call a lock's bound ``release`` keeping the pending exception, if any: 0, or -1 when the release failed */
+static int release_keeping_error(PyObject *release)
+{
+    PyObject *type, *value, *tb;
+    PyErr_Fetch(&type, &value, &tb);
+    PyObject *r = PyObject_CallNoArgs(release);
+    if (r == NULL) {
+        Py_XDECREF(type);
+        Py_XDECREF(value);
+        Py_XDECREF(tb);
+        return -1;
+    }
+    Py_DECREF(r);
+    PyErr_Restore(type, value, tb);
+    return 0;
+}
+
+static const GravcalFrameAPI *frame_api;
+static const GravcalCorrectAPI *correct_api;
+static const GravcalLineAPI *line_api;
+
+static double now_s(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts); /* time.monotonic()'s clock */
+    return (double)ts.tv_sec + (double)ts.tv_nsec * 1e-9;
+}
+
+typedef struct {
+    char *buf;
+    Py_ssize_t n, cap;
+} Bytes;
+
+static int reserve(Bytes *b, Py_ssize_t more)
+{
+    if (b->n + more <= b->cap)
+        return 0;
+    Py_ssize_t cap = b->cap ? b->cap : 4096;
+    while (cap < b->n + more)
+        cap *= 2;
+    char *p = PyMem_Realloc(b->buf, (size_t)cap);
+    if (p == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    b->buf = p;
+    b->cap = cap;
+    return 0;
+}
+
+/* What Processor.correct reads per block: the plain correction's offset and K^-T, the gyro's (bias, sens), the
+   detector's latest decision. The arrays are copied only when the processor swaps its tuples. */
+typedef struct {
+    PyObject *correction, *gyro; /* the tuples the values below were copied from (strong references) */
+    double o[3], k[9], bias, sens;
+    int have_last, still;
+    long long last;
+} Params;
+
+static int copy_floats(PyObject *owner, PyObject *name, double *out, Py_ssize_t n)
+{
+    PyObject *a = PyObject_GetAttr(owner, name);
+    if (a == NULL)
+        return -1;
+    Py_buffer v;
+    int rc = PyObject_GetBuffer(a, &v, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT);
+    Py_DECREF(a);
+    if (rc < 0)
+        return -1;
+    rc = 0;
+    if (v.len != n * 8 || v.itemsize != 8 || v.format == NULL || strchr(v.format, 'd') == NULL) {
+        PyErr_Format(PyExc_TypeError, "fastpath: %U must hold %zd float64", name, n);
+        rc = -1;
+    } else {
+        memcpy(out, v.buf, (size_t)(n * 8));
+    }
+    PyBuffer_Release(&v);
+    return rc;
+}
+
+static PyObject *pair_of(PyObject *owner, PyObject *name)
+{
+    PyObject *t = PyObject_GetAttr(owner, name);
+    if (t != NULL && (!PyTuple_Check(t) || PyTuple_GET_SIZE(t) != 2)) {
+        PyErr_Format(PyExc_TypeError, "fastpath: %U must be a pair", name);
+        Py_CLEAR(t);
+    }
+    return t;
+}
+
+/* 1 plain, 0 extended (the Python path's), -1 error */
+static int load_params(PyObject *processor, Params *p)
+{
+    PyObject *corr = pair_of(processor, s_correction);
+    if (corr == NULL)
+        return -1;
+    if (PyTuple_GET_ITEM(corr, 1) != Py_None) {
+        Py_DECREF(corr);
+        return 0;
+    }
+    if (corr != p->correction) {
+        PyObject *plain = PyTuple_GET_ITEM(corr, 0);
+        if (copy_floats(plain, s_offset, p->o, 3) < 0 || copy_floats(plain, s_kinv_t, p->k, 9) < 0) {
+            Py_DECREF(corr);
+            return -1;
+        }
+        Py_XSETREF(p->correction, corr);
+    } else {
+        Py_DECREF(corr);
+    }
+    PyObject *gyro = pair_of(processor, s_gyro_correction);
+    if (gyro == NULL)
+        return -1;
+    if (gyro != p->gyro) {
+        p->bias = PyFloat_AsDouble(PyTuple_GET_ITEM(gyro, 0));
+        p->sens = PyFloat_AsDouble(PyTuple_GET_ITEM(gyro, 1));
+        Py_XSETREF(p->gyro, gyro);
+        if (PyErr_Occurred()) {
+            Py_CLEAR(p->gyro);
+            return -1;
+        }
+    } else {
+        Py_DECREF(gyro);
+    }
+    PyObject *analysed = pair_of(processor, s_analysed);
+    if (analysed == NULL)
+        return -1;
+    PyObject *last = PyTuple_GET_ITEM(analysed, 0);
+    p->have_last = last != Py_None;
+    p->last = p->have_last ? PyLong_AsLongLong(last) : 0;
+    p->still = PyObject_IsTrue(PyTuple_GET_ITEM(analysed, 1));
+    Py_DECREF(analysed);
+    return PyErr_Occurred() || p->still < 0 ? -1 : 1;
+}
+
+/* Processor._static_code: the detector's decision while at most max_age samples older than seq, else unknown */
+static long long static_code(const Params *p, long long seq, double max_age)
+{
+    return p->have_last && (double)(seq - p->last) <= max_age ? p->still : -1;
+}
+
+static int int_attr_nonzero(PyObject *o, PyObject *name)
+{
+    PyObject *v = PyObject_GetAttr(o, name);
+    if (v == NULL)
+        return -1;
+    int r = PyObject_IsTrue(v);
+    Py_DECREF(v);
+    return r;
+}
+
+static int add_attr(PyObject *o, PyObject *name, long long k)
+{
+    PyObject *v = PyObject_GetAttr(o, name);
+    if (v == NULL)
+        return -1;
+    PyObject *d = PyLong_FromLongLong(k);
+    PyObject *s = d ? PyNumber_Add(v, d) : NULL;
+    Py_DECREF(v);
+    Py_XDECREF(d);
+    if (s == NULL)
+        return -1;
+    int rc = PyObject_SetAttr(o, name, s);
+    Py_DECREF(s);
+    return rc;
+}
+
+/* fanout.deliver's plain case for one watcher: 1 sent whole (counted), 0 skipped (closed), 2 stopped with the
+   lock held (*sent: bytes the socket took, -1: not tried), -1 error (lock released) */
+static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double now, Py_ssize_t *sent)
+{
+    if (!PyTuple_Check(entry) || PyTuple_GET_SIZE(entry) != 6) {
+        PyErr_SetString(PyExc_TypeError,
+                        "fastpath: a watcher entry is (client, fd, raw, watch, lock.acquire, lock.release)");
+        return -1;
+    }
+    PyObject *c = PyTuple_GET_ITEM(entry, 0), *watch = PyTuple_GET_ITEM(entry, 3);
+    PyObject *acquire = PyTuple_GET_ITEM(entry, 4), *release = PyTuple_GET_ITEM(entry, 5);
+    long fd = PyLong_AsLong(PyTuple_GET_ITEM(entry, 1));
+    int raw = PyObject_IsTrue(PyTuple_GET_ITEM(entry, 2));
+    if ((fd == -1 && PyErr_Occurred()) || raw < 0)
+        return -1;
+    PyObject *r = PyObject_CallNoArgs(acquire);
+    if (r == NULL)
+        return -1;
+    Py_DECREF(r);
+    int state = -1;
+    *sent = -1;
+    int closed = int_attr_nonzero(c, s_closed);
+    PyObject *now_watch = closed == 0 ? PyObject_GetAttr(c, s_watch) : NULL;
+    if (closed == 1) {
+        state = 0;
+    } else if (now_watch != NULL) {
+        PyObject *queue = PyObject_GetAttr(c, s_queue);
+        int out = int_attr_nonzero(c, s_out), unreported = int_attr_nonzero(c, s_dropped_unreported);
+        int queued = queue ? int_attr_nonzero(queue, s_size) : -1;
+        Py_XDECREF(queue);
+        if (out >= 0 && unreported >= 0 && queued >= 0) {
+            if (now_watch != watch || out || unreported || queued) {
+                state = 2; /* fanout decides: a changed policy, or output that goes first */
+            } else {
+                const Bytes *b = &lines[raw];
+                ssize_t s = send((int)fd, b->buf, (size_t)b->n, MSG_NOSIGNAL | MSG_DONTWAIT);
+                if (s == b->n) {
+                    PyObject *t = PyFloat_FromDouble(now);
+                    state = t && add_attr(c, s_sent_messages, k) == 0 && add_attr(c, s_sent_bytes, s) == 0 &&
+                                    PyObject_SetAttr(c, s_last_progress, t) == 0
+                                ? 1
+                                : -1;
+                    Py_XDECREF(t);
+                } else {
+                    *sent = s > 0 ? s : 0; /* EAGAIN, EPIPE, a partial send: fanout's bookkeeping */
+                    state = 2;
+                }
+            }
+        }
+    }
+    Py_XDECREF(now_watch);
+    if (state == 2)
+        return 2;
+    return release_keeping_error(release) < 0 ? -1 : state;
+}
+
+typedef struct {
+    long long ist[IST_N];
+    double fst[FST_N];
+} State;
+
+/* One read's records (written and stamped by the frame kernel) through correction, staging and the lines:
+   0, or -1 with an exception */
+static int run_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t *ticks, const Params *P,
+                     double t_recv, unsigned char *rows, double *acc, double *gyro, signed char *codes,
+                     PyObject *staged, PyObject *snapshot, Bytes lines[2])
+{
+    for (Py_ssize_t i = 0; i < k; i++) {
+        long long seq = correct_api->correct(rows + i * GRAVCAL_SAMPLE_SIZE, P->o, P->k, P->bias, P->sens, acc + 3 * i,
+                                             gyro + i);
+        long long code = static_code(P, seq, S->fst[FST_MAX_AGE]);
+        codes[i] = (signed char)code;
+        S->ist[IST_UNKNOWN] += code < 0;
+    }
+    Py_ssize_t had = PyByteArray_GET_SIZE(staged);
+    if (PyByteArray_Resize(staged, had + k * GRAVCAL_SAMPLE_SIZE) < 0)
+        return -1;
+    memcpy(PyByteArray_AS_STRING(staged) + had, rows, (size_t)(k * GRAVCAL_SAMPLE_SIZE));
+    S->ist[IST_EXPECT] = (S->ist[IST_EXPECT] + k) & 0xFFFF;
+    S->ist[IST_SEQ] += k;
+    S->ist[IST_FRAMES] += k;
+    S->ist[IST_BATCH] = k;
+    memcpy(live_ist + IST_BATCH, &S->ist[IST_BATCH], 8); /* ?POLL reads the newest batch's last record meanwhile */
+    S->ist[IST_TICK] = ticks[k - 1];
+    if (k >= 2) /* SeqUnwrapper._learn_ticks: device ticks per sample */
+        S->fst[FST_TICK_PERIOD] = (double)(uint32_t)(ticks[k - 1] - ticks[0]) / (double)(k - 1);
+    S->fst[FST_T_RECV] = t_recv;
+    int need[2] = {0, 0};
+    for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot); j++) {
+        PyObject *e = PyTuple_GET_ITEM(snapshot, j);
+        int raw = PyTuple_Check(e) && PyTuple_GET_SIZE(e) == 6 ? PyObject_IsTrue(PyTuple_GET_ITEM(e, 2)) : 0;
+        if (raw < 0)
+            return -1;
+        need[raw] = 1;
+    }
+    for (int raw = 0; raw < 2; raw++) {
+        lines[raw].n = 0;
+        for (Py_ssize_t i = 0; need[raw] && i < k; i++) {
+            if (reserve(&lines[raw], GRAVCAL_IMU_LINE_MAX) < 0)
+                return -1;
+            Py_ssize_t m = line_api->line(rows + i * GRAVCAL_SAMPLE_SIZE, acc + 3 * i, gyro[i], codes[i], raw,
+                                          lines[raw].buf + lines[raw].n, lines[raw].cap - lines[raw].n);
+            if (m < 0)
+                return -1;
+            lines[raw].n += m;
+        }
+    }
+    return 0;
+}
+
+static int check_len(const Py_buffer *b, Py_ssize_t need, const char *what)
+{
+    if (b->len >= need)
+        return 0;
+    PyErr_Format(PyExc_ValueError, "fastpath: %s holds %zd bytes, needs %zd", what, b->len, need);
+    return -1;
+}
+
+/* One call's arguments and scratch (step and take share everything after the bytes are in hand). */
+typedef struct {
+    int max_frames;
+    Py_buffer ist, fst, rows, acc, gyro, codes;
+    PyObject *staged, *server, *processor, *leftover, *stopped;
+    uint32_t *ticks;
+    Bytes lines[2];
+    State S;
+    Params P;
+    int started; /* S holds the caller's state (copied back at the end) */
+} Call;
+
+static int call_open(Call *C)
+{
+    C->leftover = NULL;
+    C->stopped = Py_NewRef(Py_None);
+    C->ticks = NULL;
+    C->lines[0] = C->lines[1] = (Bytes){NULL, 0, 0};
+    C->P = (Params){NULL, NULL};
+    C->started = 0;
+    if (C->max_frames < 1 || C->max_frames > MAX_FRAMES_LIMIT) {
+        PyErr_SetString(PyExc_ValueError, "fastpath: needs 1 <= max_frames <= 4096");
+        return -1;
+    }
+    if (check_len(&C->ist, IST_N * 8, "ist") || check_len(&C->fst, FST_N * 8, "fst") ||
+        check_len(&C->rows, (Py_ssize_t)C->max_frames * GRAVCAL_SAMPLE_SIZE, "rows") ||
+        check_len(&C->acc, (Py_ssize_t)C->max_frames * 24, "acc") ||
+        check_len(&C->gyro, (Py_ssize_t)C->max_frames * 8, "gyro") || check_len(&C->codes, C->max_frames, "static"))
+        return -1;
+    C->ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)C->max_frames);
+    if (C->ticks == NULL) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    State *S = &C->S;
+    memcpy(S->ist, C->ist.buf, sizeof S->ist);
+    memcpy(S->fst, C->fst.buf, sizeof S->fst);
+    S->ist[IST_FRAMES] = S->ist[IST_UNKNOWN] = 0;
+    S->ist[IST_CLIENT] = S->ist[IST_SENT] = -1;
+    S->ist[IST_REASON] = R_DUE;
+    C->started = 1;
+    return 0;
+}
+
+/* The watcher snapshot and the correction for the next bytes: 1 plain (*snapshot set), 0 not (the Python
+   path's: reason R_NOT_PLAIN), -1 error */
+static int call_prepare(Call *C, PyObject **snapshot)
+{
+    PyObject *snap = PyObject_GetAttr(C->server, s_fast_watchers);
+    if (snap == NULL)
+        return -1;
+    if (snap != Py_None && !PyTuple_Check(snap)) {
+        Py_DECREF(snap);
+        PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_watchers must be a tuple or None");
+        return -1;
+    }
+    int plain = snap == Py_None ? 0 : load_params(C->processor, &C->P);
+    if (plain != 1) {
+        Py_DECREF(snap);
+        if (plain == 0)
+            C->S.ist[IST_REASON] = R_NOT_PLAIN;
+        return plain;
+    }
+    *snapshot = snap;
+    return 1;
+}
+
+/* One read's bytes: 1 taken and delivered, 0 stopped (bytes handed back, or a delivery for fanout), -1 error.
+   Consumes the reference to ``snapshot``. */
+static int call_process(Call *C, const unsigned char *buf, Py_ssize_t n, PyObject *snapshot)
+{
+    State *S = &C->S;
+    double t_recv = now_s();
+    Py_ssize_t k = frame_api->continuing(buf, n, S->ist[IST_EXPECT], C->max_frames, S->ist[IST_SEQ],
+                                         S->fst[FST_TICK_HZ], t_recv, &S->fst[FST_LAST_T], C->rows.buf, C->ticks);
+    if (k == 0) {
+        Py_DECREF(snapshot);
+        C->leftover = PyBytes_FromStringAndSize((const char *)buf, n);
+        S->ist[IST_REASON] = R_BYTES;
+        return C->leftover == NULL ? -1 : 0;
+    }
+    if (run_batch(S, C->ist.buf, k, C->ticks, &C->P, t_recv, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf,
+                  C->staged, snapshot, C->lines) < 0) {
+        Py_DECREF(snapshot);
+        return -1;
+    }
+    for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot); j++) {
+        Py_ssize_t sent;
+        int d = deliver_one(PyTuple_GET_ITEM(snapshot, j), C->lines, k, t_recv, &sent);
+        if (d < 0) {
+            Py_DECREF(snapshot);
+            return -1;
+        }
+        if (d == 2) {
+            S->ist[IST_CLIENT] = j;
+            S->ist[IST_SENT] = sent;
+            S->ist[IST_REASON] = R_DELIVERY;
+            Py_SETREF(C->stopped, snapshot);
+            return 0;
+        }
+    }
+    Py_DECREF(snapshot);
+    return 1;
+}
+
+/* (leftover, stopped) or NULL; the state copied back either way (what was consumed stays accounted) */
+static PyObject *call_close(Call *C, int ok)
+{
+    PyObject *result = NULL;
+    if (ok) {
+        if (C->leftover == NULL)
+            C->leftover = PyBytes_FromStringAndSize(NULL, 0);
+        if (C->leftover != NULL)
+            result = PyTuple_Pack(2, C->leftover, C->stopped);
+    }
+    if (result == NULL && C->stopped != Py_None) /* the stopped watcher's lock is not handed over: release it */
+        release_keeping_error(PyTuple_GET_ITEM(PyTuple_GET_ITEM(C->stopped, C->S.ist[IST_CLIENT]), 5));
+    if (C->started) {
+        memcpy(C->ist.buf, C->S.ist, sizeof C->S.ist);
+        memcpy(C->fst.buf, C->S.fst, sizeof C->S.fst);
+    }
+    Py_XDECREF(C->leftover);
+    Py_DECREF(C->stopped);
+    Py_XDECREF(C->P.correction);
+    Py_XDECREF(C->P.gyro);
+    PyMem_Free(C->ticks);
+    PyMem_Free(C->lines[0].buf);
+    PyMem_Free(C->lines[1].buf);
+    PyBuffer_Release(&C->ist);
+    PyBuffer_Release(&C->fst);
+    PyBuffer_Release(&C->rows);
+    PyBuffer_Release(&C->acc);
+    PyBuffer_Release(&C->gyro);
+    PyBuffer_Release(&C->codes);
+    return result;
+}
+
+/* step(fd, seconds, ...): wait on fd (the GIL released) and read it, until due or stopped */
+static PyObject *step(PyObject *self, PyObject *args)
+{
+    int fd;
+    double seconds;
+    Call C;
+    if (!PyArg_ParseTuple(args, "idiw*w*O!OOw*w*w*w*:step", &fd, &seconds, &C.max_frames, &C.ist, &C.fst,
+                          &PyByteArray_Type, &C.staged, &C.server, &C.processor, &C.rows, &C.acc, &C.gyro, &C.codes))
+        return NULL;
+    unsigned char *buf = NULL;
+    int ok = 0;
+    if (call_open(&C) < 0)
+        goto done;
+    if (fd < 0 || !(seconds >= 0)) {
+        PyErr_SetString(PyExc_ValueError, "fastpath.step: needs fd >= 0 and seconds >= 0");
+        goto done;
+    }
+    buf = PyMem_Malloc(READ_BYTES);
+    if (buf == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    State *S = &C.S;
+    double deadline = now_s() + seconds;
+    for (;;) {
+        if (PyByteArray_GET_SIZE(C.staged) >= S->ist[IST_STAGE_LIMIT])
+            break;
+        double left = deadline - now_s();
+        if (left <= 0)
+            break;
+        struct pollfd pfd = {fd, POLLIN, 0};
+        int r;
+        Py_BEGIN_ALLOW_THREADS
+        r = poll(&pfd, 1, (int)ceil(left * 1e3));
+        Py_END_ALLOW_THREADS
+        if (r < 0 && errno == EINTR)
+            continue;
+        if (r < 0) {
+            S->ist[IST_REASON] = R_ERROR;
+            break;
+        }
+        if (r == 0)
+            continue;
+        if (!(pfd.revents & POLLIN)) { /* hang-up or error alone: the driver's read reports it */
+            S->ist[IST_REASON] = R_EOF;
+            break;
+        }
+        PyObject *snapshot;
+        int plain = call_prepare(&C, &snapshot); /* before reading: bytes for the Python path stay unread */
+        if (plain < 0)
+            goto done;
+        if (plain == 0)
+            break;
+        ssize_t n = read(fd, buf, READ_BYTES);
+        if (n < 0 && (errno == EAGAIN || errno == EINTR)) {
+            Py_DECREF(snapshot);
+            continue;
+        }
+        if (n <= 0) {
+            Py_DECREF(snapshot);
+            S->ist[IST_REASON] = n == 0 ? R_EOF : R_ERROR;
+            break;
+        }
+        int more = call_process(&C, buf, n, snapshot);
+        if (more < 0)
+            goto done;
+        if (more == 0)
+            break;
+    }
+    ok = 1;
+done:
+    PyMem_Free(buf);
+    return call_close(&C, ok);
+}
+
+/* take(data, ...): the bytes of one read made by the caller (the I2C FIFO's bursts, read by smbus2) */
+static PyObject *take(PyObject *self, PyObject *args)
+{
+    Py_buffer data;
+    Call C;
+    if (!PyArg_ParseTuple(args, "y*iw*w*O!OOw*w*w*w*:take", &data, &C.max_frames, &C.ist, &C.fst, &PyByteArray_Type,
+                          &C.staged, &C.server, &C.processor, &C.rows, &C.acc, &C.gyro, &C.codes))
+        return NULL;
+    int ok = 0;
+    if (call_open(&C) == 0) {
+        PyObject *snapshot;
+        int plain = call_prepare(&C, &snapshot);
+        if (plain == 0)
+            C.leftover = PyBytes_FromStringAndSize(data.buf, data.len);
+        ok = plain == 0 ? C.leftover != NULL : plain == 1 && call_process(&C, data.buf, data.len, snapshot) >= 0;
+    }
+    PyBuffer_Release(&data);
+    return call_close(&C, ok);
+}
+
+static PyMethodDef methods[] = {
+    {"step", step, METH_VARARGS,
+     "step(fd, seconds, max_frames, ist, fst, staged, server, processor, rows, acc, gyro, static) -> (leftover, "
+     "stopped snapshot or None): the latency path's common case from the bus to the sockets (see daemon/fastpath.py)."},
+    {"take", take, METH_VARARGS,
+     "take(data, max_frames, ist, fst, staged, server, processor, rows, acc, gyro, static) -> (leftover, stopped "
+     "snapshot or None): as step for the bytes of one read made by the caller."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, .m_name = "_fastpath",
+                                    .m_doc = "gravcald's latency path in one C call per wake-up.", .m_size = -1,
+                                    .m_methods = methods};
+
+/* the capsule of a kernel module, imported first (PyCapsule_Import walks attributes the import sets) */
+static void *import_api(const char *module, const char *capsule)
+{
+    PyObject *m = PyImport_ImportModule(module);
+    if (m == NULL)
+        return NULL;
+    Py_DECREF(m);
+    return PyCapsule_Import(capsule, 0);
+}
+
+PyMODINIT_FUNC PyInit__fastpath(void)
+{
+    struct {
+        PyObject **name;
+        const char *text;
+    } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_correction, "_correction"},
+                 {&s_gyro_correction, "_gyro_correction"}, {&s_analysed, "analysed"}, {&s_offset, "offset"},
+                 {&s_kinv_t, "kinv_t"}, {&s_closed, "closed"},
+                 {&s_watch, "watch"}, {&s_queue, "queue"}, {&s_size, "size"}, {&s_out, "out"},
+                 {&s_dropped_unreported, "dropped_unreported"}, {&s_sent_messages, "sent_messages"},
+                 {&s_sent_bytes, "sent_bytes"}, {&s_last_progress, "last_progress"}};
+    for (size_t i = 0; i < sizeof names / sizeof names[0]; i++)
+        if (*names[i].name == NULL && (*names[i].name = PyUnicode_InternFromString(names[i].text)) == NULL)
+            return NULL;
+    frame_api = import_api("gravcal.drivers._framekernel", GRAVCAL_FRAME_CAPSULE);
+    correct_api = frame_api ? import_api("gravcal.core._correctkernel", GRAVCAL_CORRECT_CAPSULE) : NULL;
+    line_api = correct_api ? import_api("gravcal.daemon._linekernel", GRAVCAL_LINE_CAPSULE) : NULL;
+    if (line_api == NULL)
+        return NULL;
+    return PyModule_Create(&module);
+}

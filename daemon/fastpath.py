@@ -1,0 +1,162 @@
+"""The latency path's common case in one C call per wake-up (daemon/_fastpath.c), and the Python around it.
+
+At 200 Hz the per-sample cost of gravcald is its Python calls (driver.read, decoder, unwrapper, stamp,
+correction, publish, fanout), each several µs once other processes have evicted the interpreter's caches
+between samples. The C step does, for whole intact frames that continue the stream, what those calls do,
+in pipeline order (bus bytes -> frames -> correction -> IMU lines -> sockets), and returns to Python at the
+latest every HOUSEKEEPING_S (or once a block for the analysis is staged) for the rest: the counters of
+the driver, the unwrapper, the processor and the server, which are applied here from its results.
+
+Everything else takes the Python path, exactly as without the C step: the step hands back undecoded the
+bytes of any read that is not such frames (a gap, a stray, a restart, a CRC error, a partial frame; the
+driver decodes them in its next read), is not called while the driver has a question open (a reconnect,
+a partial frame, samples waiting, a latency budget, a pyserial URL) or while a watcher is decimated
+(``server.fast_watchers`` is None) or the calibration is extended, and a delivery it cannot finish
+(output queued for a client, a full socket, a changed policy) is finished by the server's fanout.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from ..core.samples import SAMPLE_DTYPE
+from ._fastpath import step, take
+from .processing import STATIC_MAX_AGE_S
+from .protocol import ImuBlock
+
+HOUSEKEEPING_S = 0.25  # the longest the C step runs before the Python loop's housekeeping
+
+# The state arrays shared with the C step (the slot names are its enums)
+IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH, \
+    IST_STAGE_LIMIT, IST_N = range(11)
+FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N = range(6)
+R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR = range(6)
+
+
+class FastPath:
+    """The C step for one driver, processor and server. ``taken``: samples it has delivered."""
+
+    def __init__(self, driver: Any, processor: Any, server: Any, *, max_frames: int, stage_bytes: int, fs_hz: float):
+        self.driver, self.processor, self.server = driver, processor, server
+        self.max_frames = int(max_frames)
+        self.ist = np.zeros(IST_N, dtype=np.int64)
+        self.fst = np.zeros(FST_N, dtype=np.float64)
+        self.ist[IST_STAGE_LIMIT] = stage_bytes
+        self.fst[FST_MAX_AGE] = STATIC_MAX_AGE_S * fs_hz
+        # the newest batch, as the step wrote it (rows, acc [m/s²], gyro [rad/s], static codes)
+        self.rows = np.zeros(self.max_frames, dtype=SAMPLE_DTYPE)
+        self.acc = np.zeros((self.max_frames, 3))
+        self.gyro = np.zeros(self.max_frames)
+        self.codes = np.zeros(self.max_frames, dtype=np.int8)
+        self.latest = _Latest(self)
+        self.taken = 0
+
+    @classmethod
+    def for_driver(cls, driver: Any, *args: Any, **kwargs: Any) -> "FastPath | None":
+        """A FastPath when the driver offers its bytes to the C step: its descriptor (drivers/serial.py
+        ``fast_entry``) or the bytes it reads (drivers/i2c.py ``fast_ready``); else None."""
+        ok = hasattr(driver, "fast_entry") or hasattr(driver, "fast_ready")
+        return cls(driver, *args, **kwargs) if ok else None
+
+    def run(self, staged: bytearray, seconds: float = HOUSEKEEPING_S) -> tuple[int, bool]:
+        """Run the C step for up to ``seconds``, appending the records to ``staged``: (samples taken, whether
+        the Python path reads next: bytes or a case the step does not take are waiting)."""
+        if self.server.fast_watchers is None or self.processor._correction[1] is not None:
+            return 0, True
+        if hasattr(self.driver, "fast_ready"):
+            return self._run_fed(staged, seconds)
+        entry = self.driver.fast_entry()
+        if entry is None:
+            return 0, True
+        fd, raw, seq, last_t = entry
+        self._start(raw, seq, last_t)
+        try:
+            leftover, stopped = step(fd, seconds, self.max_frames, self.ist, self.fst, staged, self.server,
+                                     self.processor, self.rows, self.acc, self.gyro, self.codes)
+        finally:
+            n = self._account(int(self.ist[IST_FRAMES]), int(self.ist[IST_UNKNOWN]))
+        self._finish(stopped)
+        if leftover:
+            self.driver.unread(leftover)
+        return n, int(self.ist[IST_REASON]) != R_DUE
+
+    def _run_fed(self, staged: bytearray, seconds: float) -> tuple[int, bool]:
+        """As :meth:`run` for a driver whose reads are Python calls (I2C: smbus2): each read's bytes go to the
+        C step's ``take``; the counters are applied once at the end."""
+        drv = self.driver
+        entry = drv.fast_ready()
+        if entry is None:
+            return 0, True
+        self._start(*entry)
+        end = time.monotonic() + seconds
+        ist, n, unknown, read_next = self.ist, 0, 0, False
+        try:
+            while len(staged) < ist[IST_STAGE_LIMIT] and time.monotonic() < end:
+                bursts = drv.fast_read(end)
+                if bursts is None:  # the bus failed: the Python path reconnects
+                    read_next = True
+                    break
+                if not bursts:
+                    continue
+                ist[IST_FRAMES] = ist[IST_UNKNOWN] = 0
+                try:
+                    leftover, stopped = take(b"".join(bursts), self.max_frames, ist, self.fst, staged, self.server,
+                                             self.processor, self.rows, self.acc, self.gyro, self.codes)
+                finally:
+                    n, unknown = n + int(ist[IST_FRAMES]), unknown + int(ist[IST_UNKNOWN])
+                self._finish(stopped)
+                if leftover:
+                    drv.unread(bursts)
+                if ist[IST_REASON] != R_DUE:
+                    read_next = True
+                    break
+        finally:
+            self._account(n, unknown)
+        return n, read_next
+
+    def _start(self, raw: int, seq: int, last_t: float) -> None:
+        ist, fst = self.ist, self.fst
+        ist[IST_EXPECT], ist[IST_SEQ], ist[IST_FRAMES] = raw, seq, 0
+        fst[FST_LAST_T], fst[FST_TICK_HZ], fst[FST_TICK_PERIOD] = last_t, self.driver.tick_hz or 0.0, math.nan
+
+    def _finish(self, stopped: Any) -> None:
+        """A delivery the step stopped: the server's fanout delivers the rest of the batch."""
+        if stopped is not None:
+            k = int(self.ist[IST_BATCH])
+            block = ImuBlock(self.rows[:k].copy(), self.acc[:k].copy(), self.gyro[:k].copy(), self.codes[:k].copy())
+            self.server.finish_publish(block, stopped, int(self.ist[IST_CLIENT]), int(self.ist[IST_SENT]))
+
+    def _account(self, n: int, unknown: int) -> int:
+        """What the Python path counts per sample, for the ``n`` samples the step took."""
+        ist, fst = self.ist, self.fst
+        if n <= 0:
+            return 0
+        period = float(fst[FST_TICK_PERIOD])
+        self.driver.fast_consumed(n, int(ist[IST_TICK]), None if math.isnan(period) else period,
+                                  float(fst[FST_LAST_T]), float(fst[FST_T_RECV]))
+        self.processor.corrected_seq = int(ist[IST_SEQ]) - 1
+        self.processor.static_unknown += unknown
+        self.server.count_published(n, self.latest)
+        self.taken += n
+        return n
+
+
+class _Latest:
+    """?POLL's newest sample while the C step publishes: encoded when asked from the arrays the step writes
+    (under the GIL, so never half-written)."""
+
+    __slots__ = ("fast",)
+
+    def __init__(self, fast: FastPath):
+        self.fast = fast
+
+    def last_message(self, raw: bool = False) -> dict[str, Any] | None:
+        f = self.fast
+        k = int(f.ist[IST_BATCH])
+        if k <= 0:
+            return None
+        i = slice(k - 1, k)
+        return ImuBlock(f.rows[i], f.acc[i], f.gyro[i], f.codes[i]).last_message(raw)

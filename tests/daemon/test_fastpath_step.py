@@ -1,0 +1,223 @@
+"""The C step alone (daemon/_fastpath.c): its lines against the Python encoder's, what it leaves to the
+Python path, and bad arguments and arbitrary bytes (never out of bounds, never a crash)."""
+from __future__ import annotations
+
+import math
+import os
+import socket
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from gravcal.core.correction import PlainCorrection
+from gravcal.core.samples import SAMPLE_DTYPE
+from gravcal.daemon import fastpath as fp
+from gravcal.daemon._fastpath import step
+from gravcal.daemon.protocol import STANDARD_GRAVITY, ImuBlock, WatchPolicy
+from gravcal.drivers.codec import FrameDecoder, encode_frames
+from gravcal.drivers.rigs.sources import pattern_blocks
+
+MAX = 16
+
+
+def frames(seqs) -> bytes:
+    seqs = np.asarray(seqs, dtype=np.int64)
+    s = next(pattern_blocks(seed=3, fs=200, duration=seqs.shape[0] / 200, block=seqs.shape[0])).copy()
+    s["seq"], s["tick"] = seqs & 0xFFFF, (seqs * 5000) & 0xFFFFFFFF
+    return encode_frames(s)
+
+
+class Rig:
+    """A pipe as the bus, a socketpair as one plain watcher, a processor with a plain calibration."""
+
+    def __init__(self, raw: bool = True):
+        self.r, self.w = os.pipe()
+        os.set_blocking(self.r, False)
+        self.mine, self.peer = socket.socketpair()
+        self.mine.setblocking(False)
+        self.client = SimpleNamespace(closed=False, watch=WatchPolicy(True, raw, 0.0), queue=SimpleNamespace(size=0),
+                                      out=None, dropped_unreported=0, sent_messages=0, sent_bytes=0,
+                                      last_progress=0.0, lock=threading.RLock())
+        c = self.client
+        self.server = SimpleNamespace(fast_watchers=((c, self.mine.fileno(), raw, c.watch, c.lock.acquire,
+                                                      c.lock.release),))
+        plain = PlainCorrection(np.array([0.5, 0.51, 0.49]), np.diag([0.04, 0.041, 0.039]), STANDARD_GRAVITY)
+        self.processor = SimpleNamespace(_correction=(plain, None), _gyro_correction=(2048.0, 357.36),
+                                         analysed=(900, True))
+        self.ist = np.zeros(fp.IST_N, np.int64)
+        self.fst = np.zeros(fp.FST_N)
+        self.ist[fp.IST_STAGE_LIMIT] = 1 << 30
+        self.fst[fp.FST_TICK_HZ], self.fst[fp.FST_MAX_AGE] = 1e6, 400.0
+        self.rows, self.acc = np.zeros(MAX, SAMPLE_DTYPE), np.zeros((MAX, 3))
+        self.gyro, self.codes = np.zeros(MAX), np.zeros(MAX, np.int8)
+        self.staged = bytearray()
+
+    def step(self, expect: int, seq: int, seconds: float = 0.05):
+        self.ist[fp.IST_EXPECT], self.ist[fp.IST_SEQ] = expect, seq
+        return step(self.r, seconds, MAX, self.ist, self.fst, self.staged, self.server, self.processor,
+                    self.rows, self.acc, self.gyro, self.codes)
+
+    def received(self) -> bytes:
+        self.peer.setblocking(False)
+        out = b""
+        while True:
+            try:
+                out += self.peer.recv(1 << 16)
+            except BlockingIOError:
+                return out
+
+    def close(self) -> None:
+        for fd in (self.r, self.w):
+            os.close(fd)
+        self.mine.close()
+        self.peer.close()
+
+
+@pytest.fixture
+def rig():
+    r = Rig()
+    yield r
+    r.close()
+
+
+def test_lines_and_records_are_the_python_paths(rig):
+    os.write(rig.w, frames(range(65533, 65536)))  # one read of three frames, up to the wrap
+    leftover, stopped = rig.step(65533, 1000)
+    os.write(rig.w, frames([0]))
+    leftover2, _ = rig.step(0, 1003)
+    assert leftover == leftover2 == b"" and stopped is None
+    assert rig.ist[fp.IST_FRAMES] == 1 and rig.ist[fp.IST_SEQ] == 1004 and rig.ist[fp.IST_EXPECT] == 1
+    rows = np.frombuffer(bytes(rig.staged), SAMPLE_DTYPE)
+    # the Python path's records for the same bytes: the decoder, then the driver's stamps
+    ref = FrameDecoder().feed(frames(range(65533, 65536)) + frames([0]))
+    for name in ("tick", "t1", "t2", "gyro", "temp", "vsupply", "flags"):
+        np.testing.assert_array_equal(rows[name], ref[name])
+    np.testing.assert_array_equal(rows["seq"], np.arange(1000, 1004))
+    t = rows["t"]
+    assert t[1] - t[0] == pytest.approx(5e-3, abs=1e-9) and t[2] - t[1] == pytest.approx(5e-3, abs=1e-9)
+    assert t[3] >= t[2]
+    plain = rig.processor._correction[0]
+    acc = plain.block(rows)
+    gyro = (rows["gyro"].astype(float) - 2048.0) / 357.36
+    static = np.where(rows["seq"] - 900 <= 400.0, 1, -1).astype(np.int8)
+    want = ImuBlock(rows[:3], acc[:3], gyro[:3], static[:3]).joined(True) + \
+        ImuBlock(rows[3:], acc[3:], gyro[3:], static[3:]).joined(True)
+    assert rig.received() == want  # bit for bit: numpy's correction and the block encoder
+    assert rig.client.sent_messages == 4 and rig.client.sent_bytes == len(want)
+    assert rig.ist[fp.IST_UNKNOWN] == 0
+
+
+def test_whatever_is_not_the_common_case_is_handed_back_unconsumed(rig):
+    cases = {
+        "gap": frames([7]),
+        "partial": frames([5])[:20],
+        "crc": bytes([b ^ (i == 10) for i, b in enumerate(frames([5]))]),
+        "garbage before": b"\x00" + frames([5]),
+        "good then gap": frames([5, 6, 9]),
+    }
+    for name, data in cases.items():
+        rig.staged.clear()
+        os.write(rig.w, data)
+        leftover, stopped = rig.step(5, 100)
+        assert leftover == data, name
+        assert rig.ist[fp.IST_REASON] == fp.R_BYTES and rig.ist[fp.IST_FRAMES] == 0, name
+        assert not rig.staged and rig.received() == b"", name
+    rig.server.fast_watchers = None  # a decimated watcher: nothing is read
+    os.write(rig.w, frames([5]))
+    assert rig.step(5, 100) == (b"", None) and rig.ist[fp.IST_REASON] == fp.R_NOT_PLAIN
+    rig.server.fast_watchers = ()
+    rig.processor._correction = (rig.processor._correction[0], object())  # an extended calibration
+    assert rig.step(5, 100) == (b"", None) and rig.ist[fp.IST_REASON] == fp.R_NOT_PLAIN
+    assert os.read(rig.r, 100) == frames([5])
+
+
+def test_a_delivery_it_cannot_finish_stops_with_the_lock_held(rig):
+    c = rig.client
+    c.queue.size = 1  # something queued goes first
+    os.write(rig.w, frames([5]))
+    leftover, stopped = rig.step(5, 100)
+    assert leftover == b"" and stopped is rig.server.fast_watchers
+    assert rig.ist[fp.IST_REASON] == fp.R_DELIVERY and rig.ist[fp.IST_CLIENT] == 0 and rig.ist[fp.IST_SENT] == -1
+    assert rig.ist[fp.IST_FRAMES] == 1 and rig.received() == b""
+    held = threading.Thread(target=lambda: setattr(c, "got", c.lock.acquire(timeout=0.2)))
+    held.start()
+    held.join()
+    assert not c.got  # another thread cannot take it until the Python side releases it
+    c.lock.release()
+    c.queue.size = 0
+    c.watch = WatchPolicy(True, False, 0.0)  # a changed policy: fanout decides
+    os.write(rig.w, frames([6]))
+    rig.step(6, 101)
+    assert rig.ist[fp.IST_REASON] == fp.R_DELIVERY and rig.ist[fp.IST_SENT] == -1
+    c.lock.release()
+
+
+def test_a_full_socket_stops_with_what_it_took(rig):
+    rig.mine.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4096)
+    for k in range(400):
+        os.write(rig.w, frames([5 + k]))
+        rig.step(5 + k, 100 + k)
+        if rig.ist[fp.IST_REASON] == fp.R_DELIVERY:
+            break
+    assert rig.ist[fp.IST_REASON] == fp.R_DELIVERY and rig.ist[fp.IST_SENT] >= 0
+    rig.client.lock.release()
+    sent = rig.client.sent_bytes + rig.ist[fp.IST_SENT]
+    assert len(rig.received()) == sent
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_arbitrary_bytes_are_handed_back_or_taken_whole(rig, seed):
+    rng = np.random.default_rng(seed)
+    good = frames(range(50, 50 + int(rng.integers(1, 6))))
+    data = bytearray(good)
+    for _ in range(int(rng.integers(0, 4))):  # flips, cuts and insertions
+        i = int(rng.integers(0, len(data)))
+        op = rng.integers(0, 3)
+        if op == 0:
+            data[i] ^= 1 << int(rng.integers(0, 8))
+        elif op == 1:
+            del data[i:]
+        else:
+            data[i:i] = rng.integers(0, 256, int(rng.integers(1, 40)), dtype=np.uint8).tobytes()
+    if data:
+        os.write(rig.w, bytes(data))
+    leftover, _ = rig.step(50, 0)
+    if bytes(data) == good:
+        assert leftover == b"" and rig.ist[fp.IST_FRAMES] == len(good) // 29
+    else:
+        assert leftover == bytes(data) and rig.ist[fp.IST_FRAMES] == 0
+
+
+def test_bad_arguments_are_refused_with_a_message(rig):
+    args = [rig.r, 0.01, MAX, rig.ist, rig.fst, rig.staged, rig.server, rig.processor, rig.rows, rig.acc, rig.gyro,
+            rig.codes]
+    for i, bad, exc, words in [
+        (8, np.zeros(MAX - 1, SAMPLE_DTYPE), ValueError, "rows holds"),
+        (9, np.zeros((MAX - 1, 3)), ValueError, "acc holds"),
+        (3, np.zeros(3, np.int64), ValueError, "ist holds"),
+        (2, 0, ValueError, "max_frames"),
+        (2, 100000, ValueError, "max_frames"),
+        (0, -1, ValueError, "fd >= 0"),
+        (1, math.nan, ValueError, "seconds"),
+        (5, b"not a bytearray", TypeError, "bytearray"),
+        (8, b"\0" * (56 * MAX), TypeError, "read-write"),
+    ]:
+        a = list(args)
+        a[i] = bad
+        with pytest.raises(exc, match=words):
+            step(*a)
+    os.write(rig.w, frames([5]))
+    rig.server.fast_watchers = "not a tuple"
+    with pytest.raises(TypeError, match="fast_watchers"):
+        rig.step(5, 0)
+    rig.server.fast_watchers = ((1, 2),)
+    with pytest.raises(TypeError, match="watcher entry"):
+        rig.step(5, 0)
+    rig.server.fast_watchers = ()
+    assert rig.ist[fp.IST_FRAMES] == 1  # read before the error: accounted
+    rig.processor._correction = (SimpleNamespace(offset=np.zeros(2), kinv_t=np.eye(3)), None)
+    os.write(rig.w, frames([5]))
+    with pytest.raises(TypeError, match="offset must hold 3 float64"):
+        rig.step(5, 0)
