@@ -16,10 +16,8 @@ import threading
 import time
 
 import numpy as np
-import pytest
 
 from gravcal.core.calibration import Calibration
-from gravcal.core.samples import SAMPLE_DTYPE
 from gravcal.daemon.client import Client
 from gravcal.daemon.config import Config
 from gravcal.daemon.service import Gravcald
@@ -78,8 +76,13 @@ class Reader:
         return self.data.count(b'"class":"IMU"')
 
     def close(self) -> None:
-        self.sock.close()
+        try:  # wakes the reading thread's recv (a close from another thread does not)
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:  # the daemon hung up already
+            pass
         self._t.join(5)
+        assert not self._t.is_alive(), "the reader thread did not end"
+        self.sock.close()
 
 
 def settle(d: Gravcald, reader: Reader, timeout: float = 20.0) -> None:
