@@ -73,12 +73,15 @@ class FastPath:
             return 0, True
         fd, raw, seq, last_t = entry
         self._start(raw, seq, last_t)
+        stopped = None
         try:
             leftover, stopped = step(fd, seconds, self.max_frames, self.ist, self.fst, staged, self.server,
                                      self.processor, self.rows, self.acc, self.gyro, self.codes)
         finally:
-            n = self._account(int(self.ist[IST_FRAMES]), int(self.ist[IST_UNKNOWN]))
-        self._finish(stopped)
+            try:
+                n = self._account(int(self.ist[IST_FRAMES]), int(self.ist[IST_UNKNOWN]))
+            finally:  # a stopped delivery holds a client's lock: it is finished (and released) whatever happened
+                self._finish(stopped)
         if leftover:
             self.driver.unread(leftover)
         return n, int(self.ist[IST_REASON]) != R_DUE
@@ -102,12 +105,13 @@ class FastPath:
                 if not bursts:
                     continue
                 ist[IST_FRAMES] = ist[IST_UNKNOWN] = 0
+                stopped = None
                 try:
                     leftover, stopped = take(b"".join(bursts), self.max_frames, ist, self.fst, staged, self.server,
                                              self.processor, self.rows, self.acc, self.gyro, self.codes)
                 finally:
                     n, unknown = n + int(ist[IST_FRAMES]), unknown + int(ist[IST_UNKNOWN])
-                self._finish(stopped)
+                    self._finish(stopped)
                 if leftover:
                     drv.unread(bursts)
                 if ist[IST_REASON] != R_DUE:
@@ -124,10 +128,16 @@ class FastPath:
 
     def _finish(self, stopped: Any) -> None:
         """A delivery the step stopped: the server's fanout delivers the rest of the batch."""
-        if stopped is not None:
+        if stopped is None:
+            return
+        index = int(self.ist[IST_CLIENT])
+        try:
             k = int(self.ist[IST_BATCH])
             block = ImuBlock(self.rows[:k].copy(), self.acc[:k].copy(), self.gyro[:k].copy(), self.codes[:k].copy())
-            self.server.finish_publish(block, stopped, int(self.ist[IST_CLIENT]), int(self.ist[IST_SENT]))
+        except BaseException:
+            stopped[index][5]()  # the lock the step left held: that client must not stay locked out
+            raise
+        self.server.finish_publish(block, stopped, index, int(self.ist[IST_SENT]))
 
     def _account(self, n: int, unknown: int) -> int:
         """What the Python path counts per sample, for the ``n`` samples the step took."""

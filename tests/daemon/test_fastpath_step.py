@@ -221,3 +221,28 @@ def test_bad_arguments_are_refused_with_a_message(rig):
     os.write(rig.w, frames([5]))
     with pytest.raises(TypeError, match="offset must hold 3 float64"):
         rig.step(5, 0)
+
+
+def test_a_stopped_delivery_is_finished_even_when_the_accounting_fails(rig):
+    """The step returns with a client's lock held; FastPath.run must hand that delivery to the fanout
+    (which releases the lock) even if applying the counters raises, or the client stays locked out."""
+    finished = []
+    rig.server.finish_publish = lambda block, snapshot, index, sent: (finished.append(block.samples["seq"].tolist()),
+                                                                        snapshot[index][5]())
+
+    def fail(*_):
+        raise RuntimeError("counters")
+
+    driver = SimpleNamespace(fast_entry=lambda: (rig.r, 5, 100, 0.0), fast_consumed=fail, tick_hz=1e6,
+                             unread=lambda data: None)
+    path = fp.FastPath(driver, rig.processor, rig.server, max_frames=MAX, stage_bytes=1 << 30, fs_hz=200.0)
+    rig.client.queue.size = 1  # something queued goes first: the step stops at this client
+    os.write(rig.w, frames([5]))
+    with pytest.raises(RuntimeError, match="counters"):
+        path.run(rig.staged, seconds=0.05)
+    assert finished == [[100]]
+    got = []
+    t = threading.Thread(target=lambda: got.append(rig.client.lock.acquire(timeout=1.0)))
+    t.start()
+    t.join()
+    assert got == [True], "the client's lock stayed held"
