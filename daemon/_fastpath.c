@@ -12,6 +12,8 @@
  *   - bytes: a read that is not exactly whole intact frames, each continuing the stream by one (the
  *     SeqUnwrapper's rule 2 with a step of 1: no gap, no stray, no restart; the 16-bit counter may wrap),
  *     or more frames than max_frames: returned as leftover, the driver decodes them as it always does;
+ *     with ist[IST_CAN] = 1 + a CAN base id the bytes are slcan lines and a "frame" is a CAN sample's four lines
+ *     (the frame kernel's slcan_continuing: anything else is handed back to python-can's reader);
  *   - watchers: delivery only to the snapshot ``server.fast_watchers`` (watching every sample, read per
  *     wake-up; None: some watcher is not plain). A watcher whose output is not empty, whose policy changed,
  *     or whose socket does not take the whole block stops the delivery: its lock stays held and the
@@ -34,6 +36,7 @@
 #include <poll.h>
 #include <stdint.h>
 #include <string.h>
+#include <sys/ioctl.h>
 #include <sys/socket.h>
 #include <time.h>
 #include <unistd.h>
@@ -47,7 +50,7 @@
 
 /* ist (int64) and fst (float64) slots: the state shared with daemon/fastpath.py */
 enum { IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH,
-       IST_STAGE_LIMIT, IST_N };
+       IST_STAGE_LIMIT, IST_CAN, IST_N };
 enum { FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N };
 enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
 
@@ -413,8 +416,14 @@ static int call_process(Call *C, const unsigned char *buf, Py_ssize_t n, PyObjec
 {
     State *S = &C->S;
     double t_recv = now_s();
-    Py_ssize_t k = frame_api->continuing(buf, n, S->ist[IST_EXPECT], C->max_frames, S->ist[IST_SEQ],
-                                         S->fst[FST_TICK_HZ], t_recv, &S->fst[FST_LAST_T], C->rows.buf, C->ticks);
+    /* the records source: ist[IST_CAN] 0 the serial frames, else slcan lines of CAN samples from base id - 1 */
+    long long can_base = S->ist[IST_CAN] - 1;
+    Py_ssize_t k = can_base < 0 ? frame_api->continuing(buf, n, S->ist[IST_EXPECT], C->max_frames, S->ist[IST_SEQ],
+                                                        S->fst[FST_TICK_HZ], t_recv, &S->fst[FST_LAST_T],
+                                                        C->rows.buf, C->ticks)
+                                : frame_api->slcan_continuing(buf, n, can_base, S->ist[IST_EXPECT], C->max_frames,
+                                                              S->ist[IST_SEQ], S->fst[FST_TICK_HZ], t_recv,
+                                                              &S->fst[FST_LAST_T], C->rows.buf, C->ticks);
     if (k == 0) {
         Py_DECREF(snapshot);
         C->leftover = PyBytes_FromStringAndSize((const char *)buf, n);
@@ -539,6 +548,14 @@ static PyObject *step(PyObject *self, PyObject *args)
             Py_DECREF(snapshot);
             S->ist[IST_REASON] = n == 0 ? R_EOF : R_ERROR;
             break;
+        }
+        /* a tty read returns at most 64 bytes (the kernel's tty_read chunk): the rest of what has arrived */
+        int avail;
+        while (n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
+            ssize_t m = read(fd, buf + n, (size_t)(READ_BYTES - n));
+            if (m <= 0)
+                break;
+            n += m;
         }
         int more = call_process(&C, buf, n, snapshot);
         if (more < 0)

@@ -31,7 +31,7 @@ HOUSEKEEPING_S = 0.25  # the longest the C step runs before the Python loop's ho
 
 # The state arrays shared with the C step (the slot names are its enums)
 IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH, \
-    IST_STAGE_LIMIT, IST_N = range(11)
+    IST_STAGE_LIMIT, IST_CAN, IST_N = range(12)
 FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N = range(6)
 R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR = range(6)
 
@@ -45,6 +45,9 @@ class FastPath:
         self.ist = np.zeros(IST_N, dtype=np.int64)
         self.fst = np.zeros(FST_N, dtype=np.float64)
         self.ist[IST_STAGE_LIMIT] = stage_bytes
+        # the bytes' records: the serial frame codec's (0), or CAN samples in slcan lines (1 + their base id)
+        can_base = getattr(driver, "fast_can_base_id", None)
+        self.ist[IST_CAN] = 0 if can_base is None else 1 + can_base
         self.fst[FST_MAX_AGE] = STATIC_MAX_AGE_S * fs_hz
         # the newest batch, as the step wrote it (rows, acc [m/s²], gyro [rad/s], static codes)
         self.rows = np.zeros(self.max_frames, dtype=SAMPLE_DTYPE)

@@ -3,6 +3,7 @@
  * frame_header(frame)                 -> (seq, tick) of an intact 29-byte frame, else None
  * frame_to_row(frame, row, seq, flags)   writes one SAMPLE_DTYPE row (core/samples.py) for it
  * sample_to_row(row, seq, tick, ...)       the same row from one sample's raw fields (drivers/can.py)
+ * slcan_samples(data, base_id, ...)       the rows of slcan bytes that are whole CAN samples continuing the stream
  *
  * The values are those of codec.wire_to_samples followed by the decoder's unwrapping: the wire
  * layout and the CRC are codec.py's (CRC-16/CCITT-FALSE over the whole frame is 0 when intact),
@@ -90,6 +91,26 @@ static void to_row_c(const unsigned char *p, unsigned char *row, long long seq, 
     write_row(row, seq, u32le(p + 5), t1, t2, (uint16_t)u16le(p + 21), u16le(p + 23), u16le(p + 25), flags);
 }
 
+/* base.py Driver._stamp for k records: one at t_recv, several back from the newest by their tick distance
+   (32-bit; a backwards step counts 0) / tick_hz (tick_hz 0: all at t_recv), never before *last_t (updated). */
+static void stamp(unsigned char *rows, const uint32_t *ticks, Py_ssize_t k, double tick_hz, double t_recv,
+                  double *last_t)
+{
+    double newest = *last_t;
+    for (Py_ssize_t i = 0; i < k; i++) {
+        double t = t_recv;
+        if (k > 1 && tick_hz > 0) {
+            uint32_t back = ticks[k - 1] - ticks[i];
+            t = t_recv - (double)(back > 0x7FFFFFFFu ? 0u : back) / tick_hz;
+        }
+        if (t < newest)
+            t = newest;
+        newest = t;
+        memcpy(rows + i * SAMPLE_SIZE, &t, 8);
+    }
+    *last_t = newest;
+}
+
 /* The records of a read that only continues the stream (the unwrapper's rule 2 with a step of 1, sequence.py
    SeqUnwrapper.continue_one: no gap, no stray, no restart; the 16-bit counter may wrap), stamped as
    base.py Driver._stamp: one frame at t_recv, several back from the newest by their tick distance (32-bit;
@@ -107,25 +128,97 @@ static Py_ssize_t continuing_c(const unsigned char *buf, Py_ssize_t n, long long
             return 0;
         ticks[i] = u32le(p + 5);
     }
-    double newest = *last_t;
-    for (Py_ssize_t i = 0; i < k; i++) {
-        unsigned char *row = rows + i * SAMPLE_SIZE;
-        to_row_c(buf + i * FRAME_LEN, row, seq0 + i, 0);
-        double t = t_recv;
-        if (k > 1 && tick_hz > 0) {
-            uint32_t back = ticks[k - 1] - ticks[i];
-            t = t_recv - (double)(back > 0x7FFFFFFFu ? 0u : back) / tick_hz;
-        }
-        if (t < newest)
-            t = newest;
-        newest = t;
-        memcpy(row, &t, 8);
-    }
-    *last_t = newest;
+    for (Py_ssize_t i = 0; i < k; i++)
+        to_row_c(buf + i * FRAME_LEN, rows + i * SAMPLE_SIZE, seq0 + i, 0);
+    stamp(rows, ticks, k, tick_hz, t_recv, last_t);
     return k;
 }
 
-static const GravcalFrameAPI c_api = {to_row_c, continuing_c};
+/* One hex digit's value (either case, as int(.., 16) and bytes.fromhex read it), else -1 */
+static int hexval(unsigned char c)
+{
+    if (c >= '0' && c <= '9')
+        return c - '0';
+    c |= 0x20;
+    return c >= 'a' && c <= 'f' ? c - 'a' + 10 : -1;
+}
+
+/* ``n`` hex digits at p as an integer (at most 32 bits), else -1 */
+static long long hexnum(const unsigned char *p, int n)
+{
+    long long v = 0;
+    for (int i = 0; i < n; i++) {
+        int d = hexval(p[i]);
+        if (d < 0)
+            return -1;
+        v = v << 4 | d;
+    }
+    return v;
+}
+
+/* drivers/can.py FRAME_DLC, and the length of a frame's slcan line ``t<3 hex id><dlc><2*dlc hex>\r`` */
+static const int can_dlc[4] = {8, 7, 7, 5};
+#define SLCAN_LINE(dlc) (6 + 2 * (dlc))
+#define SLCAN_SAMPLE (SLCAN_LINE(8) + 2 * SLCAN_LINE(7) + SLCAN_LINE(5))
+
+/* The payload of a standard data frame's line at p with the id and dlc given (into data), else -1 */
+static int slcan_line(const unsigned char *p, long long id, int dlc, unsigned char *data)
+{
+    if (p[0] != 't' || hexnum(p + 1, 3) != id || p[4] != '0' + dlc || p[SLCAN_LINE(dlc) - 1] != '\r')
+        return -1;
+    for (int i = 0; i < dlc; i++) {
+        long long b = hexnum(p + 5 + 2 * i, 2);
+        if (b < 0)
+            return -1;
+        data[i] = (unsigned char)b;
+    }
+    return 0;
+}
+
+/* The records of one read of slcan bytes when it is exactly k <= max_samples samples, each the four frames
+   base_id..base_id+3 in order (drivers/can.py: TIMING seq u16, tick u32, gyro u16; CHIP_A/B seq_lo, T1 x2, T2;
+   HOUSEKEEPING seq_lo, temp_raw, vsupply_raw) whose seq continue ``expect`` one by one and whose frames all carry
+   its low byte: SampleAssembler's complete sample, then record_to_sample's row (the unwrapper's rule 2 with a
+   step of 1), stamped as the driver stamps a read. k, or 0 (nothing written). */
+static Py_ssize_t slcan_continuing_c(const unsigned char *buf, Py_ssize_t n, long long base_id, long long expect,
+                                     Py_ssize_t max_samples, long long seq0, double tick_hz, double t_recv,
+                                     double *last_t, unsigned char *rows, uint32_t *ticks)
+{
+    if (n == 0 || n % SLCAN_SAMPLE != 0 || n / SLCAN_SAMPLE > max_samples || base_id < 0 || base_id > 0x7FF - 3)
+        return 0;
+    Py_ssize_t k = n / SLCAN_SAMPLE;
+    for (Py_ssize_t i = 0; i < k; i++) { /* all checked before any record is written */
+        const unsigned char *p = buf + i * SLCAN_SAMPLE;
+        unsigned char d[4][8];
+        for (int f = 0; f < 4; f++) {
+            if (slcan_line(p, base_id + f, can_dlc[f], d[f]) < 0)
+                return 0;
+            p += SLCAN_LINE(can_dlc[f]);
+        }
+        unsigned int seq = u16le(d[0]);
+        if (seq != (unsigned int)((expect + i) & 0xFFFF) || d[1][0] != (seq & 0xFF) || d[2][0] != (seq & 0xFF) ||
+            d[3][0] != (seq & 0xFF))
+            return 0;
+    }
+    for (Py_ssize_t i = 0; i < k; i++) {
+        const unsigned char *p = buf + i * SLCAN_SAMPLE;
+        unsigned char d[4][8];
+        for (int f = 0; f < 4; f++) {
+            slcan_line(p, base_id + f, can_dlc[f], d[f]);
+            p += SLCAN_LINE(can_dlc[f]);
+        }
+        /* t1 = (CHIP_A T1 ax, ay, CHIP_B T1 az, ax2), t2 = (CHIP_A T2, CHIP_B T2): SampleAssembler's order */
+        uint32_t t1[4] = {u16le(d[1] + 1), u16le(d[1] + 3), u16le(d[2] + 1), u16le(d[2] + 3)};
+        uint32_t t2[2] = {u16le(d[1] + 5), u16le(d[2] + 5)};
+        ticks[i] = u32le(d[0] + 2);
+        write_row(rows + i * SAMPLE_SIZE, seq0 + i, ticks[i], t1, t2, (uint16_t)u16le(d[0] + 6), u16le(d[3] + 1),
+                  u16le(d[3] + 3), 0);
+    }
+    stamp(rows, ticks, k, tick_hz, t_recv, last_t);
+    return k;
+}
+
+static const GravcalFrameAPI c_api = {to_row_c, continuing_c, slcan_continuing_c};
 
 static PyObject *frame_header(PyObject *self, PyObject *args)
 {
@@ -190,7 +283,50 @@ static PyObject *sample_to_row(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/* slcan_samples(data, base_id, expect, seq0, tick_hz, t_recv, last_t, rows) -> (k, last_t): the capsule's
+   slcan_continuing for tests and tools; rows a writable buffer of whole 56-byte records (k <= their count) */
+static PyObject *slcan_samples(PyObject *self, PyObject *args)
+{
+    Py_buffer data, rows;
+    long long base_id, expect, seq0;
+    double tick_hz, t_recv, last_t;
+    if (!PyArg_ParseTuple(args, "y*LLLdddw*:slcan_samples", &data, &base_id, &expect, &seq0, &tick_hz, &t_recv,
+                          &last_t, &rows))
+        return NULL;
+    const char *why = NULL;
+    if (!PyBuffer_IsContiguous(&rows, 'C') || rows.len % SAMPLE_SIZE != 0 || rows.len == 0)
+        why = "slcan_samples: rows must be contiguous whole 56-byte SAMPLE_DTYPE records";
+    else if (base_id < 0 || base_id > 0x7FF - 3)
+        why = "slcan_samples: base_id must leave room for 4 standard identifiers (0..0x7FC)";
+    else if (expect < 0 || expect > 0xFFFF)
+        why = "slcan_samples: expect must be a 16-bit sequence number";
+    Py_ssize_t k = 0;
+    uint32_t *ticks = NULL;
+    if (why == NULL) {
+        Py_ssize_t cap = rows.len / SAMPLE_SIZE;
+        ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)cap);
+        if (ticks == NULL) {
+            PyBuffer_Release(&data);
+            PyBuffer_Release(&rows);
+            return PyErr_NoMemory();
+        }
+        k = slcan_continuing_c(data.buf, data.len, base_id, expect, cap, seq0, tick_hz, t_recv, &last_t, rows.buf,
+                               ticks);
+        PyMem_Free(ticks);
+    }
+    PyBuffer_Release(&data);
+    PyBuffer_Release(&rows);
+    if (why != NULL) {
+        PyErr_SetString(PyExc_ValueError, why);
+        return NULL;
+    }
+    return Py_BuildValue("(nd)", k, last_t);
+}
+
 static PyMethodDef methods[] = {
+    {"slcan_samples", slcan_samples, METH_VARARGS,
+     "slcan_samples(data, base_id, expect, seq0, tick_hz, t_recv, last_t, rows) -> (k, last_t): the records of "
+     "slcan bytes that are exactly k whole CAN samples continuing the stream from raw seq ``expect``, else k 0."},
     {"frame_header", frame_header, METH_VARARGS,
      "frame_header(frame) -> (seq, tick) of an intact 29-byte frame (sync, length, CRC), else None."},
     {"frame_to_row", frame_to_row, METH_VARARGS,

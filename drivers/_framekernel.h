@@ -17,6 +17,11 @@ typedef struct {
     Py_ssize_t (*continuing)(const unsigned char *buf, Py_ssize_t n, long long expect, Py_ssize_t max_frames,
                              long long seq0, double tick_hz, double t_recv, double *last_t, unsigned char *rows,
                              uint32_t *ticks);
+    /* As ``continuing`` for slcan bytes (drivers/can.py): exactly k <= max_samples samples, each the four
+       standard-frame lines of ids base_id..base_id+3 in order. k, or 0 (nothing written). */
+    Py_ssize_t (*slcan_continuing)(const unsigned char *buf, Py_ssize_t n, long long base_id, long long expect,
+                                   Py_ssize_t max_samples, long long seq0, double tick_hz, double t_recv,
+                                   double *last_t, unsigned char *rows, uint32_t *ticks);
 } GravcalFrameAPI;
 
 #define GRAVCAL_FRAME_CAPSULE "gravcal.drivers._framekernel._C_API"

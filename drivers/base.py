@@ -217,6 +217,20 @@ class Driver(ABC):
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.description} {'open' if self._opened else 'closed'}>"
 
+    def fast_consumed(self, n: int, tick: int, tick_period: float | None, last_t: float, t_recv: float) -> None:
+        """The daemon's C step (daemon/fastpath.py) took ``n`` samples, each continuing the stream by one, the
+        last with device ``tick`` and host time ``last_t``: the state :meth:`read` leaves after them."""
+        u = self._unwrapper()
+        u.continued(n, tick, tick_period)
+        self._count_fast_frames(n)
+        self.counters["samples"] += n
+        self._last_t = last_t
+        self._rate.update_seq(u.last + u.offset, t_recv)
+
+    def _count_fast_frames(self, n: int) -> None:
+        """The bus's frame counters for ``n`` samples the C step took (a driver offering it says how)."""
+        raise NotImplementedError
+
     # -- internals ------------------------------------------------------------------
     def _take(self, max_samples: int) -> np.ndarray:
         out, self._pending = self._pending[:max_samples], self._pending[max_samples:]
@@ -325,15 +339,8 @@ class FramedStreamDriver(Driver):
     def _codec_stats(self) -> dict[str, Any]:
         return self.decoder.stats()
 
-    def fast_consumed(self, n: int, tick: int, tick_period: float | None, last_t: float, t_recv: float) -> None:
-        """The daemon's C step (daemon/fastpath.py) took ``n`` frames, each continuing the stream by one, the
-        last with device ``tick`` and host time ``last_t``: the state :meth:`read` leaves after them."""
-        u = self.decoder.unwrapper
-        u.continued(n, tick, tick_period)
+    def _count_fast_frames(self, n: int) -> None:
         self.decoder.count_frames(n)
-        self.counters["samples"] += n
-        self._last_t = last_t
-        self._rate.update_seq(u.last + u.offset, t_recv)
 
 
 class _RateEstimate:

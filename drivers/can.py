@@ -48,6 +48,7 @@ from .codec import (
 )
 
 DEFAULT_BASE_ID = 0x100
+SLCAN_SAMPLE_BYTES = 78  # one sample's four slcan lines "tIIIL<2*dlc hex>\r" (22 + 20 + 20 + 16 bytes)
 TIMING, CHIP_A, CHIP_B, HOUSEKEEPING = range(4)
 FRAME_NAMES = ("TIMING", "CHIP_A", "CHIP_B", "HOUSEKEEPING")
 FRAME_DLC = (8, 7, 7, 5)
@@ -311,6 +312,38 @@ class CanDriver(Driver):
                    restarts=self.unwrapper.restarts,
                    duplicates=self.unwrapper.duplicates, strays=self.unwrapper.strays)
         return out
+
+    # -- the daemon's latency path (daemon/fastpath.py), slcan with a port descriptor only ------------
+    @property
+    def fast_can_base_id(self) -> int:
+        """The daemon's C step reads this bus's slcan lines as CAN samples from this base id."""
+        return self.base_id
+
+    def fast_entry(self) -> tuple[int, int, int, float] | None:
+        """(fd, raw seq, output seq, last t) when the next bytes may go to the daemon's C step
+        (daemon/_fastpath.c), which takes only reads that are whole samples (four standard-frame lines of
+        base_id..base_id+3) each continuing the stream by one, and hands anything else back unparsed
+        (:meth:`unread`); None: they go through :meth:`read` and python-can (socketcan, virtual, a pyserial
+        URL, an outage or a reconnect in hand, a line or a sample part-read, samples waiting, a latency
+        budget, a sequence question open)."""
+        bus, asm = self._bus, self.assembler
+        if (not isinstance(bus, BufferedSlcanBus) or not self._connected or self._closing.is_set()
+                or self._pending.shape[0] or self._flag_reconnect or self._deferred is not None
+                or self.latency_budget_s > 0 or asm._pending is not None or asm._ready):
+            return None
+        fd = bus.fast_fd()
+        nxt = self.unwrapper.next_frame() if fd is not None else None
+        if nxt is None:
+            return None
+        bus.wake_at(SLCAN_SAMPLE_BYTES)
+        return fd, nxt[0], nxt[1], self._last_t
+
+    def unread(self, data: bytes) -> None:
+        """Bytes the C step read but did not take: python-can parses them next, as if just read."""
+        self._bus.unread(data)
+
+    def _count_fast_frames(self, n: int) -> None:
+        self.assembler.counters["can_frames"] += 4 * n
 
     def _recv(self, timeout: float) -> can.Message | None:
         """bus.recv, with a line the interface cannot parse counted and skipped: python-can's slcan

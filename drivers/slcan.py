@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import re
 import select
+import termios
 import time
 from collections import deque
 
@@ -34,6 +35,7 @@ class BufferedSlcanBus(slcanBus):
         self._partial = bytearray()
         self._fd: int | None = None
         self._poll: select.poll | None = None  # the port's descriptor registered for POLLIN
+        self._vmin: tuple[int, int] | None = None  # (VMIN set by wake_at, the port's own) while it differs
         super().__init__(channel, *args, **kwargs)
 
     def _port_fd(self) -> int | None:
@@ -54,6 +56,9 @@ class BufferedSlcanBus(slcanBus):
         if fd is None:  # a URL port: pyserial's read, which blocks up to the port's own timeout
             port = self.serialPortOrig
             return port.read(max(1, port.in_waiting))
+        if self._vmin is not None:  # python-can's replies are short: wake on every byte again
+            self._set_vmin(self._vmin[1])
+            self._vmin = None
         if not self._poll.poll(None if wait_s is None else max(0.0, wait_s) * 1e3):
             return b""
         data = os.read(fd, READ_BYTES)
@@ -83,6 +88,38 @@ class BufferedSlcanBus(slcanBus):
             elif end is not None and time.monotonic() >= end:
                 return None
         return self._lines.popleft().decode("ascii")
+
+    # -- the daemon's C step (drivers/can.py fast_entry) ------------------------------------
+    def fast_fd(self) -> int | None:
+        """The port's descriptor when nothing read from it waits here (no line, partial line or queued reply):
+        the next bytes may go to a reader outside python-can; else None."""
+        if self._lines or self._partial or self._queue.qsize():
+            return None
+        return self._port_fd()
+
+    def unread(self, data: bytes) -> None:
+        """Bytes read from the port outside python-can and not taken: recv() parses them first, in order."""
+        self._split(data)
+
+    def wake_at(self, nbytes: int) -> None:
+        """poll() reports the terminal readable once ``nbytes`` have arrived (VMIN with VTIME 0, which the
+        kernel's n_tty applies to poll), until python-can's own read next waits on the port."""
+        if self._vmin is not None and self._vmin[0] == nbytes:
+            return
+        own = self._set_vmin(nbytes)
+        if own is not None:
+            self._vmin = (nbytes, own if self._vmin is None else self._vmin[1])
+
+    def _set_vmin(self, nbytes: int) -> int | None:
+        """Set VMIN (VTIME 0): the previous VMIN, or None when the port is not a terminal."""
+        try:
+            attrs = termios.tcgetattr(self._fd)
+            before = attrs[6][termios.VMIN]
+            attrs[6][termios.VMIN], attrs[6][termios.VTIME] = nbytes, 0
+            termios.tcsetattr(self._fd, termios.TCSANOW, attrs)
+        except (termios.error, TypeError):  # not a terminal: the reader wakes on every byte
+            return None
+        return before if isinstance(before, int) else ord(before)
 
     def has_buffered_line(self) -> bool:
         """A complete line is already in memory (recv(0) returns it without reading the port)."""
