@@ -95,7 +95,10 @@ class BufferedSlcanBus(slcanBus):
         the next bytes may go to a reader outside python-can; else None."""
         if self._lines or self._partial or self._queue.qsize():
             return None
-        return self._port_fd()
+        fd = self._port_fd()
+        if fd is not None and self.serialPortOrig.in_waiting:  # less than wake_at's bytes, there since the
+            return None  # last wait: a sample cut short is python-can's (the assembler's partial timeout)
+        return fd
 
     def unread(self, data: bytes) -> None:
         """Bytes read from the port outside python-can and not taken: recv() parses them first, in order."""
