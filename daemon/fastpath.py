@@ -9,7 +9,8 @@ the driver, the unwrapper, the processor and the server, which are applied here 
 
 Everything else takes the Python path, exactly as without the C step: the step hands back undecoded the
 bytes of any read that is not such frames (a gap, a stray, a restart, a CRC error, a partial frame; the
-driver decodes them in its next read), is not called while the driver has a question open (a reconnect,
+driver decodes them in its next read; on CAN over slcan a "frame" is a sample's four slcan lines, and
+python-can parses what is handed back), is not called while the driver has a question open (a reconnect,
 a partial frame, samples waiting, a latency budget, a pyserial URL) or while a watcher is decimated
 (``server.fast_watchers`` is None) or the calibration is extended, and a delivery it cannot finish
 (output queued for a client, a full socket, a changed policy) is finished by the server's fanout.
@@ -59,8 +60,8 @@ class FastPath:
 
     @classmethod
     def for_driver(cls, driver: Any, *args: Any, **kwargs: Any) -> "FastPath | None":
-        """A FastPath when the driver offers its bytes to the C step: its descriptor (drivers/serial.py
-        ``fast_entry``) or the bytes it reads (drivers/i2c.py ``fast_ready``); else None."""
+        """A FastPath when the driver offers its bytes to the C step: its descriptor (drivers/serial.py and, for
+        slcan, drivers/can.py ``fast_entry``) or the bytes it reads (drivers/i2c.py ``fast_ready``); else None."""
         ok = hasattr(driver, "fast_entry") or hasattr(driver, "fast_ready")
         return cls(driver, *args, **kwargs) if ok else None
 

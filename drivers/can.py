@@ -19,8 +19,9 @@ when some are lost. Missing frames:
 
 Any python-can interface works: ``socketcan`` on real hardware (the production path), ``slcan``
 for USB-serial adapters (also over the emulator's pty; served by drivers/slcan.py, python-can's
-slcan bus with a burst read path), ``virtual`` in-process. The bit errors of a real bus
-never reach the host (the controller's CRC rejects the frame), so only whole frames go missing.
+slcan bus with a burst read path; gravcald's C step reads its common case, see
+:meth:`CanDriver.fast_entry`), ``virtual`` in-process. The bit errors of a real bus never reach
+the host (the controller's CRC rejects the frame), so only whole frames go missing.
 """
 from __future__ import annotations
 
