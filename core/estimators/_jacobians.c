@@ -58,89 +58,7 @@ static int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t n, int writabl
     return 0;
 }
 
-/* Windows from which the second half goes to a second thread: ~50 ns a window, so a half of
- * 2 048 windows (~0.1 ms) outweighs starting and joining a thread (~0.02 ms) */
-#define SPLIT_MIN_WINDOWS 4096
-
 #define N_BUF 9
-
-/* extended_accel_jacobian's windows [lo, hi), with their own copy R of the rows (each window's entries
- * replace those of the one before): the rows of a window depend on its inputs alone, so two threads on
- * the two halves give the one-thread results bit for bit */
-typedef struct {
-    const double *Kc, *oc, *c, *V, *raw;
-    double *A, *J, *R;
-    const Py_ssize_t *pos, *kq, *ke, *oq, *oe;
-    const char *row_zero;
-    Py_ssize_t n, nk, no, p, lo, hi;
-    int finite_p;
-} ExtendedPart;
-
-static void *extended_part(void *arg)
-{
-    const ExtendedPart *part = arg;
-    const double *Kc = part->Kc, *oc = part->oc, *c = part->c, *V = part->V, *raw = part->raw;
-    double *A = part->A, *J = part->J, *R = part->R;
-    const Py_ssize_t *pos = part->pos, *kq = part->kq, *ke = part->ke, *oq = part->oq, *oe = part->oe;
-    const char *row_zero = part->row_zero;
-    const Py_ssize_t n = part->n, nk = part->nk, no = part->no, p = part->p;
-    const int finite_p = part->finite_p;
-    for (Py_ssize_t w = part->lo; w < part->hi; w++) {
-        double K[9], o[3], inv[9], d[3], a[3];
-        for (Py_ssize_t t = 0; t < n; t++)  /* the window's rows: the other entries stay the constant ones */
-            R[pos[t]] = V[w * n + t];
-        /* K(c), o(c): einsum("p,mpij->mij") and ("p,mpi->mi") from 0.0 in q order, then the constant part */
-        for (int j = 0; j < 9; j++)
-            K[j] = 0.0;
-        for (int j = 0; j < 3; j++)
-            o[j] = 0.0;
-        if (finite_p) {
-            for (Py_ssize_t t = 0; t < nk; t++)
-                K[ke[t]] += c[kq[t]] * R[12 * kq[t] + ke[t]];
-            for (Py_ssize_t t = 0; t < no; t++)
-                o[oe[t]] += c[oq[t]] * R[12 * oq[t] + 9 + oe[t]];
-        } else {
-            for (Py_ssize_t q = 0; q < p; q++) {
-                for (int j = 0; j < 9; j++)
-                    K[j] += c[q] * R[12 * q + j];
-                for (int j = 0; j < 3; j++)
-                    o[j] += c[q] * R[12 * q + 9 + j];
-            }
-        }
-        for (int j = 0; j < 9; j++)
-            K[j] = Kc[j] + K[j];
-        for (int j = 0; j < 3; j++)
-            o[j] = oc[j] + o[j];
-        /* K^-1 = adjugate / determinant (a singular K gives inf/NaN, as the numpy form does) */
-        const double ka = K[0], kb = K[1], kc = K[2], kd = K[3], ke_ = K[4], kf = K[5], kg = K[6], kh = K[7],
-                     ki = K[8];
-        inv[0] = ke_ * ki - kf * kh, inv[1] = kc * kh - kb * ki, inv[2] = kb * kf - kc * ke_;
-        inv[3] = kf * kg - kd * ki, inv[4] = ka * ki - kc * kg, inv[5] = kc * kd - ka * kf;
-        inv[6] = kd * kh - ke_ * kg, inv[7] = kb * kg - ka * kh, inv[8] = ka * ke_ - kb * kd;
-        const double det = ka * inv[0] + kb * inv[3] + kc * inv[6];
-        for (int j = 0; j < 9; j++)
-            inv[j] /= det;
-        /* a = K^-1 (raw - o) */
-        for (int j = 0; j < 3; j++)
-            d[j] = raw[3 * w + j] - o[j];
-        for (int i = 0; i < 3; i++)
-            a[i] = A[3 * w + i] = inv[3 * i] * d[0] + inv[3 * i + 1] * d[1] + inv[3 * i + 2] * d[2];
-        const int finite_a = isfinite(a[0]) && isfinite(a[1]) && isfinite(a[2]);
-        /* J[:, q] = -K^-1 (dK_q a + do_q) */
-        double *Jw = J + w * 3 * p;
-        for (Py_ssize_t q = 0; q < p; q++) {
-            const double *G = R + 12 * q, *g = G + 9;
-            double t[3];
-            for (int j = 0; j < 3; j++)
-                t[j] = row_zero[3 * q + j] && finite_a && g[j] != 0.0
-                           ? g[j]
-                           : (G[3 * j] * a[0] + G[3 * j + 1] * a[1] + G[3 * j + 2] * a[2]) + g[j];
-            for (int i = 0; i < 3; i++)
-                Jw[i * p + q] = -(inv[3 * i] * t[0] + inv[3 * i + 1] * t[1] + inv[3 * i + 2] * t[2]);
-        }
-    }
-    return NULL;
-}
 
 /* extended_accel_jacobian(K_const (3, 3), o_const (3,), p (P,), rows (P, 12), entries (n, 2), values (M, n),
  *                         raw (M, 3), a (M, 3) out, J (M, 3, P) out, M, P, n)
@@ -184,20 +102,19 @@ static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
     }
     /* work: the window's rows (12 P), the positions of the window entries (n), the (q, e) pairs of dK and do
      * that may be nonzero, q-major (each entry's sum keeps q order), the dK rows that are 0 in every window */
-    double *R = PyMem_Malloc(sizeof(double) * (size_t)p * 12), *R2 = PyMem_Malloc(sizeof(double) * (size_t)p * 12);
+    double *R = PyMem_Malloc(sizeof(double) * (size_t)p * 12);
     Py_ssize_t *pos = PyMem_Malloc(sizeof(Py_ssize_t) * ((size_t)n + 24 * (size_t)p + 1));
     char *row_zero = PyMem_Malloc((size_t)p * 3);
     const double *Kc = buf[0].buf, *oc = buf[1].buf, *c = buf[2].buf, *rows = buf[3].buf, *ent = buf[4].buf,
                  *V = buf[5].buf, *raw = buf[6].buf;
     double *A = buf[7].buf, *J = buf[8].buf;
-    int ok = R != NULL && R2 != NULL && pos != NULL && row_zero != NULL;
+    int ok = R != NULL && pos != NULL && row_zero != NULL;
     if (!ok)
         PyErr_NoMemory();
     Py_ssize_t *kq = pos + n, *ke = kq + 9 * p, *oq = kq + 18 * p, *oe = kq + 21 * p, nk = 0, no = 0;
     int finite_p = 1;
     if (ok) {
         memcpy(R, rows, sizeof(double) * (size_t)p * 12);
-        memcpy(R2, rows, sizeof(double) * (size_t)p * 12);
         for (Py_ssize_t t = 0; t < n && ok; t++) {
             const double q = ent[2 * t], e = ent[2 * t + 1];
             if (!(q >= 0 && q < (double)p && e >= 0 && e < 12 && q == (Py_ssize_t)q && e == (Py_ssize_t)e)) {
@@ -227,26 +144,64 @@ static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
                 row_zero[3 * q + e] = (char)z;
             }
         }
-        ExtendedPart part[2];
-        for (int k = 0; k < 2; k++)
-            part[k] = (ExtendedPart){Kc, oc, c, V, raw, A, J, k ? R2 : R, pos, kq, ke, oq, oe, row_zero, n, nk, no, p,
-                                     0, m, finite_p};
         Py_BEGIN_ALLOW_THREADS
-        pthread_t second;
-        int split = m >= SPLIT_MIN_WINDOWS;
-        if (split) {
-            part[0].hi = part[1].lo = m / 2;
-            split = pthread_create(&second, NULL, extended_part, &part[1]) == 0;
-            if (!split)  /* no thread to be had: all on this one */
-                part[0].hi = m;
+        for (Py_ssize_t w = 0; w < m; w++) {
+            double K[9], o[3], inv[9], d[3], a[3];
+            for (Py_ssize_t t = 0; t < n; t++)  /* the window's rows: the other entries stay the constant ones */
+                R[pos[t]] = V[w * n + t];
+            /* K(c), o(c): einsum("p,mpij->mij") and ("p,mpi->mi") from 0.0 in q order, then the constant part */
+            for (int j = 0; j < 9; j++)
+                K[j] = 0.0;
+            for (int j = 0; j < 3; j++)
+                o[j] = 0.0;
+            if (finite_p) {
+                for (Py_ssize_t t = 0; t < nk; t++)
+                    K[ke[t]] += c[kq[t]] * R[12 * kq[t] + ke[t]];
+                for (Py_ssize_t t = 0; t < no; t++)
+                    o[oe[t]] += c[oq[t]] * R[12 * oq[t] + 9 + oe[t]];
+            } else {
+                for (Py_ssize_t q = 0; q < p; q++) {
+                    for (int j = 0; j < 9; j++)
+                        K[j] += c[q] * R[12 * q + j];
+                    for (int j = 0; j < 3; j++)
+                        o[j] += c[q] * R[12 * q + 9 + j];
+                }
+            }
+            for (int j = 0; j < 9; j++)
+                K[j] = Kc[j] + K[j];
+            for (int j = 0; j < 3; j++)
+                o[j] = oc[j] + o[j];
+            /* K^-1 = adjugate / determinant (a singular K gives inf/NaN, as the numpy form does) */
+            const double ka = K[0], kb = K[1], kc = K[2], kd = K[3], ke_ = K[4], kf = K[5], kg = K[6], kh = K[7],
+                         ki = K[8];
+            inv[0] = ke_ * ki - kf * kh, inv[1] = kc * kh - kb * ki, inv[2] = kb * kf - kc * ke_;
+            inv[3] = kf * kg - kd * ki, inv[4] = ka * ki - kc * kg, inv[5] = kc * kd - ka * kf;
+            inv[6] = kd * kh - ke_ * kg, inv[7] = kb * kg - ka * kh, inv[8] = ka * ke_ - kb * kd;
+            const double det = ka * inv[0] + kb * inv[3] + kc * inv[6];
+            for (int j = 0; j < 9; j++)
+                inv[j] /= det;
+            /* a = K^-1 (raw - o) */
+            for (int j = 0; j < 3; j++)
+                d[j] = raw[3 * w + j] - o[j];
+            for (int i = 0; i < 3; i++)
+                a[i] = A[3 * w + i] = inv[3 * i] * d[0] + inv[3 * i + 1] * d[1] + inv[3 * i + 2] * d[2];
+            const int finite_a = isfinite(a[0]) && isfinite(a[1]) && isfinite(a[2]);
+            /* J[:, q] = -K^-1 (dK_q a + do_q) */
+            double *Jw = J + w * 3 * p;
+            for (Py_ssize_t q = 0; q < p; q++) {
+                const double *G = R + 12 * q, *g = G + 9;
+                double t[3];
+                for (int j = 0; j < 3; j++)
+                    t[j] = row_zero[3 * q + j] && finite_a && g[j] != 0.0
+                               ? g[j]
+                               : (G[3 * j] * a[0] + G[3 * j + 1] * a[1] + G[3 * j + 2] * a[2]) + g[j];
+                for (int i = 0; i < 3; i++)
+                    Jw[i * p + q] = -(inv[3 * i] * t[0] + inv[3 * i + 1] * t[1] + inv[3 * i + 2] * t[2]);
+            }
         }
-        extended_part(&part[0]);
-        if (split)
-            pthread_join(second, NULL);
         Py_END_ALLOW_THREADS
     }
     PyMem_Free(R);
-    PyMem_Free(R2);
     PyMem_Free(pos);
     PyMem_Free(row_zero);
     for (int k = 0; k < N_BUF; k++)
@@ -326,6 +281,10 @@ static void *linear_part(void *arg)
                 t->A + 3 * lo, t->V ? t->V + lo : NULL, t->hi - lo, p);
     return NULL;
 }
+
+/* Windows from which the second half goes to a second thread: ~50 ns a window, so a half of
+ * 2 048 windows (~0.1 ms) outweighs starting and joining a thread (~0.02 ms) */
+#define SPLIT_MIN_WINDOWS 4096
 
 /* linear_norm_jacobian(Kinv (3, 3), o (3,), G (P, 3, 3) = K^-1 dK, C (3, P) = (do @ K^-1.T).T, raw (M, 3),
  *                      cov (M, 3, 3) or None, h (M,) out, B (M, P) out, a (M, 3) out, var (M,) out or None, M, P) */
