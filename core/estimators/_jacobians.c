@@ -31,7 +31,6 @@
 #include <Python.h>
 #include <math.h>
 #include <string.h>
-#include <pthread.h>
 
 /* Get a C-contiguous float64 buffer of exactly n doubles (writable if asked); 0 on success. */
 static int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t n, int writable, const char *name)
@@ -265,27 +264,6 @@ static void linear_loop(const double *Ki, const double *o, const double *G, cons
     }
 }
 
-/* linear_loop on windows [lo, hi): every output row depends on its window's inputs alone, so the
- * windows split between two threads give the one-thread results bit for bit */
-typedef struct {
-    const double *Ki, *o, *G, *C, *raw, *cov;
-    double *H, *B, *A, *V;
-    Py_ssize_t lo, hi, p;
-} LinearPart;
-
-static void *linear_part(void *arg)
-{
-    const LinearPart *t = arg;
-    const Py_ssize_t lo = t->lo, p = t->p;
-    linear_loop(t->Ki, t->o, t->G, t->C, t->raw + 3 * lo, t->cov ? t->cov + 9 * lo : NULL, t->H + lo, t->B + lo * p,
-                t->A + 3 * lo, t->V ? t->V + lo : NULL, t->hi - lo, p);
-    return NULL;
-}
-
-/* Windows from which the second half goes to a second thread: ~50 ns a window, so a half of
- * 2 048 windows (~0.1 ms) outweighs starting and joining a thread (~0.02 ms) */
-#define SPLIT_MIN_WINDOWS 4096
-
 /* linear_norm_jacobian(Kinv (3, 3), o (3,), G (P, 3, 3) = K^-1 dK, C (3, P) = (do @ K^-1.T).T, raw (M, 3),
  *                      cov (M, 3, 3) or None, h (M,) out, B (M, P) out, a (M, 3) out, var (M,) out or None, M, P) */
 static PyObject *linear_norm_jacobian(PyObject *self, PyObject *args)
@@ -322,22 +300,9 @@ static PyObject *linear_norm_jacobian(PyObject *self, PyObject *args)
     if (ok) {
         const double *cov = with_var ? buf[5].buf : NULL;
         double *V = with_var ? buf[9].buf : NULL;
-        LinearPart part[2];
-        for (int k = 0; k < 2; k++)
-            part[k] = (LinearPart){buf[0].buf, buf[1].buf, buf[2].buf, buf[3].buf, buf[4].buf, cov,
-                                   buf[6].buf, buf[7].buf, buf[8].buf, V, 0, m, p};
         Py_BEGIN_ALLOW_THREADS
-        pthread_t second;
-        int split = m >= SPLIT_MIN_WINDOWS;
-        if (split) {
-            part[0].hi = part[1].lo = m / 2;
-            split = pthread_create(&second, NULL, linear_part, &part[1]) == 0;
-            if (!split)  /* no thread to be had: all on this one */
-                part[0].hi = m;
-        }
-        linear_part(&part[0]);
-        if (split)
-            pthread_join(second, NULL);
+        linear_loop(buf[0].buf, buf[1].buf, buf[2].buf, buf[3].buf, buf[4].buf, cov, buf[6].buf, buf[7].buf,
+                    buf[8].buf, V, m, p);
         Py_END_ALLOW_THREADS
     }
     for (int k = 0; k < 10; k++)
