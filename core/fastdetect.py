@@ -340,7 +340,7 @@ def windows_from_still(bs: BlockStats, still: np.ndarray, t: np.ndarray, *, min_
 
 
 def _window_sums_and_times(bs: BlockStats, ps: np.ndarray, pe: np.ndarray, t: np.ndarray, first: np.ndarray,
-                           last: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+                           last: np.ndarray) -> tuple[np.ndarray, ...]:
     """_window_sums and the times of the windows' first and last samples (float64). With many windows
     the times are gathered on a second thread while the sums' kernel runs (it releases the GIL): in a
     memory-mapped t whose pages the reading pass released, each is a page fault (~4 us)."""
