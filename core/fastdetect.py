@@ -55,6 +55,7 @@ from .windows import WindowSet
 BLOCK_S = 0.1  # block length [s]: 10 Hz detection, boundaries to 0.1 s
 CHUNK_BLOCKS = 4096  # blocks per chunk of the reducing pass (a few 100 kB per channel: stays in the CPU cache)
 THREADS = 2  # chunks of the reducing pass are shared between this many threads
+GATHER_THREAD_MIN = 1024  # windows from which their times are gathered beside the window sums
 
 _I6 = np.array([0, 1, 2, 0, 0, 1])
 _J6 = np.array([0, 1, 2, 1, 2, 2])
@@ -327,15 +328,31 @@ def windows_from_still(bs: BlockStats, still: np.ndarray, t: np.ndarray, *, min_
     if m == 0:
         return WindowSet(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0), np.zeros((0, k)),
                          np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
-    mean, scat, aux = _window_sums(bs, ps, pe)
+    start, end = ps * B, pe * B
+    mean, scat, aux, t_ends = _window_sums_and_times(bs, ps, pe, t, start, end - 1)
     n = (pe - ps).astype(np.int64) * B
     cov = np.empty((m, 3, 3))
     cov[:, _I6, _J6] = scat.T / (n - 1)[:, None]
     cov[:, _J6, _I6] = scat.T / (n - 1)[:, None]
-    start, end = ps * B, pe * B
-    t_mid = 0.5 * (np.asarray(t[start], dtype=float) + np.asarray(t[end - 1], dtype=float))
+    t_mid = 0.5 * (t_ends[0] + t_ends[1])
     return WindowSet(mean.T.copy(), cov, n.astype(float), t_mid, aux.T.copy(), start.astype(np.int64),
                      end.astype(np.int64))
+
+
+def _window_sums_and_times(bs: BlockStats, ps: np.ndarray, pe: np.ndarray, t: np.ndarray, first: np.ndarray,
+                           last: np.ndarray) -> tuple[np.ndarray, ...]:
+    """_window_sums and the times of the windows' first and last samples (float64). With many windows
+    the times are gathered on a second thread while the sums' kernel runs (it releases the GIL): in a
+    memory-mapped t whose pages the reading pass released, each is a page fault (~4 us)."""
+    def gather() -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(t[first], dtype=float), np.asarray(t[last], dtype=float)
+
+    if first.shape[0] < GATHER_THREAD_MIN:
+        return (*_window_sums(bs, ps, pe), gather())
+    with ThreadPoolExecutor(1, thread_name_prefix="gravcal-times") as pool:
+        times = pool.submit(gather)
+        sums = _window_sums(bs, ps, pe)
+        return (*sums, times.result())
 
 
 def _window_sums(bs: BlockStats, ps: np.ndarray, pe: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -172,6 +172,7 @@ def run(args: argparse.Namespace) -> int:
 
 def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
     from . import offline
+    from .cli import request_prompt_exit
     from .recordings import jsonable
 
     show = not (args.quiet or args.json) and sys.stderr.isatty()
@@ -191,8 +192,8 @@ def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
     if not trustworthy:
         why = cal.message or ("not converged" if not cal.converged else "not observable")
         print(f"gravcal: calibration not trustworthy: {' '.join(why.split())}", file=sys.stderr)
-        return EXIT_NOT_TRUSTWORTHY
-    return EXIT_OK
+    request_prompt_exit()  # the output is printed, --save written and closed: nothing left to tear down
+    return EXIT_OK if trustworthy else EXIT_NOT_TRUSTWORTHY
 
 
 def _fmt(v: Any, spec: str = ".6g") -> str:

@@ -38,6 +38,7 @@ MAX_SENS_REL_STD = 0.05  # ... or a sensitivity entry this uncertain (relative):
 # half-range (3 sigma of the datasheet spread, 6.7 %) as one std keeps a fit that holds these gains
 # honest even for a worst-case pair of chips and for the median norm's own bias (offset assumed 0).
 ISOTROPIC_SENS_REL_STD = (SENS_LIMITS[1] - SENS_LIMITS[0]) / 2.0 / SENS_TYP  # 0.20
+FLOOR_CHUNK = 1 << 13  # samples per piece of the noise-floor probe (its temporaries stay in the CPU cache)
 
 
 def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
@@ -332,16 +333,22 @@ def _noise_floor(t, raw, fs, window_s, percentile) -> float:
     # only the detection signal is used: a threshold that only an exactly constant signal is below spares
     # the probe the work of building still windows (the signal does not depend on the threshold)
     probe = MovingVarianceDetector(fs, window_s=window_s, threshold_g=np.finfo(float).tiny, max_duration_s=None)
-    probe.update(t, raw)
-    det = probe.last_detection
+    # in cache-sized pieces (the probe's moving sums carry over bit for bit; a minimum is exact): on the
+    # whole segment at once, each of ~20 temporaries of N x 6 floats is fresh memory, page faults included
+    parts, quantum = [], np.inf
+    for i in range(0, t.shape[0], FLOOR_CHUNK):
+        probe.update(t[i:i + FLOOR_CHUNK], raw[i:i + FLOOR_CHUNK])
+        parts.append(probe.last_detection)
+        steps = np.abs(np.diff(raw[max(i - 1, 0):i + FLOOR_CHUNK], axis=0))  # with the step into the piece
+        steps = steps[np.isfinite(steps) & (steps > 0)]
+        if steps.shape[0]:
+            quantum = min(quantum, float(steps.min()))
+    det = np.concatenate(parts) if parts else probe.last_detection
     det = det[np.isfinite(det) & (np.arange(det.shape[0]) >= probe.w - 1)]
     if det.shape[0] == 0:
         raise ValueError(f"bootstrap: fewer than {probe.w} finite samples; need at least one {window_s} s window")
     floor = float(np.percentile(det, percentile))
-    steps = np.abs(np.diff(raw, axis=0))
-    steps = steps[np.isfinite(steps) & (steps > 0)]
-    quantum = float(steps.min()) if steps.shape[0] else 0.0
-    floor = max(floor, 0.5 * quantum)
+    floor = max(floor, 0.5 * quantum if np.isfinite(quantum) else 0.0)
     if not floor > 0:
         raise ValueError("bootstrap: the data are constant; no still/moving contrast to detect")
     return floor

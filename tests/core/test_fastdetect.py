@@ -319,3 +319,28 @@ def test_windows_are_the_still_runs_including_those_at_the_ends():
                 start = None
         ws = fastdetect.windows_from_still(bs, still, t, min_duration_s=0.0, max_duration_s=None, guard_s=0.0)
         assert list(zip(ws.start // B, ws.end // B)) == runs
+
+
+@pytest.mark.parametrize("threaded", [False, True])
+def test_window_times_gathered_beside_the_sums_are_the_samples_times(tmp_path, session, monkeypatch, threaded):
+    # the window times come from a memory-mapped t whose pages were released (as after the reading
+    # pass), on a second thread while the sums' kernel runs or on this one: the same WindowSet
+    t, raw, temp, truth = session
+    path = tmp_path / "t.npy"
+    np.save(path, np.asarray(t, dtype=np.float64) + 1.7e9)  # unix times: the sum of two rounds
+    tm = np.load(path, mmap_mode="r")
+    fs = fastdetect.estimate_fs(t)
+    bs = fastdetect.block_stats(tm, lambda c, i, j: raw[i:j, c], raw.shape[0], fs, aux=temp)
+    still = fastdetect.lotters_still(bs, truth)
+    monkeypatch.setattr(fastdetect, "GATHER_THREAD_MIN", 0 if threaded else 1 << 62)
+    fastdetect.release_mapped(tm, 0, tm.shape[0])
+    ws = fastdetect.windows_from_still(bs, still, tm)
+    assert len(ws) > 10
+    tt = np.load(path)
+    np.testing.assert_array_equal(ws.t, 0.5 * (tt[ws.start] + tt[ws.end - 1]))
+    monkeypatch.setattr(fastdetect, "GATHER_THREAD_MIN", 1 << 62 if threaded else 0)
+    other = fastdetect.windows_from_still(bs, still, tm)
+    for name in ("mean", "cov", "n", "t", "aux", "start", "end"):
+        np.testing.assert_array_equal(getattr(ws, name), getattr(other, name))
+    with pytest.raises(IndexError):  # an error in the gathering thread reaches the caller
+        fastdetect.windows_from_still(bs, still, tm[: tm.shape[0] // 2])

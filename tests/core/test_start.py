@@ -250,3 +250,33 @@ def test_bootstrap_noise_floor_is_the_percentile_of_the_moving_std_whatever_the_
     det = det[np.isfinite(det) & (np.arange(det.shape[0]) >= probe.w - 1)]
     assert _noise_floor(t, raw, 100.0, 0.25, 2.0) == max(float(np.percentile(det, 2.0)), 0.5 * float(
         np.nanmin(np.where(np.abs(np.diff(raw, axis=0)) > 0, np.abs(np.diff(raw, axis=0)), np.inf))))
+
+
+@pytest.mark.parametrize("chunk", [7, 100, 1000, 1 << 13])
+def test_noise_floor_in_pieces_equals_the_whole_segment_at_once(monkeypatch, chunk):
+    # the probe fed piece by piece gives the whole-segment detection signal and quantum bit for bit,
+    # also when the smallest step lies across two pieces (only the step into a piece sees it)
+    from gravcal.core.detectors.variance import MovingVarianceDetector
+    from gravcal.core.estimators import start
+
+    rng = np.random.default_rng(11)
+    t, f = _still_and_moving(rng, _unit(rng.normal(size=(8, 3))))
+    raw = np.round(f * 8.0) * 2.0 + 32768.0  # coarse: still rows constant, floor = half the quantum; steps of 2 ...
+    b = (raw.shape[0] // 2) // chunk * chunk  # ... but for one of 1 count, across a piece boundary
+    if b:
+        raw[b:, 0] += raw[b - 1, 0] + 1.0 - raw[b, 0]
+    raw[rng.choice(raw.shape[0], 5, replace=False), 1] = np.nan
+
+    probe = MovingVarianceDetector(100.0, window_s=0.25, threshold_g=np.finfo(float).tiny, max_duration_s=None)
+    probe.update(t, raw)
+    det = probe.last_detection
+    det = det[np.isfinite(det) & (np.arange(det.shape[0]) >= probe.w - 1)]
+    steps = np.abs(np.diff(raw, axis=0))
+    quantum = float(steps[np.isfinite(steps) & (steps > 0)].min())
+    expected = max(float(np.percentile(det, 2.0)), 0.5 * quantum)
+
+    monkeypatch.setattr(start, "FLOOR_CHUNK", chunk)
+    floor = start._noise_floor(t, raw, 100.0, 0.25, 2.0)
+    assert floor == expected
+    if chunk < raw.shape[0] // 2:
+        assert quantum == 1.0 and floor == 0.5
