@@ -1,6 +1,7 @@
 /* Buffer-protocol helpers shared by gravcal's compiled kernels (core/_blockkernels.c,
- * core/_scankernel.c): native float / bool / int64 buffers checked for format, dimensions, length
- * and contiguity, with a clear Python exception naming the argument when they are not.
+ * core/_scankernel.c, core/_fitsums.c, core/estimators/_jacobians.c): native float / bool / int64
+ * buffers checked for format, dimensions, length and contiguity, with a clear Python exception
+ * naming the argument when they are not.
  * Include after Python.h. */
 #ifndef GRAVCAL_BUFFERS_H
 #define GRAVCAL_BUFFERS_H
@@ -8,7 +9,7 @@
 #include <string.h>
 
 /* 'f', 'd' or '?' for a native single-item format of the right size, else 0 */
-static char kind_of(const Py_buffer *v)
+static inline char kind_of(const Py_buffer *v)
 {
     const char *f = v->format ? v->format : "B";
     if (*f == '@' || *f == '=')
@@ -33,14 +34,14 @@ static char kind_of(const Py_buffer *v)
     return 0;
 }
 
-static const char *kind_name(char k)
+static inline const char *kind_name(char k)
 {
     return k == 'f' ? "float32" : k == 'd' ? "float64" : k == 'q' ? "int64" : "bool";
 }
 
 /* a strided read-only view of ndim 1 or 2 (ndim_max 2 also accepts 1-D as (n, 1)) holding
  * items of one of the kinds in `kinds`; sets an exception and returns -1 on failure */
-static int get_strided(PyObject *obj, Py_buffer *v, const char *name, const char *kinds, int ndim_max)
+static inline int get_strided(PyObject *obj, Py_buffer *v, const char *name, const char *kinds, int ndim_max)
 {
     if (PyObject_GetBuffer(obj, v, PyBUF_RECORDS_RO) < 0) {
         PyErr_Clear();
@@ -63,7 +64,7 @@ static int get_strided(PyObject *obj, Py_buffer *v, const char *name, const char
 }
 
 /* a writable (or read-only) C-contiguous buffer of `count` items of kind `kind` */
-static int get_contiguous(PyObject *obj, Py_buffer *v, const char *name, char kind, Py_ssize_t count,
+static inline int get_contiguous(PyObject *obj, Py_buffer *v, const char *name, char kind, Py_ssize_t count,
                           int writable)
 {
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
@@ -87,7 +88,7 @@ static int get_contiguous(PyObject *obj, Py_buffer *v, const char *name, char ki
     return 0;
 }
 
-static void release_all(Py_buffer *v, int n)
+static inline void release_all(Py_buffer *v, int n)
 {
     for (int i = 0; i < n; i++)
         if (v[i].obj != NULL)
@@ -95,5 +96,30 @@ static void release_all(Py_buffer *v, int n)
 }
 
 #define AT(view, i) ((const char *)(view).buf + (i) * (view).strides[0])
+
+/* Get a C-contiguous float64 buffer of exactly n doubles (writable if asked); 0 on success. */
+static inline int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t n, int writable, const char *name)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) < 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s must be a C-contiguous%s float64 array", name, writable ? " writable" : "");
+        return -1;
+    }
+    const char *f = view->format;
+    if (f != NULL && (f[0] == '<' || f[0] == '=' || f[0] == '@'))
+        f++;
+    if (view->itemsize != 8 || f == NULL || strcmp(f, "d") != 0) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_TypeError, "%s must be float64", name);
+        return -1;
+    }
+    if (view->len != n * 8) {
+        PyBuffer_Release(view);
+        PyErr_Format(PyExc_ValueError, "%s holds %zd values, expected %zd", name, view->len / 8, n);
+        return -1;
+    }
+    return 0;
+}
 
 #endif

@@ -12,30 +12,7 @@
 #include <math.h>
 #include <string.h>
 
-/* Get a C-contiguous float64 buffer of exactly n doubles (writable if asked); 0 on success. */
-static int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t n, int writable, const char *name)
-{
-    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, view, flags) < 0) {
-        PyErr_Clear();
-        PyErr_Format(PyExc_TypeError, "%s must be a C-contiguous%s float64 array", name, writable ? " writable" : "");
-        return -1;
-    }
-    const char *f = view->format;
-    if (f != NULL && (f[0] == '<' || f[0] == '=' || f[0] == '@'))
-        f++;
-    if (view->itemsize != 8 || f == NULL || strcmp(f, "d") != 0) {
-        PyBuffer_Release(view);
-        PyErr_Format(PyExc_TypeError, "%s must be float64", name);
-        return -1;
-    }
-    if (view->len != n * 8) {
-        PyBuffer_Release(view);
-        PyErr_Format(PyExc_ValueError, "%s holds %zd values, expected %zd", name, view->len / 8, n);
-        return -1;
-    }
-    return 0;
-}
+#include "_buffers.h"
 
 /* m x max(p, 1) x max(k, 1) doubles must be addressable: every count the functions form is at most that. */
 static int dims_ok(Py_ssize_t m, Py_ssize_t p, Py_ssize_t k)

@@ -23,7 +23,6 @@ from __future__ import annotations
 import gzip
 import json
 import logging
-import math
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -40,7 +40,7 @@ from .fanout import deliver, deliver_line, fast_snapshot, finish_delivery
 from .client_limits import ClientState as _Client
 from .client_limits import RequestBudget, ServerConfig, hung_up, return_memory_to_os
 from .output_queue import OutputQueue
-from .protocol import ImuBlock, ProtocolError, WatchPolicy
+from .protocol import ImuBlock, ProtocolError
 from .socket_activation import bind_unix_socket
 
 log = logging.getLogger("gravcal.server")
