@@ -18,7 +18,7 @@
  *     wake-up; None: some watcher is not plain). A watcher whose output is not empty, whose policy changed,
  *     or whose socket does not take the whole block stops the delivery: its lock stays held and the
  *     snapshot is returned, so fastpath.py queues the rest in order (fanout's bookkeeping);
- *   - an extended calibration (processor._correction[1] is not None), end of file or a read error.
+ *   - an extended calibration (processor.correction[1] is not None), end of file or a read error.
  *
  * Per batch (the frames of one read) it does what the Python path does for the same block, in order: the
  *   frame kernel checks that the frames continue the stream and writes their records, stamped as
@@ -618,8 +618,8 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     struct {
         PyObject **name;
         const char *text;
-    } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_correction, "_correction"},
-                 {&s_gyro_correction, "_gyro_correction"}, {&s_analysed, "analysed"}, {&s_offset, "offset"},
+    } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_correction, "correction"},
+                 {&s_gyro_correction, "gyro_correction"}, {&s_analysed, "analysed"}, {&s_offset, "offset"},
                  {&s_kinv_t, "kinv_t"}, {&s_closed, "closed"},
                  {&s_watch, "watch"}, {&s_queue, "queue"}, {&s_size, "size"}, {&s_out, "out"},
                  {&s_dropped_unreported, "dropped_unreported"}, {&s_sent_messages, "sent_messages"},

@@ -68,7 +68,7 @@ class FastPath:
     def run(self, staged: bytearray, seconds: float = HOUSEKEEPING_S) -> tuple[int, bool]:
         """Run the C step for up to ``seconds``, appending the records to ``staged``: (samples taken, whether
         the Python path reads next: bytes or a case the step does not take are waiting)."""
-        if self.server.fast_watchers is None or self.processor._correction[1] is not None:
+        if self.server.fast_watchers is None or self.processor.correction[1] is not None:
             return 0, True
         if hasattr(self.driver, "fast_ready"):
             return self._run_fed(staged, seconds)

@@ -129,13 +129,14 @@ class Processor:
             start_sensitivity=sens if math.isfinite(sens) and sens != 0 else GYRO_NOMINAL_COUNTS_PER_RAD_S,
             range_rad_s=GYRO_RANGE_RAD_S, rails=GYRO_RAILS)
         self.gyro_json: dict[str, Any] = self._gyro_json(self.gyro_cal.calibration)
-        # (bias [counts], sensitivity [counts per rad/s]) used by correct(): one tuple, swapped atomically
-        self._gyro_correction = self.gyro_start
+        # (bias [counts], sensitivity [counts per rad/s]) used by correct() and the C step (daemon/fastpath.py):
+        # one tuple, swapped atomically
+        self.gyro_correction = self.gyro_start
 
     def _gyro_json(self, cal: Any) -> dict[str, Any]:
         """The ``gyro`` object of CALIB: the estimator's result plus what the published rate uses."""
         out = cal.to_json_dict()
-        b, s = getattr(self, "_gyro_correction", self.gyro_start)
+        b, s = getattr(self, "gyro_correction", self.gyro_start)
         out["applied"] = {"bias": b if math.isfinite(b) else None, "sensitivity": s if math.isfinite(s) else None}
         return out
 
@@ -148,7 +149,7 @@ class Processor:
         return True
 
     def _gyro_apply(self) -> None:
-        self._gyro_correction = self.gyro_cal.correction(self.gyro_start)
+        self.gyro_correction = self.gyro_cal.correction(self.gyro_start)
         self.gyro_json = self._gyro_json(self.gyro_cal.calibration)
 
     def reconfigure(self, cfg: Config) -> None:
@@ -174,10 +175,10 @@ class Processor:
     def applied(self, cal: Calibration) -> None:
         self._applied = cal
         # A plain calibration: a = K^-1 (raw - o) (core/correction.py). An extended one applies its terms at each
-        # sample's covariates (Calibration.apply). One tuple, swapped atomically: correct() runs in the acquisition
-        # thread.
+        # sample's covariates (Calibration.apply). One tuple, swapped atomically: correct() and the C step
+        # (daemon/fastpath.py) read it in the acquisition thread.
         plain = PlainCorrection(cal.offset, cal.sensitivity, STANDARD_GRAVITY)
-        self._correction = (plain, cal if cal.extended_terms else None)
+        self.correction = (plain, cal if cal.extended_terms else None)
 
     @property
     def static_now(self) -> bool:
@@ -205,7 +206,7 @@ class Processor:
         """The fast path, per block as it arrives: (acc [m/s²] (N, 3) corrected with the accepted
         calibration, gyro [rad/s] (N,) NaN when not configured, static (N,) codes: the detector's
         latest decision, or unknown when that is more than STATIC_MAX_AGE_S of data old)."""
-        plain, extended = self._correction
+        plain, extended = self.correction
         if block.shape[0] == 1 and extended is None:
             return self._correct_one(block, plain)
         if extended is not None:  # a sample without a covariate its terms need (NaN) gets NaN
@@ -214,7 +215,7 @@ class Processor:
                                  t=block["seq"].astype(float) / self.cfg.device.fs_hz) * STANDARD_GRAVITY
         else:
             acc = plain.block(block)
-        bias, sens = self._gyro_correction
+        bias, sens = self.gyro_correction
         gyro = (block["gyro"].astype(float) - bias) / sens  # NaN while either is unknown
         static = self.static_codes(block["seq"])
         self.static_unknown += int(np.count_nonzero(static == STATIC_UNKNOWN))
@@ -226,7 +227,7 @@ class Processor:
         """correct() of a one-sample block with a plain calibration (PlainCorrection.one, in C: the same bits as
         the block path, without numpy's per-call overhead on 1-row arrays)."""
         acc, gyro = np.empty((1, 3)), np.empty(1)
-        self.corrected_seq = seq = plain.one(block, acc, gyro, *self._gyro_correction)
+        self.corrected_seq = seq = plain.one(block, acc, gyro, *self.gyro_correction)
         code = self._static_code(seq)
         if code == STATIC_UNKNOWN:
             self.static_unknown += 1

@@ -44,7 +44,7 @@ class Rig:
         self.server = SimpleNamespace(fast_watchers=((c, self.mine.fileno(), raw, c.watch, c.lock.acquire,
                                                       c.lock.release),))
         plain = PlainCorrection(np.array([0.5, 0.51, 0.49]), np.diag([0.04, 0.041, 0.039]), STANDARD_GRAVITY)
-        self.processor = SimpleNamespace(_correction=(plain, None), _gyro_correction=(2048.0, 357.36),
+        self.processor = SimpleNamespace(correction=(plain, None), gyro_correction=(2048.0, 357.36),
                                          analysed=(900, True))
         self.ist = np.zeros(fp.IST_N, np.int64)
         self.fst = np.zeros(fp.FST_N)
@@ -98,7 +98,7 @@ def test_lines_and_records_are_the_python_paths(rig):
     t = rows["t"]
     assert t[1] - t[0] == pytest.approx(5e-3, abs=1e-9) and t[2] - t[1] == pytest.approx(5e-3, abs=1e-9)
     assert t[3] >= t[2]
-    plain = rig.processor._correction[0]
+    plain = rig.processor.correction[0]
     acc = plain.block(rows)
     gyro = (rows["gyro"].astype(float) - 2048.0) / 357.36
     static = np.where(rows["seq"] - 900 <= 400.0, 1, -1).astype(np.int8)
@@ -128,7 +128,7 @@ def test_whatever_is_not_the_common_case_is_handed_back_unconsumed(rig):
     os.write(rig.w, frames([5]))
     assert rig.step(5, 100) == (b"", None) and rig.ist[fp.IST_REASON] == fp.R_NOT_PLAIN
     rig.server.fast_watchers = ()
-    rig.processor._correction = (rig.processor._correction[0], object())  # an extended calibration
+    rig.processor.correction = (rig.processor.correction[0], object())  # an extended calibration
     assert rig.step(5, 100) == (b"", None) and rig.ist[fp.IST_REASON] == fp.R_NOT_PLAIN
     assert os.read(rig.r, 100) == frames([5])
 
@@ -217,7 +217,7 @@ def test_bad_arguments_are_refused_with_a_message(rig):
         rig.step(5, 0)
     rig.server.fast_watchers = ()
     assert rig.ist[fp.IST_FRAMES] == 1  # read before the error: accounted
-    rig.processor._correction = (SimpleNamespace(offset=np.zeros(2), kinv_t=np.eye(3)), None)
+    rig.processor.correction = (SimpleNamespace(offset=np.zeros(2), kinv_t=np.eye(3)), None)
     os.write(rig.w, frames([5]))
     with pytest.raises(TypeError, match="offset must hold 3 float64"):
         rig.step(5, 0)
