@@ -10,6 +10,7 @@ from gravcal.core.datapass import fs_from, scan_columns
 from gravcal.core.repeats import flat_stretches
 from gravcal.core.samples import raw_triad
 from gravcal.core.simulate import simulate
+from tests.support.smaps import mapped_kb
 
 
 def _records(seed: int, n: int, gaps: bool = True) -> np.ndarray:
@@ -148,17 +149,6 @@ def test_calibrating_with_the_reading_pass_blocks_changes_nothing(tmp_path):
         calibrate_recording(rec.t, rec.raw, blocks=rec.blocks, temp=None, fs=rec.fs, detection="blocks")
 
 
-def _mapped_kb(path) -> int:
-    """Resident kB of this process's mappings of ``path`` (/proc/self/smaps)."""
-    kb, inside = 0, False
-    for line in open("/proc/self/smaps"):
-        if "-" in line.split(" ", 1)[0]:
-            inside = line.rstrip().endswith(str(path))
-        elif inside and line.startswith("Rss:"):
-            kb += int(line.split()[1])
-    return kb
-
-
 @pytest.mark.parametrize("threads", [1, 2])
 def test_the_pass_does_not_keep_the_mapped_file_resident(tmp_path, threads):
     """Every chunk's pages leave the resident set after it (the file stays in the page cache)."""
@@ -167,7 +157,7 @@ def test_the_pass_does_not_keep_the_mapped_file_resident(tmp_path, threads):
     sc = scan_columns(mm["t"], _triad(mm), [mm["temp"]], None, chunk=1 << 16, repeats=True, blocks=True,
                       aux=mm["temp"], threads=threads)
     assert sc.finite and sc.blocks is not None
-    assert _mapped_kb(path) < 0.05 * path.stat().st_size / 1024
+    assert mapped_kb(path) < 0.05 * path.stat().st_size / 1024
 
 
 @pytest.mark.parametrize("layout", [">f4", "<i4", "<f8"])

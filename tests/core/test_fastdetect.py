@@ -10,6 +10,7 @@ from gravcal.core.calibration import Calibration
 from gravcal.core.pipeline import calibrate_recording
 from gravcal.core.samples import raw_triad
 from gravcal.core.simulate import simulate
+from tests.support.smaps import mapped_kb
 
 FS = 100.0
 # Boundary tolerance: the block detector decides per 0.1 s block on the same filter chain
@@ -130,17 +131,6 @@ def test_release_mapped_keeps_the_data(tmp_path):
     np.testing.assert_array_equal(y, x)
 
 
-def _mapped_kb(path) -> int:
-    """Resident kB of this process's mappings of ``path`` (/proc/self/smaps)."""
-    kb, inside = 0, False
-    for line in open("/proc/self/smaps"):
-        if "-" in line.split(" ", 1)[0]:
-            inside = line.rstrip().endswith(str(path))
-        elif inside and line.startswith("Rss:"):
-            kb += int(line.split()[1])
-    return kb
-
-
 @pytest.mark.parametrize("layout", ["records", "columns"])
 def test_row_releaser_drops_every_field_once(tmp_path, layout):
     """Fields of the same records (a structured .npy) are released through one of them; separate
@@ -158,10 +148,10 @@ def test_row_releaser_drops_every_field_once(tmp_path, layout):
         mm = np.load(path, mmap_mode="r")
         arrays = [mm[0], mm[1]]
     total = sum(float(a.sum()) for a in arrays)  # every page resident
-    before = _mapped_kb(path)
+    before = mapped_kb(path)
     assert before > 0.9 * path.stat().st_size / 1024
     fastdetect.row_releaser(arrays)(0, n)
-    assert _mapped_kb(path) < 0.02 * before
+    assert mapped_kb(path) < 0.02 * before
     assert sum(float(a.sum()) for a in arrays) == total  # faulted back in from the page cache
 
 
