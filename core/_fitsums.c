@@ -36,20 +36,14 @@ static PyObject *combine(PyObject *self, PyObject *args)
     Py_ssize_t m, p, k;
     if (!PyArg_ParseTuple(args, "OOOnnn", &oc, &orows, &oout, &m, &p, &k) || !dims_ok(m, p, k))
         return NULL;
-    Py_buffer bc, br, bo;
-    if (get_doubles(oc, &bc, p, 0, "coef") < 0)
-        return NULL;
-    if (get_doubles(orows, &br, m * p * k, 0, "rows") < 0) {
-        PyBuffer_Release(&bc);
-        return NULL;
-    }
-    if (get_doubles(oout, &bo, m * k, 1, "out") < 0) {
-        PyBuffer_Release(&bc);
-        PyBuffer_Release(&br);
+    Py_buffer v[3] = {{0}}, *bc = v, *br = v + 1, *bo = v + 2;
+    if (get_doubles(oc, bc, p, 0, "coef") < 0 || get_doubles(orows, br, m * p * k, 0, "rows") < 0 ||
+        get_doubles(oout, bo, m * k, 1, "out") < 0) {
+        release_all(v, 3);
         return NULL;
     }
-    const double *c = bc.buf, *r = br.buf;
-    double *o = bo.buf;
+    const double *c = bc->buf, *r = br->buf;
+    double *o = bo->buf;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t i = 0; i < m; i++) {
         const double *ri = r + i * p * k;
@@ -63,9 +57,7 @@ static PyObject *combine(PyObject *self, PyObject *args)
         }
     }
     Py_END_ALLOW_THREADS
-    PyBuffer_Release(&bc);
-    PyBuffer_Release(&br);
-    PyBuffer_Release(&bo);
+    release_all(v, 3);
     Py_RETURN_NONE;
 }
 
@@ -78,26 +70,14 @@ static PyObject *norm_project(PyObject *self, PyObject *args)
     Py_ssize_t m, p;
     if (!PyArg_ParseTuple(args, "OOOOnn", &oa, &oj, &oh, &ob, &m, &p) || !dims_ok(m, p, 3))
         return NULL;
-    Py_buffer ba, bj, bh, bb;
-    if (get_doubles(oa, &ba, m * 3, 0, "a") < 0)
-        return NULL;
-    if (get_doubles(oj, &bj, m * 3 * p, 0, "J") < 0) {
-        PyBuffer_Release(&ba);
-        return NULL;
-    }
-    if (get_doubles(oh, &bh, m, 1, "h") < 0) {
-        PyBuffer_Release(&ba);
-        PyBuffer_Release(&bj);
+    Py_buffer v[4] = {{0}}, *ba = v, *bj = v + 1, *bh = v + 2, *bb = v + 3;
+    if (get_doubles(oa, ba, m * 3, 0, "a") < 0 || get_doubles(oj, bj, m * 3 * p, 0, "J") < 0 ||
+        get_doubles(oh, bh, m, 1, "h") < 0 || get_doubles(ob, bb, m * p, 1, "B") < 0) {
+        release_all(v, 4);
         return NULL;
     }
-    if (get_doubles(ob, &bb, m * p, 1, "B") < 0) {
-        PyBuffer_Release(&ba);
-        PyBuffer_Release(&bj);
-        PyBuffer_Release(&bh);
-        return NULL;
-    }
-    const double *A = ba.buf, *J = bj.buf;
-    double *H = bh.buf, *B = bb.buf;
+    const double *A = ba->buf, *J = bj->buf;
+    double *H = bh->buf, *B = bb->buf;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t i = 0; i < m; i++) {
         const double *ai = A + 3 * i, *Ji = J + 3 * p * i;
@@ -114,10 +94,7 @@ static PyObject *norm_project(PyObject *self, PyObject *args)
         }
     }
     Py_END_ALLOW_THREADS
-    PyBuffer_Release(&ba);
-    PyBuffer_Release(&bj);
-    PyBuffer_Release(&bh);
-    PyBuffer_Release(&bb);
+    release_all(v, 4);
     Py_RETURN_NONE;
 }
 
@@ -129,20 +106,14 @@ static PyObject *quadratic(PyObject *self, PyObject *args)
     Py_ssize_t m;
     if (!PyArg_ParseTuple(args, "OOOn", &og, &oC, &oout, &m) || !dims_ok(m, 9, 1))
         return NULL;
-    Py_buffer bg, bC, bo;
-    if (get_doubles(og, &bg, m * 3, 0, "g") < 0)
-        return NULL;
-    if (get_doubles(oC, &bC, m * 9, 0, "C") < 0) {
-        PyBuffer_Release(&bg);
-        return NULL;
-    }
-    if (get_doubles(oout, &bo, m, 1, "out") < 0) {
-        PyBuffer_Release(&bg);
-        PyBuffer_Release(&bC);
+    Py_buffer v[3] = {{0}}, *bg = v, *bC = v + 1, *bo = v + 2;
+    if (get_doubles(og, bg, m * 3, 0, "g") < 0 || get_doubles(oC, bC, m * 9, 0, "C") < 0 ||
+        get_doubles(oout, bo, m, 1, "out") < 0) {
+        release_all(v, 3);
         return NULL;
     }
-    const double *g = bg.buf, *C = bC.buf;
-    double *o = bo.buf;
+    const double *g = bg->buf, *C = bC->buf;
+    double *o = bo->buf;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t i = 0; i < m; i++) {
         const double *gi = g + 3 * i, *Ci = C + 9 * i;
@@ -155,9 +126,7 @@ static PyObject *quadratic(PyObject *self, PyObject *args)
         o[i] = s;
     }
     Py_END_ALLOW_THREADS
-    PyBuffer_Release(&bg);
-    PyBuffer_Release(&bC);
-    PyBuffer_Release(&bo);
+    release_all(v, 3);
     Py_RETURN_NONE;
 }
 
