@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -82,7 +82,8 @@ def _merge(states: list[np.ndarray], sc: ScanStats) -> None:
 def scan_columns(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None, *,
                  chunk: int, progress: Callable[[int, int], None] | None = None, repeats: bool = False,
                  blocks: bool = False, aux: np.ndarray | None = None,
-                 threads: int | None = None, min_run: int = MIN_RUN) -> ScanStats:
+                 threads: int | None = None, min_run: int = MIN_RUN,
+                 allocate: Callable[[tuple[int, ...], Any], np.ndarray] | None = None) -> ScanStats:
     """One pass over t (n,) [s] and raw (n, 3) (any float or integer dtype, any stride, e.g. fields
     of a memory-mapped .npy, whose pages are released chunk by chunk), ``extra`` columns checked
     for finiteness, ``flags`` (the logger's, FLAG_SATURATED counted). ``repeats``: collect the
@@ -90,7 +91,8 @@ def scan_columns(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags:
     the same columns with ``aux``, at the sample rate of ``dt_medians``), in chunks of
     fastdetect.CHUNK_BLOCKS blocks instead of ``chunk`` rows. Stops at the first chunk holding a
     non-finite value (``finite`` False, nothing else filled in): the caller drops those rows and
-    scans again. ``progress(done, total)``: chunks done, one call at a time."""
+    scans again. ``progress(done, total)``: chunks done, one call at a time. ``allocate(shape, dtype)``:
+    where the block statistics go (core.fastdetect.BlockPass)."""
     n = int(t.shape[0])
     threads = fastdetect.THREADS if threads is None else threads
     drop = row_releaser([c for c in (t, raw, *extra, flags, aux) if c is not None])
@@ -103,7 +105,7 @@ def scan_columns(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags:
     fs = fs_from(sc.dt_medians)
     bp = None
     if blocks and math.isfinite(fs) and fs > 0:
-        bp = BlockPass(t, lambda c, i, j: raw[i:j, c], n, fs, aux, block_length(fs))
+        bp = BlockPass(t, lambda c, i, j: raw[i:j, c], n, fs, aux, block_length(fs), allocate)
         chunk = fastdetect.CHUNK_BLOCKS * bp.B
     starts = list(range(0, n, chunk))
     native = raw.dtype.type in (np.float32, np.float64) and raw.dtype.isnative

@@ -179,8 +179,12 @@ def console() -> None:
     """The ``gravcal`` program: ``main()``, then the exit status; after a command that asked for it
     (request_prompt_exit), the standard streams and log handlers are flushed and the process ends
     at once (os._exit: no atexit handlers, no teardown). ``gravcal calibrate`` runs with one OpenBLAS
-    thread (pin_blas_threads); ``main()`` called in-process leaves the environment alone."""
+    thread (pin_blas_threads), and the memory of its file's block statistics is faulted in while the
+    imports run (daemon/prestart.py); ``main()`` called in-process does neither."""
     pin_blas_threads(sys.argv[1:])
+    from . import prestart
+
+    prestart.start(sys.argv[1:])  # before numpy loads: one core is idle while the interpreter imports
     status = main()
     if _PROMPT_EXIT[0]:
         logging.shutdown()
