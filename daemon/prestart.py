@@ -166,7 +166,8 @@ class Arena:
             self.parts.append((shape, dtype, size, item))
             rows = shape[0] if len(shape) == 2 else 1
             size += -(-rows * nb * item // ALIGN) * ALIGN
-        self.mm = mmap.mmap(-1, max(size, 1))
+        # private: shared anonymous memory (mmap's default) is shmem, without transparent huge pages
+        self.mm = mmap.mmap(-1, max(size, 1), flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
         if hasattr(mmap, "MADV_HUGEPAGE"):  # as numpy asks for its large arrays
             self.mm.madvise(mmap.MADV_HUGEPAGE)
         self.given: set[int] = set()
