@@ -32,7 +32,9 @@ round (``--repeat N``: N rounds), so no method always runs first or after the sa
 method's fastest round (wall time) is shown, and all its wall times are in the JSON (``walls_s``).
 
 Measurement. Each run is a child process `gravcal calibrate FILE --json` (what a user runs),
-waited for with os.wait4 to get that child's own peak RSS (ru_maxrss, KiB on Linux). RSS
+waited for with os.wait4 to get that child's own peak RSS (ru_maxrss, KiB on Linux). A child's
+ru_maxrss starts at its parent's peak at the exec, so this process keeps its own small: it never
+imports the peers (their availability is asked in a child). RSS
 includes the memory-mapped input pages the child touched, so the ratio is honest about
 memory-mapping. Wall time is split into read+validate and calibrate as reported by the command
 (timing_s in its JSON); the rest is interpreter start-up and imports.
@@ -133,7 +135,7 @@ def prefix_file(week: Path, path: Path, days: int) -> None:
     tmp.rename(path)
 
 
-def warm_page_cache(path: Path, chunk: int = 1 << 24) -> None:
+def warm_page_cache(path: Path, chunk: int = 1 << 20) -> None:
     """Read the whole file once (and drop the bytes): every timed method then finds it in the page cache,
     as after any earlier run; a readahead hint alone (posix_fadvise) may still be under way when the
     first method starts, which then waits for the disk."""
@@ -346,6 +348,16 @@ def make_csv(cache: Path) -> Path:
     return path
 
 
+def peers_available() -> dict[str, str | None]:
+    """bench/peers.py's ``available()``, asked in a child process. Importing the peers (pandas, SciPy,
+    ...) would raise this process's peak RSS to ~245 MB, and a child started from it (vfork/exec)
+    inherits that peak as its own ru_maxrss: every method's peak RSS would read at least that."""
+    code = "import json, peers; print(json.dumps(peers.available()))"
+    out = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parent, check=True,
+                         capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def compile_gravcal_bytecode() -> None:
     """Write the __pycache__ an installed gravcal has (see the module doc, Bytecode)."""
     import compileall  # noqa: PLC0415
@@ -405,7 +417,7 @@ def main() -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import peers as peer_lib
 
-    why_missing = peer_lib.available() if args.peers is not False else {}
+    why_missing = peers_available() if args.peers is not False else {}
     missing = {k: v for k, v in why_missing.items() if v is not None}
     run_peers = [k for k in FREE_LIVING_PEERS if k in why_missing and why_missing[k] is None]
     for k, v in missing.items():
