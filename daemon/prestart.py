@@ -175,16 +175,19 @@ class Arena:
         self.thread = threading.Thread(target=self._populate, name="gravcal-prestart", daemon=True)
 
     def _populate(self) -> None:
-        from ._pages import populate
-
         ok = True
-        for lo in range(0, self.nb, POPULATE_BLOCKS):
-            hi = min(lo + POPULATE_BLOCKS, self.nb)
-            for shape, _, offset, item in self.parts:
-                for r in range(shape[0] if len(shape) == 2 else 1):
-                    ok = populate(self.mm, offset + (r * self.nb + lo) * item, (hi - lo) * item) and ok
-            if not ok:
-                break
+        try:
+            from ._pages import populate
+
+            for lo in range(0, self.nb, POPULATE_BLOCKS):
+                hi = min(lo + POPULATE_BLOCKS, self.nb)
+                for shape, _, offset, item in self.parts:
+                    for r in range(shape[0] if len(shape) == 2 else 1):
+                        ok = populate(self.mm, offset + (r * self.nb + lo) * item, (hi - lo) * item) and ok
+                if not ok:
+                    break
+        except (ImportError, OSError):  # no helper built, or no memory now: the pass's writes fault the pages in
+            ok = False
         self.populated = ok
 
     def allocate(self, shape: tuple[int, ...], dtype: Any) -> Any:
@@ -228,8 +231,11 @@ def prepare(path: Path) -> Arena | None:
     block_n = guess_block_n(path, n, data_offset, itemsize, t_offset)
     if block_n is None or n // block_n == 0:
         return None
-    arena = Arena(key, n // block_n, 1 if "temp" in lower else 0)
-    arena.thread.start()
+    try:
+        arena = Arena(key, n // block_n, 1 if "temp" in lower else 0)
+        arena.thread.start()
+    except (OSError, ValueError, OverflowError, RuntimeError):  # no memory or no thread: the pass allocates
+        return None
     return arena
 
 

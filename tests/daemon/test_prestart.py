@@ -218,3 +218,23 @@ def test_the_program_prepares_and_prints_the_same(tmp_path):
     a, b = json.loads(p.stdout), json.loads(buf.getvalue())
     a.pop("timing_s"), b.pop("timing_s")
     assert a == b
+
+
+def test_a_failing_populate_only_leaves_the_faults_to_the_pass(tmp_path, monkeypatch, capfd):
+    import gravcal.daemon._pages as pages
+
+    def fail(*_):
+        raise OSError(12, "Cannot allocate memory")
+
+    path = tmp_path / "rec.npy"
+    _write(path)
+    own = _blocks(path)
+    monkeypatch.setattr(pages, "populate", fail)
+    assert prestart.start(["calibrate", str(path)])
+    arena = prestart._pending[0]
+    arena.thread.join(30)
+    assert arena.populated is False
+    got = _blocks(path)
+    assert _from_arena(got.mean)
+    _same_bits(got, own)
+    assert "Traceback" not in capfd.readouterr().err
