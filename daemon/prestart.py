@@ -12,7 +12,7 @@ faults it in (daemon/_pages.c ``populate``, GIL released) in the order the pass 
 has not reached yet is faulted in by the pass's write as before, and either way the arrays' values
 are what the pass writes (every element is written; nothing is read before).
 
-Only the plain case is prepared: one structured .npy (t float64 first-class field), no --columns
+Only the plain case is prepared: one structured .npy (a little-endian float64 t field), no --columns
 mapping, not a --lab session, no supply-voltage field (those read without block statistics). The
 block length is a guess from the first 4 096 time steps; when the pass's own sample rate gives
 another one (an irregular start), the arrays do not match and the pass allocates its own.
