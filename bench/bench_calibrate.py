@@ -25,15 +25,24 @@ when it installs a package and as the peers' installed packages are: an editable
 PYTHONDONTWRITEBYTECODE=1 (this machine's environment) would otherwise compile every gravcal module
 in every run (~0.15 s of start-up that no installed copy pays).
 
+Same conditions for every method. Before a size's first timed run its file is read once whole, so every
+method (gravcal first or last) finds it in the page cache. Each round runs every method once (gravcal,
+the numpy reference, each peer and form), the order rotated by one from size to size and from round to
+round (``--repeat N``: N rounds), so no method always runs first or after the same neighbour; each
+method's fastest round (wall time) is shown, and all its wall times are in the JSON (``walls_s``).
+
 Measurement. Each run is a child process `gravcal calibrate FILE --json` (what a user runs),
-waited for with os.wait4 to get that child's own peak RSS (ru_maxrss, KiB on Linux). RSS
+waited for with os.wait4 to get that child's own peak RSS (ru_maxrss, KiB on Linux). A child's
+ru_maxrss starts at its parent's peak at the exec, so this process keeps its own small: it never
+imports the peers (their availability is asked in a child). RSS
 includes the memory-mapped input pages the child touched, so the ratio is honest about
 memory-mapping. Wall time is split into read+validate and calibrate as reported by the command
 (timing_s in its JSON); the rest is interpreter start-up and imports.
 
 Peers, side by side (issue 8, item 3; on by default when installed, ``--no-peers`` to skip; a
-missing peer is listed with its install hint). For each size, right after gravcal, each peer that
-calibrates from free-living data runs in its own child (bench/peer_child.py) on the same file:
+missing peer is listed with its install hint). For each size each peer that
+calibrates from free-living data runs in its own child (bench/peer_child.py) on the same file, in the
+same rounds as gravcal:
 skdh (CalibrateAccelerometer on numpy arrays) and actipy (calibrate_gravity on a DataFrame with a
 DatetimeIndex). The child reads the file block by block into exactly what the peer's users hand
 it, timed apart from the peer's call; the parent takes the child's peak RSS with os.wait4 and
@@ -124,6 +133,16 @@ def prefix_file(week: Path, path: Path, days: int) -> None:
     dst.flush()
     del dst
     tmp.rename(path)
+
+
+def warm_page_cache(path: Path, chunk: int = 1 << 20) -> None:
+    """Read the whole file once (and drop the bytes): every timed method then finds it in the page cache,
+    as after any earlier run; a readahead hint alone (posix_fadvise) may still be under way when the
+    first method starts, which then waits for the disk."""
+    buf = bytearray(chunk)
+    with open(path, "rb", buffering=0) as f:
+        while f.readinto(buf):
+            pass
 
 
 REFERENCE = Path(__file__).resolve().parent / "numpy_reference.py"
@@ -329,6 +348,16 @@ def make_csv(cache: Path) -> Path:
     return path
 
 
+def peers_available() -> dict[str, str | None]:
+    """bench/peers.py's ``available()``, asked in a child process. Importing the peers (pandas, SciPy,
+    ...) would raise this process's peak RSS to ~245 MB, and a child started from it (vfork/exec)
+    inherits that peak as its own ru_maxrss: every method's peak RSS would read at least that."""
+    code = "import json, peers; print(json.dumps(peers.available()))"
+    out = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parent, check=True,
+                         capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def compile_gravcal_bytecode() -> None:
     """Write the __pycache__ an installed gravcal has (see the module doc, Bytecode)."""
     import compileall  # noqa: PLC0415
@@ -342,7 +371,9 @@ def compile_gravcal_bytecode() -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--days", type=int, nargs="+", default=[1, 2, 4, 7])
-    ap.add_argument("--repeat", type=int, default=1, help="runs per size; the fastest is shown (default 1)")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="rounds per size, every method once a round in a rotating order; each method's fastest run "
+                         "is shown (default 1)")
     ap.add_argument("--cache", default=None, help="cache directory (default $GRAVCAL_CACHE or ~/.cache/gravcal)")
     ap.add_argument("--json", type=Path, default=None, metavar="PATH", help="also write the figures as JSON here")
     ap.add_argument("--csv", action="store_true", help="also time a 1-day CSV recording")
@@ -386,7 +417,7 @@ def main() -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import peers as peer_lib
 
-    why_missing = peer_lib.available() if args.peers is not False else {}
+    why_missing = peers_available() if args.peers is not False else {}
     missing = {k: v for k, v in why_missing.items() if v is not None}
     run_peers = [k for k in FREE_LIVING_PEERS if k in why_missing and why_missing[k] is None]
     for k, v in missing.items():
@@ -398,29 +429,44 @@ def main() -> int:
         if f not in forms:
             print(f"peer form {f}: needs the truth file next to the week; skipped", file=sys.stderr)
     peer_rows: list[dict] = []
-    for days, fmt, path in inputs:
+    for size_index, (days, fmt, path) in enumerate(inputs):
         n = int(round(days * 86400 * FS))
         nbytes = np.load(path, mmap_mode="r").nbytes if fmt == "npy" else path.stat().st_size
-        fd = os.open(path, os.O_RDONLY)
-        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_WILLNEED)  # hint: read ahead into the page cache
-        os.close(fd)
-        runs = [run_calibrate(path) for _ in range(args.repeat)]
-        best = min(runs, key=lambda r: r["json"]["timing_s"]["calibrate"])
-        peak = max(r["maxrss_bytes"] for r in runs)
+        warm_page_cache(path)  # every method then reads it from the page cache, the first timed one too
+        methods: list[tuple] = [("gravcal",)]
+        if fmt == "npy":
+            methods += ([("numpy-ref",)] if args.reference else []) + [(name, form) for name in run_peers for form in forms]
+        runs: dict[tuple, list[dict]] = {m: [] for m in methods}
+        for r in range(args.repeat):
+            # each round in another order: no method always runs first (after the warming read) or after
+            # the same neighbour, whose freed memory and cache state the next process finds
+            k = (size_index + r) % len(methods)
+            for m in methods[k:] + methods[:k]:
+                load0 = os.getloadavg()[0]
+                if m[0] == "gravcal":
+                    res = run_calibrate(path)
+                elif m[0] == "numpy-ref":
+                    res = run_calibrate(path, reference=True)
+                else:
+                    print(f"  {days} d: {m[0]} ({m[1]}) ...", file=sys.stderr)
+                    zero, per_g, _ = forms[m[1]]
+                    res = run_peer(m[0], path, zero, per_g, args.peer_timeout, args.peer_gate)
+                res["load"] = [load0, os.getloadavg()[0]]
+                runs[m].append(res)
+        g = runs[("gravcal",)]
+        best = min(g, key=lambda r: r["wall"])
         d = best["json"]
         rows.append({"days": days, "format": fmt, "samples": n, "input_bytes": nbytes, "wall_s": best["wall"],
                      "read_s": d["timing_s"]["read"], "calibrate_s": d["timing_s"]["calibrate"],
                      "cpu_s": best["cpu"], "read_cpu_s": d["timing_s"].get("read_cpu"),
-                     "calibrate_cpu_s": d["timing_s"].get("calibrate_cpu"), "load_avg_1min": os.getloadavg()[0],
+                     "calibrate_cpu_s": d["timing_s"].get("calibrate_cpu"), "load_avg_1min": best["load"][0],
                      "startup_s": best["wall"] - d["timing_s"]["read"] - d["timing_s"]["calibrate"],
-                     "peak_rss_bytes": peak, "rss_ratio": peak / nbytes, "windows": d["n_windows"],
+                     "peak_rss_bytes": max(r["maxrss_bytes"] for r in g), "windows": d["n_windows"],
+                     "rss_ratio": max(r["maxrss_bytes"] for r in g) / nbytes,
                      "heldout_rms_mg": d["heldout_rms_mg"], "model": d["model"], "exit": best["exit"],
-                     "runs": len(runs), "truth_err_mg": gravcal_truth_error_mg(d, truth)})
-        if fmt != "npy":
-            continue
-        if args.reference:  # right after gravcal, like the peers
-            load0 = os.getloadavg()[0]
-            ref = min((run_calibrate(path, reference=True) for _ in range(args.repeat)), key=lambda r: r["wall"])
+                     "runs": len(g), "walls_s": [r["wall"] for r in g], "truth_err_mg": gravcal_truth_error_mg(d, truth)})
+        if ("numpy-ref",) in runs:
+            ref = min(runs[("numpy-ref",)], key=lambda r: r["wall"])
             d = ref["json"]
             peer_rows.append({"days": days, "peer": "numpy-ref", "form": "10 s", "gate_g": None, "samples": n,
                               "input_bytes": nbytes, "ok": True, "timed_out": False,
@@ -429,26 +475,26 @@ def main() -> int:
                               "startup_s": ref["wall"] - d["timing_s"]["calibrate"], "read_cpu_s": 0.0,
                               "calibrate_cpu_s": d["timing_s"]["calibrate_cpu"], "cpu_s": ref["cpu"],
                               "peak_rss_bytes": ref["maxrss_bytes"], "rss_ratio": ref["maxrss_bytes"] / nbytes,
-                              "truth_err_mg": gravcal_truth_error_mg(d, truth),
-                              "load_avg_1min": [load0, os.getloadavg()[0]]})
-        # the peers right after gravcal on the same file, so the ratios hold on a loaded machine
-        for name in run_peers:
-            for form, (zero, per_g, _) in forms.items():
-                load0 = os.getloadavg()[0]
-                print(f"  {days} d: {name} ({form}) ...", file=sys.stderr)
-                r = run_peer(name, path, zero, per_g, args.peer_timeout, args.peer_gate)
-                ts = r.get("timing_s", {})
-                peer_rows.append({"days": days, "peer": name, "form": form, "gate_g": args.peer_gate, "samples": n,
-                                  "input_bytes": nbytes,
-                                  "ok": r["ok"], "message": r["message"], "timed_out": r["timed_out"],
-                                  "wall_s": r["wall_s"], "read_s": ts.get("read"), "calibrate_s": ts.get("calibrate"),
-                                  "startup_s": ts.get("startup"), "read_cpu_s": ts.get("read_cpu"),
-                                  "calibrate_cpu_s": ts.get("calibrate_cpu"), "cpu_s": r["cpu_s"],
-                                  "peak_rss_bytes": r["peak_rss_bytes"], "rss_ratio": r["peak_rss_bytes"] / nbytes,
-                                  "rss_after_read_bytes": r.get("rss_after_read_bytes"),
-                                  "truth_err_mg": peer_truth_error_mg(r, zero, per_g, truth),
-                                  "offset_g": r.get("offset_g"), "matrix": r.get("matrix"),
-                                  "load_avg_1min": [load0, os.getloadavg()[0]]})
+                              "truth_err_mg": gravcal_truth_error_mg(d, truth), "load_avg_1min": ref["load"],
+                              "runs": len(runs[("numpy-ref",)]), "walls_s": [r["wall"] for r in runs[("numpy-ref",)]]})
+        for m in methods:
+            if m[0] in ("gravcal", "numpy-ref"):
+                continue
+            name, form = m
+            zero, per_g, _ = forms[form]
+            r = min(runs[m], key=lambda q: q["wall_s"])
+            ts = r.get("timing_s", {})
+            peer_rows.append({"days": days, "peer": name, "form": form, "gate_g": args.peer_gate, "samples": n,
+                              "input_bytes": nbytes,
+                              "ok": r["ok"], "message": r["message"], "timed_out": r["timed_out"],
+                              "wall_s": r["wall_s"], "read_s": ts.get("read"), "calibrate_s": ts.get("calibrate"),
+                              "startup_s": ts.get("startup"), "read_cpu_s": ts.get("read_cpu"),
+                              "calibrate_cpu_s": ts.get("calibrate_cpu"), "cpu_s": r["cpu_s"],
+                              "peak_rss_bytes": r["peak_rss_bytes"], "rss_ratio": r["peak_rss_bytes"] / nbytes,
+                              "rss_after_read_bytes": r.get("rss_after_read_bytes"),
+                              "truth_err_mg": peer_truth_error_mg(r, zero, per_g, truth),
+                              "offset_g": r.get("offset_g"), "matrix": r.get("matrix"), "load_avg_1min": r["load"],
+                              "runs": len(runs[m]), "walls_s": [q["wall_s"] for q in runs[m]]})
 
     print(f"gravcal calibrate on simulated daily living, {FS:g} Hz, fields t f8 + ax/ay/az f4 "
           f"({DTYPE.itemsize} bytes/sample); cache {cache}")

@@ -15,13 +15,14 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from . import fastdetect
 from ._scankernel import scan_chunk
 from .fastdetect import BlockPass, BlockStats, block_length, row_releaser, run_lanes
+from .quantiles import median
 from .repeats import MIN_RUN, RunCollector
 from .samples import FLAG_SATURATED
 
@@ -48,7 +49,7 @@ def fs_from(dt_medians: Sequence[float]) -> float:
     """The sample rate [Hz] of the sampled median steps (nan when they give none)."""
     if not len(dt_medians):
         return math.nan
-    return 1.0 / float(np.median(dt_medians))
+    return 1.0 / float(median(np.asarray(dt_medians, dtype=np.float64)))
 
 
 def step_medians(t: np.ndarray, chunk: int) -> list[float]:
@@ -60,7 +61,7 @@ def step_medians(t: np.ndarray, chunk: int) -> list[float]:
         for i in range(0, n, chunk * MEDIAN_EVERY):
             tc = np.asarray(t[max(i - 1, 0):min(i + chunk, n)], dtype=np.float64)
             if tc.shape[0] > 1:
-                out.append(float(np.median(np.diff(tc))))
+                out.append(float(median(np.diff(tc))))
     return out
 
 
@@ -82,7 +83,8 @@ def _merge(states: list[np.ndarray], sc: ScanStats) -> None:
 def scan_columns(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None, *,
                  chunk: int, progress: Callable[[int, int], None] | None = None, repeats: bool = False,
                  blocks: bool = False, aux: np.ndarray | None = None,
-                 threads: int | None = None, min_run: int = MIN_RUN) -> ScanStats:
+                 threads: int | None = None, min_run: int = MIN_RUN,
+                 allocate: Callable[[tuple[int, ...], Any], np.ndarray] | None = None) -> ScanStats:
     """One pass over t (n,) [s] and raw (n, 3) (any float or integer dtype, any stride, e.g. fields
     of a memory-mapped .npy, whose pages are released chunk by chunk), ``extra`` columns checked
     for finiteness, ``flags`` (the logger's, FLAG_SATURATED counted). ``repeats``: collect the
@@ -90,7 +92,8 @@ def scan_columns(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags:
     the same columns with ``aux``, at the sample rate of ``dt_medians``), in chunks of
     fastdetect.CHUNK_BLOCKS blocks instead of ``chunk`` rows. Stops at the first chunk holding a
     non-finite value (``finite`` False, nothing else filled in): the caller drops those rows and
-    scans again. ``progress(done, total)``: chunks done, one call at a time."""
+    scans again. ``progress(done, total)``: chunks done, one call at a time. ``allocate(shape, dtype)``:
+    where the block statistics go (core.fastdetect.BlockPass)."""
     n = int(t.shape[0])
     threads = fastdetect.THREADS if threads is None else threads
     drop = row_releaser([c for c in (t, raw, *extra, flags, aux) if c is not None])
@@ -103,7 +106,7 @@ def scan_columns(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags:
     fs = fs_from(sc.dt_medians)
     bp = None
     if blocks and math.isfinite(fs) and fs > 0:
-        bp = BlockPass(t, lambda c, i, j: raw[i:j, c], n, fs, aux, block_length(fs))
+        bp = BlockPass(t, lambda c, i, j: raw[i:j, c], n, fs, aux, block_length(fs), allocate)
         chunk = fastdetect.CHUNK_BLOCKS * bp.B
     starts = list(range(0, n, chunk))
     native = raw.dtype.type in (np.float32, np.float64) and raw.dtype.isnative

@@ -139,7 +139,10 @@ class BlockPass:
     (core.datapass) calls it on the rows it has just scanned; :func:`block_stats` on its own grid."""
 
     def __init__(self, t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n: int, fs: float,
-                 aux: np.ndarray | None = None, block_n: int | None = None):
+                 aux: np.ndarray | None = None, block_n: int | None = None,
+                 allocate: Callable[[tuple[int, ...], Any], np.ndarray] | None = None):
+        """``allocate(shape, dtype)``: where the statistics go (default np.empty; e.g. memory already
+        faulted in, daemon/prestart.py); every element is written by the chunks, none read first."""
         if not (fs > 0 and math.isfinite(fs)):
             raise ValueError(f"sample rate fs must be a positive number of Hz, got {fs!r}")
         self.t, self.channel, self.fs = t, channel, float(fs)
@@ -147,10 +150,11 @@ class BlockPass:
         self.nb = n // self.B
         self.aux = aux[:, None] if aux is not None and np.ndim(aux) == 1 else aux
         k = 0 if self.aux is None else self.aux.shape[1]
-        self.mean = np.empty((3, self.nb))
-        self.scatter = np.empty((6, self.nb), dtype=np.float32)
-        self.aux_mean = np.empty((k, self.nb))
-        self.usable = np.empty(self.nb, dtype=bool)
+        new = allocate or _empty
+        self.mean = _checked(new((3, self.nb), np.float64), (3, self.nb), np.float64)
+        self.scatter = _checked(new((6, self.nb), np.float32), (6, self.nb), np.float32)
+        self.aux_mean = _checked(new((k, self.nb), np.float64), (k, self.nb), np.float64)
+        self.usable = _checked(new((self.nb,), np.bool_), (self.nb,), np.bool_)
         self.step = 1.5 / fs
 
     def chunk(self, i: int, j: int) -> None:
@@ -165,6 +169,18 @@ class BlockPass:
 
     def result(self) -> BlockStats:
         return BlockStats(self.fs, self.B, self.mean, self.scatter, self.aux_mean, self.usable)
+
+
+def _empty(shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+    return np.empty(shape, dtype=dtype)
+
+
+def _checked(a: np.ndarray, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
+    """An allocator's array as the kernel writes it: this shape and dtype, C-contiguous, writable."""
+    if not (isinstance(a, np.ndarray) and a.shape == shape and a.dtype == np.dtype(dtype) and a.flags.c_contiguous
+            and a.flags.writeable):
+        raise ValueError(f"block statistics need a writable C-contiguous {np.dtype(dtype)} array of shape {shape}")
+    return a
 
 
 def block_stats(t: np.ndarray, channel: Callable[[int, int, int], np.ndarray], n: int, fs: float, *,

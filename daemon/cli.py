@@ -35,6 +35,10 @@ and a module that is not there (yet) is skipped."""
 log = logging.getLogger("gravcal")
 _UNAVAILABLE: dict[str, str] = {}  # subcommand -> why it could not be loaded
 _PROMPT_EXIT = [False]  # set by a command that has written its output and closed what it opened
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS", "OMP_NUM_THREADS")
+"""What OpenBLAS reads for its thread count at load (in this order); a user's setting of any is kept."""
+SINGLE_BLAS_COMMANDS = ("calibrate",)
+"""Commands whose BLAS products are all small (core.pipeline runs them with one BLAS thread anyway)."""
 
 
 def request_prompt_exit() -> None:
@@ -157,10 +161,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERNAL
 
 
+def pin_blas_threads(argv: Sequence[str]) -> bool:
+    """For a command of SINGLE_BLAS_COMMANDS, set OPENBLAS_NUM_THREADS=1 before numpy loads, unless the
+    user set one of BLAS_THREAD_VARIABLES or numpy is already loaded (the setting would come too late).
+    OpenBLAS otherwise starts a worker per core whose spinning takes core time from the reading pass's
+    threads; child processes (a study's local Dask workers) inherit the setting. True when it was set."""
+    words = [a for a in argv if not a.startswith("-")]
+    if not words or words[0] not in SINGLE_BLAS_COMMANDS or "numpy" in sys.modules:
+        return False
+    if any(v in os.environ for v in BLAS_THREAD_VARIABLES):
+        return False
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    return True
+
+
 def console() -> None:
     """The ``gravcal`` program: ``main()``, then the exit status; after a command that asked for it
     (request_prompt_exit), the standard streams and log handlers are flushed and the process ends
-    at once (os._exit: no atexit handlers, no teardown)."""
+    at once (os._exit: no atexit handlers, no teardown). ``gravcal calibrate`` runs with one OpenBLAS
+    thread (pin_blas_threads), and the memory of its file's block statistics is faulted in while the
+    imports run (daemon/prestart.py); ``main()`` called in-process does neither."""
+    pin_blas_threads(sys.argv[1:])
+    from . import prestart
+
+    prestart.start(sys.argv[1:])  # before numpy loads: one core is idle while the interpreter imports
     status = main()
     if _PROMPT_EXIT[0]:
         logging.shutdown()

@@ -36,6 +36,7 @@ from gravcal.core.datapass import ScanStats, fs_from, scan_columns
 from gravcal.core.fastdetect import BlockStats, release_mapped
 from gravcal.core.repeats import MIN_RUN, FlatStretches, RunCollector, repeated_steps
 
+from . import prestart
 from .errors import InputError
 from .formats.csvtext import OPTIONAL, REQUIRED, Where, load_csv, missing_columns_error, parse_columns, shown_names
 from .formats.sniff import FORMATS, excerpt, sniff
@@ -142,8 +143,10 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
         where, names = Where(path=path), tuple(cols)
     else:
         raise InputError(f"{path}: {found.what}; not a recording gravcal reads ({', '.join(FORMATS)})")
+    # the block statistics' memory, when `gravcal calibrate` prepared it for this file (daemon/prestart.py)
+    allocate = prestart.claim(path) if blocks else None
     rec = _validate(path, cols, where, names, min_samples=min_samples, check_saturation=check_saturation,
-                    progress=progress, exclude_filler=exclude_filler, blocks=blocks)
+                    progress=progress, exclude_filler=exclude_filler, blocks=blocks, allocate=allocate)
     rec.units, rec.metadata = units, meta
     return rec
 
@@ -262,15 +265,16 @@ def _chunks(n: int, size: int = CHUNK) -> Iterator[slice]:
 
 def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.ndarray | None,
           progress: Callable[[int, int], None] | None = None, repeats: bool = False, blocks: bool = False,
-          aux: np.ndarray | None = None) -> ScanStats:
+          aux: np.ndarray | None = None, allocate: Callable[..., np.ndarray] | None = None) -> ScanStats:
     """core.datapass.scan_columns in chunks of SCAN_CHUNK rows (of block_stats' grid with ``blocks``)."""
     return scan_columns(t, raw, extra, flags, chunk=SCAN_CHUNK, progress=progress, repeats=repeats, blocks=blocks,
-                        aux=aux)
+                        aux=aux, allocate=allocate)
 
 
 def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tuple[str, ...], *,
               min_samples: int, check_saturation: bool, progress: Callable[[int, int], None] | None = None,
-              exclude_filler: bool = False, blocks: bool = False) -> Recording:
+              exclude_filler: bool = False, blocks: bool = False,
+              allocate: Callable[..., np.ndarray] | None = None) -> Recording:
     t = cols["t"]
     raw = cols.pop("_triad", None)
     if raw is None:
@@ -289,7 +293,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
     # the block statistics' aux channel is temp alone (calibrate_recording's covariate columns
     # without a supply voltage); with one, calibrating computes them
     blocks = blocks and vsupply is None
-    scan = _scan(t, raw, extra, flags, progress, repeats=exclude_filler, blocks=blocks, aux=temp)
+    scan = _scan(t, raw, extra, flags, progress, repeats=exclude_filler, blocks=blocks, aux=temp, allocate=allocate)
 
     # 1. NaN / inf in any column we use: drop the rows (a copy; only when there are any).
     keep: np.ndarray | None = None

@@ -38,7 +38,7 @@ class Context:
     temp: np.ndarray  # board temperature [°C]
     vsupply: np.ndarray  # supply voltage [V]
     fs: float  # sample rate [Hz]
-    rng: np.random.Generator = field(default_factory=np.random.default_rng)
+    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng())  # numpy.random loads on use
     omega: np.ndarray | None = None  # (N, 3) angular rate in the board frame [rad/s], for the gyro stage
 
     @property
