@@ -22,7 +22,6 @@ import numpy as np
 from . import fastdetect
 from ._scankernel import scan_chunk
 from .fastdetect import BlockPass, BlockStats, block_length, row_releaser, run_lanes
-from .quantiles import median
 from .repeats import MIN_RUN, RunCollector
 from .samples import FLAG_SATURATED
 
@@ -49,7 +48,7 @@ def fs_from(dt_medians: Sequence[float]) -> float:
     """The sample rate [Hz] of the sampled median steps (nan when they give none)."""
     if not len(dt_medians):
         return math.nan
-    return 1.0 / float(median(np.asarray(dt_medians, dtype=np.float64)))
+    return 1.0 / float(np.median(dt_medians))
 
 
 def step_medians(t: np.ndarray, chunk: int) -> list[float]:
@@ -61,7 +60,7 @@ def step_medians(t: np.ndarray, chunk: int) -> list[float]:
         for i in range(0, n, chunk * MEDIAN_EVERY):
             tc = np.asarray(t[max(i - 1, 0):min(i + chunk, n)], dtype=np.float64)
             if tc.shape[0] > 1:
-                out.append(float(median(np.diff(tc))))
+                out.append(float(np.median(np.diff(tc))))
     return out
 
 

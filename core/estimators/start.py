@@ -19,7 +19,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration import Calibration
-from ..quantiles import median, percentile as linear_percentile
 from ..detectors import MovingVarianceDetector, estimate_fs
 from ..model.datasheet import SENS_LIMITS, SENS_TYP
 from ..windows import WindowSet
@@ -71,8 +70,8 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
         raise ValueError(f"ellipsoid_fit ({kind}) needs at least {need} quasi-static windows, got {m}")
 
     # Normalise so that counts (~3e4) and g (~1) give the same conditioning.
-    c0 = median(mean, axis=0)
-    r0 = float(median(np.linalg.norm(mean - c0, axis=1)))
+    c0 = np.median(mean, axis=0)
+    r0 = float(np.median(np.linalg.norm(mean - c0, axis=1)))
     if not r0 > 0:
         raise ValueError("orientation coverage insufficient: the window means are (nearly) all identical")
     u = (mean - c0) / r0
@@ -96,7 +95,7 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
         o_new, K_new = _quadric_to_ellipsoid(coef, full)
         a = np.linalg.solve(K_new, (u - o_new).T).T
         r = np.linalg.norm(a, axis=1) - 1.0  # norm residual [g]
-        sigma = max(1.4826 * float(median(np.abs(r))), SIGMA_FLOOR_G)
+        sigma = max(1.4826 * float(np.median(np.abs(r))), SIGMA_FLOOR_G)
         if it < HUBER_ITERS:  # Huber first: a gentle start that cannot reject the good windows
             w_new = np.minimum(1.0, HUBER_K * sigma / np.maximum(np.abs(r), 1e-300))
         else:  # then Tukey bisquare: windows far off the ellipsoid get weight 0
@@ -308,7 +307,7 @@ def bootstrap(t, raw, fs: float | None = None, *, noise_factor: float = 4.0, per
     try:
         cal = ellipsoid_fit(ws)
     except ValueError as exc:
-        scale = float(median(np.linalg.norm(ws.mean, axis=1)))
+        scale = float(np.median(np.linalg.norm(ws.mean, axis=1)))
         if not scale > 10.0 * floor:  # gravity must stand far above the noise, whatever the units
             raise ValueError(f"bootstrap: no scale can be determined: the still means (median norm {scale:.3g}) "
                              f"do not stand out of the noise floor ({floor:.3g}); is this accelerometer data? "
@@ -348,7 +347,7 @@ def _noise_floor(t, raw, fs, window_s, percentile) -> float:
     det = det[np.isfinite(det) & (np.arange(det.shape[0]) >= probe.w - 1)]
     if det.shape[0] == 0:
         raise ValueError(f"bootstrap: fewer than {probe.w} finite samples; need at least one {window_s} s window")
-    floor = float(linear_percentile(det, percentile))
+    floor = float(np.percentile(det, percentile))
     floor = max(floor, 0.5 * quantum if np.isfinite(quantum) else 0.0)
     if not floor > 0:
         raise ValueError("bootstrap: the data are constant; no still/moving contrast to detect")
