@@ -47,6 +47,7 @@
 
 #define READ_BYTES 65536 /* drivers/serial.py READ_BYTES: more than the kernel's tty buffer holds */
 #define MAX_FRAMES_LIMIT 4096
+#define TTY_CHUNK 64 /* the most one read() of a tty returns (drivers/tty_io.c tty_read's kernel buffer) */
 
 /* ist (int64) and fst (float64) slots: the state shared with daemon/fastpath.py */
 enum { IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH,
@@ -625,13 +626,16 @@ static PyObject *step(PyObject *self, PyObject *args)
             S->ist[IST_REASON] = n == 0 ? R_EOF : R_ERROR;
             break;
         }
-        /* a tty read returns at most 64 bytes (the kernel's tty_read chunk): the rest of what has arrived */
+        /* a tty read returns at most TTY_CHUNK bytes (the kernel's tty_read buffer): the rest of what has arrived.
+           A read that returned less had everything there was (the usual 29-byte frame: no FIONREAD call); what
+           arrives later wakes the next poll(). */
         int avail;
-        while (n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
-            ssize_t m = read(fd, buf + n, (size_t)(READ_BYTES - n));
-            if (m <= 0)
+        ssize_t last = n;
+        while (last >= TTY_CHUNK && n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
+            last = read(fd, buf + n, (size_t)(READ_BYTES - n));
+            if (last <= 0)
                 break;
-            n += m;
+            n += last;
         }
         int more = call_process(&C, buf, n, snapshot);
         if (more < 0)
