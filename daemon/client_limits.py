@@ -111,6 +111,11 @@ class ClientState:
                 self.sent_bytes += nbytes
                 self.last_progress = max(self.last_progress, progress)
 
+    def progress(self) -> float:
+        """When the client last took output (last_progress, the C step's sends folded in)."""
+        self.fold()
+        return self.last_progress
+
     def stats(self, now: float) -> dict[str, Any]:
         """This client in STATUS's per_client list."""
         self.fold()

@@ -581,9 +581,7 @@ class SocketServer:
         now = time.monotonic()
         cfg = self.config
         for c in list(self._clients.values()):
-            if c.pending():
-                c.fold()  # the C step's last progress
-            if c.pending() and now - c.last_progress > cfg.stall_timeout_s:
+            if c.pending() and now - c.progress() > cfg.stall_timeout_s:
                 self.clients_stalled += 1
                 self._close(c, f"stalled: no reads for {now - c.last_progress:.1f} s with output pending")
             elif not c.watch.enable and not c.pending() and now - c.last_request > cfg.idle_timeout_s:

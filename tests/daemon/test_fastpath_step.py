@@ -6,6 +6,7 @@ import math
 import os
 import socket
 import threading
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -333,3 +334,16 @@ def test_a_calibration_swapped_mid_step_applies_from_the_next_wake_up(rig):
     gyro = (second["gyro"].astype(float) - 2000.0) / 350.0
     want = ImuBlock(second, new.block(second), gyro, np.array([-1], np.int8)).joined(True)
     assert rig.received() == want
+
+
+def test_the_stall_check_sees_the_steps_last_send(rig):
+    """A client the step fed, with output pending now: its progress (what the server's stall check compares
+    with stall_timeout_s) is the step's last send, not the last one the Python path counted."""
+    c = rig.client
+    os.write(rig.w, frames([5]))
+    before = time.monotonic()
+    rig.step(5, 100)
+    with c.lock:
+        c.queue.put([b"queued\n"])
+    assert c.pending() and c.last_progress == 0.0
+    assert before <= c.progress() <= time.monotonic()
