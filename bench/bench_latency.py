@@ -335,8 +335,9 @@ def main(argv=None) -> int:
             if relay is not None and bus in RELAY_BUS and t["line_bytes"]:
                 pair["floor"] = f = floor(relay, bus, n, args.seconds, round(t["line_bytes"]))
                 print(f"{'floor':8s} {bus:6s} {n:3d} client(s)  a bare C relay of the same traffic "
-                      f"({f['line_bytes']} bytes per line, {f['bytes_per_s_per_client'] / f['line_bytes']:.1f} lines/s sent "
-                      f"per client, {f['wakeups_per_s']:.1f} wake-ups/s): "
+                      f"({f['line_bytes']} bytes per line, "
+                      f"{f['bytes_per_s_per_client'] / f['line_bytes']:.1f} lines/s sent per client, "
+                      f"{f['wakeups_per_s']:.1f} wake-ups/s): "
                       f"CPU {f['cpu_percent']:.2f} %  (gravcald {t['cpu_percent']:.2f} %)", flush=True)
             results.append(pair)
     if args.json:

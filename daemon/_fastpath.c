@@ -15,9 +15,10 @@
  *     with ist[IST_CAN] = 1 + a CAN base id the bytes are slcan lines and a "frame" is a CAN sample's four lines
  *     (the frame kernel's slcan_continuing: anything else is handed back to python-can's reader);
  *   - watchers: delivery only to the snapshot ``server.fast_watchers`` (watching every sample, read per
- *     wake-up; None: some watcher is not plain). A watcher whose output is not empty, whose policy changed,
- *     or whose socket does not take the whole block stops the delivery: its lock stays held and the
- *     snapshot is returned, so fastpath.py queues the rest in order (fanout's bookkeeping);
+ *     wake-up; None: some watcher is not plain). A watcher that is closed or whose output is not empty, or
+ *     whose policy changed (both told by its ClientRecord's gate, below), or whose socket does not take the
+ *     whole block stops the delivery: its lock stays held and the snapshot is returned, so fastpath.py
+ *     queues the rest in order (fanout's bookkeeping);
  *   - an extended calibration (processor.correction[1] is not None), end of file or a read error.
  *
  * Per batch (the frames of one read) it does what the Python path does for the same block, in order: the
@@ -372,7 +373,8 @@ static int run_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t
     int need[2] = {0, 0};
     for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot); j++) {
         PyObject *e = PyTuple_GET_ITEM(snapshot, j);
-        int raw = PyTuple_Check(e) && PyTuple_GET_SIZE(e) == ENTRY_N ? PyObject_IsTrue(PyTuple_GET_ITEM(e, ENTRY_RAW)) : 0;
+        int raw =
+            PyTuple_Check(e) && PyTuple_GET_SIZE(e) == ENTRY_N ? PyObject_IsTrue(PyTuple_GET_ITEM(e, ENTRY_RAW)) : 0;
         if (raw < 0)
             return -1;
         need[raw] = 1;
