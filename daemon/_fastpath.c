@@ -302,14 +302,14 @@ static long long static_code(const Params *p, long long seq, double max_age)
     return p->have_last && (double)(seq - p->last) <= max_age ? p->still : -1;
 }
 
-/* fanout.deliver's plain case for one watcher: 1 sent whole (counted in its record), 0 skipped (closed), 2 stopped
-   with the lock held (*sent: bytes the socket took, -1: not tried), -1 error (lock released) */
+/* fanout.deliver's plain case for one watcher: 1 sent whole (counted in its record), 2 stopped with the lock held
+   (*sent: bytes the socket took, -1: not tried; a closed client too: fanout skips it), -1 error (lock released) */
 static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double now, Py_ssize_t *sent)
 {
     if (!PyTuple_Check(entry) || PyTuple_GET_SIZE(entry) != ENTRY_N ||
         !PyObject_TypeCheck(PyTuple_GET_ITEM(entry, ENTRY_RECORD), &ClientRecordType)) {
         PyErr_SetString(PyExc_TypeError, "fastpath: a watcher entry is (client, ClientRecord, fd, raw, watch, "
-                                         "lock.acquire, lock.release)");
+                                         "lock.acquire, lock.release_unchanged)");
         return -1;
     }
     ClientRecord *rec = (ClientRecord *)PyTuple_GET_ITEM(entry, ENTRY_RECORD);
