@@ -20,6 +20,13 @@ its peak (VmHWM).
 ``--baseline-src DIR``: run the same measurement first with another source tree (a directory holding
 gravcal/core, gravcal/drivers, gravcal/daemon, e.g. an unpacked `git archive` of an older commit, put
 first on PYTHONPATH) and report the ratios, measured in the same session on the same loaded machine.
+
+The floor (serial, can; after each run unless ``--no-floor``): bench/bare_relay.c, built with the system
+compiler ``cc`` into a temporary directory, relays the same emulator's tty (or slcan pty) to the same
+number of client processes: one poll(), the reads, and one send() per client of one line per frame, of the
+length gravcald's lines had in the run just before. Its CPU is what the wake-ups and the send() calls (each
+waking a client process) cost on this machine with no daemon work at all. I2C has no floor here (no kernel
+bus: the fake device runs in gravcald's process).
 """
 from __future__ import annotations
 
@@ -38,6 +45,9 @@ import numpy as np
 from bench_daemon import _extra_watcher  # a raw watcher taking every sample
 
 FS = 200.0
+RELAY_SOURCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "bare_relay.c")
+# per bus: the bytes of one sample on the wire (VMIN) and the command that starts the stream (slcan: open)
+RELAY_BUS = {"serial": (29, None), "can": (78, "O")}
 
 
 def _cpu_s(pid: int) -> float:
@@ -115,8 +125,8 @@ def _rss_mb(pid: int) -> tuple[float, float]:
     return out.get("VmRSS", float("nan")), out.get("VmHWM", float("nan"))
 
 
-def _lines(sock: socket.socket, seconds: float):
-    """(receive time, seq) of every IMU line for ``seconds``."""
+def _lines(sock: socket.socket, seconds: float, sizes: list | None = None):
+    """(receive time, seq) of every IMU line for ``seconds``; each line's length appended to ``sizes``."""
     buf, rows, t0 = b"", [], time.monotonic()
     sock.settimeout(2.0)
     while time.monotonic() - t0 < seconds:
@@ -131,6 +141,8 @@ def _lines(sock: socket.socket, seconds: float):
         for line in lines:
             if b'"IMU"' in line:
                 rows.append((now, json.loads(line)["seq"]))
+                if sizes is not None:
+                    sizes.append(len(line) + 1)
     return rows
 
 
@@ -169,7 +181,8 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
         _lines(s, 8.0)  # warm-up: imports, the emulator's start-up backlog, first windows
         status0 = _status(path)
         cpu0, task0, t0 = _cpu_s(proc.pid), _task_cpu_s(proc.pid), time.monotonic()
-        rows = _lines(s, seconds)
+        sizes: list[int] = []
+        rows = _lines(s, seconds, sizes)
         wall = time.monotonic() - t0
         cpu, task1 = _cpu_s(proc.pid) - cpu0, _task_cpu_s(proc.pid)
         status1 = _status(path)
@@ -198,7 +211,78 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
             "cpu_percent_daemon": None if device is None else cpu / wall * 100 - device,
             "cpu_percent_emulated_device": device,
             "cpu_percent_by_thread": threads,
-            "rss_mb": rss, "rss_peak_mb": hwm, "src": src or "this tree", "latency_budget_s": budget_s}
+            "rss_mb": rss, "rss_peak_mb": hwm, "src": src or "this tree", "latency_budget_s": budget_s,
+            "line_bytes": float(np.mean(sizes)) if sizes else None}
+
+
+def build_relay(tmp: str) -> str | None:
+    """bench/bare_relay.c compiled with ``cc`` into ``tmp``: the executable, or None (no compiler, or it failed:
+    said on stdout)."""
+    exe = os.path.join(tmp, "bare_relay")
+    try:
+        subprocess.run(["cc", "-O2", "-Wall", "-o", exe, RELAY_SOURCE], check=True, capture_output=True, text=True)
+    except FileNotFoundError:
+        print("floor: no C compiler (cc) on this machine; the bare relay is skipped", flush=True)
+        return None
+    except subprocess.CalledProcessError as exc:
+        print(f"floor: building bench/bare_relay.c failed, the bare relay is skipped: {exc.stderr.strip()[:300]}",
+              flush=True)
+        return None
+    return exe
+
+
+def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int) -> dict:
+    """CPU of the bare C relay for the same traffic as gravcald's run: the emulator's stream, ``clients``
+    processes each taking one line of ``line_bytes`` per sample."""
+    import multiprocessing as mp
+
+    frame_bytes, open_cmd = RELAY_BUS[bus]
+    tmp = tempfile.mkdtemp(prefix="bench-floor-")
+    path = os.path.join(tmp, "relay.sock")
+    emu = subprocess.Popen([sys.executable, "-m", "gravcal.drivers.rigs.emulate", "--bus", bus, "--fs", str(FS),
+                            "--speed", "1", "--scenario", "six_position", "--duration", str(seconds + 120)],
+                           stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    ctx = mp.get_context("fork")
+    stop = ctx.Event()
+    readers, relay_proc = [], None
+    try:
+        spec = emu.stdout.readline().strip()  # serial:///.../ttyGRAVCAL0 or can://slcan/.../ttyGRAVCAN0?bitrate=...
+        if not spec:
+            raise SystemExit(f"the {bus} emulator did not start")
+        tty = spec.split("://", 1)[1].split("?", 1)[0].removeprefix("slcan")
+        relay_proc = subprocess.Popen([relay, tty, path, str(clients), str(line_bytes), str(frame_bytes),
+                                       *([open_cmd] if open_cmd else [])], stdout=subprocess.PIPE, text=True)
+        if relay_proc.stdout.readline().strip() != "listening":
+            raise SystemExit("the bare relay did not start")
+        readers = [ctx.Process(target=_extra_watcher, args=(path, 0, stop), daemon=True) for _ in range(clients)]
+        for p in readers:
+            p.start()
+        if relay_proc.stdout.readline().strip() != "ready":
+            raise SystemExit("the bare relay did not get its clients")
+        ready = time.monotonic()
+        time.sleep(3.0)  # the emulator's start, the clients' first reads
+        cpu0, t0 = _cpu_s(relay_proc.pid), time.monotonic()
+        time.sleep(seconds)
+        cpu, wall = _cpu_s(relay_proc.pid) - cpu0, time.monotonic() - t0
+        stop.set()  # the clients leave first, then the relay says what it sent
+        for p in readers:
+            p.join(5)
+        relay_proc.send_signal(signal.SIGTERM)
+        counts = relay_proc.communicate(timeout=10)[0].split()
+        lifetime = time.monotonic() - ready
+    finally:
+        stop.set()
+        for p in readers:
+            p.join(5)
+        for proc in (relay_proc, emu):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.wait()
+    stats = dict(zip(counts[::2], map(int, counts[1::2])))
+    return {"bus": bus, "clients": clients, "cpu_percent": cpu / wall * 100, "line_bytes": line_bytes,
+            "lines_per_s_per_client": stats.get("lines", 0) / clients / lifetime if stats else None,
+            "wakeups_per_s": stats.get("wakeups", 0) / lifetime if stats else None,
+            "bytes_per_s_per_client": stats.get("bytes", 0) / clients / lifetime if stats else None}
 
 
 def _show(r: dict) -> str:
@@ -225,7 +309,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", metavar="PATH")
     ap.add_argument("--latency-budget", type=float, metavar="S",
                     help="[device] latency_budget_s for both trees (default: the configured default)")
+    ap.add_argument("--no-floor", action="store_true", help="skip the bare C relay (the floor) after each run")
     args = ap.parse_args(argv)
+    relay = None if args.no_floor else build_relay(tempfile.mkdtemp(prefix="bench-relay-"))
     buses = [b for b in args.buses.split(",") if b]
     counts = [int(c) for c in args.clients.split(",") if c]
     results = []
@@ -245,6 +331,14 @@ def main(argv=None) -> int:
                 pair["ratio_this_to_baseline"] = ratio
                 print(f"{'ratio':8s} {bus:6s} {n:3d} client(s)  p50 x{ratio['p50']:.3f}  p99 x{ratio['p99']:.3f}  "
                       f"CPU x{ratio['cpu']:.2f}  RSS x{ratio['rss']:.2f}", flush=True)
+            t = pair["this"]
+            if relay is not None and bus in RELAY_BUS and t["line_bytes"]:
+                pair["floor"] = f = floor(relay, bus, n, args.seconds, round(t["line_bytes"]))
+                print(f"{'floor':8s} {bus:6s} {n:3d} client(s)  a bare C relay of the same traffic "
+                      f"({f['line_bytes']} bytes per line, "
+                      f"{f['bytes_per_s_per_client'] / f['line_bytes']:.1f} lines/s sent per client, "
+                      f"{f['wakeups_per_s']:.1f} wake-ups/s): "
+                      f"CPU {f['cpu_percent']:.2f} %  (gravcald {t['cpu_percent']:.2f} %)", flush=True)
             results.append(pair)
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:

@@ -15,9 +15,10 @@
  *     with ist[IST_CAN] = 1 + a CAN base id the bytes are slcan lines and a "frame" is a CAN sample's four lines
  *     (the frame kernel's slcan_continuing: anything else is handed back to python-can's reader);
  *   - watchers: delivery only to the snapshot ``server.fast_watchers`` (watching every sample, read per
- *     wake-up; None: some watcher is not plain). A watcher whose output is not empty, whose policy changed,
- *     or whose socket does not take the whole block stops the delivery: its lock stays held and the
- *     snapshot is returned, so fastpath.py queues the rest in order (fanout's bookkeeping);
+ *     wake-up; None: some watcher is not plain). A watcher that is closed or whose output is not empty, or
+ *     whose policy changed (both told by its ClientRecord's gate, below), or whose socket does not take the
+ *     whole block stops the delivery: its lock stays held and the snapshot is returned, so fastpath.py
+ *     queues the rest in order (fanout's bookkeeping);
  *   - an extended calibration (processor.correction[1] is not None), end of file or a read error.
  *
  * Per batch (the frames of one read) it does what the Python path does for the same block, in order: the
@@ -47,16 +48,114 @@
 
 #define READ_BYTES 65536 /* drivers/serial.py READ_BYTES: more than the kernel's tty buffer holds */
 #define MAX_FRAMES_LIMIT 4096
+#define TTY_CHUNK 64 /* the most one read() of a tty returns (drivers/tty_io.c tty_read's kernel buffer) */
 
 /* ist (int64) and fst (float64) slots: the state shared with daemon/fastpath.py */
 enum { IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH,
        IST_STAGE_LIMIT, IST_CAN, IST_N };
 enum { FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N };
 enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
+/* a watcher entry of server.fast_watchers (daemon/fanout.py fast_snapshot) */
+enum { ENTRY_CLIENT, ENTRY_RECORD, ENTRY_FD, ENTRY_RAW, ENTRY_WATCH, ENTRY_ACQUIRE, ENTRY_RELEASE, ENTRY_N };
 
-/* attribute and method names, interned once: a lookup is then a pointer comparison */
-static PyObject *s_fast_watchers, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t, *s_closed,
-    *s_watch, *s_queue, *s_size, *s_out, *s_dropped_unreported, *s_sent_messages, *s_sent_bytes, *s_last_progress;
+/* attribute names, interned once: a lookup is then a pointer comparison */
+static PyObject *s_fast_watchers, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t,
+    *s_params_generation;
+
+/* ClientRecord: what the step reads and writes per client, as C fields (no attribute lookup per sample).
+ *   policy: the watch policy the step may send under, None while it must not (the client is closed or has
+ *     output pending); set by ClientState.regate (daemon/client_limits.py) each time the client's lock is
+ *     released by Python, so it is exact whenever the step holds that lock;
+ *   sent_messages, sent_bytes, last_progress: what fanout.deliver adds to the ClientState for a block taken
+ *     whole, accumulated here and folded into the ClientState by take() (under the client's lock). */
+typedef struct {
+    PyObject_HEAD
+    PyObject *policy;
+    long long sent_messages, sent_bytes;
+    double last_progress;
+} ClientRecord;
+
+static PyObject *record_new(PyTypeObject *type, PyObject *args, PyObject *kwds)
+{
+    if (PyTuple_GET_SIZE(args) != 0 || (kwds != NULL && PyDict_GET_SIZE(kwds) != 0)) {
+        PyErr_SetString(PyExc_TypeError, "ClientRecord() takes no arguments");
+        return NULL;
+    }
+    ClientRecord *r = (ClientRecord *)type->tp_alloc(type, 0);
+    if (r != NULL)
+        r->policy = Py_NewRef(Py_None);
+    return (PyObject *)r;
+}
+
+static int record_traverse(ClientRecord *r, visitproc visit, void *arg)
+{
+    Py_VISIT(r->policy);
+    return 0;
+}
+
+static int record_clear(ClientRecord *r)
+{
+    Py_CLEAR(r->policy);
+    return 0;
+}
+
+static void record_dealloc(ClientRecord *r)
+{
+    PyObject_GC_UnTrack(r);
+    record_clear(r);
+    Py_TYPE(r)->tp_free((PyObject *)r);
+}
+
+static PyObject *record_get_policy(ClientRecord *r, void *closure)
+{
+    return Py_NewRef(r->policy);
+}
+
+static int record_set_policy(ClientRecord *r, PyObject *value, void *closure)
+{
+    if (value == NULL) {
+        PyErr_SetString(PyExc_AttributeError, "ClientRecord.policy cannot be deleted (None: the step may not send)");
+        return -1;
+    }
+    Py_SETREF(r->policy, Py_NewRef(value));
+    return 0;
+}
+
+/* the counters since the last take, zeroed: one C call, so atomic under the GIL against the step's writes */
+static PyObject *record_take(ClientRecord *r, PyObject *unused)
+{
+    PyObject *out = Py_BuildValue("(LLd)", r->sent_messages, r->sent_bytes, r->last_progress);
+    if (out != NULL) {
+        r->sent_messages = r->sent_bytes = 0;
+        r->last_progress = 0.0;
+    }
+    return out;
+}
+
+static PyGetSetDef record_getset[] = {
+    {"policy", (getter)record_get_policy, (setter)record_set_policy,
+     "the watch policy the step may send under; None: it may not (closed, output pending)", NULL},
+    {NULL},
+};
+
+static PyMethodDef record_methods[] = {
+    {"take", (PyCFunction)record_take, METH_NOARGS,
+     "take() -> (messages, bytes, last_progress): the counters the step added since the last take, zeroed"},
+    {NULL},
+};
+
+static PyTypeObject ClientRecordType = {
+    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "gravcal.daemon._fastpath.ClientRecord",
+    .tp_basicsize = sizeof(ClientRecord),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
+    .tp_doc = "What the C step reads and writes for one client: its send gate and counters (see _fastpath.c).",
+    .tp_new = record_new,
+    .tp_traverse = (traverseproc)record_traverse,
+    .tp_clear = (inquiry)record_clear,
+    .tp_dealloc = (destructor)record_dealloc,
+    .tp_getset = record_getset,
+    .tp_methods = record_methods,
+};
 
 /* call a lock's bound ``release`` keeping the pending exception, if any: 0, or -1 when the release failed */
 static int release_keeping_error(PyObject *release)
@@ -109,12 +208,16 @@ static int reserve(Bytes *b, Py_ssize_t more)
 }
 
 /* What Processor.correct reads per block: the plain correction's offset and K^-T, the gyro's (bias, sens), the
-   detector's latest decision. The arrays are copied only when the processor swaps its tuples. */
+   detector's latest decision. Read again only when processor.params_generation (bumped by the processor after
+   it swaps one of the three tuples) differs from ``generation``; the arrays copied only when the processor
+   swapped the correction's tuple. */
 typedef struct {
     PyObject *correction, *gyro; /* the tuples the values below were copied from (strong references) */
     double o[3], k[9], bias, sens;
     int have_last, still;
     long long last;
+    int loaded;           /* the values are the plain correction of ``generation`` */
+    long long generation; /* processor.params_generation[0] when they were read */
 } Params;
 
 static int copy_floats(PyObject *owner, PyObject *name, double *out, Py_ssize_t n)
@@ -199,86 +302,41 @@ static long long static_code(const Params *p, long long seq, double max_age)
     return p->have_last && (double)(seq - p->last) <= max_age ? p->still : -1;
 }
 
-static int int_attr_nonzero(PyObject *o, PyObject *name)
-{
-    PyObject *v = PyObject_GetAttr(o, name);
-    if (v == NULL)
-        return -1;
-    int r = PyObject_IsTrue(v);
-    Py_DECREF(v);
-    return r;
-}
-
-static int add_attr(PyObject *o, PyObject *name, long long k)
-{
-    PyObject *v = PyObject_GetAttr(o, name);
-    if (v == NULL)
-        return -1;
-    PyObject *d = PyLong_FromLongLong(k);
-    PyObject *s = d ? PyNumber_Add(v, d) : NULL;
-    Py_DECREF(v);
-    Py_XDECREF(d);
-    if (s == NULL)
-        return -1;
-    int rc = PyObject_SetAttr(o, name, s);
-    Py_DECREF(s);
-    return rc;
-}
-
-/* fanout.deliver's plain case for one watcher: 1 sent whole (counted), 0 skipped (closed), 2 stopped with the
-   lock held (*sent: bytes the socket took, -1: not tried), -1 error (lock released) */
+/* fanout.deliver's plain case for one watcher: 1 sent whole (counted in its record), 2 stopped with the lock held
+   (*sent: bytes the socket took, -1: not tried; a closed client too: fanout skips it), -1 error (lock released) */
 static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double now, Py_ssize_t *sent)
 {
-    if (!PyTuple_Check(entry) || PyTuple_GET_SIZE(entry) != 6) {
-        PyErr_SetString(PyExc_TypeError,
-                        "fastpath: a watcher entry is (client, fd, raw, watch, lock.acquire, lock.release)");
+    if (!PyTuple_Check(entry) || PyTuple_GET_SIZE(entry) != ENTRY_N ||
+        !PyObject_TypeCheck(PyTuple_GET_ITEM(entry, ENTRY_RECORD), &ClientRecordType)) {
+        PyErr_SetString(PyExc_TypeError, "fastpath: a watcher entry is (client, ClientRecord, fd, raw, watch, "
+                                         "lock.acquire, lock.release_unchanged)");
         return -1;
     }
-    PyObject *c = PyTuple_GET_ITEM(entry, 0), *watch = PyTuple_GET_ITEM(entry, 3);
-    PyObject *acquire = PyTuple_GET_ITEM(entry, 4), *release = PyTuple_GET_ITEM(entry, 5);
-    long fd = PyLong_AsLong(PyTuple_GET_ITEM(entry, 1));
-    int raw = PyObject_IsTrue(PyTuple_GET_ITEM(entry, 2));
+    ClientRecord *rec = (ClientRecord *)PyTuple_GET_ITEM(entry, ENTRY_RECORD);
+    PyObject *watch = PyTuple_GET_ITEM(entry, ENTRY_WATCH);
+    long fd = PyLong_AsLong(PyTuple_GET_ITEM(entry, ENTRY_FD));
+    int raw = PyObject_IsTrue(PyTuple_GET_ITEM(entry, ENTRY_RAW));
     if ((fd == -1 && PyErr_Occurred()) || raw < 0)
         return -1;
-    PyObject *r = PyObject_CallNoArgs(acquire);
+    PyObject *r = PyObject_CallNoArgs(PyTuple_GET_ITEM(entry, ENTRY_ACQUIRE));
     if (r == NULL)
         return -1;
     Py_DECREF(r);
-    int state = -1;
     *sent = -1;
-    int closed = int_attr_nonzero(c, s_closed);
-    PyObject *now_watch = closed == 0 ? PyObject_GetAttr(c, s_watch) : NULL;
-    if (closed == 1) {
-        state = 0;
-    } else if (now_watch != NULL) {
-        PyObject *queue = PyObject_GetAttr(c, s_queue);
-        int out = int_attr_nonzero(c, s_out), unreported = int_attr_nonzero(c, s_dropped_unreported);
-        int queued = queue ? int_attr_nonzero(queue, s_size) : -1;
-        Py_XDECREF(queue);
-        if (out >= 0 && unreported >= 0 && queued >= 0) {
-            if (now_watch != watch || out || unreported || queued) {
-                state = 2; /* fanout decides: a changed policy, or output that goes first */
-            } else {
-                const Bytes *b = &lines[raw];
-                ssize_t s = send((int)fd, b->buf, (size_t)b->n, MSG_NOSIGNAL | MSG_DONTWAIT);
-                if (s == b->n) {
-                    PyObject *t = PyFloat_FromDouble(now);
-                    state = t && add_attr(c, s_sent_messages, k) == 0 && add_attr(c, s_sent_bytes, s) == 0 &&
-                                    PyObject_SetAttr(c, s_last_progress, t) == 0
-                                ? 1
-                                : -1;
-                    Py_XDECREF(t);
-                } else {
-                    *sent = s > 0 ? s : 0; /* EAGAIN, EPIPE, a partial send: fanout's bookkeeping */
-                    state = 2;
-                }
-            }
-        }
-    }
-    Py_XDECREF(now_watch);
-    if (state == 2)
+    /* the gate, exact while the lock is held: None (closed or output pending: fanout decides, which skips a
+       closed client and queues behind pending output) or a policy other than the snapshot's (changed) */
+    if (rec->policy != watch)
         return 2;
-    return release_keeping_error(release) < 0 ? -1 : state;
+    const Bytes *b = &lines[raw];
+    ssize_t s = send((int)fd, b->buf, (size_t)b->n, MSG_NOSIGNAL | MSG_DONTWAIT);
+    if (s != b->n) {
+        *sent = s > 0 ? s : 0; /* EAGAIN, EPIPE, a partial send: fanout's bookkeeping */
+        return 2;
+    }
+    rec->sent_messages += k; /* fanout.deliver: c.sent_messages += n; c.sent_bytes += sent; c.last_progress = now */
+    rec->sent_bytes += s;
+    rec->last_progress = now;
+    return release_keeping_error(PyTuple_GET_ITEM(entry, ENTRY_RELEASE)) < 0 ? -1 : 1;
 }
 
 typedef struct {
@@ -315,7 +373,8 @@ static int run_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t
     int need[2] = {0, 0};
     for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot); j++) {
         PyObject *e = PyTuple_GET_ITEM(snapshot, j);
-        int raw = PyTuple_Check(e) && PyTuple_GET_SIZE(e) == 6 ? PyObject_IsTrue(PyTuple_GET_ITEM(e, 2)) : 0;
+        int raw =
+            PyTuple_Check(e) && PyTuple_GET_SIZE(e) == ENTRY_N ? PyObject_IsTrue(PyTuple_GET_ITEM(e, ENTRY_RAW)) : 0;
         if (raw < 0)
             return -1;
         need[raw] = 1;
@@ -352,6 +411,7 @@ typedef struct {
     Bytes lines[2];
     State S;
     Params P;
+    Py_buffer generation; /* processor.params_generation: one int64 */
     int started; /* S holds the caller's state (copied back at the end) */
 } Call;
 
@@ -362,6 +422,7 @@ static int call_open(Call *C)
     C->ticks = NULL;
     C->lines[0] = C->lines[1] = (Bytes){NULL, 0, 0};
     C->P = (Params){NULL, NULL};
+    C->generation.obj = NULL;
     C->started = 0;
     if (C->max_frames < 1 || C->max_frames > MAX_FRAMES_LIMIT) {
         PyErr_SetString(PyExc_ValueError, "fastpath: needs 1 <= max_frames <= 4096");
@@ -372,6 +433,18 @@ static int call_open(Call *C)
         check_len(&C->acc, (Py_ssize_t)C->max_frames * 24, "acc") ||
         check_len(&C->gyro, (Py_ssize_t)C->max_frames * 8, "gyro") || check_len(&C->codes, C->max_frames, "static"))
         return -1;
+    PyObject *gen = PyObject_GetAttr(C->processor, s_params_generation);
+    int rc = gen == NULL ? -1 : PyObject_GetBuffer(gen, &C->generation, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT);
+    Py_XDECREF(gen);
+    if (rc < 0) {
+        C->generation.obj = NULL;
+        return -1;
+    }
+    if (C->generation.len != 8 || C->generation.itemsize != 8 || C->generation.format == NULL ||
+        strpbrk(C->generation.format, "lq") == NULL) {
+        PyErr_SetString(PyExc_TypeError, "fastpath: processor.params_generation must be one int64");
+        return -1;
+    }
     C->ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)C->max_frames);
     if (C->ticks == NULL) {
         PyErr_NoMemory();
@@ -399,7 +472,11 @@ static int call_prepare(Call *C, PyObject **snapshot)
         PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_watchers must be a tuple or None");
         return -1;
     }
-    int plain = snap == Py_None ? 0 : load_params(C->processor, &C->P);
+    Params *P = &C->P;
+    long long generation = *(const long long *)C->generation.buf;
+    int plain = snap == Py_None ? 0 : P->loaded && P->generation == generation ? 1 : load_params(C->processor, P);
+    P->loaded = plain == 1;
+    P->generation = generation;
     if (plain != 1) {
         Py_DECREF(snap);
         if (plain == 0)
@@ -465,7 +542,7 @@ static PyObject *call_close(Call *C, int ok)
             result = PyTuple_Pack(2, C->leftover, C->stopped);
     }
     if (result == NULL && C->stopped != Py_None) /* the stopped watcher's lock is not handed over: release it */
-        release_keeping_error(PyTuple_GET_ITEM(PyTuple_GET_ITEM(C->stopped, C->S.ist[IST_CLIENT]), 5));
+        release_keeping_error(PyTuple_GET_ITEM(PyTuple_GET_ITEM(C->stopped, C->S.ist[IST_CLIENT]), ENTRY_RELEASE));
     if (C->started) {
         memcpy(C->ist.buf, C->S.ist, sizeof C->S.ist);
         memcpy(C->fst.buf, C->S.fst, sizeof C->S.fst);
@@ -483,6 +560,8 @@ static PyObject *call_close(Call *C, int ok)
     PyBuffer_Release(&C->acc);
     PyBuffer_Release(&C->gyro);
     PyBuffer_Release(&C->codes);
+    if (C->generation.obj != NULL)
+        PyBuffer_Release(&C->generation);
     return result;
 }
 
@@ -549,13 +628,16 @@ static PyObject *step(PyObject *self, PyObject *args)
             S->ist[IST_REASON] = n == 0 ? R_EOF : R_ERROR;
             break;
         }
-        /* a tty read returns at most 64 bytes (the kernel's tty_read chunk): the rest of what has arrived */
+        /* a tty read returns at most TTY_CHUNK bytes (the kernel's tty_read buffer): the rest of what has arrived.
+           A read that returned less had everything there was (the usual 29-byte frame: no FIONREAD call); what
+           arrives later wakes the next poll(). */
         int avail;
-        while (n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
-            ssize_t m = read(fd, buf + n, (size_t)(READ_BYTES - n));
-            if (m <= 0)
+        ssize_t last = n;
+        while (last >= TTY_CHUNK && n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
+            last = read(fd, buf + n, (size_t)(READ_BYTES - n));
+            if (last <= 0)
                 break;
-            n += m;
+            n += last;
         }
         int more = call_process(&C, buf, n, snapshot);
         if (more < 0)
@@ -620,17 +702,17 @@ PyMODINIT_FUNC PyInit__fastpath(void)
         const char *text;
     } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_correction, "correction"},
                  {&s_gyro_correction, "gyro_correction"}, {&s_analysed, "analysed"}, {&s_offset, "offset"},
-                 {&s_kinv_t, "kinv_t"}, {&s_closed, "closed"},
-                 {&s_watch, "watch"}, {&s_queue, "queue"}, {&s_size, "size"}, {&s_out, "out"},
-                 {&s_dropped_unreported, "dropped_unreported"}, {&s_sent_messages, "sent_messages"},
-                 {&s_sent_bytes, "sent_bytes"}, {&s_last_progress, "last_progress"}};
+                 {&s_kinv_t, "kinv_t"}, {&s_params_generation, "params_generation"}};
     for (size_t i = 0; i < sizeof names / sizeof names[0]; i++)
         if (*names[i].name == NULL && (*names[i].name = PyUnicode_InternFromString(names[i].text)) == NULL)
             return NULL;
     frame_api = import_api("gravcal.drivers._framekernel", GRAVCAL_FRAME_CAPSULE);
     correct_api = frame_api ? import_api("gravcal.core._correctkernel", GRAVCAL_CORRECT_CAPSULE) : NULL;
     line_api = correct_api ? import_api("gravcal.daemon._linekernel", GRAVCAL_LINE_CAPSULE) : NULL;
-    if (line_api == NULL)
+    if (line_api == NULL || PyType_Ready(&ClientRecordType) < 0)
         return NULL;
-    return PyModule_Create(&module);
+    PyObject *m = PyModule_Create(&module);
+    if (m != NULL && PyModule_AddObjectRef(m, "ClientRecord", (PyObject *)&ClientRecordType) < 0)
+        Py_CLEAR(m);
+    return m;
 }

@@ -17,13 +17,43 @@ from typing import Any, Iterable
 import numpy as np
 
 from . import protocol
+from ._fastpath import ClientRecord
 from .output_queue import OutputQueue
 from .protocol import WatchPolicy
 
 log = logging.getLogger("gravcal.server")
 
 
-@dataclass
+class ClientLock:
+    """A client's lock (reentrant), held by both writers of its socket: the server thread and the acquisition
+    thread (fanout.py, and the C step of daemon/fastpath.py). Every Python holder may change what decides
+    whether the C step may send (closed, out, queue, dropped_unreported, watch), so releasing it recomputes
+    the client's gate (ClientState.regate) first: the gate is exact whenever the lock is free."""
+
+    __slots__ = ("_rlock", "_client", "acquire", "release_unchanged")
+
+    def __init__(self, client: "ClientState"):
+        self._rlock = threading.RLock()
+        self._client = client
+        self.acquire = self._rlock.acquire
+        # for a holder that changed none of it (the C step after a whole send): no recomputation
+        self.release_unchanged = self._rlock.release
+
+    def release(self) -> None:
+        try:
+            self._client.regate()
+        finally:
+            self._rlock.release()
+
+    def __enter__(self) -> "ClientLock":
+        self._rlock.acquire()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
+
+
+@dataclass(slots=True)
 class ClientState:
     """What the server keeps for one connected client."""
 
@@ -53,14 +83,42 @@ class ClientState:
     flood_since: float | None = None
     refused: int = 0
     closed: bool = False  # set under ``lock`` before the socket closes: no send after it
-    # the acquisition thread sends to this client too (fanout.py): both writers hold this lock
-    lock: threading.RLock = field(default_factory=threading.RLock, repr=False)
+    # the acquisition thread sends to this client too (fanout.py, the C step): both writers hold this lock
+    lock: ClientLock = field(init=False, repr=False)
+    # the C step's view of this client: its gate and the counters it adds (daemon/_fastpath.c ClientRecord)
+    record: ClientRecord = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.lock = ClientLock(self)
+        self.record = ClientRecord()
+        self.regate()
 
     def pending(self) -> bool:
-        return bool(self.out) or bool(self.queue) or self.dropped_unreported > 0
+        return bool(self.out) or self.queue.size > 0 or self.dropped_unreported > 0
+
+    def regate(self) -> None:
+        """The C step may send under the current policy only while the client is open and nothing waits to go
+        first (run by ``lock``'s release, so after every change made under it)."""
+        self.record.policy = None if self.closed or self.pending() else self.watch
+
+    def fold(self) -> None:
+        """Add what the C step sent since the last fold to the counters (it keeps them in ``record``: no
+        Python object per sample); every reader of sent_messages, sent_bytes or last_progress folds first."""
+        with self.lock:
+            messages, nbytes, progress = self.record.take()
+            if messages or nbytes:
+                self.sent_messages += messages
+                self.sent_bytes += nbytes
+                self.last_progress = max(self.last_progress, progress)
+
+    def progress(self) -> float:
+        """When the client last took output (last_progress, the C step's sends folded in)."""
+        self.fold()
+        return self.last_progress
 
     def stats(self, now: float) -> dict[str, Any]:
         """This client in STATUS's per_client list."""
+        self.fold()
         return {"id": self.id, "watching": self.watch.enable, "raw": self.watch.raw, "rate": self.watch.rate,
                 "queued": len(self.queue), "queued_bytes": self.queue.nbytes, "sent": self.sent_messages,
                 "dropped": self.dropped_total, "refused_requests": self.refused,

@@ -63,12 +63,13 @@ def deliver_line(watchers: Iterable[ClientState], line: bytes, now: float) -> tu
 
 
 def fast_snapshot(watchers: tuple[ClientState, ...]) -> tuple[tuple[Any, ...], ...] | None:
-    """The watchers as the latency path's C step sends to them (daemon/_fastpath.c): (client, fd, raw, watch
-    policy, lock.acquire, lock.release) each, in order (the bound methods: no lookup per sample); None while
-    one of them is decimated (the Python path serves it)."""
+    """The watchers as the latency path's C step sends to them (daemon/_fastpath.c): (client, its record, fd,
+    raw, watch policy, lock.acquire, lock.release_unchanged) each, in order (the bound methods: no lookup per
+    sample); None while one of them is decimated (the Python path serves it)."""
     if any(w.watch.rate > 0 for w in watchers):
         return None
-    return tuple((w, w.sock.fileno(), w.watch.raw, w.watch, w.lock.acquire, w.lock.release) for w in watchers)
+    return tuple((w, w.record, w.sock.fileno(), w.watch.raw, w.watch, w.lock.acquire, w.lock.release_unchanged)
+                 for w in watchers)
 
 
 def finish_delivery(block: ImuBlock, snapshot: tuple[tuple[Any, ...], ...], index: int, sent: int,
@@ -76,14 +77,14 @@ def finish_delivery(block: ImuBlock, snapshot: tuple[tuple[Any, ...], ...], inde
     """The rest of a delivery the C step stopped at watcher ``index`` of its ``snapshot``, whose lock this
     thread holds (released here): that client took ``sent`` bytes of its line(s) (-1: none tried), as
     :func:`deliver` does after its own send; the watchers after it get the block from :func:`deliver`."""
-    c, raw, release = snapshot[index][0], snapshot[index][2], snapshot[index][5]
+    c, raw = snapshot[index][0], snapshot[index][3]
     try:
         wake, dropped, rest = False, 0, snapshot[index:]
         if sent >= 0:
             wake, dropped = _sent(c, None, block.joined(raw), block.samples.shape[0], sent, now)
             wake, rest = wake and not c.want_write, snapshot[index + 1:]
     finally:
-        release()
+        c.lock.release()  # recomputes its gate: what _sent queued goes first
     w, lost = deliver([e[0] for e in rest], block, now)
     return wake or w, dropped + lost
 

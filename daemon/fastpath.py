@@ -139,7 +139,7 @@ class FastPath:
             k = int(self.ist[IST_BATCH])
             block = ImuBlock(self.rows[:k].copy(), self.acc[:k].copy(), self.gyro[:k].copy(), self.codes[:k].copy())
         except BaseException:
-            stopped[index][5]()  # the lock the step left held: that client must not stay locked out
+            stopped[index][0].lock.release()  # the lock the step left held: that client must not stay locked out
             raise
         self.server.finish_publish(block, stopped, index, int(self.ist[IST_SENT]))
 

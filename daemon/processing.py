@@ -78,6 +78,9 @@ class Processor:
         self.state = start
         self.lab = lab
         self.window_sink = window_sink
+        # bumped after each swap of correction, gyro_correction or analysed: the C step (daemon/_fastpath.c) reads
+        # the three again only when it changed
+        self.params_generation = np.zeros(1, dtype=np.int64)
         # (seq of the last analysed sample, the detector's decision there): one tuple, swapped atomically, read by
         # correct() in the acquisition thread; seq None before any analysis
         self.analysed: tuple[int | None, bool] = (None, False)
@@ -164,6 +167,34 @@ class Processor:
             g = cfg.gyro
             self.gyro_start = (float(g.zero_counts), float(g.counts_per_rad_s))
             self._gyro_apply()
+
+    # the tuples the acquisition thread reads (each swapped whole, then the generation bumped) -------------------
+    @property
+    def analysed(self) -> tuple[int | None, bool]:
+        return self._analysed
+
+    @analysed.setter
+    def analysed(self, value: tuple[int | None, bool]) -> None:
+        self._analysed = value
+        self.params_generation[0] += 1
+
+    @property
+    def correction(self) -> tuple[PlainCorrection, Calibration | None]:
+        return self._correction
+
+    @correction.setter
+    def correction(self, value: tuple[PlainCorrection, Calibration | None]) -> None:
+        self._correction = value
+        self.params_generation[0] += 1
+
+    @property
+    def gyro_correction(self) -> tuple[float, float]:
+        return self._gyro_correction
+
+    @gyro_correction.setter
+    def gyro_correction(self, value: tuple[float, float]) -> None:
+        self._gyro_correction = value
+        self.params_generation[0] += 1
 
     # per block ------------------------------------------------------------------------
     @property

@@ -316,6 +316,7 @@ class SocketServer:
             return
         if c.watch.enable:
             self._set_watchers()
+        c.fold()
         log.log(logging.INFO if why not in ("eof", "server stopping") else logging.DEBUG,
                 "client %d disconnected: %s (sent %d, dropped %d)", c.id, why, c.sent_messages, c.dropped_total)
         try:
@@ -580,7 +581,7 @@ class SocketServer:
         now = time.monotonic()
         cfg = self.config
         for c in list(self._clients.values()):
-            if c.pending() and now - c.last_progress > cfg.stall_timeout_s:
+            if c.pending() and now - c.progress() > cfg.stall_timeout_s:
                 self.clients_stalled += 1
                 self._close(c, f"stalled: no reads for {now - c.last_progress:.1f} s with output pending")
             elif not c.watch.enable and not c.pending() and now - c.last_request > cfg.idle_timeout_s:

@@ -258,7 +258,8 @@ class Gravcald:
         If this thread falls behind, the ring buffer drops the oldest samples from the
         analysis (counted); clients have them already."""
         while True:
-            self._data.wait(0.2)
+            # woken by each staged block and by shutdown(): no polling in between (the timeout is only a guard)
+            self._data.wait(2.0)
             self._data.clear()
             block = self.ring.pop()
             if block.shape[0]:

@@ -118,14 +118,29 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
             time.sleep(pause)
 
     try:
-        readers["plain"] = a = Reader(cfg.socket.path, '?WATCH={"enable":true};')
-        readers["raw"] = Reader(cfg.socket.path, '?WATCH={"enable":true,"raw":true};')
+        ids = {}  # the server numbers clients from 1 in the order they connect (each Reader waits for its WATCH)
+        for name, watch in (("plain", '{"enable":true}'), ("raw", '{"enable":true,"raw":true}'),
+                            ("switch", '{"enable":true}'), ("leaver", '{"enable":true,"raw":true}')):
+            readers[name] = Reader(cfg.socket.path, f"?WATCH={watch};")
+            ids[name] = len(ids) + 1
+        a = readers["plain"]
         seq = 65400
         write(frames(range(seq, seq + 200)))  # through the 16-bit wrap, one frame per read
         seq += 200
         write(frames(range(seq, seq + 60)), per_write=3)  # several frames per read
         seq += 60
         settle(d, a)
+        # mid-stream: a full-rate watcher leaves (the step's send fails, the server closes it), one changes its
+        # watch to raw, one asks for VERSION (output queued by the server thread: it goes before the samples)
+        leaver = readers.pop("leaver")
+        leaver.close()
+        out["leaver"] = bytes(leaver.data)
+        readers["switch"].sock.sendall(b'?WATCH={"raw":true};\n')
+        a.sock.sendall(b"?VERSION;\n")
+        end = time.monotonic() + 10
+        while readers["switch"].data.count(b'"class":"WATCH"') < 2 or a.data.count(b'"class":"VERSION"') < 2:
+            assert time.monotonic() < end, "no reply to the mid-stream requests"
+            time.sleep(0.01)
         write(frames(range(seq + 5, seq + 8)))  # 5 samples lost, then frames that each arrive whole
         bad = bytearray(frames([seq + 8]))
         bad[12] ^= 0x40  # a bit error: the CRC fails
@@ -179,10 +194,24 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
         taken = d._fast.taken if d._fast is not None else 0
         with Client(cfg.socket.path) as c:
             polled = c.poll()["imu"][0]["seq"]
-        stats = {**d.driver.stats(), "taken_by_c": taken, "published": d.server.published_samples, "polled": polled}
+        ids["late"] = len(ids) + 2  # after the decimated watcher
+        stats = {**d.driver.stats(), "taken_by_c": taken, "published": d.server.published_samples, "polled": polled,
+                 "sent_and_received": sent_and_received(cfg.socket.path, readers, ids)}
     finally:
         out.update(stop_all(d, readers, link))
     return out, stats
+
+
+def sent_and_received(path: str, readers: dict[str, Reader], ids: dict[str, int]) -> dict[str, tuple[int, int]]:
+    """Per reader: (the messages STATUS says were sent to it, the lines it received), once both are stable."""
+    end = time.monotonic() + 10
+    while True:
+        with Client(path) as c:
+            per = {p["id"]: p["sent"] for p in c.status()["server"]["per_client"]}
+        got = {name: (per.get(ids[name]), bytes(r.data).count(b"\n")) for name, r in readers.items()}
+        if all(s == n for s, n in got.values()) or time.monotonic() > end:
+            return got
+        time.sleep(0.1)
 
 
 T_FIELD = re.compile(rb'"t":(-?[0-9.]+|null)')
@@ -227,7 +256,12 @@ def test_clients_receive_the_same_bytes_with_and_without_the_c_step(tmp_path):
     for key in ("frames", "crc_errors", "gaps", "missing", "restarts", "reconnects", "samples"):
         assert fast_stats[key] == slow_stats[key], (key, fast_stats, slow_stats)
     assert slow_stats["gaps"] >= 2 and slow_stats["crc_errors"] >= 1 and slow_stats["reconnects"] == 1
-    assert set(fast) == set(slow) == {"plain", "raw", "decimated", "late"}
+    assert set(fast) == set(slow) == {"plain", "raw", "switch", "leaver", "decimated", "late"}
+    # STATUS's per-client counts (the C step's folded in) are what each client received
+    for st in (slow_stats, fast_stats):
+        assert set(st["sent_and_received"]) == {"plain", "raw", "switch", "late"}
+        for name, (sent, received) in st["sent_and_received"].items():
+            assert sent == received > 100, (name, st["sent_and_received"])
     # which samples a decimated watcher gets depends on their reception times: served, in order
     for got in (slow.pop("decimated"), fast.pop("decimated")):
         seqs = [json.loads(x)["seq"] for x in got.splitlines() if b'"IMU"' in x]

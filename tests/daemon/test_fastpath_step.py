@@ -6,6 +6,7 @@ import math
 import os
 import socket
 import threading
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,6 +16,9 @@ from gravcal.core.correction import PlainCorrection
 from gravcal.core.samples import SAMPLE_DTYPE
 from gravcal.daemon import fastpath as fp
 from gravcal.daemon._fastpath import step
+from gravcal.daemon.client_limits import ClientState
+from gravcal.daemon.fanout import fast_snapshot
+from gravcal.daemon.output_queue import OutputQueue
 from gravcal.daemon.protocol import STANDARD_GRAVITY, ImuBlock, WatchPolicy
 from gravcal.drivers.codec import FrameDecoder, encode_frames
 from gravcal.drivers.rigs.sources import pattern_blocks
@@ -37,15 +41,12 @@ class Rig:
         os.set_blocking(self.r, False)
         self.mine, self.peer = socket.socketpair()
         self.mine.setblocking(False)
-        self.client = SimpleNamespace(closed=False, watch=WatchPolicy(True, raw, 0.0), queue=SimpleNamespace(size=0),
-                                      out=None, dropped_unreported=0, sent_messages=0, sent_bytes=0,
-                                      last_progress=0.0, lock=threading.RLock())
-        c = self.client
-        self.server = SimpleNamespace(fast_watchers=((c, self.mine.fileno(), raw, c.watch, c.lock.acquire,
-                                                      c.lock.release),))
+        self.client = ClientState(id=1, sock=self.mine, queue=OutputQueue(100), connected=0.0,
+                                  watch=WatchPolicy(True, raw, 0.0))
+        self.server = SimpleNamespace(fast_watchers=fast_snapshot((self.client,)))
         plain = PlainCorrection(np.array([0.5, 0.51, 0.49]), np.diag([0.04, 0.041, 0.039]), STANDARD_GRAVITY)
         self.processor = SimpleNamespace(correction=(plain, None), gyro_correction=(2048.0, 357.36),
-                                         analysed=(900, True))
+                                         analysed=(900, True), params_generation=np.zeros(1, np.int64))
         self.ist = np.zeros(fp.IST_N, np.int64)
         self.fst = np.zeros(fp.FST_N)
         self.ist[fp.IST_STAGE_LIMIT] = 1 << 30
@@ -105,6 +106,8 @@ def test_lines_and_records_are_the_python_paths(rig):
     want = ImuBlock(rows[:3], acc[:3], gyro[:3], static[:3]).joined(True) + \
         ImuBlock(rows[3:], acc[3:], gyro[3:], static[3:]).joined(True)
     assert rig.received() == want  # bit for bit: numpy's correction and the block encoder
+    assert rig.client.sent_messages == 0  # counted in the C record until folded
+    rig.client.fold()
     assert rig.client.sent_messages == 4 and rig.client.sent_bytes == len(want)
     assert rig.ist[fp.IST_UNKNOWN] == 0
 
@@ -129,25 +132,29 @@ def test_whatever_is_not_the_common_case_is_handed_back_unconsumed(rig):
     assert rig.step(5, 100) == (b"", None) and rig.ist[fp.IST_REASON] == fp.R_NOT_PLAIN
     rig.server.fast_watchers = ()
     rig.processor.correction = (rig.processor.correction[0], object())  # an extended calibration
+    rig.processor.params_generation[0] += 1
     assert rig.step(5, 100) == (b"", None) and rig.ist[fp.IST_REASON] == fp.R_NOT_PLAIN
     assert os.read(rig.r, 100) == frames([5])
 
 
 def test_a_delivery_it_cannot_finish_stops_with_the_lock_held(rig):
     c = rig.client
-    c.queue.size = 1  # something queued goes first
+    with c.lock:
+        c.queue.put([b"queued\n"])  # something queued goes first
     os.write(rig.w, frames([5]))
     leftover, stopped = rig.step(5, 100)
     assert leftover == b"" and stopped is rig.server.fast_watchers
     assert rig.ist[fp.IST_REASON] == fp.R_DELIVERY and rig.ist[fp.IST_CLIENT] == 0 and rig.ist[fp.IST_SENT] == -1
     assert rig.ist[fp.IST_FRAMES] == 1 and rig.received() == b""
-    held = threading.Thread(target=lambda: setattr(c, "got", c.lock.acquire(timeout=0.2)))
+    got = []
+    held = threading.Thread(target=lambda: got.append(c.lock.acquire(timeout=0.2)))
     held.start()
     held.join()
-    assert not c.got  # another thread cannot take it until the Python side releases it
+    assert got == [False]  # another thread cannot take it until the Python side releases it
     c.lock.release()
-    c.queue.size = 0
-    c.watch = WatchPolicy(True, False, 0.0)  # a changed policy: fanout decides
+    with c.lock:
+        c.queue.take(1 << 20)
+        c.watch = WatchPolicy(True, False, 0.0)  # a changed policy: fanout decides
     os.write(rig.w, frames([6]))
     rig.step(6, 101)
     assert rig.ist[fp.IST_REASON] == fp.R_DELIVERY and rig.ist[fp.IST_SENT] == -1
@@ -163,6 +170,7 @@ def test_a_full_socket_stops_with_what_it_took(rig):
             break
     assert rig.ist[fp.IST_REASON] == fp.R_DELIVERY and rig.ist[fp.IST_SENT] >= 0
     rig.client.lock.release()
+    rig.client.fold()
     sent = rig.client.sent_bytes + rig.ist[fp.IST_SENT]
     assert len(rig.received()) == sent
 
@@ -215,11 +223,19 @@ def test_bad_arguments_are_refused_with_a_message(rig):
     rig.server.fast_watchers = ((1, 2),)
     with pytest.raises(TypeError, match="watcher entry"):
         rig.step(5, 0)
-    rig.server.fast_watchers = ()
     assert rig.ist[fp.IST_FRAMES] == 1  # read before the error: accounted
+    rig.server.fast_watchers = ((rig.client, object(), 3, True, rig.client.watch, rig.client.lock.acquire,
+                                 rig.client.lock.release_unchanged),)  # not a ClientRecord
+    os.write(rig.w, frames([6]))
+    with pytest.raises(TypeError, match="watcher entry"):
+        rig.step(6, 1)
+    rig.server.fast_watchers = ()
     rig.processor.correction = (SimpleNamespace(offset=np.zeros(2), kinv_t=np.eye(3)), None)
     os.write(rig.w, frames([5]))
     with pytest.raises(TypeError, match="offset must hold 3 float64"):
+        rig.step(5, 0)
+    rig.processor.params_generation = np.zeros(2, np.int64)
+    with pytest.raises(TypeError, match="params_generation must be one int64"):
         rig.step(5, 0)
 
 
@@ -228,7 +244,7 @@ def test_a_stopped_delivery_is_finished_even_when_the_accounting_fails(rig):
     (which releases the lock) even if applying the counters raises, or the client stays locked out."""
     finished = []
     rig.server.finish_publish = lambda block, snapshot, index, sent: (finished.append(block.samples["seq"].tolist()),
-                                                                        snapshot[index][5]())
+                                                                        snapshot[index][0].lock.release())
 
     def fail(*_):
         raise RuntimeError("counters")
@@ -236,7 +252,8 @@ def test_a_stopped_delivery_is_finished_even_when_the_accounting_fails(rig):
     driver = SimpleNamespace(fast_entry=lambda: (rig.r, 5, 100, 0.0), fast_consumed=fail, tick_hz=1e6,
                              unread=lambda data: None)
     path = fp.FastPath(driver, rig.processor, rig.server, max_frames=MAX, stage_bytes=1 << 30, fs_hz=200.0)
-    rig.client.queue.size = 1  # something queued goes first: the step stops at this client
+    with rig.client.lock:
+        rig.client.queue.put([b"queued\n"])  # something queued goes first: the step stops at this client
     os.write(rig.w, frames([5]))
     with pytest.raises(RuntimeError, match="counters"):
         path.run(rig.staged, seconds=0.05)
@@ -246,3 +263,87 @@ def test_a_stopped_delivery_is_finished_even_when_the_accounting_fails(rig):
     t.start()
     t.join()
     assert got == [True], "the client's lock stayed held"
+
+
+def test_the_gate_follows_every_change_made_under_the_clients_lock(rig):
+    """The step sends only while the client's record holds the snapshot's policy: closing the client, queueing
+    output for it or changing its watch (each under its lock, as the server does) stops the step before any
+    byte goes out; once the output is flushed the step sends again."""
+    c = rig.client
+    cases = [("closed", lambda: setattr(c, "closed", True)),
+             ("queued", lambda: c.queue.put([b"queued\n"])),
+             ("partial line", lambda: setattr(c, "out", memoryview(b"rest\n"))),
+             ("drop to announce", lambda: setattr(c, "dropped_unreported", 3)),
+             ("watch changed", lambda: setattr(c, "watch", WatchPolicy(True, True, 0.0)))]
+    for k, (name, change) in enumerate(cases):
+        with c.lock:
+            change()
+        os.write(rig.w, frames([5 + k]))
+        leftover, stopped = rig.step(5 + k, 100 + k)
+        assert rig.ist[fp.IST_REASON] == fp.R_DELIVERY and rig.ist[fp.IST_SENT] == -1, name
+        assert rig.received() == b"", name
+        c.lock.release()
+        with c.lock:  # undone: the step may send again
+            c.closed, c.out, c.dropped_unreported = False, None, 0
+            c.queue.take(1 << 20)
+            c.watch = rig.server.fast_watchers[0][4]
+    os.write(rig.w, frames([10]))
+    rig.step(10, 200)
+    assert rig.ist[fp.IST_REASON] == fp.R_DUE and rig.received().count(b"\n") == 1
+
+
+def test_counters_stay_in_the_record_until_folded(rig):
+    c = rig.client
+    for k in range(5):
+        os.write(rig.w, frames([5 + k]))
+        rig.step(5 + k, 100 + k)
+    got = rig.received()
+    assert (c.sent_messages, c.sent_bytes) == (0, 0)
+    c.last_progress = 1.0
+    stats = c.stats(0.0)  # STATUS folds first
+    assert stats["sent"] == c.sent_messages == 5 and c.sent_bytes == len(got)
+    assert c.last_progress > 1.0  # the step's time.monotonic() of the last send
+    assert c.record.take() == (0, 0, 0.0)
+
+
+def test_a_calibration_swapped_mid_step_applies_from_the_next_wake_up(rig):
+    """The step reads the processor's tuples again only when params_generation changed: a swap followed by
+    the processor's bump corrects the next sample with the new calibration, within the same call."""
+    new = PlainCorrection(np.array([0.47, 0.52, 0.5]), np.diag([0.042, 0.04, 0.038]), STANDARD_GRAVITY)
+    got = []
+
+    def feed():
+        os.write(rig.w, frames([5]))
+        while not got:
+            got.append(rig.received()) if rig.peer.recv(1, socket.MSG_PEEK) else None
+        rig.processor.correction = (new, None)
+        rig.processor.gyro_correction = (2000.0, 350.0)
+        rig.processor.analysed = (None, False)
+        rig.processor.params_generation[0] += 1
+        os.write(rig.w, frames([6]))
+
+    t = threading.Thread(target=feed)
+    t.start()
+    rig.ist[fp.IST_EXPECT], rig.ist[fp.IST_SEQ] = 5, 100
+    step(rig.r, 0.5, MAX, rig.ist, rig.fst, rig.staged, rig.server, rig.processor, rig.rows, rig.acc, rig.gyro,
+         rig.codes)
+    t.join()
+    rows = np.frombuffer(bytes(rig.staged), SAMPLE_DTYPE)
+    assert rows.shape[0] == 2
+    second = rows[1:]
+    gyro = (second["gyro"].astype(float) - 2000.0) / 350.0
+    want = ImuBlock(second, new.block(second), gyro, np.array([-1], np.int8)).joined(True)
+    assert rig.received() == want
+
+
+def test_the_stall_check_sees_the_steps_last_send(rig):
+    """A client the step fed, with output pending now: its progress (what the server's stall check compares
+    with stall_timeout_s) is the step's last send, not the last one the Python path counted."""
+    c = rig.client
+    os.write(rig.w, frames([5]))
+    before = time.monotonic()
+    rig.step(5, 100)
+    with c.lock:
+        c.queue.put([b"queued\n"])
+    assert c.pending() and c.last_progress == 0.0
+    assert before <= c.progress() <= time.monotonic()

@@ -1,0 +1,133 @@
+/* The floor under gravcald's CPU for the same traffic (bench/bench_latency.py builds and runs it; not part of
+ * gravcal): a process that only waits on the device's tty, reads what arrived and sends one fixed line per frame
+ * to each of N clients on a Unix socket. No decoding, correction, formatting or bookkeeping: what remains is the
+ * wake-up, the read and the send() calls (each waking a client process), which no daemon design avoids.
+ *
+ *     bare_relay TTY SOCKET NCLIENTS LINE_BYTES FRAME_BYTES [OPEN_COMMAND]
+ *
+ * TTY is put in raw mode with VMIN = FRAME_BYTES, as gravcald's drivers do, so poll() wakes once a whole frame
+ * (serial) or CAN sample (slcan) is there; OPEN_COMMAND (e.g. "O" for slcan) is written first, followed by CR.
+ * It prints "listening" once the socket is bound, "ready" once NCLIENTS are connected, and on SIGTERM the
+ * wake-ups, lines and bytes sent.
+ */
+#include <errno.h>
+#include <fcntl.h>
+#include <poll.h>
+#include <signal.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/ioctl.h>
+#include <sys/socket.h>
+#include <sys/un.h>
+#include <termios.h>
+#include <unistd.h>
+
+#define READ_BYTES 65536
+#define TTY_CHUNK 64
+
+static volatile sig_atomic_t stop;
+
+static void on_term(int sig)
+{
+    (void)sig;
+    stop = 1;
+}
+
+int main(int argc, char **argv)
+{
+    if (argc < 6) {
+        fprintf(stderr, "usage: bare_relay TTY SOCKET NCLIENTS LINE_BYTES FRAME_BYTES [OPEN_COMMAND]\n");
+        return 2;
+    }
+    int nclients = atoi(argv[3]), line_bytes = atoi(argv[4]), frame_bytes = atoi(argv[5]);
+    if (nclients < 1 || nclients > 1024 || line_bytes < 2 || frame_bytes < 1 || frame_bytes > 255) {
+        fprintf(stderr, "bare_relay: bad NCLIENTS, LINE_BYTES or FRAME_BYTES\n");
+        return 2;
+    }
+    int tty = open(argv[1], O_RDWR | O_NOCTTY | O_NONBLOCK); /* as gravcald's drivers: a read never waits */
+    struct termios tio;
+    if (tty < 0 || tcgetattr(tty, &tio) < 0) {
+        perror("bare_relay: tty");
+        return 1;
+    }
+    cfmakeraw(&tio);
+    tio.c_cc[VMIN] = (cc_t)frame_bytes;
+    tio.c_cc[VTIME] = 0;
+    if (tcsetattr(tty, TCSANOW, &tio) < 0) {
+        perror("bare_relay: tcsetattr");
+        return 1;
+    }
+    int lst = socket(AF_UNIX, SOCK_STREAM, 0);
+    struct sockaddr_un addr = {.sun_family = AF_UNIX};
+    if (strlen(argv[2]) >= sizeof addr.sun_path) {
+        fprintf(stderr, "bare_relay: socket path too long\n");
+        return 2;
+    }
+    strcpy(addr.sun_path, argv[2]);
+    if (lst < 0 || bind(lst, (struct sockaddr *)&addr, sizeof addr) < 0 || listen(lst, nclients) < 0) {
+        perror("bare_relay: socket");
+        return 1;
+    }
+    printf("listening\n");
+    fflush(stdout);
+    int *fds = calloc((size_t)nclients, sizeof *fds);
+    for (int i = 0; i < nclients; i++)
+        if ((fds[i] = accept(lst, NULL, NULL)) < 0) {
+            perror("bare_relay: accept");
+            return 1;
+        }
+    signal(SIGTERM, on_term);
+    if (argc > 6) { /* e.g. slcan's "O": open the channel, or the adapter sends nothing */
+        char cmd[64];
+        int k = snprintf(cmd, sizeof cmd, "%s\r", argv[6]);
+        if (k <= 0 || write(tty, cmd, (size_t)k) != k) {
+            perror("bare_relay: open command");
+            return 1;
+        }
+    }
+    tcflush(tty, TCIFLUSH);
+    printf("ready\n");
+    fflush(stdout);
+    static char buf[READ_BYTES];
+    char *lines = NULL;
+    size_t lines_cap = 0;
+    long long wakeups = 0, sent_lines = 0, sent_bytes = 0;
+    int carry = 0; /* bytes of a frame not yet complete */
+    while (!stop) {
+        struct pollfd p = {tty, POLLIN, 0};
+        int r = poll(&p, 1, 250);
+        if (r <= 0)
+            continue;
+        ssize_t n = read(tty, buf, READ_BYTES), last = n;
+        if (n <= 0)
+            continue;
+        int avail; /* the same reads as gravcald's C step: on while a tty chunk came whole and more is there */
+        while (last >= TTY_CHUNK && n < READ_BYTES && ioctl(tty, FIONREAD, &avail) == 0 && avail > 0) {
+            last = read(tty, buf + n, (size_t)(READ_BYTES - n));
+            if (last <= 0)
+                break;
+            n += last;
+        }
+        wakeups++;
+        int k = (int)((carry + n) / frame_bytes);
+        carry = (int)((carry + n) % frame_bytes);
+        if (k == 0)
+            continue;
+        size_t need = (size_t)k * (size_t)line_bytes;
+        if (need > lines_cap) {
+            lines = realloc(lines, need);
+            for (size_t i = 0; i < need; i++) /* k lines of line_bytes - 1 characters and a newline */
+                lines[i] = (i + 1) % (size_t)line_bytes ? 'x' : '\n';
+            lines_cap = need;
+        }
+        for (int i = 0; i < nclients; i++) {
+            ssize_t s = send(fds[i], lines, need, MSG_DONTWAIT | MSG_NOSIGNAL);
+            if (s > 0)
+                sent_bytes += s;
+        }
+        sent_lines += (long long)k * nclients;
+    }
+    printf("wakeups %lld lines %lld bytes %lld\n", wakeups, sent_lines, sent_bytes);
+    return 0;
+}
