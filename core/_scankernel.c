@@ -161,7 +161,7 @@ DEFINE_SCAN(scan_runs_d, double, 1)
  * - the smallest step: dt = t_k - t_(k-1), min_dt = dt < min_dt ? dt : min_dt, in row order;
  * - repeated rows: the three lanes compared with the row before (cmpeqps, float equality), the
  *   first row with `prev` in float64 as scan_f does. */
-#define RECORD_ROW(v, tk, SAME)                                                                     \
+#define RECORD_ROW(v, tk)                                                                           \
     do {                                                                                            \
         uint64_t tb;                                                                                \
         memcpy(&tb, &(tk), 8);                                                                      \
@@ -171,11 +171,46 @@ DEFINE_SCAN(scan_runs_d, double, 1)
         tq = (tk);                                                                                  \
         lo = _mm_min_ps(v, lo), hi = _mm_max_ps(v, hi);                                             \
         nan = _mm_or_ps(nan, _mm_cmpunord_ps(v, v));                                                \
-        if (track) {                                                                                \
-            TRACK_STEP(SAME, k - first);                                                            \
-            vq = v;                                                                                 \
-        }                                                                                           \
     } while (0)
+
+/* TRACK_STEP over n <= 64 consecutive steps s0 .. s0 + n - 1 given as bits (bit j: step s0 + j
+ * repeats), a run at a time instead of a step at a time: the same kept runs, brk and count. */
+static inline void track_word(uint64_t w, int n, Py_ssize_t s0, Py_ssize_t *brk_, Py_ssize_t *n_same,
+                              Py_ssize_t min_run, Runs *rr)
+{
+    uint64_t c = w - ((w >> 1) & 0x5555555555555555u); /* popcount, portable SWAR */
+    c = (c & 0x3333333333333333u) + ((c >> 2) & 0x3333333333333333u);
+    *n_same += (Py_ssize_t)((((c + (c >> 4)) & 0x0F0F0F0F0F0F0F0Fu) * 0x0101010101010101u) >> 56);
+    const uint64_t z = ~w & (n == 64 ? ~(uint64_t)0 : ((uint64_t)1 << n) - 1); /* steps that do not repeat */
+    Py_ssize_t brk = *brk_;
+    if (brk < s0 - 1 && z) { /* a run open since the last word ends at this word's first step that does not repeat */
+        const int e = __builtin_ctzll(z);
+        const Py_ssize_t len = s0 + e - brk - 1;
+        if (len >= (brk < 0 ? 1 : min_run))
+            keep_run(rr, brk + 1, len);
+        brk = s0 + e;
+        w &= e == 63 ? 0 : ~(uint64_t)0 << (e + 1);
+    }
+    while (w) {
+        const int a = __builtin_ctzll(w); /* a run of repeated steps starts at bit a */
+        if (a > 0)
+            brk = s0 + a - 1; /* bit a - 1 does not repeat */
+        const uint64_t ends = z & (~(uint64_t)0 << a);
+        if (!ends)
+            break; /* still open at the word's end */
+        const int e = __builtin_ctzll(ends); /* the step that ends it */
+        const Py_ssize_t len = s0 + e - brk - 1;
+        if (len >= (brk < 0 ? 1 : min_run))
+            keep_run(rr, brk + 1, len);
+        brk = s0 + e;
+        w &= e == 63 ? 0 : ~(uint64_t)0 << (e + 1);
+    }
+    if (z) { /* the last step that does not repeat */
+        const Py_ssize_t last = s0 + 63 - __builtin_clzll(z);
+        brk = last > brk ? last : brk;
+    }
+    *brk_ = brk;
+}
 
 static inline __attribute__((always_inline)) void scan_record(const Py_buffer *t, const Py_buffer *x,
                                                               const double *prev, double *st, Runs *rr,
@@ -187,21 +222,35 @@ static inline __attribute__((always_inline)) void scan_record(const Py_buffer *t
     uint64_t tbits = 0;
     double min_dt = st[S_MINDT], tq = prev ? prev[0] : NAN;
     const Py_ssize_t first = prev ? 0 : 1, min_run = track ? rr->min_run : 1; /* row k is step k - first */
-    Py_ssize_t brk = -1, n_same = 0, k = 0;
-    if (m > 0) {
+    Py_ssize_t brk = -1, n_same = 0;
+    if (m > 0) { /* the first row, against prev in float64 as scan_f compares it */
         const __m128 v = _mm_loadu_ps((const float *)(row + 4));
         double tk;
         memcpy(&tk, row, 8);
         float v0, v1, v2;
         memcpy(&v0, row + 8, 4), memcpy(&v1, row + 12, 4), memcpy(&v2, row + 16, 4);
-        RECORD_ROW(v, tk, prev && ((v0 == prev[1]) & (v1 == prev[2]) & (v2 == prev[3])));
+        RECORD_ROW(v, tk);
+        if (track)
+            TRACK_STEP(prev && ((v0 == prev[1]) & (v1 == prev[2]) & (v2 == prev[3])), -first);
+        vq = v;
     }
-    for (k = 1; k < m; k++) {
-        const char *r = row + k * S;
-        const __m128 v = _mm_loadu_ps((const float *)(r + 4));
-        double tk;
-        memcpy(&tk, r, 8);
-        RECORD_ROW(v, tk, (_mm_movemask_ps(_mm_cmpeq_ps(v, vq)) & 14) == 14);
+    /* the other rows in words of 64: each row's repeat is one bit, the runs are found per word */
+    for (Py_ssize_t k0 = 1; k0 < m; k0 += 64) {
+        const Py_ssize_t k1 = m - k0 < 64 ? m : k0 + 64;
+        uint64_t bits = 0;
+        for (Py_ssize_t k = k0; k < k1; k++) {
+            const char *r = row + k * S;
+            const __m128 v = _mm_loadu_ps((const float *)(r + 4));
+            double tk;
+            memcpy(&tk, r, 8);
+            RECORD_ROW(v, tk);
+            if (track) {
+                bits |= (uint64_t)((_mm_movemask_ps(_mm_cmpeq_ps(v, vq)) & 14) == 14) << (k - k0);
+                vq = v;
+            }
+        }
+        if (track)
+            track_word(bits, (int)(k1 - k0), k0 - first, &brk, &n_same, min_run, rr);
     }
     if (track)
         TRACK_END(m - first);

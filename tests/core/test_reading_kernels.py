@@ -229,3 +229,25 @@ def test_block_pass_paired_form_equals_one_block_form_and_numpy(dtype, kind, B, 
         assert (paired[0][:, :b0] == 7.0).all() and (paired[0][:, b0 + m:] == 7.0).all()  # nothing else written
         if kind == "plain":  # forwards every step is good; backwards every one is negative
             assert usable.all() if order > 0 else not usable[1:].any()
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("min_run", [1, 2, 10, 64])
+@pytest.mark.parametrize("with_prev", [False, True])
+def test_scan_runs_of_every_length_at_every_offset(seed, min_run, with_prev):
+    """Runs from 1 step to several hundred, starting and ending anywhere (the record form finds runs
+    64 rows at a time): its runs are the any-layout form's and chunk_runs' of numpy's repeats."""
+    rng = np.random.default_rng(seed)
+    n = 5000
+    rec = _records(n + 1, "<f4", seed=seed)
+    rec["ax"] = rng.integers(0, 2, n + 1)  # a repeat every other step at random
+    rec["ay"] = rec["az"] = 1.0
+    rec["ax"][1000:1500] = np.arange(500) % 2  # no repeat for 500 rows: whole words without one
+    for a in rng.integers(1500, n - 300, 10):
+        rec["ax"][a:a + rng.integers(60, 300)] = 5.0  # runs across one or more words
+    t, xs = rec["t"][1:], [rec[c][1:] for c in CH]
+    prev = np.array([rec["t"][0], *(rec[c][0] for c in CH)], dtype=np.float64) if with_prev else None
+    record = _scan(t, xs, prev, _fresh(), min_run)
+    _same_scan(record, _scan(t.copy(), [x.copy() for x in xs], prev, _fresh(), min_run))
+    _same_scan(record, _scan_oracle(t, np.column_stack(xs), prev, _fresh(), min_run))
+    assert record[1] >= 3 and record[3][:, 1].max() >= 60 and record[2] > n // 3
