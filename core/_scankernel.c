@@ -48,8 +48,9 @@ static inline void keep_run(Runs *r, Py_ssize_t start, Py_ssize_t len)
  * before). brk is the last step that did not repeat (-1 before the chunk's first step), so the
  * run a non-repeating step s ends spans steps brk + 1 .. s - 1; it is kept when it has >= min_run
  * steps or starts at the chunk's first step (any length >= 1): one compare, a branch taken only
- * for kept runs (a branch on `same` would be mispredicted at every repeat). The run still open after the last row touches the chunk's last step and is kept
- * by TRACK_END. Every repeated step counts once in n_same, kept or not. */
+ * for kept runs (a branch on `same` would be mispredicted at every repeat). The run still open
+ * after the last row touches the chunk's last step and is kept by TRACK_END. Every repeated step
+ * counts once in n_same, kept or not. */
 #define TRACK_STEP(same, s)                                                                         \
     do {                                                                                            \
         const int same_ = (same);                                                                   \
