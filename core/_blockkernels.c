@@ -47,24 +47,19 @@ typedef struct {
  * sums non-finite (x * 0 != 0 then), so the finiteness test is on the sums.
  *
  * Two forms, the same operations on each block in the same order: chunk_rows_* any strides, one
- * block at a time, blocks [b_lo, b_hi); chunk_pairs_* when t and the channels share one stride
- * (the rows of a structured record), two neighbouring blocks at once, one per lane of a v2d: each
- * lane's sums run over its own block's samples in order, so each block's bits are the one-block
- * form's; the lanes only let the two blocks' additions overlap (each sum is a chain of dependent
- * adds, ~3 cycles each, and one block's 13 adds a sample need more than the adder's two ports). */
-#define FIRST_PREV(c, tp, b_lo) /* the time before block b_lo's first sample */                     \
-    ((b_lo) == 0 && (c)->first ? *(const double *)(tp) - 0.5 * (c)->max_step                       \
-                               : *(const double *)((tp) + ((b_lo) * (c)->B - 1) * (c)->st))
-
+ * block at a time; chunk_pairs_* when t and the channels share one stride (the rows of a
+ * structured record), two neighbouring blocks at once, one per lane of a v2d: each lane's sums run
+ * over its own block's samples in order, so each block's bits are the one-block form's; the lanes
+ * only let the two blocks' additions overlap (each sum is a chain of dependent adds, ~3 cycles
+ * each, and one block's 13 adds a sample need more than the adder's two ports). */
 #define DEFINE_CHUNK_ROWS(NAME, T)                                                                  \
-    static void NAME(const Chunk *c, Py_ssize_t b_lo, Py_ssize_t b_hi)                              \
+    static void NAME(const Chunk *c)                                                                \
     {                                                                                               \
         const Py_ssize_t B = c->B, nb = c->nb, s0 = c->sx[0], s1 = c->sx[1], s2 = c->sx[2];           \
         const double inv_B = 1.0 / (double)B, max_step = c->max_step;                               \
-        const char *p0 = c->x[0] + b_lo * B * s0, *p1 = c->x[1] + b_lo * B * s1,                    \
-                   *p2 = c->x[2] + b_lo * B * s2, *tp = c->t + b_lo * B * c->st;                     \
-        double prev = FIRST_PREV(c, c->t, b_lo);                                                    \
-        for (Py_ssize_t b = b_lo; b < b_hi; b++) {                                                  \
+        const char *p0 = c->x[0], *p1 = c->x[1], *p2 = c->x[2], *tp = c->t;                         \
+        double prev = c->first ? *(const double *)tp - 0.5 * max_step : *(const double *)(tp - c->st); \
+        for (Py_ssize_t b = 0; b < c->m; b++) {                                                     \
             const double r0 = *(const T *)p0, r1 = *(const T *)p1, r2 = *(const T *)p2;             \
             double a0 = 0, a1 = 0, a2 = 0, q00 = 0, q11 = 0, q22 = 0, q01 = 0, q02 = 0, q12 = 0;      \
             int ok = 1;                                                                             \
@@ -116,7 +111,8 @@ typedef float v2f __attribute__((vector_size(8)));
             const v2d r0 = {*(const T *)(ra + o0), *(const T *)(rb + o0)};                          \
             const v2d r1 = {*(const T *)(ra + o1), *(const T *)(rb + o1)};                          \
             const v2d r2 = {*(const T *)(ra + o2), *(const T *)(rb + o2)};                          \
-            v2d prev = {FIRST_PREV(c, c->t, b), *(const double *)(rb - S)};                         \
+            v2d prev = {b == 0 && c->first ? *(const double *)ra - 0.5 * c->max_step               \
+                                            : *(const double *)(ra - S), *(const double *)(rb - S)};  \
             v2d a0 = zero, a1 = zero, a2 = zero, q00 = zero, q11 = zero, q22 = zero, q01 = zero,      \
                 q02 = zero, q12 = zero;                                                             \
             v2l good = {0, 0}; /* minus one per step above 0, one per step up to max_step: ok at 2 B */ \
@@ -153,6 +149,24 @@ typedef float v2f __attribute__((vector_size(8)));
 
 DEFINE_CHUNK_PAIRS(chunk_pairs_f, float)
 DEFINE_CHUNK_PAIRS(chunk_pairs_d, double)
+
+/* Rows of one stride (a structured record's fields): the blocks in pairs, an odd last one alone
+ * (its rows after the paired ones, the row before them in t). */
+static void record_chunk(const Chunk *c, char kind)
+{
+    const Py_ssize_t paired = c->m - c->m % 2, skip = paired * c->B;
+    Chunk tail = *c;
+    tail.t += skip * c->st, tail.first = 0, tail.m = c->m - paired, tail.col += paired;
+    for (int j = 0; j < 3; j++)
+        tail.x[j] += skip * c->sx[j];
+    if (kind == 'f') {
+        chunk_pairs_f(c);
+        chunk_rows_f(&tail);
+    } else {
+        chunk_pairs_d(c);
+        chunk_rows_d(&tail);
+    }
+}
 
 static PyObject *block_pass(PyObject *self, PyObject *args)
 {
@@ -216,13 +230,13 @@ static PyObject *block_pass(PyObject *self, PyObject *args)
                t->strides[0], B, m, nb, b0, t_off == 0, max_step, mean->buf, scat->buf, use->buf};
     double *ao = am->buf;
     Py_BEGIN_ALLOW_THREADS
-    /* rows of one stride (a structured record's fields): pairs of blocks, the odd one alone */
-    const int one_stride = x[0].strides[0] == t->strides[0] && x[1].strides[0] == t->strides[0] &&
-                           x[2].strides[0] == t->strides[0];
-    const Py_ssize_t paired = one_stride ? m - m % 2 : 0;
-    if (paired)
-        (kind == 'f' ? chunk_pairs_f : chunk_pairs_d)(&c);
-    (kind == 'f' ? chunk_rows_f : chunk_rows_d)(&c, paired, m);
+    if (x[0].strides[0] == t->strides[0] && x[1].strides[0] == t->strides[0] && x[2].strides[0] == t->strides[0] &&
+        m > 1)
+        record_chunk(&c, kind);
+    else if (kind == 'f')
+        chunk_rows_f(&c);
+    else
+        chunk_rows_d(&c);
     for (Py_ssize_t a = 0; a < k_aux; a++) /* aux block means (numpy: aux.reshape(m, B, k).mean(axis=1)) */
         for (Py_ssize_t b = 0; b < m; b++) {
             double sa = 0.0;
