@@ -52,6 +52,10 @@ typedef struct {
  * over its own block's samples in order, so each block's bits are the one-block form's; the lanes
  * only let the two blocks' additions overlap (each sum is a chain of dependent adds, ~3 cycles
  * each, and one block's 13 adds a sample need more than the adder's two ports). */
+typedef double v2d __attribute__((vector_size(16)));
+typedef int64_t v2l __attribute__((vector_size(16))); /* the lanes' compare masks (0 or -1) */
+typedef float v2f __attribute__((vector_size(8)));
+
 #define DEFINE_CHUNK_ROWS(NAME, T)                                                                  \
     static void NAME(const Chunk *c)                                                                \
     {                                                                                               \
@@ -61,20 +65,25 @@ typedef struct {
         double prev = c->first ? *(const double *)tp - 0.5 * max_step : *(const double *)(tp - c->st); \
         for (Py_ssize_t b = 0; b < c->m; b++) {                                                     \
             const double r0 = *(const T *)p0, r1 = *(const T *)p1, r2 = *(const T *)p2;             \
-            double a0 = 0, a1 = 0, a2 = 0, q00 = 0, q11 = 0, q22 = 0, q01 = 0, q02 = 0, q12 = 0;      \
+            const v2d r01 = {r0, r1};                                                               \
+            /* channels 0 and 1 side by side in a v2d, each lane its own sums in order: (a0, a1),  \
+             * (q00, q11), (q02, q12) = Σ (d0, d1) d2; a2, q22, q01 alone */                        \
+            v2d a01 = {0, 0}, q0011 = {0, 0}, q0212 = {0, 0};                                       \
+            double a2 = 0, q22 = 0, q01 = 0;                                                        \
             int ok = 1;                                                                             \
             for (Py_ssize_t k = 0; k < B; k++) {                                                    \
-                const double d0 = (double)*(const T *)p0 - r0;                                      \
-                const double d1 = (double)*(const T *)p1 - r1;                                      \
+                const v2d d01 = (v2d){*(const T *)p0, *(const T *)p1} - r01;                        \
                 const double d2 = (double)*(const T *)p2 - r2;                                      \
                 const double now = *(const double *)tp, dt = now - prev;                            \
                 p0 += s0, p1 += s1, p2 += s2, tp += c->st;                                          \
-                a0 += d0, a1 += d1, a2 += d2;                                                       \
-                q00 += d0 * d0, q11 += d1 * d1, q22 += d2 * d2;                                     \
-                q01 += d0 * d1, q02 += d0 * d2, q12 += d1 * d2;                                     \
+                a01 += d01, a2 += d2;                                                               \
+                q0011 += d01 * d01, q22 += d2 * d2;                                                 \
+                q01 += d01[0] * d01[1], q0212 += d01 * (v2d){d2, d2};                               \
                 ok &= (dt > 0.0) & (dt <= max_step);                                                \
                 prev = now;                                                                         \
             }                                                                                       \
+            const double a0 = a01[0], a1 = a01[1], q00 = q0011[0], q11 = q0011[1];                  \
+            const double q02 = q0212[0], q12 = q0212[1];                                            \
             const double m0 = a0 * inv_B, m1 = a1 * inv_B, m2 = a2 * inv_B;                         \
             const double w[6] = {q00 - a0 * m0, q11 - a1 * m1, q22 - a2 * m2,                       \
                                  q01 - a0 * m1, q02 - a0 * m2, q12 - a1 * m2};                      \
@@ -93,9 +102,6 @@ typedef struct {
 DEFINE_CHUNK_ROWS(chunk_rows_f, float)
 DEFINE_CHUNK_ROWS(chunk_rows_d, double)
 
-typedef double v2d __attribute__((vector_size(16)));
-typedef int64_t v2l __attribute__((vector_size(16))); /* the lanes' compare masks (0 or -1) */
-typedef float v2f __attribute__((vector_size(8)));
 
 /* Blocks [0, m - m % 2) two at a time (lane 0: block b, lane 1: block b + 1), every field read at
  * its byte offset from t's in the row (one stride S). Per lane the operations of chunk_rows_*. */
