@@ -251,3 +251,22 @@ def test_scan_runs_of_every_length_at_every_offset(seed, min_run, with_prev):
     _same_scan(record, _scan(t.copy(), [x.copy() for x in xs], prev, _fresh(), min_run))
     _same_scan(record, _scan_oracle(t, np.column_stack(xs), prev, _fresh(), min_run))
     assert record[1] >= 3 and record[3][:, 1].max() >= 60 and record[2] > n // 3
+
+
+@pytest.mark.parametrize("head, tail", [(1, 1), (2, 1), (1, 2), (3, 3), (0, 1), (1, 0)])
+@pytest.mark.parametrize("n", [8, 9, 64, 65, 66, 129, 1000])
+@pytest.mark.parametrize("with_prev", [False, True])
+def test_scan_keeps_short_runs_at_the_chunk_ends(head, tail, n, with_prev):
+    """Runs of a few steps touching the chunk's first or last step are kept whatever min_run (they
+    may join a neighbour's), including one-step runs and runs ending on a 64-row word border."""
+    rec = _records(n + 1, "<f4", seed=n)
+    rec["ax"] = np.arange(n + 1) % 2 + 10.0 * np.arange(n + 1)  # no repeat anywhere
+    first = 0 if with_prev else 1  # the row the chunk's first step ends on
+    rec["ax"][first + 1:first + 1 + head] = rec["ax"][first]  # `head` repeated steps from the first
+    if tail:
+        rec["ax"][-tail - 1:] = rec["ax"][-tail - 1]  # `tail` repeated steps to the last
+    t, xs = rec["t"][1:], [rec[c][1:] for c in CH]
+    prev = np.array([rec["t"][0], *(rec[c][0] for c in CH)], dtype=np.float64) if with_prev else None
+    record = _scan(t, xs, prev, _fresh(), 10)
+    _same_scan(record, _scan(t.copy(), [x.copy() for x in xs], prev, _fresh(), 10))
+    _same_scan(record, _scan_oracle(t, np.column_stack(xs), prev, _fresh(), 10))
