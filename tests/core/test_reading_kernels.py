@@ -261,6 +261,7 @@ def test_scan_keeps_short_runs_at_the_chunk_ends(head, tail, n, with_prev):
     may join a neighbour's), including one-step runs and runs ending on a 64-row word border."""
     rec = _records(n + 1, "<f4", seed=n)
     rec["ax"] = np.arange(n + 1) % 2 + 10.0 * np.arange(n + 1)  # no repeat anywhere
+    rec["ay"] = rec["az"] = 1.0
     first = 0 if with_prev else 1  # the row the chunk's first step ends on
     rec["ax"][first + 1:first + 1 + head] = rec["ax"][first]  # `head` repeated steps from the first
     if tail:
@@ -270,3 +271,4 @@ def test_scan_keeps_short_runs_at_the_chunk_ends(head, tail, n, with_prev):
     record = _scan(t, xs, prev, _fresh(), 10)
     _same_scan(record, _scan(t.copy(), [x.copy() for x in xs], prev, _fresh(), 10))
     _same_scan(record, _scan_oracle(t, np.column_stack(xs), prev, _fresh(), 10))
+    assert record[2] == head + tail and record[1] == (head > 0) + (tail > 0)
