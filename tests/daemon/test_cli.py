@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
 import sys
 from importlib.metadata import version
 
@@ -13,6 +12,7 @@ import pytest
 
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 from gravcal.daemon.cli import main
+from support.concurrent_runs import run_together
 
 
 def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
@@ -40,12 +40,11 @@ def six(tmp_path_factory):
 
 # -- global ----------------------------------------------------------------------------------------
 def test_version_and_help_as_subprocess():
-    r = subprocess.run(["gravcal", "--version"], capture_output=True, text=True, timeout=60)
+    r, h = run_together([["gravcal", "--version"], [sys.executable, "-m", "gravcal.daemon.cli", "--help"]])
     assert r.returncode == 0 and r.stdout.strip() == f"gravcal {version('gravcal')}"
-    r = subprocess.run([sys.executable, "-m", "gravcal.daemon.cli", "--help"], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0
+    assert h.returncode == 0
     for cmd in ("simulate", "calibrate", "reproduce", "demo"):
-        assert cmd in r.stdout
+        assert cmd in h.stdout
 
 
 def test_no_command_prints_usage_and_exits_2(capsys):

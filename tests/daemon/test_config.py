@@ -1,12 +1,12 @@
 """gravcald configuration: TOML, defaults, overrides, and errors that name file and key."""
 import math
-import subprocess
 import sys
 import tomllib
 
 import pytest
 
 from gravcal.daemon.config import Config, ConfigError, example_toml, load_config, parse_config
+from support.concurrent_runs import run_together
 
 
 def write(tmp_path, text, name="gravcald.toml"):
@@ -116,21 +116,20 @@ def test_example_toml_lists_every_key_and_parses_back_to_the_defaults():
 
 def test_gravcald_rejects_bad_config_with_one_line_and_status_2(tmp_path):
     p = write(tmp_path, '[detector]\nthreshold_g = "abc"\n')
-    r = subprocess.run([sys.executable, "-m", "gravcal.daemon.gravcald", "--config", str(p)],
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2
-    assert r.stderr.strip() == f"gravcald: error: {p}: [detector] threshold_g: expected a number, got 'abc'"
-    r = subprocess.run([sys.executable, "-m", "gravcal.daemon.gravcald", "--fs", "-5", "--print-config"],
-                       capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and "command line: [device] fs_hz" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "gravcal.daemon.gravcald", "--config", str(tmp_path / "x.toml"),
-                        "--print-config"], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 2 and "no such configuration file" in r.stderr
     write(tmp_path, '[socket]\npath = "/tmp/z.sock"\n', "ok.toml")
-    r = subprocess.run([sys.executable, "-m", "gravcal.daemon.gravcald", "--config", str(tmp_path / "ok.toml"),
-                        "--model", "12", "--print-config"], capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0
-    printed = tomllib.loads(r.stdout)
+    gravcald = [sys.executable, "-m", "gravcal.daemon.gravcald"]
+    bad_file, bad_option, missing, ok = run_together([
+        [*gravcald, "--config", str(p)],
+        [*gravcald, "--fs", "-5", "--print-config"],
+        [*gravcald, "--config", str(tmp_path / "x.toml"), "--print-config"],
+        [*gravcald, "--config", str(tmp_path / "ok.toml"), "--model", "12", "--print-config"],
+    ])
+    assert bad_file.returncode == 2
+    assert bad_file.stderr.strip() == f"gravcald: error: {p}: [detector] threshold_g: expected a number, got 'abc'"
+    assert bad_option.returncode == 2 and "command line: [device] fs_hz" in bad_option.stderr
+    assert missing.returncode == 2 and "no such configuration file" in missing.stderr
+    assert ok.returncode == 0
+    printed = tomllib.loads(ok.stdout)
     assert printed["socket"]["path"] == "/tmp/z.sock" and printed["estimator"]["model"] == "12"
 
 

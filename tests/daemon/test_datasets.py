@@ -1,7 +1,6 @@
 """Loaders of the measured recordings (daemon/datasets.py) against the files themselves."""
 from __future__ import annotations
 
-import subprocess
 import sys
 
 import numpy as np
@@ -10,6 +9,7 @@ import pytest
 from gravcal.daemon import datasets as D
 from gravcal.daemon.errors import InputError
 from gravcal.daemon.recordings import read_recording
+from support.concurrent_runs import run_together
 
 
 def test_data_dir_follows_env(monkeypatch, tmp_path):
@@ -32,13 +32,15 @@ def test_require_data_turns_skip_into_failure(tmp_path):
     test.write_text("def test_probe(measured_data_dir):\n    assert measured_data_dir.is_dir()\n")
     conftest = (D.REPO_ROOT / "tests" / "conftest.py").read_text()
     (tmp_path / "conftest.py").write_text(conftest)
+    # the conftest's helpers (tests/support); the probe needs no installed pytest plugin, so none is loaded
     env_base = {"GRAVCAL_DATA": str(tmp_path / "absent"), "PATH": "/usr/bin:/bin",
-                "PYTHONPATH": str(D.REPO_ROOT / "tests")}  # the conftest's helpers (tests/support)
+                "PYTHONPATH": str(D.REPO_ROOT / "tests"), "PYTEST_DISABLE_PLUGIN_AUTOLOAD": "1"}
     import os
-    for require, expect in (("1", "1 error"), ("0", "1 skipped")):  # a fixture failure is an error: red, not skipped
-        env = dict(os.environ, **env_base, GRAVCAL_REQUIRE_DATA=require)
-        out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rs", str(test)],
-                             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    cases = (("1", "1 error"), ("0", "1 skipped"))  # a fixture failure is an error: red, not skipped
+    runs = run_together([[sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rs", str(test)]] * 2,
+                        timeout=120, envs=[dict(os.environ, **env_base, GRAVCAL_REQUIRE_DATA=r) for r, _ in cases],
+                        cwd=tmp_path)
+    for (_, expect), out in zip(cases, runs):
         assert expect in out.stdout, out.stdout + out.stderr
         assert "measured data not found" in out.stdout
 

@@ -118,7 +118,7 @@ def pitch_run(tmp_path_factory):
         with d.client() as c:
             first = c.calib()["gyro"]
             # seed 0 determines it at ~300 s of sensor time (6 s at 50x); 60 s allows a loaded machine
-            poll(lambda: c.calib()["gyro"]["sensitivity"] is not None, 60, "a gyro sensitivity in ?CALIB", interval=0.5)
+            poll(lambda: c.calib()["gyro"]["sensitivity"] is not None, 60, "a gyro sensitivity in ?CALIB", interval=0.1)
             got = _collect(c, N_SAMPLES)
             cal = c.calib()["gyro"]
     finally:
@@ -136,9 +136,9 @@ def decline_run(tmp_path_factory):
         d.wait_serving()
         with d.client() as c:
             first = c.calib()["gyro"]
-            poll(lambda: c.calib()["gyro"]["n_windows"] >= 1, 90, "a gyro bias in ?CALIB", interval=0.5)
+            poll(lambda: c.calib()["gyro"]["n_windows"] >= 1, 90, "a gyro bias in ?CALIB", interval=0.1)
             # past ~8 pose changes with the gyro running (accelerometer accepted at ~130 s)
-            poll(lambda: c.calib()["gyro"]["n_windows"] >= 10, 90, "10 gyro windows in ?CALIB", interval=0.5)
+            poll(lambda: c.calib()["gyro"]["n_windows"] >= 10, 90, "10 gyro windows in ?CALIB", interval=0.1)
             got = _collect(c, 3000)
             cal = c.calib()["gyro"]
     finally:

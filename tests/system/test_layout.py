@@ -6,6 +6,7 @@ of a file or inside a function, is an edge of the module graph.
 from __future__ import annotations
 
 import ast
+import functools
 import re
 import tomllib
 from pathlib import Path
@@ -29,9 +30,15 @@ def modules() -> dict[str, Path]:
     return out
 
 
+@functools.cache
+def parsed(path: Path) -> ast.Module:
+    """The file's syntax tree, parsed once for the tests that read it (none of them changes it)."""
+    return ast.parse(path.read_text(), filename=str(path))
+
+
 def imports(name: str, path: Path, known: dict[str, Path]) -> set[str]:
     """The gravcal modules ``name`` imports, anywhere in the file."""
-    tree = ast.parse(path.read_text(), filename=str(path))
+    tree = parsed(path)
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
     found = set()
     for node in ast.walk(tree):
@@ -129,6 +136,7 @@ def test_no_code_outside_a_term_switches_on_its_name():
     (core/model/enc03j.py, which defines the gyro's terms) are the model's structure, not switches."""
     names = {s.name for s in REGISTRY.values()} | {s.catalogue_name for s in REGISTRY.values()}
     structural = {"axes"}
+    switches = names - structural
     allowed_dirs = {ROOT / "core" / "model" / "terms"}
     allowed_files = {ROOT / "core" / "model" / "enc03j.py"}
     hits = []
@@ -136,8 +144,8 @@ def test_no_code_outside_a_term_switches_on_its_name():
         for path in (ROOT / folder).rglob("*.py"):
             if path.parent in allowed_dirs or path in allowed_files:
                 continue
-            for node in ast.walk(ast.parse(path.read_text())):
-                if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in names - structural:
+            for node in ast.walk(parsed(path)):
+                if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in switches:
                     hits.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.value!r}")
     assert not hits, hits
 
