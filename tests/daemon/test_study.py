@@ -101,7 +101,10 @@ def test_ctrl_c_leaves_valid_results_and_resume_finishes(study, tmp_path):
     out = tmp_path / "results.csv"
     cmd = [sys.executable, "-m", "gravcal.daemon.cli", "calibrate", str(many), "--out", str(out), "--workers", "0",
            "--quiet"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # SIGINT at its default in the child, as in a terminal: a suite run as a background job (`cmd &` without
+    # job control) inherits it ignored, and Python then keeps it ignored
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:
         if out.exists() and out.read_text().count("\n") >= 2:  # header and one row
