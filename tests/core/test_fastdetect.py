@@ -220,7 +220,7 @@ def test_block_calibration_does_not_import_scipy_signal(tmp_path):
 
 def test_calibration_runs_blas_single_threaded(monkeypatch):
     """Every BLAS product of a calibration is small: OpenBLAS threads only spin (the week's fit 2.6x slower)."""
-    threadpoolctl = pytest.importorskip("threadpoolctl")
+    import threadpoolctl  # a dependency of gravcal (pyproject.toml)
     import gravcal.core.pipeline as pipeline
 
     seen = []

@@ -8,11 +8,7 @@ import os
 import subprocess
 import sys
 
-import pytest
-
 from gravcal.daemon.cli import BLAS_THREAD_VARIABLES
-
-threadpoolctl = pytest.importorskip("threadpoolctl")
 
 PROBE = (
     "import sys, json\n"
