@@ -98,16 +98,23 @@ def settle(d: Gravcald, reader: Reader, timeout: float = 20.0) -> None:
     raise AssertionError(f"the daemon did not settle: published {d.server.published_samples}")
 
 
-def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
-    link = PtyLink(tmp_path / f"tty-{fast}" / "ttyGRAVCAL0")
-    link.connect()
+def start_daemon(tmp_path, fast: bool, driver) -> Gravcald:
+    """gravcald on ``driver`` without windows to analyse, its socket and state under ``tmp_path``, with
+    (``fast``) or without the C step."""
     cfg = Config()
     cfg.socket.path = str(tmp_path / f"g-{fast}.sock")
     cfg.state.directory = str(tmp_path / f"state-{fast}")
-    drv = open_driver(link.spec + "?tick_hz=1000000")
-    d = Gravcald(cfg, driver=drv, environ={}, detector=NoWindows())
+    d = Gravcald(cfg, driver=driver, environ={}, detector=NoWindows())
     d.fast_path = fast
     d.start()
+    return d
+
+
+def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
+    link = PtyLink(tmp_path / f"tty-{fast}" / "ttyGRAVCAL0")
+    link.connect()
+    d = start_daemon(tmp_path, fast, open_driver(link.spec + "?tick_hz=1000000"))
+    cfg = d.cfg
     readers: dict[str, Reader] = {}
     out: dict[str, bytes] = {}  # a reader that left: what it received
 

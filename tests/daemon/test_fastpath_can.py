@@ -11,14 +11,12 @@ import time
 
 import numpy as np
 
-from gravcal.daemon.config import Config
-from gravcal.daemon.service import Gravcald
 from gravcal.drivers import open_driver
 from gravcal.drivers.can import DEFAULT_BASE_ID, pack_frames
 from gravcal.drivers.rigs.can_links import SlcanPtyLink
 from gravcal.drivers.rigs.sources import pattern_blocks
-from test_fastpath import (TICKS_PER_SAMPLE, NoWindows, Reader, assert_same_counts, assert_same_streams, settle,
-                           stop_all)
+from test_fastpath import (TICKS_PER_SAMPLE, Reader, assert_same_counts, assert_same_streams, settle,
+                           start_daemon, stop_all)
 
 
 def sample_lines(seqs, ticks=None, seed=0, drop_frame: int | None = None) -> list[bytes]:
@@ -38,12 +36,8 @@ def sample_lines(seqs, ticks=None, seed=0, drop_frame: int | None = None) -> lis
 def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
     link = SlcanPtyLink(tmp_path / f"tty-{fast}" / "ttyGRAVCAN0")
     link.connect()
-    cfg = Config()
-    cfg.socket.path = str(tmp_path / f"g-{fast}.sock")
-    cfg.state.directory = str(tmp_path / f"state-{fast}")
-    d = Gravcald(cfg, driver=open_driver(link.spec + "&tick_hz=1000000"), environ={}, detector=NoWindows())
-    d.fast_path = fast
-    d.start()
+    d = start_daemon(tmp_path, fast, open_driver(link.spec + "&tick_hz=1000000"))
+    cfg = d.cfg
     readers: dict[str, Reader] = {}
 
     def write(samples: list[bytes], per_write: int = 1, pause: float = 0.002) -> None:

@@ -7,11 +7,9 @@ import time
 
 import numpy as np
 
-from gravcal.daemon.config import Config
-from gravcal.daemon.service import Gravcald
 from gravcal.drivers.rigs.fake_i2c import FakeI2CDevice, FakeI2CDriver, ManualClock
 from gravcal.drivers.rigs.sources import pattern_blocks
-from test_fastpath import NoWindows, Reader, assert_same_counts, assert_same_streams, settle, stop_all
+from test_fastpath import Reader, assert_same_counts, assert_same_streams, settle, start_daemon, stop_all
 
 FS = 200.0
 
@@ -26,16 +24,12 @@ def stream() -> np.ndarray:
 
 
 def run(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
-    cfg = Config()
-    cfg.socket.path = str(tmp_path / f"g-{fast}.sock")
-    cfg.state.directory = str(tmp_path / f"state-{fast}")
     samples = stream()
     clock = ManualClock()  # the device samples only as the test advances its clock: the same stream each run
     device = FakeI2CDevice([samples], FS, clock=clock)
     drv = FakeI2CDriver(device, realtime=False).open()
-    d = Gravcald(cfg, driver=drv, environ={}, detector=NoWindows())
-    d.fast_path = fast
-    d.start()
+    d = start_daemon(tmp_path, fast, drv)
+    cfg = d.cfg
     readers = {}
     try:
         readers["plain"] = a = Reader(cfg.socket.path, '?WATCH={"enable":true};')
