@@ -1,6 +1,7 @@
 """Butterworth second-order sections for the streaming detector without importing scipy.signal
-(~76 MB resident and ~0.3 s at start): order 2 in closed form, and the filter's rest state. Used by the
-streaming detector and core/fastdetect.py's block detector (tests check both against scipy.signal)."""
+(~76 MB resident and ~0.3 s at start): orders 1 and 2 in closed form, and the filter's rest state. Used by the
+streaming detector, core/fastdetect.py's block detector and the sensor model's analog filters (core/model/filters.py);
+tests check them against scipy.signal."""
 from __future__ import annotations
 
 import math
@@ -10,7 +11,9 @@ import numpy as np
 
 def butter_sos(order: int, corner_hz: float, kind: str, fs: float) -> np.ndarray:
     """signal.butter(order, corner_hz, kind, fs=fs, output="sos") as a C-contiguous (sections, 6)
-    array; order 2 is the bilinear transform with the corner prewarped, other orders ask SciPy."""
+    array; orders 1 and 2 are the bilinear transform with the corner prewarped, other orders ask SciPy."""
+    if order == 1:
+        return _butter_first_order(corner_hz, kind, fs)
     if order != 2:
         from scipy import signal  # noqa: PLC0415 (only for a non-default filter order)
 
@@ -20,6 +23,24 @@ def butter_sos(order: int, corner_hz: float, kind: str, fs: float) -> np.ndarray
     a = [1.0, 2.0 * (k * k - 1.0) * norm, (1.0 - math.sqrt(2.0) * k + k * k) * norm]
     b = [k * k * norm, 2.0 * k * k * norm, k * k * norm] if kind == "lowpass" else [norm, -2.0 * norm, norm]
     return np.array([b + a])
+
+
+def _butter_first_order(corner_hz: float, kind: str, fs: float) -> np.ndarray:
+    """SciPy's steps for N = 1 (iirfilter: pole -1 scaled to the prewarped corner w, bilinear_zpk at fs = 2,
+    numpy's complex division x / y = x * (1 / y)) in the same float operations, so the section is SciPy's bit
+    for bit: pole (4 - w) / (4 + w), gain 4 / (4 + w) (high-pass, zero at 1) or w / (4 + w) (low-pass, zero at -1)."""
+    if not 0.0 < corner_hz < fs / 2.0:  # SciPy's check: Wn = 2 corner / fs in (0, 1)
+        raise ValueError(f"filter corner must lie in (0, fs/2 = {fs / 2.0} Hz), got {corner_hz} Hz")
+    w = 4.0 * math.tan(math.pi * (2.0 * corner_hz / fs) / 2.0)
+    scale = 1.0 / (4.0 + w)
+    pole = (4.0 - w) * scale
+    if kind == "highpass":
+        k = 4.0 * scale
+        return np.array([[k, -k, 0.0, 1.0, -pole, 0.0]])
+    if kind == "lowpass":
+        k = w * scale
+        return np.array([[k, k, 0.0, 1.0, -pole, 0.0]])
+    raise ValueError(f"filter kind must be 'lowpass' or 'highpass', got {kind!r}")
 
 
 def sos_rest_state(sos: np.ndarray) -> np.ndarray:

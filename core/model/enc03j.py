@@ -17,6 +17,7 @@ import numpy as np
 from .base import Context, Term, register
 from .datasheet import (GYRO_ADC_BITS, GYRO_GAIN, GYRO_HP_HZ, GYRO_LP_HZ, GYRO_NOISE_DPS_RTHZ, GYRO_NULL_TEMPCO_MV_PER_C,
                         GYRO_NULL_TOL_V, GYRO_NULL_V, GYRO_RANGE_DPS, GYRO_SCALE_MV_PER_DPS, GYRO_SCALE_TOL)
+from .filters import butterworth_first_order, filter_sections, frequency_response, state_at
 from .spec import TermSpec, signed, spread
 from .stateful import StatefulTerm
 
@@ -75,24 +76,18 @@ class GyroConditioning(StatefulTerm):
     def sos(self, fs: float) -> np.ndarray:
         """The two sections at sample rate fs. An analog low-pass at or above Nyquist cannot be
         represented in the sampled signal; it is then placed at 0.45 fs (the samples alias anyway)."""
-        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
-
-        hp = signal.butter(1, float(self.params["hp_hz"]), "highpass", fs=fs, output="sos")
-        lp = signal.butter(1, min(float(self.params["lp_hz"]), 0.45 * fs), "lowpass", fs=fs, output="sos")
+        hp = butterworth_first_order(float(self.params["hp_hz"]), "highpass", fs)
+        lp = butterworth_first_order(min(float(self.params["lp_hz"]), 0.45 * fs), "lowpass", fs)
         return np.vstack([hp, lp])
 
     def init_state(self, x: np.ndarray, ctx: Context) -> dict[str, Any]:
-        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
-
         x0 = float(np.asarray(x, float)[0]) if len(x) else 0.0
         sos = self.sos(ctx.fs)  # designed once per session: small blocks stay cheap
-        return {"sos": sos, "zi": signal.sosfilt_zi(sos) * x0}
+        return {"sos": sos, "zi": state_at(sos, x0)}
 
     def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
-        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
-
         st = self.current_state(x, ctx)
-        y, st["zi"] = signal.sosfilt(st["sos"], np.asarray(x, float), zi=st["zi"])
+        y = filter_sections(st["sos"], x, st["zi"])
         vs = np.asarray(ctx.vsupply, float)
         return np.clip(self.params["vref_ratio"] * vs + self.params["gain"] * y, 0.0, vs)
 
@@ -139,10 +134,8 @@ def conditioning_response(model: Any, f_hz: Any, fs: float = 100.0) -> tuple[np.
     0.99 / -6° (the low-pass). A pose change
     (a rate pulse of ~1 s) therefore integrates to a wrong angle unless the high-pass is
     undone (``gravcal.core.gyro.conditioning.HighPassInverse``)."""
-    from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
-
     f = np.atleast_1d(np.asarray(f_hz, dtype=float))
-    _, h = signal.sosfreqz(model["gyro_conditioning"].sos(fs), worN=f, fs=fs)
+    h = frequency_response(model["gyro_conditioning"].sos(fs), f, fs)
     return np.abs(h), np.degrees(np.angle(h))
 
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .filters import filter_sections, first_order_section, state_from
+
 
 def first_order_lag(t: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
     """y with dy/dt = (x - y) / tau_s, y = x at the earliest time; each x held over the interval ending
@@ -21,12 +23,11 @@ def first_order_lag(t: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
     y = x[order[0]]
     xs = x[order]
     if xs.size > 1000 and np.ptp(a[1:]) <= 1e-9:  # uniform sampling (samples, not windows): one filter call
-        from scipy import signal  # noqa: PLC0415 (heavy; only long uniform series need it)
-
-        out[order] = signal.lfilter([1.0 - a[1]], [1.0, -a[1]], xs, zi=[a[1] * y])[0]
+        sos = first_order_section([1.0 - a[1]], [1.0, -a[1]])
+        out[order] = filter_sections(sos, xs, state_from(sos, a[1] * y))
         return out
     ys = np.empty_like(xs)
-    for i in range(xs.size):  # sequential recursion; windows are few, samples go through lfilter in the simulator
+    for i in range(xs.size):  # sequential recursion; windows are few, samples go through the compiled filter
         y = a[i] * y + (1.0 - a[i]) * xs[i]
         ys[i] = y
     out[order] = ys

@@ -1,8 +1,9 @@
 """A scenario's sample blocks generated in a child process and read back through a pipe.
 
-The sensor model behind a scenario loads scipy.signal (~60 MB resident). ``gravcald --emulate
---bus i2c`` runs its fake I2C device inside the daemon, so the daemon would carry it; here the
-simulator runs in ``python -m gravcal.drivers.rigs.block_pipe`` instead and the device reads the
+``gravcald --emulate --bus i2c`` runs its fake I2C device inside the daemon; the sensor model behind
+it (its random draws and filters, and scipy.spatial when a misalignment term is switched on) would
+then share the daemon's memory and interpreter. Here the simulator runs in
+``python -m gravcal.drivers.rigs.block_pipe`` instead and the device reads the
 same blocks (SAMPLE_DTYPE bytes, each block preceded by its row count) from its stdout. The pipe's
 back-pressure keeps the child only a few blocks ahead of the device.
 """
@@ -34,7 +35,7 @@ class PipedBlocks:
         cmd = [sys.executable, "-m", __name__, name, "--seed", str(int(seed)), "--fs", repr(float(fs)),
                "--duration", repr(float(duration))]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL)
-        # Wait for the first block here: the child's imports and sensor model take ~0.5-1 s, which must pass
+        # Wait for the first block here: the child's start, imports and sensor model take ~0.4 s, which must pass
         # before the device announces itself and its stream clock starts (else its FIFO overflows at once).
         self._first = self._read()
 

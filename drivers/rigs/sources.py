@@ -31,14 +31,14 @@ def scenario_source(name: str, *, seed: int = 0, fs: float = 100.0, duration: fl
     """The sensor model on a scenario, via ``gravcal.core.simulate.simulate_blocks``."""
     if name == PATTERN:
         return Source(pattern_blocks(seed=seed, fs=fs, duration=duration, block=block), fs, name)
-    # The sensor model loads scipy (~0.4 s); the test pattern and replays do without it.
+    # The sensor model's imports (~0.1 s); the test pattern and replays do without them.
     from ...core.scenarios import SCENARIOS
     from ...core.simulate import simulate_blocks
 
     if name not in SCENARIOS:  # fail before the emulator announces a device, not at the first block
         raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)} or {PATTERN}")
     blocks = iter(simulate_blocks(name, None, seed=seed, duration=duration, fs=fs, block=block, **scenario_kw))
-    # the first block now: the sensor model and its filters (scipy.signal, ~0.4 s to import) are set up
+    # the first block now: the sensor model, its scenario and its filters (~0.1 s) are set up
     # before an emulator announces its device and its stream clock starts, not in the stream's first second
     first = next(blocks, None)
     return Source(_with_ticks(itertools.chain([] if first is None else [first], blocks)), fs, name)

@@ -26,11 +26,17 @@ def _heavy_mapped(pid: int) -> list[str]:
     return sorted(p for p in _mapped(pid) if any(h in p for h in HEAVY))
 
 
+def _children(pid: int) -> list[int]:
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
 @pytest.mark.parametrize("bus", ["serial", "i2c"])
 def test_serving_daemon_maps_no_heavy_scipy_module(bus):
     """After start, with samples flowing to a client through the detector and the estimator, no
     extension module of scipy.signal/stats/optimize/spatial/linalg is mapped into gravcald (i2c: the
-    emulated device runs in the daemon, the sensor model behind it in a child process)."""
+    emulated device runs in the daemon, the sensor model behind it in a child process). The emulator's
+    child (serial: the emulated logger, i2c: the simulator) runs the sensor model without SciPy too: its
+    filters are the same compiled kernel."""
     d = GravcaldProcess(None, "--bus", bus, "--scenario", "six_position", "--speed", "1", fs=200.0)
     try:
         d.wait_serving()
@@ -41,6 +47,11 @@ def test_serving_daemon_maps_no_heavy_scipy_module(bus):
         # the scan itself must see extension modules: the filter kernel the detector runs is mapped
         assert any("/core/_blockkernels" in p for p in _mapped(d.proc.pid))
         assert heavy == [], f"gravcald loaded {sorted({p.split('/scipy/')[1].split('/')[0] for p in heavy})}"
+        children = _children(d.proc.pid)
+        assert children, "the emulated bus has no child process"
+        for child in children:
+            assert any("/core/_blockkernels" in p for p in _mapped(child))
+            assert _heavy_mapped(child) == [], Path(f"/proc/{child}/cmdline").read_bytes()
     finally:
         d.stop()
 

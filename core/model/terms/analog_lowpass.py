@@ -7,6 +7,7 @@ import numpy as np
 
 from ..base import Context, register
 from ..datasheet import CX_TOL, CX_UF
+from ..filters import filter_sections, first_order_section, state_at
 from ..spec import TermSpec
 from ..stateful import StatefulTerm
 
@@ -16,7 +17,7 @@ class AnalogLowpass(StatefulTerm):
     """The Cx/Cy filter: one pole at f_3dB = 5 µF / C per channel (RFILT = 32 kohm on chip).
 
     params: ``c_uf`` (4,) filter capacitors [µF]. Discretised at the simulation rate with a
-    matched pole exp(-2 pi f_3dB / fs). State: the lfilter state per channel; the first block
+    matched pole exp(-2 pi f_3dB / fs). State: the filter state per channel; the first block
     starts settled on its first sample (the sensor was on before the session started).
     """
 
@@ -31,24 +32,20 @@ class AnalogLowpass(StatefulTerm):
     def f3db_hz(self) -> np.ndarray:
         return 5.0 / self.params["c_uf"]
 
-    def _coeffs(self, fs: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    def _sections(self, fs: float) -> list[np.ndarray]:
         pole = np.exp(-2.0 * np.pi * self.f3db_hz / fs)
-        return [(np.array([1.0 - p]), np.array([1.0, -p])) for p in pole]
+        return [first_order_section([1.0 - p], [1.0, -p]) for p in pole]
 
     def init_state(self, x: np.ndarray, ctx: Context) -> dict[str, Any]:
-        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
-
         x0 = np.asarray(x, float)[0] if len(x) else np.zeros(4)
-        coeffs = self._coeffs(ctx.fs)
-        return {"coeffs": coeffs, "zi": [signal.lfilter_zi(b, a) * x0[c] for c, (b, a) in enumerate(coeffs)]}
+        sections = self._sections(ctx.fs)
+        return {"sections": sections, "zi": [state_at(sos, x0[c]) for c, sos in enumerate(sections)]}
 
     def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
-        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
-
         st = self.current_state(x, ctx)
         out = np.empty_like(np.asarray(x, float))
-        for c, (b, a) in enumerate(st["coeffs"]):  # 4 channels, each its own pole
-            out[:, c], st["zi"][c] = signal.lfilter(b, a, x[:, c], zi=st["zi"][c])
+        for c, sos in enumerate(st["sections"]):  # 4 channels, each its own pole
+            out[:, c] = filter_sections(sos, x[:, c], st["zi"][c])
         return out
 
     def linear_part(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:

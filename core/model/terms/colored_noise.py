@@ -7,6 +7,7 @@ import numpy as np
 
 from ..base import Context, register
 from ..datasheet import BIAS_INSTABILITY_G, BIAS_TAU_S
+from ..filters import filter_sections, first_order_section, state_from
 from ..spec import TermSpec
 from ..stateful import StatefulTerm
 
@@ -34,11 +35,11 @@ class ColoredNoise(StatefulTerm):
         k = self.params["tau_s"].size
         s = self.params["sigma_g"] / np.sqrt(k)
         p0 = self.state["rng"].standard_normal((k, 4)) * s  # stationary start
-        return {"zi": self._phi(ctx.fs)[:, None] * p0}
+        phi = self._phi(ctx.fs)
+        sections = [first_order_section([1.0], [1.0, -phi[j]]) for j in range(k)]
+        return {"sections": sections, "zi": [state_from(sections[j], phi[j] * p0[j], 4) for j in range(k)]}
 
     def forward(self, x: np.ndarray, ctx: Context) -> np.ndarray:
-        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
-
         st = self.current_state(x, ctx)
         k = self.params["tau_s"].size
         s = self.params["sigma_g"] / np.sqrt(k)
@@ -46,10 +47,7 @@ class ColoredNoise(StatefulTerm):
         w = st["rng"].standard_normal((x.shape[0], k, 4))  # sample-major: block-split invariant
         out = np.array(x, dtype=float, copy=True)
         for j in range(k):  # k is 2-4 processes, not samples
-            y, zf = signal.lfilter([1.0], [1.0, -phi[j]], w[:, j] * (s * np.sqrt(1.0 - phi[j] ** 2)),
-                                   axis=0, zi=st["zi"][j][None, :])
-            st["zi"][j] = zf[0]
-            out += y
+            out += filter_sections(st["sections"][j], w[:, j] * (s * np.sqrt(1.0 - phi[j] ** 2)), st["zi"][j])
         return out
 
     def linear_part(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:

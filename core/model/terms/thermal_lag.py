@@ -15,6 +15,7 @@ import numpy as np
 
 from ..base import Context, register
 from ..datasheet import THERMAL_LAG_TAU_S
+from ..filters import filter_sections, first_order_section, state_from
 from ..lag import first_order_lag
 from ..spec import CalibrationView, TermSpec, channels_from_axes, column, per_sensitivity
 from ..stateful import StatefulTerm
@@ -23,7 +24,7 @@ from ..stateful import StatefulTerm
 @register
 class ThermalLag(StatefulTerm):
     """Offset coef_g_per_c (T_lag - t0_c) per channel [g/°C], T_lag the temperature lagged by tau_s [s];
-    state = T_lag at the end of the last block (block-split invariant)."""
+    state = the lag filter's delay (a T_lag) at the end of the last block (block-split invariant)."""
 
     name = "thermal_lag"
     stage = "channel"
@@ -34,17 +35,13 @@ class ThermalLag(StatefulTerm):
         super().__init__(coef_g_per_c=coef_g_per_c, t0_c=t0_c, tau_s=tau_s, **params)
 
     def init_state(self, x: np.ndarray, ctx: Context) -> dict[str, Any]:
-        return {"lagged": float(np.asarray(ctx.temp, dtype=float).ravel()[0])}
+        a = float(np.exp(-1.0 / (ctx.fs * float(self.params["tau_s"]))))
+        sos = first_order_section([1.0 - a], [1.0, -a])
+        return {"sos": sos, "zi": state_from(sos, a * float(np.asarray(ctx.temp, dtype=float).ravel()[0]))}
 
     def lagged_temp(self, x: np.ndarray, ctx: Context) -> np.ndarray:
-        from scipy import signal  # noqa: PLC0415 (scipy.signal is heavy; only the simulator needs it)
-
         st = self.current_state(x, ctx)
-        a = float(np.exp(-1.0 / (ctx.fs * float(self.params["tau_s"]))))
-        temp = np.broadcast_to(np.asarray(ctx.temp, dtype=float), (ctx.n,))
-        y, zf = signal.lfilter([1.0 - a], [1.0, -a], temp, zi=[a * st["lagged"]])
-        st["lagged"] = float(y[-1]) if y.size else st["lagged"]
-        return y
+        return filter_sections(st["sos"], np.broadcast_to(np.asarray(ctx.temp, dtype=float), (ctx.n,)), st["zi"])
 
     def linear_part(self, ctx: Context) -> tuple[np.ndarray, np.ndarray]:
         """Offset at the context's rows, the lag starting at the first row's temperature (no earlier history)."""
