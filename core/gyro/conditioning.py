@@ -21,22 +21,20 @@ worse in simulation: posture sway and ADC quantisation corrupt the shape. The lo
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from .._blockkernels import sosfilt
 
 
 def highpass_ba(hp_hz: float, fs: float) -> tuple[np.ndarray, np.ndarray]:
-    """The board's first-order high-pass as simulated (Butterworth, bilinear) at ``fs`` [Hz]:
-    signal.butter(1, hp_hz, "highpass", fs=fs) in closed form (the corner prewarped), so that the
-    daemon's online gyro calibration does not import scipy.signal (~76 MB resident)."""
+    """The board's first-order high-pass as simulated at ``fs`` [Hz]: the simulator's own section
+    (signal.butter(1, hp_hz, "highpass", fs=fs) bit for bit, without scipy.signal) as lfilter's (b, a)."""
+    from ..detectors.butterworth import butter_sos  # noqa: PLC0415 (the detectors' package imports the model)
+
     if not (0 < hp_hz < fs / 2):
         raise ValueError(f"high-pass corner must lie in (0, fs/2 = {fs / 2} Hz), got {hp_hz}")
-    k = math.tan(math.pi * float(hp_hz) / fs)
-    b0 = 1.0 / (1.0 + k)
-    return np.array([b0, -b0]), np.array([1.0, (k - 1.0) / (1.0 + k)])
+    b0, b1, _, _, a1, _ = butter_sos(1, float(hp_hz), "highpass", float(fs))[0]
+    return np.array([b0, b1]), np.array([1.0, a1])
 
 
 class HighPassInverse:

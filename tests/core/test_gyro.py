@@ -49,6 +49,16 @@ def test_highpass_inverse_recovers_the_rate_exactly_and_streams_block_split():
     assert np.array_equal(parts, whole)
 
 
+@pytest.mark.parametrize("hp_hz,fs", [(0.3, 100.0), (0.3, 200.0), (0.05, 50.0), (1.7, 100.0)])
+def test_inverse_inverts_the_simulators_own_high_pass(hp_hz, fs):
+    """The inverse's (b, a) is the simulated board's high-pass section, and SciPy's design, bit for bit."""
+    b, a = highpass_ba(hp_hz, fs)
+    sos = default_model(nominal=True)["gyro_conditioning"].__class__(hp_hz=hp_hz).sos(fs)[0]
+    assert np.array_equal(b, sos[:2]) and np.array_equal(a, sos[3:5])
+    b_ref, a_ref = signal.butter(1, hp_hz, "highpass", fs=fs)
+    assert np.array_equal(b, b_ref) and np.array_equal(a, a_ref)
+
+
 def test_attitude_scan_equals_the_sequential_product():
     rng = np.random.default_rng(0)
     w = rng.normal(size=(513, 3))
