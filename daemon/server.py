@@ -46,6 +46,7 @@ from .socket_activation import bind_unix_socket
 log = logging.getLogger("gravcal.server")
 
 ROOM_IDLE_S = 5.0  # a full table closes the longest-idle non-watcher idle at least this long
+IDLE_WAKE_S = 5.0  # the longest the event loop sleeps with no client check due (a guard: every change wakes it)
 TRIM_AFTER_BYTES = 1 << 20  # a client leaving with this much queued hands the memory back
 _COUNTERS = ("clients_total", "clients_rejected", "clients_stalled", "clients_idle", "clients_hung_up",
              "clients_flooding", "requests_refused", "published_samples", "inbox_overruns")  # in STATUS's server
@@ -242,8 +243,7 @@ class SocketServer:
     def _run(self) -> None:
         try:
             while not self._stop.is_set():
-                timeout = min(0.25, self.config.stall_timeout_s / 4)
-                for key, mask in self._sel.select(timeout):
+                for key, mask in self._sel.select(self._select_timeout()):
                     if key.data == "listener":
                         self._accept()
                     elif key.data == "wake":
@@ -267,6 +267,25 @@ class SocketServer:
         except Exception:  # never die silently: the daemon watches is_alive()
             log.exception("socket server thread crashed")
             raise
+
+    def _select_timeout(self) -> float:
+        """How long the event loop may sleep: until the next client check is due. A client with output pending
+        (stall check), paused or half-closed (resume, hang-up check), or freed memory to hand back, is looked at
+        every min(0.25 s, stall_timeout / 4) as long as it lasts; an idle non-watcher at its idle deadline; with
+        nothing due (watchers taking every line) the thread sleeps until a socket or publish() wakes it (output
+        left queued by either wakes it), at most IDLE_WAKE_S."""
+        cfg = self.config
+        busy = min(0.25, cfg.stall_timeout_s / 4)
+        if self._trim_due:
+            return busy
+        due = IDLE_WAKE_S
+        now = time.monotonic()
+        for c in list(self._clients.values()):
+            if c.read_closed or c.paused_until or c.pending():
+                return busy
+            if not c.watch.enable:
+                due = min(due, c.last_request + cfg.idle_timeout_s - now)
+        return min(max(due, 0.0) + 0.01, IDLE_WAKE_S)
 
     @property
     def alive(self) -> bool:
