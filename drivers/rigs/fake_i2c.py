@@ -64,6 +64,8 @@ class ManualClock:
 
 
 MIN_SAMPLING_INTERVAL_S = 0.002
+I2C_RDWR_IOCTL_MAX_MSGS = 42  # linux/i2c-dev.h
+I2C_RDWR_MAX_LEN = 8192  # drivers/i2c/i2c-dev.c: the longest message I2C_RDWR accepts
 
 
 class DataReadyLine:
@@ -370,6 +372,10 @@ class FakeSMBus:
                 dev.bus_cpu_s += time.thread_time() - c0
 
     def _rdwr(self, i2c_msgs) -> None:
+        # i2c-dev's I2C_RDWR refuses, before any transfer, more than I2C_RDWR_IOCTL_MAX_MSGS messages or a message
+        # longer than 8192 bytes (EINVAL)
+        if len(i2c_msgs) > I2C_RDWR_IOCTL_MAX_MSGS or any(m.len > I2C_RDWR_MAX_LEN for m in i2c_msgs):
+            raise OSError(errno.EINVAL, "Invalid argument (I2C_RDWR: too many messages or a message too long)")
         pointer = None
         for msg in i2c_msgs:
             dev = self._dev(msg.addr)
@@ -399,7 +405,7 @@ class FakeI2CDriver(I2CDriver):
     """The production I2C driver reading ``device`` through a :class:`FakeSMBus`.
 
     As a spec, ``fake-i2c://0x42?scenario=NAME&seed=N&speed=X&fs=HZ&duration=S&fifo_depth=N&drop=P&ber=P``
-    (plus the I2C driver's ``burst_frames``, ``poll_s``, ``tick_hz``, ``latency_budget_s``): an
+    (plus the I2C driver's ``burst_frames``, ``poll_s``, ``tick_hz``, ``latency_budget_s``, ``combined``): an
     in-process logger, the HIL rig without a second process. ``realtime`` (default): the device
     samples in real time from its own thread while the driver is open and the driver sleeps on its
     DRDY line; otherwise the FIFO fills only on bus accesses (tests with a manual clock) and the
@@ -429,6 +435,7 @@ class FakeI2CDriver(I2CDriver):
             "scenario": str, "seed": int, "speed": float, "fs": float, "duration": float,
             "fifo_depth": int, "drop": float, "ber": float, "burst_frames": int, "poll_s": float,
             "tick_hz": float, "latency_budget_s": float, "realtime": lambda v: v.strip().lower() in ("1", "true", "yes"),
+            "combined": lambda v: v.strip().lower() in ("1", "true", "yes"),
         })
         address_text = (spec.host or spec.path).strip("/")
         try:
