@@ -115,7 +115,8 @@ class I2CDriver(FramedStreamDriver):
         self.address = int(address)
         self.rate = rate
         self.burst_frames = max(1, int(burst_frames))
-        self._msgs: dict[tuple[int, int], tuple] = {}  # (register, length) -> reusable i2c_msg pair
+        # (register, length) -> reusable i2c_msg pair; frames -> the combined read's four messages
+        self._msgs: dict[Any, tuple] = {}
         self.poll_s = poll_s
         self.data_ready = data_ready  # the DRDY line: fileno() and wait(timeout) -> bool
         if not latency_budget_s >= 0:
@@ -254,14 +255,18 @@ class I2CDriver(FramedStreamDriver):
         """STATUS, FIFO_COUNT and the FIFO's first ``frames`` frames in one combined transaction; the bytes are
         the frames it took: ``frames`` when FIFO_COUNT had them, else the count's and any that came in before
         the data phase (a frame starts with its sync bytes; past the FIFO's content the device reads 0x00)."""
-        ws, rs = self._messages(REG_STATUS, 2)
-        wf, rf = self._messages(REG_FIFO_DATA, frames * FRAME_LEN)
-        self._smbus.i2c_rdwr(ws, rs, wf, rf)
-        self.counters["polls"] += 1
-        self.counters["bursts"] += 1
-        status, count = bytes(rs)
-        data = bytes(rf)
-        taken = min(count, frames)
+        msgs = self._msgs.get(frames)
+        if msgs is None:
+            msgs = self._msgs[frames] = self._messages(REG_STATUS, 2) + self._messages(REG_FIFO_DATA, frames * FRAME_LEN)
+        self._smbus.i2c_rdwr(*msgs)
+        counters = self.counters
+        counters["polls"] += 1
+        counters["bursts"] += 1
+        status, count = bytes(msgs[1])
+        data = bytes(msgs[3])
+        if count >= frames:
+            return status, count, data
+        taken = count
         while taken < frames and any(data[taken * FRAME_LEN:(taken + 1) * FRAME_LEN]):
             taken += 1
         return status, count, data[:taken * FRAME_LEN]

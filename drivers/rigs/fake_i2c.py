@@ -69,26 +69,35 @@ I2C_RDWR_MAX_LEN = 8192  # drivers/i2c/i2c-dev.c: the longest message I2C_RDWR a
 
 
 class DataReadyLine:
-    """The logger's DRDY output as the host sees it: a pipe that is readable while the line is high
-    (the device keeps one byte in it while asserted)."""
+    """The logger's DRDY output as the host sees it: a pipe that is readable while the line is high. The device
+    writes a byte each time it raises the line (each sample that leaves the FIFO at or above the watermark) and
+    drains the pipe when a read takes the FIFO below it, so a sample is never left without a readable line
+    whichever thread's call lands last (a byte for a sample already taken costs one empty read, no more)."""
 
     def __init__(self) -> None:
         self._r, self._w = os.pipe()
         os.set_blocking(self._r, False)
+        os.set_blocking(self._w, False)
+        self._poll = select.poll()  # registered once, as SysfsDataReady (drivers/i2c.py) waits on a GPIO
+        self._poll.register(self._r, select.POLLIN)
         self.high = False
 
     def fileno(self) -> int:
         return self._r
 
     def set(self, high: bool) -> None:
-        if high and not self.high:
-            os.write(self._w, b"1")
-        elif not high and self.high:
-            os.read(self._r, 16)
         self.high = high
+        try:
+            if high:
+                os.write(self._w, b"1")
+            else:
+                while os.read(self._r, 4096):
+                    pass
+        except BlockingIOError:
+            pass  # full of raises nobody took (readable already), or nothing to drain
 
     def wait(self, timeout: float) -> bool:
-        return bool(select.select([self._r], [], [], max(0.0, timeout))[0])
+        return bool(self._poll.poll(max(0.0, timeout) * 1e3))
 
     def close(self) -> None:
         os.close(self._r)
@@ -144,6 +153,8 @@ class FakeI2CDevice:
         self.bus_cpu_s = 0.0  # thread CPU spent in this device's bus transactions (i2c_rdwr), in the caller's thread
         self.watermark = 1
         self.data_ready = DataReadyLine()
+        self._line_deferred = False  # inside the sampling thread's locked section: a raise waits for its end
+        self._line_raise = False
         self._sampling: threading.Thread | None = None
         self._stop_sampling = threading.Event()
 
@@ -164,14 +175,27 @@ class FakeI2CDevice:
     def _sample_loop(self) -> None:
         while not self._stop_sampling.is_set():
             with self._lock:
-                self._advance()
+                self._line_deferred = True
+                try:
+                    self._advance()
+                finally:
+                    self._line_deferred = False
+                raise_line, self._line_raise = self._line_raise, False
                 due = (self._t_enable + (self._produced + 1) / (self.rate * self.speed) if self._enabled
                        else self.clock() + 0.01)
+            # DRDY rises once the FIFO write is done and the device's lock is free, as on the logger: the host
+            # it wakes finds the FIFO ready (a raise under the lock would wake it into a wait for that lock)
+            if raise_line:
+                self.data_ready.set(True)
             # each sample on time, but a time-lapse at most every MIN_SAMPLING_INTERVAL_S (in small batches)
             self._stop_sampling.wait(max(MIN_SAMPLING_INTERVAL_S, due - self.clock()))
 
     def _update_line(self) -> None:
-        self.data_ready.set(len(self._fifo_seq) >= self.watermark)
+        high = len(self._fifo_seq) >= self.watermark
+        if high and self._line_deferred:  # the sampling thread raises it once its lock is released
+            self._line_raise = True
+        else:
+            self.data_ready.set(high)
 
     # -- time ------------------------------------------------------------------------
     @property

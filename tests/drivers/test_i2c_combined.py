@@ -133,3 +133,50 @@ def test_the_fake_bus_refuses_what_i2c_dev_refuses():
     assert e.value.errno == errno.EINVAL
     w, r = i2c_msg.write(0x42, [REG_FIFO_COUNT]), i2c_msg.read(0x42, 1)
     bus.i2c_rdwr(*[w, r] * 21)  # 42 messages: accepted
+
+
+def test_drdy_line_raises_per_sample_and_a_read_below_the_watermark_lowers_it():
+    from gravcal.drivers.rigs.fake_i2c import DataReadyLine
+
+    line = DataReadyLine()
+    try:
+        assert not line.wait(0)
+        line.set(True)
+        line.set(True)  # a second sample while high: still one readable line
+        assert line.wait(0)
+        line.set(False)  # drained whatever was raised
+        assert not line.wait(0)
+        line.set(False)
+        assert not line.wait(0)
+    finally:
+        line.close()
+
+
+def test_the_sampling_thread_raises_drdy_with_the_devices_lock_free():
+    """The host DRDY wakes reads the FIFO at once: a raise made while the device still held its lock would
+    wake it into a wait for that lock (two wake-ups per sample instead of one)."""
+    import threading
+    import time
+
+    dev = FakeI2CDevice(pattern_blocks(seed=4, fs=200, duration=10), 200, fifo_depth=255)
+    raised = []
+    real_set = dev.data_ready.set
+
+    def recording_set(high):
+        if high and threading.current_thread().name == "fake-i2c-device":
+            raised.append(dev._lock.locked())
+        real_set(high)
+
+    dev.data_ready.set = recording_set
+    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: FakeSMBus(dev, bus), data_ready=dev.data_ready)
+    got = 0
+    with drv:
+        dev.start_sampling()
+        try:
+            t_end = time.monotonic() + 0.5
+            while time.monotonic() < t_end:
+                got += drv.read(max_samples=4096, timeout=0.05).shape[0]
+        finally:
+            dev.stop_sampling()
+    assert got >= 50 and len(raised) >= 50
+    assert not any(raised)
