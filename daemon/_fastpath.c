@@ -14,7 +14,8 @@
  *     or more frames than max_frames: returned as leftover, the driver decodes them as it always does;
  *     with ist[IST_CAN] = 1 + a CAN base id the bytes are slcan lines and a "frame" is a CAN sample's four lines
  *     (the frame kernel's slcan_continuing: anything else is handed back to python-can's reader);
- *   - watchers: delivery only to the snapshot ``server.fast_watchers`` (watching every sample, read per
+ *   - watchers: delivery only to the snapshot ``server.fast_watchers`` (the one item of ``server.fast_box``
+ *     when the server has that list, else the attribute; watching every sample, read per
  *     wake-up; None: some watcher is not plain). A watcher that is closed or whose output is not empty, or
  *     whose policy changed (both told by its ClientRecord's gate, below), or whose socket does not take the
  *     whole block stops the delivery: its lock stays held and the snapshot is returned, so fastpath.py
@@ -60,7 +61,7 @@ enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
 enum { ENTRY_CLIENT, ENTRY_RECORD, ENTRY_FD, ENTRY_RAW, ENTRY_WATCH, ENTRY_ACQUIRE, ENTRY_RELEASE, ENTRY_N };
 
 /* attribute names, interned once: a lookup is then a pointer comparison */
-static PyObject *s_fast_watchers, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t,
+static PyObject *s_fast_watchers, *s_fast_box, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t,
     *s_params_generation;
 
 /* ClientRecord: what the step reads and writes per client, as C fields (no attribute lookup per sample).
@@ -413,6 +414,7 @@ typedef struct {
     State S;
     Params P;
     Py_buffer generation; /* processor.params_generation: one int64 */
+    PyObject *box; /* server.fast_box, a list whose one item is the watcher snapshot (NULL: read fast_watchers) */
     int started; /* S holds the caller's state (copied back at the end) */
 } Call;
 
@@ -424,6 +426,7 @@ static int call_open(Call *C)
     C->lines[0] = C->lines[1] = (Bytes){NULL, 0, 0};
     C->P = (Params){NULL, NULL};
     C->generation.obj = NULL;
+    C->box = NULL;
     C->started = 0;
     if (C->max_frames < 1 || C->max_frames > MAX_FRAMES_LIMIT) {
         PyErr_SetString(PyExc_ValueError, "fastpath: needs 1 <= max_frames <= 4096");
@@ -446,6 +449,19 @@ static int call_open(Call *C)
         PyErr_SetString(PyExc_TypeError, "fastpath: processor.params_generation must be one int64");
         return -1;
     }
+    /* the server's snapshot box, when it has one: a list of exactly one item (the server only replaces the item) */
+    PyObject *box = PyObject_GetAttr(C->server, s_fast_box);
+    if (box == NULL) {
+        if (!PyErr_ExceptionMatches(PyExc_AttributeError))
+            return -1;
+        PyErr_Clear();
+    } else if (!PyList_CheckExact(box) || PyList_GET_SIZE(box) != 1) {
+        Py_DECREF(box);
+        PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_box must be a list of one watcher snapshot");
+        return -1;
+    } else {
+        C->box = box;
+    }
     C->ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)C->max_frames);
     if (C->ticks == NULL) {
         PyErr_NoMemory();
@@ -465,7 +481,15 @@ static int call_open(Call *C)
    path's: reason R_NOT_PLAIN), -1 error */
 static int call_prepare(Call *C, PyObject **snapshot)
 {
-    PyObject *snap = PyObject_GetAttr(C->server, s_fast_watchers);
+    PyObject *snap;
+    if (C->box == NULL) {
+        snap = PyObject_GetAttr(C->server, s_fast_watchers);
+    } else if (PyList_GET_SIZE(C->box) == 1) { /* per wake-up: a pointer read (the list may not shrink meanwhile) */
+        snap = Py_NewRef(PyList_GET_ITEM(C->box, 0));
+    } else {
+        PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_box must keep exactly one item");
+        snap = NULL;
+    }
     if (snap == NULL)
         return -1;
     if (snap != Py_None && !PyTuple_Check(snap)) {
@@ -549,6 +573,7 @@ static PyObject *call_close(Call *C, int ok)
         memcpy(C->fst.buf, C->S.fst, sizeof C->S.fst);
     }
     Py_XDECREF(C->leftover);
+    Py_XDECREF(C->box);
     Py_DECREF(C->stopped);
     Py_XDECREF(C->P.correction);
     Py_XDECREF(C->P.gyro);
@@ -728,7 +753,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     struct {
         PyObject **name;
         const char *text;
-    } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_correction, "correction"},
+    } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_fast_box, "fast_box"}, {&s_correction, "correction"},
                  {&s_gyro_correction, "gyro_correction"}, {&s_analysed, "analysed"}, {&s_offset, "offset"},
                  {&s_kinv_t, "kinv_t"}, {&s_params_generation, "params_generation"}};
     for (size_t i = 0; i < sizeof names / sizeof names[0]; i++)

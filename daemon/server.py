@@ -91,8 +91,9 @@ class SocketServer:
         self._clients: dict[int, _Client] = {}
         self._watchers: tuple[_Client, ...] = ()  # replaced, never mutated: publish() reads it unlocked
         # The watchers as the latency path's C step sends to them (fanout.fast_snapshot), replaced with
-        # _watchers; None while one of them is decimated.
-        self.fast_watchers: tuple[tuple[Any, ...], ...] | None = ()
+        # _watchers; None while one of them is decimated. Kept as the one item of a list the step holds for a
+        # whole call: it reads the item per wake-up, a pointer, instead of looking up an attribute.
+        self.fast_box: list[tuple[tuple[Any, ...], ...] | None] = [()]
         self._next_id = 1
         self._calib: dict[str, Any] | None = None
         self._last_block: ImuBlock | None = None
@@ -207,7 +208,11 @@ class SocketServer:
     def _set_watchers(self) -> None:
         """Rebuild the watcher tuples after a change (under the changing client's lock, or as it closes)."""
         self._watchers = tuple(w for w in self._clients.values() if w.watch.enable)
-        self.fast_watchers = fast_snapshot(self._watchers)
+        self.fast_box[0] = fast_snapshot(self._watchers)
+
+    @property
+    def fast_watchers(self) -> tuple[tuple[Any, ...], ...] | None:
+        return self.fast_box[0]
 
     def _wake_once(self) -> None:
         with self._wake_lock:

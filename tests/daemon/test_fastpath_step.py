@@ -389,3 +389,48 @@ def test_on_a_tty_every_frame_is_taken_as_it_arrives(rig):
     np.testing.assert_array_equal(rows["seq"], np.arange(100, 104))
     assert rig.received().count(b"\n") == 4
     assert elapsed < 5.0  # returned on the stage limit, not at the 10 s deadline with bytes left unread
+
+
+def test_the_servers_snapshot_box_is_read_at_every_wake_up(rig):
+    """A server with ``fast_box`` (daemon/server.py): the step holds the list for the call and reads its one
+    item per wake-up, so a watcher leaving mid-call gets no further line; a box that is not one item is refused."""
+    rig.server = SimpleNamespace(fast_box=[fast_snapshot((rig.client,))])
+    rig.ist[fp.IST_STAGE_LIMIT] = 2 * SAMPLE_DTYPE.itemsize
+    got = []
+
+    def feed():
+        os.write(rig.w, frames([5]))
+        while not got:
+            got.append(rig.received()) if rig.peer.recv(1, socket.MSG_PEEK) else None
+        rig.server.fast_box[0] = ()  # the watcher left: the next wake-up sends to nobody
+        os.write(rig.w, frames([6]))
+
+    t = threading.Thread(target=feed)
+    t.start()
+    leftover, stopped = rig.step(5, 100, seconds=5.0)
+    t.join()
+    assert (leftover, stopped) == (b"", None)
+    assert np.frombuffer(bytes(rig.staged), SAMPLE_DTYPE)["seq"].tolist() == [100, 101]
+    assert got[0].count(b"\n") == 1 and rig.received() == b""
+    for bad in ([], [(), ()], ((),)):
+        rig.server = SimpleNamespace(fast_box=bad)
+        with pytest.raises(TypeError, match="fast_box"):
+            rig.step(7, 102)
+
+
+def test_a_box_emptied_mid_call_is_an_error_not_a_crash(rig):
+    rig.server = SimpleNamespace(fast_box=[fast_snapshot((rig.client,))])
+
+    def feed():
+        os.write(rig.w, frames([5]))
+        while not rig.peer.recv(1, socket.MSG_PEEK):
+            pass
+        rig.server.fast_box.clear()
+        os.write(rig.w, frames([6]))
+
+    t = threading.Thread(target=feed)
+    t.start()
+    with pytest.raises(TypeError, match="exactly one item"):
+        rig.step(5, 100, seconds=5.0)
+    t.join()
+    assert np.frombuffer(bytes(rig.staged), SAMPLE_DTYPE)["seq"].tolist() == [100]  # what it took stays taken
