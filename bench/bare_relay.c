@@ -106,12 +106,14 @@ int main(int argc, char **argv)
         int r = epoll_wait(ep, &ev, 1, 250);
         if (r <= 0)
             continue;
-        ssize_t n = read(tty, buf, READ_BYTES), last = n;
+        size_t ask = TTY_CHUNK; /* the same reads as gravcald's C step: never more than the tty holds */
+        ssize_t n = read(tty, buf, ask), last = n;
         if (n <= 0)
             continue;
-        int avail; /* the same reads as gravcald's C step: on while a tty chunk came whole and more is there */
-        while (last >= TTY_CHUNK && n < READ_BYTES && ioctl(tty, FIONREAD, &avail) == 0 && avail > 0) {
-            last = read(tty, buf + n, (size_t)(READ_BYTES - n));
+        int avail;
+        while ((size_t)last == ask && n < READ_BYTES && ioctl(tty, FIONREAD, &avail) == 0 && avail > 0) {
+            ask = (size_t)avail < (size_t)(READ_BYTES - n) ? (size_t)avail : (size_t)(READ_BYTES - n);
+            last = read(tty, buf + n, ask);
             if (last <= 0)
                 break;
             n += last;

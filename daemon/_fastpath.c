@@ -50,7 +50,7 @@
 
 #define READ_BYTES 65536 /* drivers/serial.py READ_BYTES: more than the kernel's tty buffer holds */
 #define MAX_FRAMES_LIMIT 4096
-#define TTY_CHUNK 64 /* the most one read() of a tty returns (drivers/tty_io.c tty_read's kernel buffer) */
+#define TTY_CHUNK 64 /* tty_read's kernel buffer (drivers/tty/tty_io.c): the line discipline is asked per 64 bytes */
 
 /* ist (int64) and fst (float64) slots: the state shared with daemon/fastpath.py */
 enum { IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH,
@@ -669,7 +669,13 @@ static PyObject *step(PyObject *self, PyObject *args)
             goto done;
         if (plain == 0)
             break;
-        ssize_t n = read(fd, buf, READ_BYTES);
+        /* Never ask a tty for more than it holds: n_tty_read, short of VMIN in the 64-byte chunk tty_read hands
+           it last (the 14 bytes after the first 64 of a 78-byte slcan sample), waits for the tty's flush work
+           still running after the wake-up: a second sleep and wake-up. So one chunk first (a 29-byte frame: all
+           there was, one read), and while a read filled what it asked, FIONREAD says how much more to take.
+           What arrives later queues the next epoll event. */
+        size_t ask = TTY_CHUNK;
+        ssize_t n = read(fd, buf, ask);
         if (n < 0 && (errno == EAGAIN || errno == EINTR)) {
             Py_DECREF(snapshot);
             continue;
@@ -679,13 +685,11 @@ static PyObject *step(PyObject *self, PyObject *args)
             S->ist[IST_REASON] = n == 0 ? R_EOF : R_ERROR;
             break;
         }
-        /* a tty read returns at most TTY_CHUNK bytes (the kernel's tty_read buffer): the rest of what has arrived.
-           A read that returned less had everything there was (the usual 29-byte frame: no FIONREAD call); what
-           arrives later wakes the next poll(). */
         int avail;
         ssize_t last = n;
-        while (last >= TTY_CHUNK && n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
-            last = read(fd, buf + n, (size_t)(READ_BYTES - n));
+        while ((size_t)last == ask && n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
+            ask = (size_t)avail < (size_t)(READ_BYTES - n) ? (size_t)avail : (size_t)(READ_BYTES - n);
+            last = read(fd, buf + n, ask);
             if (last <= 0)
                 break;
             n += last;
