@@ -338,7 +338,8 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int) -
     return {"bus": bus, "clients": clients, "cpu_percent": cpu / wall * 100, "line_bytes": line_bytes,
             "lines_per_s_per_client": stats.get("lines", 0) / clients / lifetime if stats else None,
             "wakeups_per_s": stats.get("wakeups", 0) / lifetime if stats else None,
-            "voluntary_switches_per_s": (sw1[0] - sw0[0]) / wall, "involuntary_switches_per_s": (sw1[1] - sw0[1]) / wall,
+            "voluntary_switches_per_s": (sw1[0] - sw0[0]) / wall,
+            "involuntary_switches_per_s": (sw1[1] - sw0[1]) / wall,
             "bytes_per_s_per_client": stats.get("bytes", 0) / clients / lifetime if stats else None}
 
 
@@ -399,7 +400,8 @@ def main(argv=None) -> int:
                 print(f"{'floor':8s} {bus:6s} {n:3d} client(s)  a bare C relay of the same traffic "
                       f"({f['line_bytes']} bytes per line, "
                       f"{f['bytes_per_s_per_client'] / f['line_bytes']:.1f} lines/s sent per client, "
-                      f"{f['wakeups_per_s']:.1f} poll wake-ups/s, context switches {f['voluntary_switches_per_s']:.1f} + "
+                      f"{f['wakeups_per_s']:.1f} wake-ups/s, context switches "
+                      f"{f['voluntary_switches_per_s']:.1f} + "
                       f"{f['involuntary_switches_per_s']:.1f}/s, {f['voluntary_switches_per_s'] / FS:.3f} + "
                       f"{f['involuntary_switches_per_s'] / FS:.3f} per sample): "
                       f"CPU {f['cpu_percent']:.2f} %  (gravcald {t['cpu_percent']:.2f} %)", flush=True)

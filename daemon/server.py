@@ -38,7 +38,7 @@ import numpy as np
 from . import protocol
 from .fanout import deliver, deliver_line, fast_snapshot, finish_delivery
 from .client_limits import ClientState as _Client
-from .client_limits import RequestBudget, ServerConfig, hung_up, return_memory_to_os
+from .client_limits import RequestBudget, ServerConfig, check_due_in, hung_up, return_memory_to_os
 from .output_queue import OutputQueue
 from .protocol import ImuBlock, ProtocolError
 from .socket_activation import bind_unix_socket
@@ -46,7 +46,6 @@ from .socket_activation import bind_unix_socket
 log = logging.getLogger("gravcal.server")
 
 ROOM_IDLE_S = 5.0  # a full table closes the longest-idle non-watcher idle at least this long
-IDLE_WAKE_S = 5.0  # the longest the event loop sleeps with no client check due (a guard: every change wakes it)
 TRIM_AFTER_BYTES = 1 << 20  # a client leaving with this much queued hands the memory back
 _COUNTERS = ("clients_total", "clients_rejected", "clients_stalled", "clients_idle", "clients_hung_up",
              "clients_flooding", "requests_refused", "published_samples", "inbox_overruns")  # in STATUS's server
@@ -90,9 +89,7 @@ class SocketServer:
         self._calib_lock = threading.Lock()  # a new watcher gets the CALIB that is current
         self._clients: dict[int, _Client] = {}
         self._watchers: tuple[_Client, ...] = ()  # replaced, never mutated: publish() reads it unlocked
-        # The watchers as the latency path's C step sends to them (fanout.fast_snapshot), replaced with
-        # _watchers; None while one of them is decimated. Kept as the one item of a list the step holds for a
-        # whole call: it reads the item per wake-up, a pointer, instead of looking up an attribute.
+        # the C step's watchers (fanout.fast_snapshot; None: one is decimated), in a list it holds per call
         self.fast_box: list[tuple[tuple[Any, ...], ...] | None] = [()]
         self._next_id = 1
         self._calib: dict[str, Any] | None = None
@@ -210,9 +207,7 @@ class SocketServer:
         self._watchers = tuple(w for w in self._clients.values() if w.watch.enable)
         self.fast_box[0] = fast_snapshot(self._watchers)
 
-    @property
-    def fast_watchers(self) -> tuple[tuple[Any, ...], ...] | None:
-        return self.fast_box[0]
+    fast_watchers = property(lambda self: self.fast_box[0], doc="the C step's watcher snapshot (fast_box's item)")
 
     def _wake_once(self) -> None:
         with self._wake_lock:
@@ -248,7 +243,8 @@ class SocketServer:
     def _run(self) -> None:
         try:
             while not self._stop.is_set():
-                for key, mask in self._sel.select(self._select_timeout()):
+                due = check_due_in(list(self._clients.values()), self.config, time.monotonic(), self._trim_due)
+                for key, mask in self._sel.select(due):
                     if key.data == "listener":
                         self._accept()
                     elif key.data == "wake":
@@ -272,25 +268,6 @@ class SocketServer:
         except Exception:  # never die silently: the daemon watches is_alive()
             log.exception("socket server thread crashed")
             raise
-
-    def _select_timeout(self) -> float:
-        """How long the event loop may sleep: until the next client check is due. A client with output pending
-        (stall check), paused or half-closed (resume, hang-up check), or freed memory to hand back, is looked at
-        every min(0.25 s, stall_timeout / 4) as long as it lasts; an idle non-watcher at its idle deadline; with
-        nothing due (watchers taking every line) the thread sleeps until a socket or publish() wakes it (output
-        left queued by either wakes it), at most IDLE_WAKE_S."""
-        cfg = self.config
-        busy = min(0.25, cfg.stall_timeout_s / 4)
-        if self._trim_due:
-            return busy
-        due = IDLE_WAKE_S
-        now = time.monotonic()
-        for c in list(self._clients.values()):
-            if c.read_closed or c.paused_until or c.pending():
-                return busy
-            if not c.watch.enable:
-                due = min(due, c.last_request + cfg.idle_timeout_s - now)
-        return min(max(due, 0.0) + 0.01, IDLE_WAKE_S)
 
     @property
     def alive(self) -> bool:

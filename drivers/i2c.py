@@ -257,7 +257,8 @@ class I2CDriver(FramedStreamDriver):
         the data phase (a frame starts with its sync bytes; past the FIFO's content the device reads 0x00)."""
         msgs = self._msgs.get(frames)
         if msgs is None:
-            msgs = self._msgs[frames] = self._messages(REG_STATUS, 2) + self._messages(REG_FIFO_DATA, frames * FRAME_LEN)
+            msgs = self._messages(REG_STATUS, 2) + self._messages(REG_FIFO_DATA, frames * FRAME_LEN)
+            self._msgs[frames] = msgs
         self._smbus.i2c_rdwr(*msgs)
         counters = self.counters
         counters["polls"] += 1

@@ -7,9 +7,15 @@ import time
 
 import pytest
 
-from gravcal.daemon.server import IDLE_WAKE_S, ServerConfig, SocketServer
+from gravcal.daemon.client_limits import IDLE_WAKE_S, check_due_in
+from gravcal.daemon.server import ServerConfig, SocketServer
 
 from test_server import Raw, publish, wait_until
+
+
+def _due(srv: SocketServer) -> float:
+    """How long the server's loop may sleep now (what its select() is given)."""
+    return check_due_in(list(srv._clients.values()), srv.config, time.monotonic(), srv._trim_due)
 
 
 def _sleeps(tid: int) -> int:
@@ -36,7 +42,7 @@ def test_with_only_a_reading_watcher_the_server_thread_sleeps(sockpath):
         publish(srv, 5)
         assert wait_until(lambda: srv.published_samples == 5 and not srv.backlog, 5.0)
         time.sleep(0.3)  # the request's and the publish's wake-ups are over
-        assert srv._select_timeout() > 1.0
+        assert _due(srv) > 1.0
         tid = srv._thread.native_id
         before = _sleeps(tid)
         time.sleep(1.5)
@@ -52,7 +58,7 @@ def test_checks_that_are_due_still_wake_it(sockpath):
     try:
         idle = Raw(sockpath)
         idle.line()
-        assert srv._select_timeout() <= 0.45  # the idle non-watcher's deadline
+        assert _due(srv) <= 0.45  # the idle non-watcher's deadline
         t0 = time.monotonic()
         assert wait_until(lambda: srv.clients_idle == 1, IDLE_WAKE_S)
         assert time.monotonic() - t0 < IDLE_WAKE_S  # closed at its deadline, not at the guard's wake-up
@@ -65,7 +71,7 @@ def test_checks_that_are_due_still_wake_it(sockpath):
         assert wait_until(lambda: any(c.watch.enable for c in list(srv._clients.values())), 5.0)
         publish(srv, 4000)
         assert wait_until(lambda: any(c.pending() for c in list(srv._clients.values())), 5.0)
-        assert srv._select_timeout() == pytest.approx(0.25)
+        assert _due(srv) == pytest.approx(0.25)
         assert wait_until(lambda: srv.clients_stalled == 1, 10.0)
         slow.close()
     finally:
