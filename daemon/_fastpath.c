@@ -50,6 +50,7 @@
 
 #define READ_BYTES 65536 /* drivers/serial.py READ_BYTES: more than the kernel's tty buffer holds */
 #define MAX_FRAMES_LIMIT 4096
+#define SLCAN_SAMPLE_BYTES 78 /* a CAN sample's four slcan lines: t<id><dlc><hex>\r with dlc 8, 7, 7, 5 */
 #define TTY_CHUNK 64 /* tty_read's kernel buffer (drivers/tty/tty_io.c): the line discipline is asked per 64 bytes */
 
 /* ist (int64) and fst (float64) slots: the state shared with daemon/fastpath.py */
@@ -694,6 +695,12 @@ static PyObject *step(PyObject *self, PyObject *args)
                 break;
             n += last;
         }
+        /* A read that ends inside a frame (a CAN sample's lines) may have come while the tty's flush work was still
+           delivering the rest: one more read, which waits for that work, keeps the batch whole and in C (the
+           frame kernel takes only whole frames); anything else (a stray byte) costs one read that finds nothing. */
+        ssize_t unit = S->ist[IST_CAN] ? SLCAN_SAMPLE_BYTES : GRAVCAL_FRAME_LEN;
+        if (n % unit && n < READ_BYTES && (last = read(fd, buf + n, (size_t)(READ_BYTES - n))) > 0)
+            n += last;
         int more = call_process(&C, buf, n, snapshot);
         if (more < 0)
             goto done;
