@@ -5,18 +5,18 @@
  *
  *     bare_relay TTY SOCKET NCLIENTS LINE_BYTES FRAME_BYTES [OPEN_COMMAND]
  *
- * TTY is put in raw mode with VMIN = FRAME_BYTES, as gravcald's drivers do, so poll() wakes once a whole frame
+ * TTY is put in raw mode with VMIN = FRAME_BYTES, as gravcald's drivers do, so epoll wakes once a whole frame
  * (serial) or CAN sample (slcan) is there; OPEN_COMMAND (e.g. "O" for slcan) is written first, followed by CR.
  * It prints "listening" once the socket is bound, "ready" once NCLIENTS are connected, and on SIGTERM the
  * wake-ups, lines and bytes sent.
  */
 #include <errno.h>
 #include <fcntl.h>
-#include <poll.h>
 #include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/epoll.h>
 #include <sys/ioctl.h>
 #include <sys/socket.h>
 #include <sys/un.h>
@@ -94,17 +94,26 @@ int main(int argc, char **argv)
     size_t lines_cap = 0;
     long long wakeups = 0, sent_lines = 0, sent_bytes = 0;
     int carry = 0; /* bytes of a frame not yet complete */
+    /* the same wait as gravcald's C step (daemon/_fastpath.c): edge-triggered epoll, so the tty is asked only
+       when a frame came in (poll() asks it on every entry and may wait there for the tty's flush work) */
+    int ep = epoll_create1(0);
+    struct epoll_event ev = {.events = EPOLLIN | EPOLLET, .data.fd = tty};
+    if (ep < 0 || epoll_ctl(ep, EPOLL_CTL_ADD, tty, &ev) < 0) {
+        perror("bare_relay: epoll");
+        return 1;
+    }
     while (!stop) {
-        struct pollfd p = {tty, POLLIN, 0};
-        int r = poll(&p, 1, 250);
+        int r = epoll_wait(ep, &ev, 1, 250);
         if (r <= 0)
             continue;
-        ssize_t n = read(tty, buf, READ_BYTES), last = n;
+        size_t ask = TTY_CHUNK; /* the same reads as gravcald's C step: never more than the tty holds */
+        ssize_t n = read(tty, buf, ask), last = n;
         if (n <= 0)
             continue;
-        int avail; /* the same reads as gravcald's C step: on while a tty chunk came whole and more is there */
-        while (last >= TTY_CHUNK && n < READ_BYTES && ioctl(tty, FIONREAD, &avail) == 0 && avail > 0) {
-            last = read(tty, buf + n, (size_t)(READ_BYTES - n));
+        int avail;
+        while ((size_t)last == ask && n < READ_BYTES && ioctl(tty, FIONREAD, &avail) == 0 && avail > 0) {
+            ask = (size_t)avail < (size_t)(READ_BYTES - n) ? (size_t)avail : (size_t)(READ_BYTES - n);
+            last = read(tty, buf + n, ask);
             if (last <= 0)
                 break;
             n += last;

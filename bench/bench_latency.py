@@ -11,11 +11,14 @@ N clients, N - 1 more processes watch every sample and discard it.
 Latency: the emulator sends sample ``seq`` at t0 + seq / fs (CLOCK_MONOTONIC, shared by the processes),
 so recv - seq / fs is the frame-in -> line-out delay plus a constant; reported as the spread above the
 run's best case (which holds the wire time, 0.63 ms for a 29-byte frame at 460800 baud): p50, p99, p99.9.
-CPU: utime + stime of the gravcald process over the measurement, % of one core, and per thread
+CPU: the gravcald process's run time over the measurement (/proc schedstat, ns; utime + stime where the
+kernel keeps no schedstats), % of one core, and per thread
 (/proc/PID/task/TID; gravcald's ?STATUS names its threads' ids). For i2c the emulated device's own cost
 (its sampling thread, and its bus transactions timed in the driver's thread, which a real I2C device
 would not cost the host) is reported apart from gravcald's own. RSS: VmRSS of gravcald at the end and
 its peak (VmHWM).
+Wake-ups: per thread, the voluntary context switches (the thread slept and was woken) and the involuntary
+ones (preempted) per sample over the measurement (/proc/PID/task/TID/status), and the bare relay's below.
 
 ``--baseline-src DIR``: run the same measurement first with another source tree (a directory holding
 gravcal/core, gravcal/drivers, gravcal/daemon, e.g. an unpacked `git archive` of an older commit, put
@@ -51,7 +54,11 @@ RELAY_BUS = {"serial": (29, None), "can": (78, "O")}
 
 
 def _cpu_s(pid: int) -> float:
-    return _cpu_s_path(f"/proc/{pid}/stat")
+    """CPU seconds of the whole process: the sum over its threads (a process's own schedstat is its main
+    thread's); stat's utime + stime where there are no schedstats."""
+    if not os.path.exists(f"/proc/{pid}/schedstat"):
+        return _cpu_s_path(f"/proc/{pid}/stat")
+    return sum(_task_cpu_s(pid).values())
 
 
 def _task_cpu_s(pid: int) -> dict[int, float]:
@@ -65,7 +72,51 @@ def _task_cpu_s(pid: int) -> dict[int, float]:
     return out
 
 
+def _switches(path: str) -> tuple[int, int]:
+    """(voluntary, involuntary) context switches of a process or thread (/proc/.../status)."""
+    got = {}
+    with open(path) as fh:
+        for line in fh:
+            key, _, value = line.partition(":")
+            if key in ("voluntary_ctxt_switches", "nonvoluntary_ctxt_switches"):
+                got[key] = int(value)
+    return got["voluntary_ctxt_switches"], got["nonvoluntary_ctxt_switches"]
+
+
+def _task_switches(pid: int) -> dict[int, tuple[int, int]]:
+    """(voluntary, involuntary) context switches of each thread of ``pid``."""
+    out = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            out[int(tid)] = _switches(f"/proc/{pid}/task/{tid}/status")
+        except OSError:  # the thread ended
+            pass
+    return out
+
+
+def _wakeups(names: dict[int, str], sw0: dict[int, tuple[int, int]], sw1: dict[int, tuple[int, int]], wall: float,
+             rate: float) -> dict[str, dict[str, float]]:
+    """Per thread name: voluntary context switches (the thread slept and was woken: a wake-up) and involuntary
+    ones (preempted) per second, and both per sample at ``rate`` samples/s."""
+    per: dict[str, list[int]] = {}
+    for tid, (v1, i1) in sw1.items():
+        v0, i0 = sw0.get(tid, (0, 0))
+        acc = per.setdefault(names.get(tid, "other"), [0, 0])
+        acc[0] += v1 - v0
+        acc[1] += i1 - i0
+    return {name: {"voluntary_per_s": v / wall, "involuntary_per_s": i / wall,
+                   "voluntary_per_sample": v / wall / rate, "involuntary_per_sample": i / wall / rate}
+            for name, (v, i) in per.items()}
+
+
 def _cpu_s_path(path: str) -> float:
+    """CPU seconds of a process or thread: its schedstat run time (ns; the scheduler's own sum, exact), or
+    utime + stime of its stat (clock ticks, 10 ms: ±0.1 % of one core over 10 s) without schedstats."""
+    try:
+        with open(path[: -len("stat")] + "schedstat") as fh:
+            return int(fh.read().split()[0]) * 1e-9
+    except (OSError, ValueError, IndexError):
+        pass
     with open(path) as fh:
         fields = fh.read().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
@@ -181,11 +232,14 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
         _lines(s, 8.0)  # warm-up: imports, the emulator's start-up backlog, first windows
         status0 = _status(path)
         cpu0, task0, t0 = _cpu_s(proc.pid), _task_cpu_s(proc.pid), time.monotonic()
+        sw0 = _task_switches(proc.pid)
         sizes: list[int] = []
         rows = _lines(s, seconds, sizes)
         wall = time.monotonic() - t0
-        cpu, task1 = _cpu_s(proc.pid) - cpu0, _task_cpu_s(proc.pid)
+        cpu, task1, sw1 = _cpu_s(proc.pid) - cpu0, _task_cpu_s(proc.pid), _task_switches(proc.pid)
         status1 = _status(path)
+        names = {tid: name for name, tid in status1.get("threads", {}).items()}
+        wakeups = _wakeups(names, sw0, sw1, wall, max(len(rows), 1) / wall)
         threads, device = _thread_cpu(proc.pid, status0, status1, task0, task1, wall)
         rss, hwm = _rss_mb(proc.pid)
         s.close()
@@ -210,7 +264,7 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
             "samples_per_s": a.shape[0] / wall, "latency_ms": pct, "cpu_percent": cpu / wall * 100,
             "cpu_percent_daemon": None if device is None else cpu / wall * 100 - device,
             "cpu_percent_emulated_device": device,
-            "cpu_percent_by_thread": threads,
+            "cpu_percent_by_thread": threads, "wakeups_by_thread": wakeups,
             "rss_mb": rss, "rss_peak_mb": hwm, "src": src or "this tree", "latency_budget_s": budget_s,
             "line_bytes": float(np.mean(sizes)) if sizes else None}
 
@@ -262,8 +316,10 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int) -
         ready = time.monotonic()
         time.sleep(3.0)  # the emulator's start, the clients' first reads
         cpu0, t0 = _cpu_s(relay_proc.pid), time.monotonic()
+        sw0 = _switches(f"/proc/{relay_proc.pid}/status")
         time.sleep(seconds)
         cpu, wall = _cpu_s(relay_proc.pid) - cpu0, time.monotonic() - t0
+        sw1 = _switches(f"/proc/{relay_proc.pid}/status")
         stop.set()  # the clients leave first, then the relay says what it sent
         for p in readers:
             p.join(5)
@@ -282,6 +338,8 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int) -
     return {"bus": bus, "clients": clients, "cpu_percent": cpu / wall * 100, "line_bytes": line_bytes,
             "lines_per_s_per_client": stats.get("lines", 0) / clients / lifetime if stats else None,
             "wakeups_per_s": stats.get("wakeups", 0) / lifetime if stats else None,
+            "voluntary_switches_per_s": (sw1[0] - sw0[0]) / wall,
+            "involuntary_switches_per_s": (sw1[1] - sw0[1]) / wall,
             "bytes_per_s_per_client": stats.get("bytes", 0) / clients / lifetime if stats else None}
 
 
@@ -294,6 +352,11 @@ def _show(r: dict) -> str:
             + ("" if r.get("share_in_c") is None else f"  C step {r['share_in_c'] * 100:.1f} % of samples") + "\n"
             f"{'':9s}CPU by thread:" + "".join(f" {k} {v:.2f} %" for k, v in sorted(
                 r["cpu_percent_by_thread"].items(), key=lambda kv: -kv[1]) if v >= 0.005)
+            + ("" if not r.get("wakeups_by_thread") else f"\n{'':9s}wake-ups per sample by thread (voluntary + "
+               f"involuntary context switches):" + "".join(
+                   f" {k} {w['voluntary_per_sample']:.3f} + {w['involuntary_per_sample']:.3f}"
+                   for k, w in sorted(r["wakeups_by_thread"].items(), key=lambda kv: -kv[1]["voluntary_per_s"])
+                   if w["voluntary_per_s"] + w["involuntary_per_s"] > 0))
             + (f"\n{'':9s}CPU of the process {r['cpu_percent']:.2f} % = gravcald's own {r['cpu_percent_daemon']:.2f} % "
                f"+ the emulated I2C device in its process {r['cpu_percent_emulated_device']:.2f} % (its sampling "
                f"thread and its bus accesses from the driver's thread)"
@@ -337,7 +400,10 @@ def main(argv=None) -> int:
                 print(f"{'floor':8s} {bus:6s} {n:3d} client(s)  a bare C relay of the same traffic "
                       f"({f['line_bytes']} bytes per line, "
                       f"{f['bytes_per_s_per_client'] / f['line_bytes']:.1f} lines/s sent per client, "
-                      f"{f['wakeups_per_s']:.1f} wake-ups/s): "
+                      f"{f['wakeups_per_s']:.1f} wake-ups/s, context switches "
+                      f"{f['voluntary_switches_per_s']:.1f} + "
+                      f"{f['involuntary_switches_per_s']:.1f}/s, {f['voluntary_switches_per_s'] / FS:.3f} + "
+                      f"{f['involuntary_switches_per_s'] / FS:.3f} per sample): "
                       f"CPU {f['cpu_percent']:.2f} %  (gravcald {t['cpu_percent']:.2f} %)", flush=True)
             results.append(pair)
     if args.json:

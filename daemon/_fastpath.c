@@ -14,7 +14,8 @@
  *     or more frames than max_frames: returned as leftover, the driver decodes them as it always does;
  *     with ist[IST_CAN] = 1 + a CAN base id the bytes are slcan lines and a "frame" is a CAN sample's four lines
  *     (the frame kernel's slcan_continuing: anything else is handed back to python-can's reader);
- *   - watchers: delivery only to the snapshot ``server.fast_watchers`` (watching every sample, read per
+ *   - watchers: delivery only to the snapshot ``server.fast_watchers`` (the one item of ``server.fast_box``
+ *     when the server has that list, else the attribute; watching every sample, read per
  *     wake-up; None: some watcher is not plain). A watcher that is closed or whose output is not empty, or
  *     whose policy changed (both told by its ClientRecord's gate, below), or whose socket does not take the
  *     whole block stops the delivery: its lock stays held and the snapshot is returned, so fastpath.py
@@ -35,6 +36,7 @@
 #include <errno.h>
 #include <math.h>
 #include <poll.h>
+#include <sys/epoll.h>
 #include <stdint.h>
 #include <string.h>
 #include <sys/ioctl.h>
@@ -48,7 +50,8 @@
 
 #define READ_BYTES 65536 /* drivers/serial.py READ_BYTES: more than the kernel's tty buffer holds */
 #define MAX_FRAMES_LIMIT 4096
-#define TTY_CHUNK 64 /* the most one read() of a tty returns (drivers/tty_io.c tty_read's kernel buffer) */
+#define SLCAN_SAMPLE_BYTES 78 /* a CAN sample's four slcan lines: t<id><dlc><hex>\r with dlc 8, 7, 7, 5 */
+#define TTY_CHUNK 64 /* tty_read's kernel buffer (drivers/tty/tty_io.c): the line discipline is asked per 64 bytes */
 
 /* ist (int64) and fst (float64) slots: the state shared with daemon/fastpath.py */
 enum { IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH,
@@ -59,7 +62,7 @@ enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
 enum { ENTRY_CLIENT, ENTRY_RECORD, ENTRY_FD, ENTRY_RAW, ENTRY_WATCH, ENTRY_ACQUIRE, ENTRY_RELEASE, ENTRY_N };
 
 /* attribute names, interned once: a lookup is then a pointer comparison */
-static PyObject *s_fast_watchers, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t,
+static PyObject *s_fast_watchers, *s_fast_box, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t,
     *s_params_generation;
 
 /* ClientRecord: what the step reads and writes per client, as C fields (no attribute lookup per sample).
@@ -412,6 +415,7 @@ typedef struct {
     State S;
     Params P;
     Py_buffer generation; /* processor.params_generation: one int64 */
+    PyObject *box; /* server.fast_box, a list whose one item is the watcher snapshot (NULL: read fast_watchers) */
     int started; /* S holds the caller's state (copied back at the end) */
 } Call;
 
@@ -423,6 +427,7 @@ static int call_open(Call *C)
     C->lines[0] = C->lines[1] = (Bytes){NULL, 0, 0};
     C->P = (Params){NULL, NULL};
     C->generation.obj = NULL;
+    C->box = NULL;
     C->started = 0;
     if (C->max_frames < 1 || C->max_frames > MAX_FRAMES_LIMIT) {
         PyErr_SetString(PyExc_ValueError, "fastpath: needs 1 <= max_frames <= 4096");
@@ -445,6 +450,19 @@ static int call_open(Call *C)
         PyErr_SetString(PyExc_TypeError, "fastpath: processor.params_generation must be one int64");
         return -1;
     }
+    /* the server's snapshot box, when it has one: a list of exactly one item (the server only replaces the item) */
+    PyObject *box = PyObject_GetAttr(C->server, s_fast_box);
+    if (box == NULL) {
+        if (!PyErr_ExceptionMatches(PyExc_AttributeError))
+            return -1;
+        PyErr_Clear();
+    } else if (!PyList_CheckExact(box) || PyList_GET_SIZE(box) != 1) {
+        Py_DECREF(box);
+        PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_box must be a list of one watcher snapshot");
+        return -1;
+    } else {
+        C->box = box;
+    }
     C->ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)C->max_frames);
     if (C->ticks == NULL) {
         PyErr_NoMemory();
@@ -464,7 +482,15 @@ static int call_open(Call *C)
    path's: reason R_NOT_PLAIN), -1 error */
 static int call_prepare(Call *C, PyObject **snapshot)
 {
-    PyObject *snap = PyObject_GetAttr(C->server, s_fast_watchers);
+    PyObject *snap;
+    if (C->box == NULL) {
+        snap = PyObject_GetAttr(C->server, s_fast_watchers);
+    } else if (PyList_GET_SIZE(C->box) == 1) { /* per wake-up: a pointer read (the list may not shrink meanwhile) */
+        snap = Py_NewRef(PyList_GET_ITEM(C->box, 0));
+    } else {
+        PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_box must keep exactly one item");
+        snap = NULL;
+    }
     if (snap == NULL)
         return -1;
     if (snap != Py_None && !PyTuple_Check(snap)) {
@@ -548,6 +574,7 @@ static PyObject *call_close(Call *C, int ok)
         memcpy(C->fst.buf, C->S.fst, sizeof C->S.fst);
     }
     Py_XDECREF(C->leftover);
+    Py_XDECREF(C->box);
     Py_DECREF(C->stopped);
     Py_XDECREF(C->P.correction);
     Py_XDECREF(C->P.gyro);
@@ -575,7 +602,7 @@ static PyObject *step(PyObject *self, PyObject *args)
                           &PyByteArray_Type, &C.staged, &C.server, &C.processor, &C.rows, &C.acc, &C.gyro, &C.codes))
         return NULL;
     unsigned char *buf = NULL;
-    int ok = 0;
+    int ok = 0, ep = -1;
     if (call_open(&C) < 0)
         goto done;
     if (fd < 0 || !(seconds >= 0)) {
@@ -589,17 +616,42 @@ static PyObject *step(PyObject *self, PyObject *args)
     }
     State *S = &C.S;
     double deadline = now_s() + seconds;
+    /* Edge-triggered epoll: the tty is looked at only when the kernel's line discipline wakes it (a frame came
+       in). poll() instead asks n_tty_poll on every entry, which, with fewer than VMIN bytes there, waits for the
+       tty's flush work still running after the wake-up that brought the last frame: a second sleep and wake-up
+       for about one frame in four on this host. Edge-triggered is exact here: every read takes all that had
+       arrived (a short read, or FIONREAD read on), and each arrival queues the next event. poll() stays for a
+       descriptor epoll refuses (a regular file). */
+    ep = epoll_create1(EPOLL_CLOEXEC);
+    if (ep >= 0) {
+        struct epoll_event ev = {.events = EPOLLIN | EPOLLET, .data.fd = fd};
+        if (epoll_ctl(ep, EPOLL_CTL_ADD, fd, &ev) < 0) {
+            close(ep);
+            ep = -1;
+        }
+    }
     for (;;) {
         if (PyByteArray_GET_SIZE(C.staged) >= S->ist[IST_STAGE_LIMIT])
             break;
         double left = deadline - now_s();
         if (left <= 0)
             break;
-        struct pollfd pfd = {fd, POLLIN, 0};
-        int r;
-        Py_BEGIN_ALLOW_THREADS
-        r = poll(&pfd, 1, (int)ceil(left * 1e3));
-        Py_END_ALLOW_THREADS
+        int r, timeout_ms = (int)ceil(left * 1e3);
+        unsigned revents = 0;
+        if (ep >= 0) {
+            struct epoll_event ev;
+            Py_BEGIN_ALLOW_THREADS
+            r = epoll_wait(ep, &ev, 1, timeout_ms);
+            Py_END_ALLOW_THREADS
+            if (r > 0)
+                revents = (ev.events & EPOLLIN ? POLLIN : 0) | (ev.events & (EPOLLHUP | EPOLLERR) ? POLLHUP : 0);
+        } else {
+            struct pollfd pfd = {fd, POLLIN, 0};
+            Py_BEGIN_ALLOW_THREADS
+            r = poll(&pfd, 1, timeout_ms);
+            Py_END_ALLOW_THREADS
+            revents = (unsigned)pfd.revents;
+        }
         if (r < 0 && errno == EINTR)
             continue;
         if (r < 0) {
@@ -608,7 +660,7 @@ static PyObject *step(PyObject *self, PyObject *args)
         }
         if (r == 0)
             continue;
-        if (!(pfd.revents & POLLIN)) { /* hang-up or error alone: the driver's read reports it */
+        if (!(revents & POLLIN)) { /* hang-up or error alone: the driver's read reports it */
             S->ist[IST_REASON] = R_EOF;
             break;
         }
@@ -618,7 +670,13 @@ static PyObject *step(PyObject *self, PyObject *args)
             goto done;
         if (plain == 0)
             break;
-        ssize_t n = read(fd, buf, READ_BYTES);
+        /* Never ask a tty for more than it holds: n_tty_read, short of VMIN in the 64-byte chunk tty_read hands
+           it last (the 14 bytes after the first 64 of a 78-byte slcan sample), waits for the tty's flush work
+           still running after the wake-up: a second sleep and wake-up. So one chunk first (a 29-byte frame: all
+           there was, one read), and while a read filled what it asked, FIONREAD says how much more to take.
+           What arrives later queues the next epoll event. */
+        size_t ask = TTY_CHUNK;
+        ssize_t n = read(fd, buf, ask);
         if (n < 0 && (errno == EAGAIN || errno == EINTR)) {
             Py_DECREF(snapshot);
             continue;
@@ -628,17 +686,21 @@ static PyObject *step(PyObject *self, PyObject *args)
             S->ist[IST_REASON] = n == 0 ? R_EOF : R_ERROR;
             break;
         }
-        /* a tty read returns at most TTY_CHUNK bytes (the kernel's tty_read buffer): the rest of what has arrived.
-           A read that returned less had everything there was (the usual 29-byte frame: no FIONREAD call); what
-           arrives later wakes the next poll(). */
         int avail;
         ssize_t last = n;
-        while (last >= TTY_CHUNK && n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
-            last = read(fd, buf + n, (size_t)(READ_BYTES - n));
+        while ((size_t)last == ask && n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
+            ask = (size_t)avail < (size_t)(READ_BYTES - n) ? (size_t)avail : (size_t)(READ_BYTES - n);
+            last = read(fd, buf + n, ask);
             if (last <= 0)
                 break;
             n += last;
         }
+        /* A read that ends inside a frame (a CAN sample's lines) may have come while the tty's flush work was still
+           delivering the rest: one more read, which waits for that work, keeps the batch whole and in C (the
+           frame kernel takes only whole frames); anything else (a stray byte) costs one read that finds nothing. */
+        ssize_t unit = S->ist[IST_CAN] ? SLCAN_SAMPLE_BYTES : GRAVCAL_FRAME_LEN;
+        if (n % unit && n < READ_BYTES && (last = read(fd, buf + n, (size_t)(READ_BYTES - n))) > 0)
+            n += last;
         int more = call_process(&C, buf, n, snapshot);
         if (more < 0)
             goto done;
@@ -647,6 +709,8 @@ static PyObject *step(PyObject *self, PyObject *args)
     }
     ok = 1;
 done:
+    if (ep >= 0)
+        close(ep);
     PyMem_Free(buf);
     return call_close(&C, ok);
 }
@@ -700,7 +764,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     struct {
         PyObject **name;
         const char *text;
-    } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_correction, "correction"},
+    } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_fast_box, "fast_box"}, {&s_correction, "correction"},
                  {&s_gyro_correction, "gyro_correction"}, {&s_analysed, "analysed"}, {&s_offset, "offset"},
                  {&s_kinv_t, "kinv_t"}, {&s_params_generation, "params_generation"}};
     for (size_t i = 0; i < sizeof names / sizeof names[0]; i++)

@@ -24,6 +24,28 @@ from .protocol import WatchPolicy
 log = logging.getLogger("gravcal.server")
 
 
+# the longest the server's event loop sleeps with no client check due (a guard: every change wakes it)
+IDLE_WAKE_S = 5.0
+
+
+def check_due_in(clients: list["ClientState"], cfg: "ServerConfig", now: float, trim_due: bool) -> float:
+    """How long the server's event loop may sleep: until its next client check is due. A client with output
+    pending (stall check), paused or half-closed (resume, hang-up check), or freed memory to hand back, is
+    looked at every min(0.25 s, stall_timeout / 4) as long as it lasts; an idle non-watcher at its idle
+    deadline; with nothing due (watchers taking every line) until a socket or publish() wakes the loop (output
+    left queued by either wakes it), at most IDLE_WAKE_S."""
+    busy = min(0.25, cfg.stall_timeout_s / 4)
+    if trim_due:
+        return busy
+    due = IDLE_WAKE_S
+    for c in clients:
+        if c.read_closed or c.paused_until or c.pending():
+            return busy
+        if not c.watch.enable:
+            due = min(due, c.last_request + cfg.idle_timeout_s - now)
+    return min(max(due, 0.0) + 0.01, IDLE_WAKE_S)
+
+
 class ClientLock:
     """A client's lock (reentrant), held by both writers of its socket: the server thread and the acquisition
     thread (fanout.py, and the C step of daemon/fastpath.py). Every Python holder may change what decides

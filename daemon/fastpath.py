@@ -100,9 +100,10 @@ class FastPath:
         self._start(*entry)
         end = time.monotonic() + seconds
         ist, n, unknown, read_next = self.ist, 0, 0, False
+        limit, item, monotonic, fast_read = int(ist[IST_STAGE_LIMIT]), ist.item, time.monotonic, drv.fast_read
         try:
-            while len(staged) < ist[IST_STAGE_LIMIT] and time.monotonic() < end:
-                bursts = drv.fast_read(end)
+            while len(staged) < limit and monotonic() < end:
+                bursts = fast_read(end)
                 if bursts is None:  # the bus failed: the Python path reconnects
                     read_next = True
                     break
@@ -111,14 +112,15 @@ class FastPath:
                 ist[IST_FRAMES] = ist[IST_UNKNOWN] = 0
                 stopped = None
                 try:
-                    leftover, stopped = take(b"".join(bursts), self.max_frames, ist, self.fst, staged, self.server,
-                                             self.processor, self.rows, self.acc, self.gyro, self.codes)
+                    leftover, stopped = take(bursts[0] if len(bursts) == 1 else b"".join(bursts), self.max_frames,
+                                             ist, self.fst, staged, self.server, self.processor, self.rows,
+                                             self.acc, self.gyro, self.codes)
                 finally:
-                    n, unknown = n + int(ist[IST_FRAMES]), unknown + int(ist[IST_UNKNOWN])
+                    n, unknown = n + item(IST_FRAMES), unknown + item(IST_UNKNOWN)
                     self._finish(stopped)
                 if leftover:
                     drv.unread(bursts)
-                if ist[IST_REASON] != R_DUE:
+                if item(IST_REASON) != R_DUE:
                     read_next = True
                     break
         finally:

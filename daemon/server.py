@@ -38,7 +38,7 @@ import numpy as np
 from . import protocol
 from .fanout import deliver, deliver_line, fast_snapshot, finish_delivery
 from .client_limits import ClientState as _Client
-from .client_limits import RequestBudget, ServerConfig, hung_up, return_memory_to_os
+from .client_limits import RequestBudget, ServerConfig, check_due_in, hung_up, return_memory_to_os
 from .output_queue import OutputQueue
 from .protocol import ImuBlock, ProtocolError
 from .socket_activation import bind_unix_socket
@@ -89,9 +89,8 @@ class SocketServer:
         self._calib_lock = threading.Lock()  # a new watcher gets the CALIB that is current
         self._clients: dict[int, _Client] = {}
         self._watchers: tuple[_Client, ...] = ()  # replaced, never mutated: publish() reads it unlocked
-        # The watchers as the latency path's C step sends to them (fanout.fast_snapshot), replaced with
-        # _watchers; None while one of them is decimated.
-        self.fast_watchers: tuple[tuple[Any, ...], ...] | None = ()
+        # the C step's watchers (fanout.fast_snapshot; None: one is decimated), in a list it holds per call
+        self.fast_box: list[tuple[tuple[Any, ...], ...] | None] = [()]
         self._next_id = 1
         self._calib: dict[str, Any] | None = None
         self._last_block: ImuBlock | None = None
@@ -206,7 +205,9 @@ class SocketServer:
     def _set_watchers(self) -> None:
         """Rebuild the watcher tuples after a change (under the changing client's lock, or as it closes)."""
         self._watchers = tuple(w for w in self._clients.values() if w.watch.enable)
-        self.fast_watchers = fast_snapshot(self._watchers)
+        self.fast_box[0] = fast_snapshot(self._watchers)
+
+    fast_watchers = property(lambda self: self.fast_box[0], doc="the C step's watcher snapshot (fast_box's item)")
 
     def _wake_once(self) -> None:
         with self._wake_lock:
@@ -242,8 +243,8 @@ class SocketServer:
     def _run(self) -> None:
         try:
             while not self._stop.is_set():
-                timeout = min(0.25, self.config.stall_timeout_s / 4)
-                for key, mask in self._sel.select(timeout):
+                due = check_due_in(list(self._clients.values()), self.config, time.monotonic(), self._trim_due)
+                for key, mask in self._sel.select(due):
                     if key.data == "listener":
                         self._accept()
                     elif key.data == "wake":

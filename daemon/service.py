@@ -47,6 +47,7 @@ REOPEN_AFTER_READ_ERRORS = 3  # a driver whose read() keeps raising is closed an
 # samples collected before the detector and estimator run [s of data]: their per-call overhead (~0.2 ms)
 # is paid this often; the published `static` is this much (plus the analysis time) older than the sample
 ANALYSIS_BLOCK_S = 0.25
+MAIN_PERIOD_S = 1.0  # the main thread's housekeeping (rate estimate, status text, thread check) at most this often
 
 # Settings that only take effect at start (SIGHUP says so instead of half-applying them).
 RESTART_KEYS = {
@@ -85,6 +86,7 @@ class Gravcald:
         self.notes: list[str] = []
         self._stop = threading.Event()
         self._reload = threading.Event()
+        self._main_wake = threading.Event()  # the main loop's: a stop or reload request, at once
         self._data = threading.Event()
         self._acq_stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -337,15 +339,23 @@ class Gravcald:
     # -- main loop -------------------------------------------------------------------------
     def request_stop(self, *_: Any) -> None:
         self._stop.set()
+        self._main_wake.set()
 
     def request_reload(self, *_: Any) -> None:
         self._reload.set()
+        self._main_wake.set()
 
     def run(self) -> int:
         """Main-thread loop until stop; returns the exit code."""
-        period = 0.5 if self.watchdog.period_s is None else min(0.5, self.watchdog.period_s / 4)
+        # the rate estimate and the dead-thread check need no more than once a second; a watchdog, its quarter
+        # period (stop and reload requests wake the loop at once)
+        period = MAIN_PERIOD_S if self.watchdog.period_s is None else min(MAIN_PERIOD_S, self.watchdog.period_s / 4)
         next_status = 0.0
-        while not self._stop.wait(period):
+        while not self._stop.is_set():
+            self._main_wake.wait(period)
+            self._main_wake.clear()
+            if self._stop.is_set():
+                break
             self.watchdog.tick()
             now = time.monotonic()
             t0, n0 = self._rate_mark

@@ -21,7 +21,10 @@ With the DRDY line wired to a GPIO (``drdy=/sys/class/gpio/gpioN/value``, edge "
 driver sleeps on the line and wakes when the FIFO reaches the watermark (set from the latency
 budget: 1 sample by default, so each sample is read as soon as it is in the FIFO). Without it,
 the driver polls STATUS+FIFO_COUNT (one two-byte read) every ``poll_s``. Either way it drains
-the FIFO with ``i2c_rdwr`` bursts of up to ``burst_frames`` frames.
+the FIFO with ``i2c_rdwr`` bursts of up to ``burst_frames`` frames. Woken by DRDY, it reads STATUS,
+FIFO_COUNT and the watermark's frames in one combined ``i2c_rdwr`` (register write, read, register
+write, read, with repeated starts: one I2C_RDWR ioctl), so a sample costs one transfer; ``combined=0``
+keeps a separate STATUS read before the bursts (an adapter without multi-message transfers).
 """
 from __future__ import annotations
 
@@ -95,6 +98,7 @@ class I2CDriver(FramedStreamDriver):
         data_ready: Any = None,
         latency_budget_s: float = 0.0,
         reset_fifo: bool = True,
+        combined: bool = True,
         smbus_factory: Callable[[Any], Any] = SMBus,
         tick_hz: float | None = TICK_HZ,
         backoff: Backoff | None = None,
@@ -111,13 +115,15 @@ class I2CDriver(FramedStreamDriver):
         self.address = int(address)
         self.rate = rate
         self.burst_frames = max(1, int(burst_frames))
-        self._msgs: dict[tuple[int, int], tuple] = {}  # (register, length) -> reusable i2c_msg pair
+        # (register, length) -> reusable i2c_msg pair; frames -> the combined read's four messages
+        self._msgs: dict[Any, tuple] = {}
         self.poll_s = poll_s
         self.data_ready = data_ready  # the DRDY line: fileno() and wait(timeout) -> bool
         if not latency_budget_s >= 0:
             raise DriverError(f"latency_budget_s must be >= 0, got {latency_budget_s}")
         self.latency_budget_s = float(latency_budget_s)
         self.reset_fifo = reset_fifo
+        self.combined = bool(combined)
         self.smbus_factory = smbus_factory
         self.decoder = FrameDecoder()
         self._smbus = None
@@ -130,7 +136,7 @@ class I2CDriver(FramedStreamDriver):
     @classmethod
     def from_spec(cls, spec: DriverSpec) -> "I2CDriver":
         opts = take_options(spec, {"rate": float, "burst_frames": int, "poll_s": float, "tick_hz": float,
-                                   "latency_budget_s": float, "drdy": str})
+                                   "latency_budget_s": float, "drdy": str, "combined": _flag})
         if "drdy" in opts:
             opts["data_ready"] = SysfsDataReady(opts.pop("drdy"))
         try:
@@ -245,15 +251,47 @@ class I2CDriver(FramedStreamDriver):
                 self._overflow_pending = False
         return samples
 
+    def _status_and_first(self, frames: int) -> tuple[int, int, bytes]:
+        """STATUS, FIFO_COUNT and the FIFO's first ``frames`` frames in one combined transaction; the bytes are
+        the frames it took: ``frames`` when FIFO_COUNT had them, else the count's and any that came in before
+        the data phase (a frame starts with its sync bytes; past the FIFO's content the device reads 0x00)."""
+        msgs = self._msgs.get(frames)
+        if msgs is None:
+            msgs = self._messages(REG_STATUS, 2) + self._messages(REG_FIFO_DATA, frames * FRAME_LEN)
+            self._msgs[frames] = msgs
+        self._smbus.i2c_rdwr(*msgs)
+        counters = self.counters
+        counters["polls"] += 1
+        counters["bursts"] += 1
+        status, count = bytes(msgs[1])
+        data = bytes(msgs[3])
+        if count >= frames:
+            return status, count, data
+        taken = count
+        while taken < frames and any(data[taken * FRAME_LEN:(taken + 1) * FRAME_LEN]):
+            taken += 1
+        return status, count, data[:taken * FRAME_LEN]
+
     def _read_fifo(self, deadline: float) -> list[bytes]:
         """The FIFO's content as bursts of whole frames, once it holds any ([] if not by ``deadline``)."""
+        bursts = []
         while True:
+            first = b""
             if self.data_ready is not None:  # sleep until the FIFO reaches the watermark
-                self.data_ready.wait(max(0.0, min(deadline - time.monotonic(), DRDY_RECHECK_S)))
-            status, count = self._status()
+                high = self.data_ready.wait(max(0.0, min(deadline - time.monotonic(), DRDY_RECHECK_S)))
+                if high and self.combined:
+                    status, count, first = self._status_and_first(min(self.watermark, self.burst_frames))
+                else:
+                    status, count = self._status()
+            else:
+                status, count = self._status()
             if status & STATUS_FIFO_OVERFLOW:
                 self.counters["fifo_overflows"] += 1
                 self._overflow_pending = True
+            if first:
+                bursts.append(first)
+                count -= len(first) // FRAME_LEN
+                break
             if count:
                 break
             remaining = deadline - time.monotonic()
@@ -261,7 +299,6 @@ class I2CDriver(FramedStreamDriver):
                 return []
             if self.data_ready is None and self._closing.wait(min(self._poll, remaining)):
                 return []
-        bursts = []
         while count > 0:
             n = min(count, self.burst_frames)
             bursts.append(self._burst(n))
@@ -293,6 +330,10 @@ class I2CDriver(FramedStreamDriver):
     def unread(self, bursts: list[bytes]) -> None:
         """Bursts the C step did not take: the next :meth:`read` decodes them first, as if just read."""
         self._unread = self._unread + list(bursts)
+
+
+def _flag(text: str) -> bool:
+    return text.strip().lower() in ("1", "true", "yes")
 
 
 class SysfsDataReady:

@@ -64,29 +64,39 @@ class ManualClock:
 
 
 MIN_SAMPLING_INTERVAL_S = 0.002
+I2C_RDWR_IOCTL_MAX_MSGS = 42  # linux/i2c-dev.h
+I2C_RDWR_MAX_LEN = 8192  # drivers/i2c/i2c-dev.c: the longest message I2C_RDWR accepts
 
 
 class DataReadyLine:
-    """The logger's DRDY output as the host sees it: a pipe that is readable while the line is high
-    (the device keeps one byte in it while asserted)."""
+    """The logger's DRDY output as the host sees it: a pipe that is readable while the line is high. The device
+    writes a byte each time it raises the line (each sample that leaves the FIFO at or above the watermark) and
+    drains the pipe when a read takes the FIFO below it, so a sample is never left without a readable line
+    whichever thread's call lands last (a byte for a sample already taken costs one empty read, no more)."""
 
     def __init__(self) -> None:
         self._r, self._w = os.pipe()
         os.set_blocking(self._r, False)
+        os.set_blocking(self._w, False)
+        self._poll = select.poll()  # registered once, as SysfsDataReady (drivers/i2c.py) waits on a GPIO
+        self._poll.register(self._r, select.POLLIN)
         self.high = False
 
     def fileno(self) -> int:
         return self._r
 
     def set(self, high: bool) -> None:
-        if high and not self.high:
-            os.write(self._w, b"1")
-        elif not high and self.high:
-            os.read(self._r, 16)
         self.high = high
+        try:
+            if high:
+                os.write(self._w, b"1")
+            else:
+                os.read(self._r, 1 << 16)  # all the raises (one byte each) in one read
+        except BlockingIOError:
+            pass  # full of raises nobody took (readable already), or nothing to drain
 
     def wait(self, timeout: float) -> bool:
-        return bool(select.select([self._r], [], [], max(0.0, timeout))[0])
+        return bool(self._poll.poll(max(0.0, timeout) * 1e3))
 
     def close(self) -> None:
         os.close(self._r)
@@ -142,6 +152,8 @@ class FakeI2CDevice:
         self.bus_cpu_s = 0.0  # thread CPU spent in this device's bus transactions (i2c_rdwr), in the caller's thread
         self.watermark = 1
         self.data_ready = DataReadyLine()
+        self._line_deferred = False  # inside the sampling thread's locked section: a raise waits for its end
+        self._line_raise = False
         self._sampling: threading.Thread | None = None
         self._stop_sampling = threading.Event()
 
@@ -162,14 +174,27 @@ class FakeI2CDevice:
     def _sample_loop(self) -> None:
         while not self._stop_sampling.is_set():
             with self._lock:
-                self._advance()
+                self._line_deferred = True
+                try:
+                    self._advance()
+                finally:
+                    self._line_deferred = False
+                raise_line, self._line_raise = self._line_raise, False
                 due = (self._t_enable + (self._produced + 1) / (self.rate * self.speed) if self._enabled
                        else self.clock() + 0.01)
+            # DRDY rises once the FIFO write is done and the device's lock is free, as on the logger: the host
+            # it wakes finds the FIFO ready (a raise under the lock would wake it into a wait for that lock)
+            if raise_line:
+                self.data_ready.set(True)
             # each sample on time, but a time-lapse at most every MIN_SAMPLING_INTERVAL_S (in small batches)
             self._stop_sampling.wait(max(MIN_SAMPLING_INTERVAL_S, due - self.clock()))
 
     def _update_line(self) -> None:
-        self.data_ready.set(len(self._fifo_seq) >= self.watermark)
+        high = len(self._fifo_seq) >= self.watermark
+        if high and self._line_deferred:  # the sampling thread raises it once its lock is released
+            self._line_raise = True
+        else:
+            self.data_ready.set(high)
 
     # -- time ------------------------------------------------------------------------
     @property
@@ -370,6 +395,10 @@ class FakeSMBus:
                 dev.bus_cpu_s += time.thread_time() - c0
 
     def _rdwr(self, i2c_msgs) -> None:
+        # i2c-dev's I2C_RDWR refuses, before any transfer, more than I2C_RDWR_IOCTL_MAX_MSGS messages or a message
+        # longer than 8192 bytes (EINVAL)
+        if len(i2c_msgs) > I2C_RDWR_IOCTL_MAX_MSGS or any(m.len > I2C_RDWR_MAX_LEN for m in i2c_msgs):
+            raise OSError(errno.EINVAL, "Invalid argument (I2C_RDWR: too many messages or a message too long)")
         pointer = None
         for msg in i2c_msgs:
             dev = self._dev(msg.addr)
@@ -399,7 +428,7 @@ class FakeI2CDriver(I2CDriver):
     """The production I2C driver reading ``device`` through a :class:`FakeSMBus`.
 
     As a spec, ``fake-i2c://0x42?scenario=NAME&seed=N&speed=X&fs=HZ&duration=S&fifo_depth=N&drop=P&ber=P``
-    (plus the I2C driver's ``burst_frames``, ``poll_s``, ``tick_hz``, ``latency_budget_s``): an
+    (plus the I2C driver's ``burst_frames``, ``poll_s``, ``tick_hz``, ``latency_budget_s``, ``combined``): an
     in-process logger, the HIL rig without a second process. ``realtime`` (default): the device
     samples in real time from its own thread while the driver is open and the driver sleeps on its
     DRDY line; otherwise the FIFO fills only on bus accesses (tests with a manual clock) and the
@@ -429,6 +458,7 @@ class FakeI2CDriver(I2CDriver):
             "scenario": str, "seed": int, "speed": float, "fs": float, "duration": float,
             "fifo_depth": int, "drop": float, "ber": float, "burst_frames": int, "poll_s": float,
             "tick_hz": float, "latency_budget_s": float, "realtime": lambda v: v.strip().lower() in ("1", "true", "yes"),
+            "combined": lambda v: v.strip().lower() in ("1", "true", "yes"),
         })
         address_text = (spec.host or spec.path).strip("/")
         try:

@@ -347,3 +347,90 @@ def test_the_stall_check_sees_the_steps_last_send(rig):
         c.queue.put([b"queued\n"])
     assert c.pending() and c.last_progress == 0.0
     assert before <= c.progress() <= time.monotonic()
+
+
+def test_on_a_tty_every_frame_is_taken_as_it_arrives(rig):
+    """The step waits edge-triggered on a terminal (VMIN one frame, as drivers/serial.py sets it): each arrival
+    must be read whole when it wakes the step, or its bytes would wait for the next frame. Three frames in
+    one write and a frame split across two writes all reach the
+    client within the one call, which returns once they are staged, long before its deadline."""
+    import pty
+    import termios
+    import tty as ttymod
+
+    master, slave = pty.openpty()
+    try:
+        ttymod.setraw(slave)
+        attrs = termios.tcgetattr(slave)
+        attrs[6][termios.VMIN], attrs[6][termios.VTIME] = 29, 0
+        termios.tcsetattr(slave, termios.TCSANOW, attrs)
+        os.set_blocking(slave, False)
+        rig.ist[fp.IST_STAGE_LIMIT] = 4 * SAMPLE_DTYPE.itemsize
+        wire = frames(range(5, 9))
+
+        def feed():
+            for part in (wire[:87], wire[87:100], wire[100:]):
+                os.write(master, part)
+                time.sleep(0.02)
+
+        t = threading.Thread(target=feed)
+        t.start()
+        rig.ist[fp.IST_EXPECT], rig.ist[fp.IST_SEQ] = 5, 100
+        t0 = time.monotonic()
+        leftover, stopped = step(slave, 10.0, MAX, rig.ist, rig.fst, rig.staged, rig.server, rig.processor,
+                                 rig.rows, rig.acc, rig.gyro, rig.codes)
+        elapsed = time.monotonic() - t0
+        t.join()
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert (leftover, stopped) == (b"", None) and rig.ist[fp.IST_REASON] == fp.R_DUE
+    rows = np.frombuffer(bytes(rig.staged), SAMPLE_DTYPE)
+    np.testing.assert_array_equal(rows["seq"], np.arange(100, 104))
+    assert rig.received().count(b"\n") == 4
+    assert elapsed < 5.0  # returned on the stage limit, not at the 10 s deadline with bytes left unread
+
+
+def test_the_servers_snapshot_box_is_read_at_every_wake_up(rig):
+    """A server with ``fast_box`` (daemon/server.py): the step holds the list for the call and reads its one
+    item per wake-up, so a watcher leaving mid-call gets no further line; a box that is not one item is refused."""
+    rig.server = SimpleNamespace(fast_box=[fast_snapshot((rig.client,))])
+    rig.ist[fp.IST_STAGE_LIMIT] = 2 * SAMPLE_DTYPE.itemsize
+    got = []
+
+    def feed():
+        os.write(rig.w, frames([5]))
+        while not got:
+            got.append(rig.received()) if rig.peer.recv(1, socket.MSG_PEEK) else None
+        rig.server.fast_box[0] = ()  # the watcher left: the next wake-up sends to nobody
+        os.write(rig.w, frames([6]))
+
+    t = threading.Thread(target=feed)
+    t.start()
+    leftover, stopped = rig.step(5, 100, seconds=5.0)
+    t.join()
+    assert (leftover, stopped) == (b"", None)
+    assert np.frombuffer(bytes(rig.staged), SAMPLE_DTYPE)["seq"].tolist() == [100, 101]
+    assert got[0].count(b"\n") == 1 and rig.received() == b""
+    for bad in ([], [(), ()], ((),)):
+        rig.server = SimpleNamespace(fast_box=bad)
+        with pytest.raises(TypeError, match="fast_box"):
+            rig.step(7, 102)
+
+
+def test_a_box_emptied_mid_call_is_an_error_not_a_crash(rig):
+    rig.server = SimpleNamespace(fast_box=[fast_snapshot((rig.client,))])
+
+    def feed():
+        os.write(rig.w, frames([5]))
+        while not rig.peer.recv(1, socket.MSG_PEEK):
+            pass
+        rig.server.fast_box.clear()
+        os.write(rig.w, frames([6]))
+
+    t = threading.Thread(target=feed)
+    t.start()
+    with pytest.raises(TypeError, match="exactly one item"):
+        rig.step(5, 100, seconds=5.0)
+    t.join()
+    assert np.frombuffer(bytes(rig.staged), SAMPLE_DTYPE)["seq"].tolist() == [100]  # what it took stays taken
