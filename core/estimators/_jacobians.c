@@ -37,36 +37,90 @@
 #include "../_buffers.h"
 
 #define N_BUF 9
-#define SPLIT_MIN 4096 /* windows from which a call's loop runs as two halves on two threads (a week: ~12 000) */
+#define SPLIT_MIN 4096 /* windows from which a call shares them with a helper thread (a week: ~12 000) */
 
-/* The windows are independent (no sum runs across them), so the two halves [0, m/2) and [m/2, m), each
- * in its own thread, write the bits one loop writes. threads: 1, 2, or -1 (2 from SPLIT_MIN windows on
- * when the machine has a second CPU). Called without the GIL. */
-typedef struct {
-    void (*run)(void *ctx, Py_ssize_t w0, Py_ssize_t w1, int lane);
+/* The windows are independent (no sum runs across them), so any split of them between threads writes the
+ * bits one loop writes. A call shares its windows with one helper thread, kept for the process's life:
+ * both take chunks of SHARE_CHUNKS-th of the windows from a counter until none is left; the caller then
+ * waits only for a chunk the helper has taken and not finished. A helper that does not get a core (a busy
+ * machine) takes nothing, and the caller does every chunk itself, as one loop would, instead of waiting for
+ * it. threads: 1, 2, or -1 (2 from SPLIT_MIN windows on when the machine has a second CPU). Called without
+ * the GIL; a call made while another call's windows are being shared runs alone. */
+#define SHARE_CHUNKS 32
+
+typedef void (*LoopFn)(void *ctx, Py_ssize_t w0, Py_ssize_t w1, int lane);
+
+static pthread_mutex_t share_mu = PTHREAD_MUTEX_INITIALIZER, share_job = PTHREAD_MUTEX_INITIALIZER;
+static pthread_cond_t share_wake = PTHREAD_COND_INITIALIZER, share_idle = PTHREAD_COND_INITIALIZER;
+static struct {
+    LoopFn run;
     void *ctx;
-    Py_ssize_t w0, w1;
-} Half;
+    Py_ssize_t next, m, chunk;
+    int open, busy, helper;
+} share; /* all fields under share_mu */
 
-static void *half_main(void *arg)
+static void *helper_main(void *arg)
 {
-    Half *h = arg;
-    h->run(h->ctx, h->w0, h->w1, 1);
+    (void)arg;
+    pthread_mutex_lock(&share_mu);
+    for (;;) {
+        while (!(share.open && share.next < share.m))
+            pthread_cond_wait(&share_wake, &share_mu);
+        const Py_ssize_t w0 = share.next, w1 = share.m - w0 < share.chunk ? share.m : w0 + share.chunk;
+        LoopFn run = share.run;
+        void *ctx = share.ctx;
+        share.next = w1, share.busy = 1;
+        pthread_mutex_unlock(&share_mu);
+        run(ctx, w0, w1, 1);
+        pthread_mutex_lock(&share_mu);
+        share.busy = 0;
+        pthread_cond_signal(&share_idle);
+    }
     return NULL;
 }
 
-static void run_halves(void (*run)(void *, Py_ssize_t, Py_ssize_t, int), void *ctx, Py_ssize_t m, int threads)
+static void share_after_fork(void)
+{ /* the child has no helper thread (fork copies only the caller): fresh locks, a helper started on demand */
+    pthread_mutex_init(&share_mu, NULL), pthread_mutex_init(&share_job, NULL);
+    pthread_cond_init(&share_wake, NULL), pthread_cond_init(&share_idle, NULL);
+    share.open = share.busy = share.helper = 0;
+}
+
+static void share_windows(LoopFn run, void *ctx, Py_ssize_t m, int threads)
 {
     if (threads < 0)
         threads = m >= SPLIT_MIN && sysconf(_SC_NPROCESSORS_ONLN) > 1 ? 2 : 1;
-    pthread_t other;
-    Half upper = {run, ctx, m / 2, m};
-    if (threads == 2 && m >= 2 && pthread_create(&other, NULL, half_main, &upper) == 0) {
-        run(ctx, 0, m / 2, 0);
-        pthread_join(other, NULL);
-    } else { /* one thread (or none could be started): the same loop over all windows */
+    if (threads == 1 || m < 2 || pthread_mutex_trylock(&share_job) != 0) {
         run(ctx, 0, m, 0);
+        return;
     }
+    pthread_mutex_lock(&share_mu);
+    if (!share.helper) {
+        pthread_t t;
+        if (pthread_create(&t, NULL, helper_main, NULL) == 0 && pthread_detach(t) == 0)
+            share.helper = 1;
+    }
+    if (!share.helper) { /* no thread could be started: one loop */
+        pthread_mutex_unlock(&share_mu);
+        pthread_mutex_unlock(&share_job);
+        run(ctx, 0, m, 0);
+        return;
+    }
+    share.run = run, share.ctx = ctx, share.next = 0, share.m = m, share.open = 1;
+    share.chunk = m / SHARE_CHUNKS > 1 ? m / SHARE_CHUNKS : 1;
+    pthread_cond_signal(&share_wake);
+    while (share.next < m) {
+        const Py_ssize_t w0 = share.next, w1 = m - w0 < share.chunk ? m : w0 + share.chunk;
+        share.next = w1;
+        pthread_mutex_unlock(&share_mu);
+        run(ctx, w0, w1, 0);
+        pthread_mutex_lock(&share_mu);
+    }
+    share.open = 0;
+    while (share.busy)
+        pthread_cond_wait(&share_idle, &share_mu);
+    pthread_mutex_unlock(&share_mu);
+    pthread_mutex_unlock(&share_job);
 }
 
 static int threads_arg(int threads)
@@ -243,7 +297,7 @@ static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
         ExtLoop x = {Kc, oc, c, V, raw, A, J, pos, kq, ke, oq, oe, row_zero, {R, R + 12 * p}, n, nk, no, p,
                      finite_p};
         Py_BEGIN_ALLOW_THREADS
-        run_halves(ext_loop, &x, m, threads);
+        share_windows(ext_loop, &x, m, threads);
         Py_END_ALLOW_THREADS
     }
     PyMem_Free(R);
@@ -366,7 +420,7 @@ static PyObject *linear_norm_jacobian(PyObject *self, PyObject *args)
         LinLoop x = {buf[0].buf, buf[1].buf, buf[2].buf, buf[3].buf, buf[4].buf, cov, buf[6].buf, buf[7].buf,
                      buf[8].buf, V, p};
         Py_BEGIN_ALLOW_THREADS
-        run_halves(lin_loop, &x, m, threads);
+        share_windows(lin_loop, &x, m, threads);
         Py_END_ALLOW_THREADS
     }
     for (int k = 0; k < 10; k++)
@@ -380,7 +434,7 @@ static PyObject *linear_norm_jacobian(PyObject *self, PyObject *args)
 static PyMethodDef methods[] = {
     {"linear_norm_jacobian", linear_norm_jacobian, METH_VARARGS,
      "linear_norm_jacobian(Kinv, o, G, C, raw, cov or None, h, B, a, var or None, M, P, threads=-1): h = |a|, B = dh/dp, a, "
-     "var h; threads 1, 2 (two halves of the windows) or -1 (2 from 4096 windows on)"},
+     "var h; threads 1, 2 (the windows shared with a helper thread) or -1 (2 from 4096 windows on)"},
     {"extended_accel_jacobian", extended_accel_jacobian, METH_VARARGS,
      "extended_accel_jacobian(K_const, o_const, p, rows, entries, values, raw, a, J, M, P, n, threads=-1): a = K(c)^-1 "
      "(raw - o(c)), J = da/dp; threads as linear_norm_jacobian's"},
@@ -391,4 +445,8 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_jacobians",
                                     "The batch fit's corrected accelerations and Jacobians, window by window.", -1,
                                     methods, NULL, NULL, NULL, NULL};
 
-PyMODINIT_FUNC PyInit__jacobians(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__jacobians(void)
+{
+    pthread_atfork(NULL, NULL, share_after_fork);
+    return PyModule_Create(&module);
+}

@@ -1,7 +1,7 @@
-"""core/estimators/_jacobians.c on two threads: from 4096 windows on (threads=-1) each kernel runs the
-windows' two halves on two threads. Every output equals the one-thread loop's bit for bit (the windows are
-independent), for even and odd window counts, around the threshold, with non-finite windows in either half
-and window-dependent rows (each lane works on its own copy of them). The one-thread loop itself is checked
+"""core/estimators/_jacobians.c on two threads: from 4096 windows on (threads=-1) each kernel shares its
+windows' chunks with a helper thread. Every output equals the one-thread loop's bit for bit (the windows
+are independent), for even and odd window counts, around the threshold, with non-finite windows in the
+chunks of either thread and window-dependent rows (each lane works on its own copy of them). The one-thread loop itself is checked
 against the numpy forms in tests/core/test_jacobians.py."""
 from __future__ import annotations
 
@@ -76,6 +76,17 @@ def test_extended_halves_equal_one_loop(M, P):
             assert np.array_equal(g, w, equal_nan=True)
     assert not np.any(one[1] == 7.0)
     assert np.isfinite(one[0]).all(axis=1).sum() >= M - 2  # only the two non-finite windows are not finite
+
+
+def test_extended_lanes_keep_their_own_rows():
+    """Long enough that the helper and the caller work at the same time: each must fill in its own copy of
+    the window-dependent rows (a shared copy is overwritten between a window's filling and its use)."""
+    M, P = 200_000, 9
+    inputs = _extended_inputs(np.random.default_rng(7), M, P)
+    one = _extended(inputs, M, P, 1)
+    for _ in range(3):
+        for g, w in zip(_extended(inputs, M, P, 2), one):
+            assert np.array_equal(g, w, equal_nan=True)
 
 
 def test_threads_must_be_one_two_or_automatic():
