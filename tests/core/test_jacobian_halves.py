@@ -89,6 +89,24 @@ def test_extended_lanes_keep_their_own_rows():
             assert np.array_equal(g, w, equal_nan=True)
 
 
+def test_a_forked_child_shares_with_its_own_helper():
+    """fork copies only the calling thread: the child's calls must neither wait for the parent's helper
+    nor find its locks held (a study's workers may be forked after a fit)."""
+    import os
+
+    M, P = 20_000, 6
+    inputs = _linear_inputs(np.random.default_rng(8), M, P)
+    one = _linear(inputs, M, P, 1)
+    _linear(inputs, M, P, 2)  # the parent's helper exists now
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child reports through its exit status
+        ok = all(all(np.array_equal(g, w, equal_nan=True) for g, w in zip(_linear(inputs, M, P, 2), one))
+                 for _ in range(3))
+        os._exit(0 if ok else 1)
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+
+
 def test_threads_must_be_one_two_or_automatic():
     M, P = 4, 3
     Ki, o, G, C, raw, cov = _linear_inputs(np.random.default_rng(0), M, P)
