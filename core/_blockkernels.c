@@ -294,8 +294,11 @@ typedef struct {
 /* Two passes per chunk of blocks: first what each block decides on its own (K⁻¹ (mean - o) with
  * the hold rule, |a|, the within-block std gate), then the filters, whose states are the only
  * thing carried from block to block (all channels interleaved, so their dependency chains
- * overlap). */
-static inline __attribute__((always_inline)) void chain_run(const Chain *a, int chans, int ns_hp, int ns_lp)
+ * overlap). Channels [lo, hi) of (|a|, x, y, z) are filtered, the gate applied when `gate`: two
+ * calls on disjoint channels (e.g. [0, 2) and [2, 4) with the gate) give each channel's signal and
+ * each block's decision the bits of one call on all four, whose still is the AND of the two. */
+static inline __attribute__((always_inline)) void chain_run(const Chain *a, int lo, int hi, int ns_hp, int ns_lp,
+                                                            int gate)
 {
     const Py_ssize_t nb = a->nb;
     const double *K = a->K;
@@ -309,10 +312,10 @@ static inline __attribute__((always_inline)) void chain_run(const Chain *a, int 
             cv[i][p] = K[3 * i + I6[p]] * K[3 * i + J6[p]] * (I6[p] == J6[p] ? 1.0 : 2.0);
     double zh[4][2 * MAX_SECTIONS] = {{0}}, zl[4][2 * MAX_SECTIONS] = {{0}}, last[3] = {0, 0, 0};
     double u[CHAIN_CHUNK][4];
-    for (Py_ssize_t lo = a->b0; lo < nb; lo += CHAIN_CHUNK) {
-        const Py_ssize_t n = nb - lo < CHAIN_CHUNK ? nb - lo : CHAIN_CHUNK;
+    for (Py_ssize_t b_lo = a->b0; b_lo < nb; b_lo += CHAIN_CHUNK) {
+        const Py_ssize_t n = nb - b_lo < CHAIN_CHUNK ? nb - b_lo : CHAIN_CHUNK;
         for (Py_ssize_t k = 0; k < n; k++) {
-            const Py_ssize_t b = lo + k;
+            const Py_ssize_t b = b_lo + k;
             int ok = a->usable[b] != 0;
             if (ok || b == a->b0) { /* K⁻¹ (mean - o) (fastdetect._in_g: column by column from +0.0) */
                 double g0 = 0.0, g1 = 0.0, g2 = 0.0; /* in registers, not an array the loop reloads */
@@ -325,40 +328,44 @@ static inline __attribute__((always_inline)) void chain_run(const Chain *a, int 
             } /* an unusable block is held at the last usable one */
             double *v = u[k];
             v[1] = last[0], v[2] = last[1], v[3] = last[2];
-            v[0] = v[1] * v[1];
-            v[0] += v[2] * v[2];
-            v[0] += v[3] * v[3];
-            v[0] = sqrt(v[0]); /* eq. 1: |a| */
-            /* the within-block std gate (what the block means cannot see): the three axes' sums side
-             * by side, each in the order p = 0..5 from +0.0 as before (their additions overlap instead
-             * of waiting for one another) */
-            double w[3] = {0.0, 0.0, 0.0};
-            for (int p = 0; p < 6; p++) {
-                const double sp = (double)a->scatter[p * nb + b];
-                w[0] += cv[0][p] * sp, w[1] += cv[1][p] * sp, w[2] += cv[2][p] * sp;
+            if (lo == 0) {
+                v[0] = v[1] * v[1];
+                v[0] += v[2] * v[2];
+                v[0] += v[3] * v[3];
+                v[0] = sqrt(v[0]); /* eq. 1: |a| */
             }
-            for (int i = 0; i < 3; i++) {
-                ok &= w[i] < a->var_limit;
-                if (a->trace)
-                    a->trace[(4 + i) * nb + b] = w[i];
+            if (gate) {
+                /* the within-block std gate (what the block means cannot see): the three axes' sums
+                 * side by side, each in the order p = 0..5 from +0.0 (their additions overlap instead
+                 * of waiting for one another) */
+                double w[3] = {0.0, 0.0, 0.0};
+                for (int p = 0; p < 6; p++) {
+                    const double sp = (double)a->scatter[p * nb + b];
+                    w[0] += cv[0][p] * sp, w[1] += cv[1][p] * sp, w[2] += cv[2][p] * sp;
+                }
+                for (int i = 0; i < 3; i++) {
+                    ok &= w[i] < a->var_limit;
+                    if (a->trace)
+                        a->trace[(4 + i) * nb + b] = w[i];
+                }
             }
             a->still[b] = (char)ok;
         }
-        if (lo == a->b0) /* the high-pass at rest on the first block (sos_rest_state x first value) */
-            for (int c = 0; c < chans; c++)
+        if (b_lo == a->b0) /* the high-pass at rest on the first block (sos_rest_state x first value) */
+            for (int c = lo; c < hi; c++)
                 for (int k = 0; k < 2 * ns_hp; k++)
                     zh[c][k] = a->rest[k] * u[0][c];
         for (Py_ssize_t k = 0; k < n; k++) {
             int s = 1;
 #pragma GCC unroll 4 /* the channels' filters interleaved: their dependency chains overlap */
-            for (int c = 0; c < chans; c++) { /* high-pass, rectifier, low-pass (eq. 2), per channel */
+            for (int c = lo; c < hi; c++) { /* high-pass, rectifier, low-pass (eq. 2), per channel */
                 double y = fabs(cascade(a->sos_hp, zh[c], ns_hp, u[k][c]));
                 y = cascade(a->sos_lp, zl[c], ns_lp, y);
                 s &= y < a->thr;
                 if (a->trace)
-                    a->trace[c * nb + lo + k] = y;
+                    a->trace[c * nb + b_lo + k] = y;
             }
-            a->still[lo + k] &= (char)s;
+            a->still[b_lo + k] &= (char)s;
         }
     }
 }
@@ -366,11 +373,11 @@ static inline __attribute__((always_inline)) void chain_run(const Chain *a, int 
 static PyObject *lotters_chain(PyObject *self, PyObject *args)
 {
     PyObject *omean, *ouse, *oscat, *oo, *okinv, *ohp, *olp, *orest, *ostill, *otrace = Py_None;
-    int chans;
+    int chans, lo = 0, gate = 1;
     double thr, var_limit;
     Py_ssize_t b0;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOiddnO|O:lotters_chain", &omean, &ouse, &oscat, &oo, &okinv, &ohp, &olp,
-                          &orest, &chans, &thr, &var_limit, &b0, &ostill, &otrace))
+    if (!PyArg_ParseTuple(args, "OOOOOOOOiddnO|Oip:lotters_chain", &omean, &ouse, &oscat, &oo, &okinv, &ohp, &olp,
+                          &orest, &chans, &thr, &var_limit, &b0, &ostill, &otrace, &lo, &gate))
         return NULL;
     Py_buffer v[10] = {{0}};
     Py_buffer *mean = v, *use = v + 1, *scat = v + 2, *off = v + 3, *kv = v + 4, *hp = v + 5, *lp = v + 6,
@@ -395,6 +402,10 @@ static PyObject *lotters_chain(PyObject *self, PyObject *args)
         PyErr_Format(PyExc_ValueError, "channels must be 1 (the norm) to 4 (norm and axes), got %d", chans);
         goto fail;
     }
+    if (lo < 0 || lo >= chans) {
+        PyErr_Format(PyExc_ValueError, "first channel %d outside the %d channels", lo, chans);
+        goto fail;
+    }
     if (b0 < 0 || b0 > nb) {
         PyErr_Format(PyExc_ValueError, "first block %zd outside the %zd blocks", b0, nb);
         goto fail;
@@ -406,14 +417,19 @@ static PyObject *lotters_chain(PyObject *self, PyObject *args)
     Chain ch = {mean->buf, off->buf, kv->buf, hp->buf, lp->buf, rest->buf, scat->buf, use->buf, still->buf, tr,
                 nb, b0, thr, var_limit};
     Py_BEGIN_ALLOW_THREADS
-    /* the default (order 2: one biquad each, norm and axes) with constant trip counts, so that the
-     * filter states live in registers; the same operations as the general form */
-    if (nhp == 1 && nlp == 1 && chans == 4)
-        chain_run(&ch, 4, 1, 1);
-    else if (nhp == 1 && nlp == 1 && chans == 1)
-        chain_run(&ch, 1, 1, 1);
+    /* the default (order 2: one biquad each; norm and axes in one call or in two halves, or the norm
+     * alone) with constant trip counts, so that the filter states live in registers; the same
+     * operations as the general form */
+    if (nhp == 1 && nlp == 1 && chans == 4 && lo == 0 && gate)
+        chain_run(&ch, 0, 4, 1, 1, 1);
+    else if (nhp == 1 && nlp == 1 && chans == 2 && lo == 0 && !gate)
+        chain_run(&ch, 0, 2, 1, 1, 0);
+    else if (nhp == 1 && nlp == 1 && chans == 4 && lo == 2 && gate)
+        chain_run(&ch, 2, 4, 1, 1, 1);
+    else if (nhp == 1 && nlp == 1 && chans == 1 && lo == 0 && gate)
+        chain_run(&ch, 0, 1, 1, 1, 1);
     else
-        chain_run(&ch, chans, (int)nhp, (int)nlp);
+        chain_run(&ch, lo, chans, (int)nhp, (int)nlp, gate);
     Py_END_ALLOW_THREADS
     release_all(v, 10);
     Py_RETURN_NONE;
@@ -646,7 +662,8 @@ static PyMethodDef methods[] = {
      "Block statistics of one chunk (see core.fastdetect.block_stats), written to blocks [b0, b0 + m)."},
     {"lotters_chain", lotters_chain, METH_VARARGS,
      "lotters_chain(mean, usable, scatter, offset, kinv, sos_hp, sos_lp, rest_hp, channels, threshold,\n"
-     "              var_limit, b0, still, trace=None)\nStill blocks from b0 on by Lötters' detector (core.fastdetect.lotters_still);\n"
+     "              var_limit, b0, still, trace=None, first=0, gate=True)\nStill blocks from b0 on by Lötters' detector "
+     "(core.fastdetect.lotters_still),\nfiltering channels [first, channels) of (|a|, x, y, z), the within-block std gate when gate;\n"
      "trace (7, nb) float64, optional: each channel's detection signal and the per-axis within-block scatter [g²]."},
     {"variance_chain", variance_chain, METH_VARARGS,
      "variance_chain(mean, usable, scatter, ref, kinv, window_blocks, block_n, threshold2, still, trace=None)\n"

@@ -56,6 +56,7 @@ BLOCK_S = 0.1  # block length [s]: 10 Hz detection, boundaries to 0.1 s
 CHUNK_BLOCKS = 4096  # blocks per chunk of the reducing pass (a few 100 kB per channel: stays in the CPU cache)
 THREADS = 2  # chunks of the reducing pass are shared between this many threads
 GATHER_THREAD_MIN = 1024  # windows from which their times are gathered beside the window sums
+CHAIN_LANES_MIN_BLOCKS = 1 << 16  # blocks from which Lötters' four filter chains run as two halves on two threads
 
 _I6 = np.array([0, 1, 2, 0, 0, 1])
 _J6 = np.array([0, 1, 2, 1, 2, 2])
@@ -273,11 +274,21 @@ def lotters_still(bs: BlockStats, to_g: Calibration | None = None, *, hp_hz: flo
     # K^-1 (mean - o), |a| (eq. 1), high-pass, rectifier, low-pass, < threshold (eq. 2) on the norm
     # and (per_axis) the three axes, the within-block std gate; unusable blocks held at the last
     # usable one, the high-pass at rest on the first (core.detectors: the first finite sample)
-    lotters_chain(np.ascontiguousarray(bs.mean, dtype=np.float64), np.ascontiguousarray(bs.usable),
-                  np.ascontiguousarray(bs.scatter, dtype=np.float32), np.ascontiguousarray(o, dtype=np.float64),
-                  np.ascontiguousarray(kinv, dtype=np.float64), sos_hp, sos_lp,
-                  np.ascontiguousarray(sos_rest_state(sos_hp)), 4 if per_axis else 1, float(threshold_g),
-                  float(threshold_g) ** 2 * bs.block_n, b0, still)
+    args = (np.ascontiguousarray(bs.mean, dtype=np.float64), np.ascontiguousarray(bs.usable),
+            np.ascontiguousarray(bs.scatter, dtype=np.float32), np.ascontiguousarray(o, dtype=np.float64),
+            np.ascontiguousarray(kinv, dtype=np.float64), sos_hp, sos_lp, np.ascontiguousarray(sos_rest_state(sos_hp)))
+    limits = (float(threshold_g), float(threshold_g) ** 2 * bs.block_n, b0)
+    if per_axis and nb - b0 >= CHAIN_LANES_MIN_BLOCKS:
+        # the four channels' filters in two halves on two threads (the kernel releases the GIL):
+        # (|a|, x) here, (y, z) and the std gate beside it, each block still when both say so
+        other = np.empty(nb, dtype=bool)
+        with ThreadPoolExecutor(1, thread_name_prefix="gravcal-chain") as pool:
+            job = pool.submit(lotters_chain, *args, 4, *limits, other, None, 2, True)
+            lotters_chain(*args, 2, *limits, still, None, 0, False)
+            job.result()
+        np.logical_and(still, other, out=still)
+    else:
+        lotters_chain(*args, 4 if per_axis else 1, *limits, still)
     still[b0:b0 + settle] = False
     return still
 

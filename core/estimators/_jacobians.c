@@ -30,11 +30,107 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <math.h>
+#include <pthread.h>
 #include <string.h>
+#include <unistd.h>
 
 #include "../_buffers.h"
 
 #define N_BUF 9
+#define SPLIT_MIN 4096 /* windows from which a call shares them with a helper thread (a week: ~12 000) */
+
+/* The windows are independent (no sum runs across them), so any split of them between threads writes the
+ * bits one loop writes. A call shares its windows with one helper thread, kept for the process's life:
+ * both take chunks of SHARE_CHUNKS-th of the windows from a counter until none is left; the caller then
+ * waits only for a chunk the helper has taken and not finished. A helper that does not get a core (a busy
+ * machine) takes nothing, and the caller does every chunk itself, as one loop would, instead of waiting for
+ * it. threads: 1, 2, or -1 (2 from SPLIT_MIN windows on when the machine has a second CPU). Called without
+ * the GIL; a call made while another call's windows are being shared runs alone. */
+#define SHARE_CHUNKS 32
+
+typedef void (*LoopFn)(void *ctx, Py_ssize_t w0, Py_ssize_t w1, int lane);
+
+static pthread_mutex_t share_mu = PTHREAD_MUTEX_INITIALIZER, share_job = PTHREAD_MUTEX_INITIALIZER;
+static pthread_cond_t share_wake = PTHREAD_COND_INITIALIZER, share_idle = PTHREAD_COND_INITIALIZER;
+static struct {
+    LoopFn run;
+    void *ctx;
+    Py_ssize_t next, m, chunk;
+    int open, busy, helper;
+} share; /* all fields under share_mu */
+
+static void *helper_main(void *arg)
+{
+    (void)arg;
+    pthread_mutex_lock(&share_mu);
+    for (;;) {
+        while (!(share.open && share.next < share.m))
+            pthread_cond_wait(&share_wake, &share_mu);
+        const Py_ssize_t w0 = share.next, w1 = share.m - w0 < share.chunk ? share.m : w0 + share.chunk;
+        LoopFn run = share.run;
+        void *ctx = share.ctx;
+        share.next = w1, share.busy = 1;
+        pthread_mutex_unlock(&share_mu);
+        run(ctx, w0, w1, 1);
+        pthread_mutex_lock(&share_mu);
+        share.busy = 0;
+        pthread_cond_signal(&share_idle);
+    }
+    return NULL;
+}
+
+static void share_after_fork(void)
+{ /* the child has no helper thread (fork copies only the caller): fresh locks, a helper started on demand */
+    pthread_mutex_init(&share_mu, NULL), pthread_mutex_init(&share_job, NULL);
+    pthread_cond_init(&share_wake, NULL), pthread_cond_init(&share_idle, NULL);
+    share.open = share.busy = share.helper = 0;
+}
+
+static void share_windows(LoopFn run, void *ctx, Py_ssize_t m, int threads)
+{
+    if (threads < 0)
+        threads = m >= SPLIT_MIN && sysconf(_SC_NPROCESSORS_ONLN) > 1 ? 2 : 1;
+    if (threads == 1 || m < 2 || pthread_mutex_trylock(&share_job) != 0) {
+        run(ctx, 0, m, 0);
+        return;
+    }
+    pthread_mutex_lock(&share_mu);
+    if (!share.helper) {
+        pthread_t t;
+        if (pthread_create(&t, NULL, helper_main, NULL) == 0 && pthread_detach(t) == 0)
+            share.helper = 1;
+    }
+    if (!share.helper) { /* no thread could be started: one loop */
+        pthread_mutex_unlock(&share_mu);
+        pthread_mutex_unlock(&share_job);
+        run(ctx, 0, m, 0);
+        return;
+    }
+    share.run = run, share.ctx = ctx, share.next = 0, share.m = m, share.open = 1;
+    share.chunk = m / SHARE_CHUNKS > 1 ? m / SHARE_CHUNKS : 1;
+    pthread_cond_signal(&share_wake);
+    while (share.next < m) {
+        const Py_ssize_t w0 = share.next, w1 = m - w0 < share.chunk ? m : w0 + share.chunk;
+        share.next = w1;
+        pthread_mutex_unlock(&share_mu);
+        run(ctx, w0, w1, 0);
+        pthread_mutex_lock(&share_mu);
+    }
+    share.open = 0;
+    while (share.busy)
+        pthread_cond_wait(&share_idle, &share_mu);
+    pthread_mutex_unlock(&share_mu);
+    pthread_mutex_unlock(&share_job);
+}
+
+static int threads_arg(int threads)
+{
+    if (threads != -1 && threads != 1 && threads != 2) {
+        PyErr_Format(PyExc_ValueError, "threads must be 1, 2 or -1 (automatic), got %d", threads);
+        return -1;
+    }
+    return 0;
+}
 
 /* extended_accel_jacobian(K_const (3, 3), o_const (3,), p (P,), rows (P, 12), entries (n, 2), values (M, n),
  *                         raw (M, 3), a (M, 3) out, J (M, 3, P) out, M, P, n)
@@ -45,12 +141,89 @@
  * is ±0, which added to a partial sum of the einsum order (never -0: it starts at +0.0 and rounds to
  * nearest) leaves it unchanged; a row of dK_q that is all 0 gives dK_q a + do_q = do_q exactly when a is
  * finite and do_q is not 0. Otherwise (p or a not finite, do_q 0) the full sums run. */
+/* extended_accel_jacobian's loop over windows [w0, w1) (R: this lane's copy of the rows) */
+typedef struct {
+    const double *Kc, *oc, *c, *V, *raw;
+    double *A, *J;
+    const Py_ssize_t *pos, *kq, *ke, *oq, *oe;
+    const char *row_zero;
+    double *R[2];
+    Py_ssize_t n, nk, no, p;
+    int finite_p;
+} ExtLoop;
+
+static void ext_loop(void *ctx, Py_ssize_t w0, Py_ssize_t w1, int lane)
+{
+    const ExtLoop *x = ctx;
+    const double *Kc = x->Kc, *oc = x->oc, *c = x->c, *V = x->V, *raw = x->raw;
+    double *A = x->A, *J = x->J, *R = x->R[lane];
+    const Py_ssize_t *pos = x->pos, *kq = x->kq, *ke = x->ke, *oq = x->oq, *oe = x->oe;
+    const char *row_zero = x->row_zero;
+    const Py_ssize_t n = x->n, nk = x->nk, no = x->no, p = x->p;
+    const int finite_p = x->finite_p;
+    for (Py_ssize_t w = w0; w < w1; w++) {
+        double K[9], o[3], inv[9], d[3], a[3];
+        for (Py_ssize_t t = 0; t < n; t++)  /* the window's rows: the other entries stay the constant ones */
+            R[pos[t]] = V[w * n + t];
+        /* K(c), o(c): einsum("p,mpij->mij") and ("p,mpi->mi") from 0.0 in q order, then the constant part */
+        for (int j = 0; j < 9; j++)
+            K[j] = 0.0;
+        for (int j = 0; j < 3; j++)
+            o[j] = 0.0;
+        if (finite_p) {
+            for (Py_ssize_t t = 0; t < nk; t++)
+                K[ke[t]] += c[kq[t]] * R[12 * kq[t] + ke[t]];
+            for (Py_ssize_t t = 0; t < no; t++)
+                o[oe[t]] += c[oq[t]] * R[12 * oq[t] + 9 + oe[t]];
+        } else {
+            for (Py_ssize_t q = 0; q < p; q++) {
+                for (int j = 0; j < 9; j++)
+                    K[j] += c[q] * R[12 * q + j];
+                for (int j = 0; j < 3; j++)
+                    o[j] += c[q] * R[12 * q + 9 + j];
+            }
+        }
+        for (int j = 0; j < 9; j++)
+            K[j] = Kc[j] + K[j];
+        for (int j = 0; j < 3; j++)
+            o[j] = oc[j] + o[j];
+        /* K^-1 = adjugate / determinant (a singular K gives inf/NaN, as the numpy form does) */
+        const double ka = K[0], kb = K[1], kc = K[2], kd = K[3], ke_ = K[4], kf = K[5], kg = K[6], kh = K[7],
+                     ki = K[8];
+        inv[0] = ke_ * ki - kf * kh, inv[1] = kc * kh - kb * ki, inv[2] = kb * kf - kc * ke_;
+        inv[3] = kf * kg - kd * ki, inv[4] = ka * ki - kc * kg, inv[5] = kc * kd - ka * kf;
+        inv[6] = kd * kh - ke_ * kg, inv[7] = kb * kg - ka * kh, inv[8] = ka * ke_ - kb * kd;
+        const double det = ka * inv[0] + kb * inv[3] + kc * inv[6];
+        for (int j = 0; j < 9; j++)
+            inv[j] /= det;
+        /* a = K^-1 (raw - o) */
+        for (int j = 0; j < 3; j++)
+            d[j] = raw[3 * w + j] - o[j];
+        for (int i = 0; i < 3; i++)
+            a[i] = A[3 * w + i] = inv[3 * i] * d[0] + inv[3 * i + 1] * d[1] + inv[3 * i + 2] * d[2];
+        const int finite_a = isfinite(a[0]) && isfinite(a[1]) && isfinite(a[2]);
+        /* J[:, q] = -K^-1 (dK_q a + do_q) */
+        double *Jw = J + w * 3 * p;
+        for (Py_ssize_t q = 0; q < p; q++) {
+            const double *G = R + 12 * q, *g = G + 9;
+            double t[3];
+            for (int j = 0; j < 3; j++)
+                t[j] = row_zero[3 * q + j] && finite_a && g[j] != 0.0
+                           ? g[j]
+                           : (G[3 * j] * a[0] + G[3 * j + 1] * a[1] + G[3 * j + 2] * a[2]) + g[j];
+            for (int i = 0; i < 3; i++)
+                Jw[i * p + q] = -(inv[3 * i] * t[0] + inv[3 * i + 1] * t[1] + inv[3 * i + 2] * t[2]);
+        }
+    }
+}
+
 static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
 {
     PyObject *obj[N_BUF];
     Py_ssize_t m, p, n;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOnnn", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5], &obj[6],
-                          &obj[7], &obj[8], &m, &p, &n))
+    int threads = -1;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOnnn|i", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5], &obj[6],
+                          &obj[7], &obj[8], &m, &p, &n, &threads) || threads_arg(threads) < 0)
         return NULL;
     if (m < 0 || p < 1 || n < 0) {
         PyErr_SetString(PyExc_ValueError, "need M >= 0 windows, P >= 1 parameters and 0 <= n <= 12 P entries");
@@ -78,7 +251,7 @@ static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
     }
     /* work: the window's rows (12 P), the positions of the window entries (n), the (q, e) pairs of dK and do
      * that may be nonzero, q-major (each entry's sum keeps q order), the dK rows that are 0 in every window */
-    double *R = PyMem_Malloc(sizeof(double) * (size_t)p * 12);
+    double *R = PyMem_Malloc(sizeof(double) * (size_t)p * 24); /* the window's rows: one copy per lane */
     Py_ssize_t *pos = PyMem_Malloc(sizeof(Py_ssize_t) * ((size_t)n + 24 * (size_t)p + 1));
     char *row_zero = PyMem_Malloc((size_t)p * 3);
     const double *Kc = buf[0].buf, *oc = buf[1].buf, *c = buf[2].buf, *rows = buf[3].buf, *ent = buf[4].buf,
@@ -91,6 +264,7 @@ static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
     int finite_p = 1;
     if (ok) {
         memcpy(R, rows, sizeof(double) * (size_t)p * 12);
+        memcpy(R + 12 * p, rows, sizeof(double) * (size_t)p * 12);
         for (Py_ssize_t t = 0; t < n && ok; t++) {
             const double q = ent[2 * t], e = ent[2 * t + 1];
             if (!(q >= 0 && q < (double)p && e >= 0 && e < 12 && q == (Py_ssize_t)q && e == (Py_ssize_t)e)) {
@@ -120,61 +294,10 @@ static PyObject *extended_accel_jacobian(PyObject *self, PyObject *args)
                 row_zero[3 * q + e] = (char)z;
             }
         }
+        ExtLoop x = {Kc, oc, c, V, raw, A, J, pos, kq, ke, oq, oe, row_zero, {R, R + 12 * p}, n, nk, no, p,
+                     finite_p};
         Py_BEGIN_ALLOW_THREADS
-        for (Py_ssize_t w = 0; w < m; w++) {
-            double K[9], o[3], inv[9], d[3], a[3];
-            for (Py_ssize_t t = 0; t < n; t++)  /* the window's rows: the other entries stay the constant ones */
-                R[pos[t]] = V[w * n + t];
-            /* K(c), o(c): einsum("p,mpij->mij") and ("p,mpi->mi") from 0.0 in q order, then the constant part */
-            for (int j = 0; j < 9; j++)
-                K[j] = 0.0;
-            for (int j = 0; j < 3; j++)
-                o[j] = 0.0;
-            if (finite_p) {
-                for (Py_ssize_t t = 0; t < nk; t++)
-                    K[ke[t]] += c[kq[t]] * R[12 * kq[t] + ke[t]];
-                for (Py_ssize_t t = 0; t < no; t++)
-                    o[oe[t]] += c[oq[t]] * R[12 * oq[t] + 9 + oe[t]];
-            } else {
-                for (Py_ssize_t q = 0; q < p; q++) {
-                    for (int j = 0; j < 9; j++)
-                        K[j] += c[q] * R[12 * q + j];
-                    for (int j = 0; j < 3; j++)
-                        o[j] += c[q] * R[12 * q + 9 + j];
-                }
-            }
-            for (int j = 0; j < 9; j++)
-                K[j] = Kc[j] + K[j];
-            for (int j = 0; j < 3; j++)
-                o[j] = oc[j] + o[j];
-            /* K^-1 = adjugate / determinant (a singular K gives inf/NaN, as the numpy form does) */
-            const double ka = K[0], kb = K[1], kc = K[2], kd = K[3], ke_ = K[4], kf = K[5], kg = K[6], kh = K[7],
-                         ki = K[8];
-            inv[0] = ke_ * ki - kf * kh, inv[1] = kc * kh - kb * ki, inv[2] = kb * kf - kc * ke_;
-            inv[3] = kf * kg - kd * ki, inv[4] = ka * ki - kc * kg, inv[5] = kc * kd - ka * kf;
-            inv[6] = kd * kh - ke_ * kg, inv[7] = kb * kg - ka * kh, inv[8] = ka * ke_ - kb * kd;
-            const double det = ka * inv[0] + kb * inv[3] + kc * inv[6];
-            for (int j = 0; j < 9; j++)
-                inv[j] /= det;
-            /* a = K^-1 (raw - o) */
-            for (int j = 0; j < 3; j++)
-                d[j] = raw[3 * w + j] - o[j];
-            for (int i = 0; i < 3; i++)
-                a[i] = A[3 * w + i] = inv[3 * i] * d[0] + inv[3 * i + 1] * d[1] + inv[3 * i + 2] * d[2];
-            const int finite_a = isfinite(a[0]) && isfinite(a[1]) && isfinite(a[2]);
-            /* J[:, q] = -K^-1 (dK_q a + do_q) */
-            double *Jw = J + w * 3 * p;
-            for (Py_ssize_t q = 0; q < p; q++) {
-                const double *G = R + 12 * q, *g = G + 9;
-                double t[3];
-                for (int j = 0; j < 3; j++)
-                    t[j] = row_zero[3 * q + j] && finite_a && g[j] != 0.0
-                               ? g[j]
-                               : (G[3 * j] * a[0] + G[3 * j + 1] * a[1] + G[3 * j + 2] * a[2]) + g[j];
-                for (int i = 0; i < 3; i++)
-                    Jw[i * p + q] = -(inv[3 * i] * t[0] + inv[3 * i + 1] * t[1] + inv[3 * i + 2] * t[2]);
-            }
-        }
+        share_windows(ext_loop, &x, m, threads);
         Py_END_ALLOW_THREADS
     }
     PyMem_Free(R);
@@ -241,14 +364,31 @@ static void linear_loop(const double *Ki, const double *o, const double *G, cons
     }
 }
 
+typedef struct {
+    const double *Ki, *o, *G, *C, *raw, *cov;
+    double *H, *B, *A, *V;
+    Py_ssize_t p;
+} LinLoop;
+
+static void lin_loop(void *ctx, Py_ssize_t w0, Py_ssize_t w1, int lane)
+{
+    const LinLoop *x = ctx;
+    const Py_ssize_t p = x->p;
+    (void)lane;
+    linear_loop(x->Ki, x->o, x->G, x->C, x->raw + 3 * w0, x->cov ? x->cov + 9 * w0 : NULL, x->H + w0, x->B + p * w0,
+                x->A + 3 * w0, x->V ? x->V + w0 : NULL, w1 - w0, p);
+}
+
 /* linear_norm_jacobian(Kinv (3, 3), o (3,), G (P, 3, 3) = K^-1 dK, C (3, P) = (do @ K^-1.T).T, raw (M, 3),
- *                      cov (M, 3, 3) or None, h (M,) out, B (M, P) out, a (M, 3) out, var (M,) out or None, M, P) */
+ *                      cov (M, 3, 3) or None, h (M,) out, B (M, P) out, a (M, 3) out, var (M,) out or None, M, P,
+ *                      threads=-1) */
 static PyObject *linear_norm_jacobian(PyObject *self, PyObject *args)
 {
     PyObject *obj[10];
     Py_ssize_t m, p;
-    if (!PyArg_ParseTuple(args, "OOOOOOOOOOnn", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5], &obj[6],
-                          &obj[7], &obj[8], &obj[9], &m, &p))
+    int threads = -1;
+    if (!PyArg_ParseTuple(args, "OOOOOOOOOOnn|i", &obj[0], &obj[1], &obj[2], &obj[3], &obj[4], &obj[5], &obj[6],
+                          &obj[7], &obj[8], &obj[9], &m, &p, &threads) || threads_arg(threads) < 0)
         return NULL;
     if (m < 2 || p < 1) {
         PyErr_SetString(PyExc_ValueError, "need M >= 2 windows (one row is dgemv's, not dgemm's, order) and P >= 1");
@@ -277,9 +417,10 @@ static PyObject *linear_norm_jacobian(PyObject *self, PyObject *args)
     if (ok) {
         const double *cov = with_var ? buf[5].buf : NULL;
         double *V = with_var ? buf[9].buf : NULL;
+        LinLoop x = {buf[0].buf, buf[1].buf, buf[2].buf, buf[3].buf, buf[4].buf, cov, buf[6].buf, buf[7].buf,
+                     buf[8].buf, V, p};
         Py_BEGIN_ALLOW_THREADS
-        linear_loop(buf[0].buf, buf[1].buf, buf[2].buf, buf[3].buf, buf[4].buf, cov, buf[6].buf, buf[7].buf,
-                    buf[8].buf, V, m, p);
+        share_windows(lin_loop, &x, m, threads);
         Py_END_ALLOW_THREADS
     }
     for (int k = 0; k < 10; k++)
@@ -292,9 +433,11 @@ static PyObject *linear_norm_jacobian(PyObject *self, PyObject *args)
 
 static PyMethodDef methods[] = {
     {"linear_norm_jacobian", linear_norm_jacobian, METH_VARARGS,
-     "linear_norm_jacobian(Kinv, o, G, C, raw, cov or None, h, B, a, var or None, M, P): h = |a|, B = dh/dp, a, var h"},
+     "linear_norm_jacobian(Kinv, o, G, C, raw, cov or None, h, B, a, var or None, M, P, threads=-1): h = |a|, B = dh/dp, a, "
+     "var h; threads 1, 2 (the windows shared with a helper thread) or -1 (2 from 4096 windows on)"},
     {"extended_accel_jacobian", extended_accel_jacobian, METH_VARARGS,
-     "extended_accel_jacobian(K_const, o_const, p, rows, entries, values, raw, a, J, M, P, n): a = K(c)^-1 (raw - o(c)), J = da/dp"},
+     "extended_accel_jacobian(K_const, o_const, p, rows, entries, values, raw, a, J, M, P, n, threads=-1): a = K(c)^-1 "
+     "(raw - o(c)), J = da/dp; threads as linear_norm_jacobian's"},
     {NULL, NULL, 0, NULL},
 };
 
@@ -302,4 +445,8 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_jacobians",
                                     "The batch fit's corrected accelerations and Jacobians, window by window.", -1,
                                     methods, NULL, NULL, NULL, NULL};
 
-PyMODINIT_FUNC PyInit__jacobians(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__jacobians(void)
+{
+    pthread_atfork(NULL, NULL, share_after_fork);
+    return PyModule_Create(&module);
+}
