@@ -42,6 +42,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from typing import Any, Callable
 
 import numpy as np
 
@@ -61,15 +62,20 @@ def _cpu_s(pid: int) -> float:
     return sum(_task_cpu_s(pid).values())
 
 
-def _task_cpu_s(pid: int) -> dict[int, float]:
-    """CPU seconds of each thread of ``pid`` (utime + stime of /proc/PID/task/TID/stat)."""
+def _per_task(pid: int, read: Callable[[str], Any], leaf: str) -> dict[int, Any]:
+    """``read(/proc/PID/task/TID/leaf)`` for each thread of ``pid`` still running."""
     out = {}
     for tid in os.listdir(f"/proc/{pid}/task"):
         try:
-            out[int(tid)] = _cpu_s_path(f"/proc/{pid}/task/{tid}/stat")
+            out[int(tid)] = read(f"/proc/{pid}/task/{tid}/{leaf}")
         except OSError:  # the thread ended
             pass
     return out
+
+
+def _task_cpu_s(pid: int) -> dict[int, float]:
+    """CPU seconds of each thread of ``pid`` (utime + stime of /proc/PID/task/TID/stat)."""
+    return _per_task(pid, _cpu_s_path, "stat")
 
 
 def _switches(path: str) -> tuple[int, int]:
@@ -85,13 +91,7 @@ def _switches(path: str) -> tuple[int, int]:
 
 def _task_switches(pid: int) -> dict[int, tuple[int, int]]:
     """(voluntary, involuntary) context switches of each thread of ``pid``."""
-    out = {}
-    for tid in os.listdir(f"/proc/{pid}/task"):
-        try:
-            out[int(tid)] = _switches(f"/proc/{pid}/task/{tid}/status")
-        except OSError:  # the thread ended
-            pass
-    return out
+    return _per_task(pid, _switches, "status")
 
 
 def _wakeups(names: dict[int, str], sw0: dict[int, tuple[int, int]], sw1: dict[int, tuple[int, int]], wall: float,
