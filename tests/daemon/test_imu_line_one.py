@@ -95,3 +95,33 @@ def test_line_kernel_rejects_wrong_buffers_with_a_clear_error():
         imu_line(row, np.zeros(3), 0.0, "still", True)
     with pytest.raises(ValueError, match="not C-contiguous"):  # refused by the buffer protocol: nothing read
         imu_line(row, np.zeros(6)[::2], 0.0, 1, True)
+
+
+def _random_doubles(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Finite doubles over every binary exponent (random bit patterns), and dyadic fractions a / 2^b, many of
+    them exact rounding ties at 2, 3, 5 and 6 decimals (0.125, 0.015625, ...)."""
+    bits = rng.integers(0, 1 << 63, n, dtype=np.uint64) | (rng.integers(0, 2, n, dtype=np.uint64) << np.uint64(63))
+    wide = bits.view(np.float64)
+    wide = wide[np.isfinite(wide)]
+    near = rng.integers(-(1 << 20), 1 << 20, n) / 2.0 ** rng.integers(0, 30, n)
+    scaled = rng.normal(0, 1, n) * 10.0 ** rng.integers(-12, 19, n)  # the decimal range lines carry, and beyond
+    return np.concatenate([wide, near, scaled])
+
+
+def test_fixed_decimals_are_pythons_on_every_exponent_and_tie():
+    """The line's %.Nf numbers, written in integer arithmetic where they fit, are Python's %-formatting's (the
+    block encoder's) digit for digit on random bit patterns, dyadic ties and values up to 1e19 and beyond."""
+    rng = np.random.default_rng(11)
+    x = _random_doubles(rng, 3000)
+    n = x.size // 3 * 3
+    s = _block(rng, n)
+    s["t"] = rng.permutation(x)[:n]
+    x32 = x[np.abs(x) < 3e38].astype(np.float32)
+    s["temp"] = rng.choice(x32, n)
+    s["vsupply"] = rng.choice(x32, n)
+    acc = rng.permutation(x)[:n].reshape(-1, 3).repeat(3, axis=0)[:n]
+    gyro = rng.permutation(x)[:n]
+    static = rng.integers(0, 2, n).astype(bool)
+    block = encode_imu_joined(s, acc, gyro, static, raw=True).splitlines(keepends=True)
+    for i in range(n):
+        assert encode_imu_joined(s[i:i + 1], acc[i:i + 1], gyro[i:i + 1], static[i:i + 1], raw=True) == block[i]
