@@ -10,7 +10,8 @@
  * not finite is the word null (what the block encoder's replacement of nan/inf/-inf gives). The duty cycles
  * are core.samples.duty_ratios: T1 / T2 of the channel's chip, NaN where T2 = 0.
  * Numbers below 2^53 (x 10^N below 2^64) are written in integer arithmetic (put_f_exact), the rest by
- * PyOS_double_to_string, which allocates with PyMem: the GIL is kept. A raw line takes ~0.7 µs warm (1.2-1.9 µs with dtoa for every number).
+ * PyOS_double_to_string, which allocates with PyMem: the GIL is kept. A raw line takes ~0.7 µs warm
+ * (1.2-1.9 µs with dtoa for every number).
  * The same writer is exported to other kernels as a capsule (_linekernel.h; daemon/_fastpath.c).
  */
 #define PY_SSIZE_T_CLEAN
