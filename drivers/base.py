@@ -405,6 +405,16 @@ def parse_spec(spec: str) -> DriverSpec:
     return DriverSpec(scheme, host, path, options)
 
 
+def boolean_option(value: str) -> bool:
+    """A yes/no option's text (1/true/yes/on, 0/false/no/off); anything else is not valid (take_options says so)."""
+    v = value.strip().lower()
+    if v in ("1", "true", "yes", "on"):
+        return True
+    if v in ("0", "false", "no", "off"):
+        return False
+    raise ValueError(value)
+
+
 def take_options(spec: DriverSpec, known: dict[str, Callable[[str], Any]]) -> dict[str, Any]:
     """Convert the spec's options with ``known`` converters; unknown names are an error."""
     out = {}

@@ -38,7 +38,8 @@ import numpy as np
 from smbus2 import SMBus, i2c_msg
 
 from ..core.samples import FLAG_FIFO_OVERFLOW, FLAG_GAP_BEFORE, SAMPLE_DTYPE
-from .base import PERMISSION_ERRNOS, Backoff, DriverError, DriverSpec, FramedStreamDriver, permission_hint, take_options
+from .base import (PERMISSION_ERRNOS, Backoff, DriverError, DriverSpec, FramedStreamDriver, boolean_option,
+                   permission_hint, take_options)
 from .codec import FRAME_LEN, TICK_HZ, FrameDecoder
 
 DEFAULT_ADDRESS = 0x42
@@ -136,7 +137,7 @@ class I2CDriver(FramedStreamDriver):
     @classmethod
     def from_spec(cls, spec: DriverSpec) -> "I2CDriver":
         opts = take_options(spec, {"rate": float, "burst_frames": int, "poll_s": float, "tick_hz": float,
-                                   "latency_budget_s": float, "drdy": str, "combined": _flag})
+                                   "latency_budget_s": float, "drdy": str, "combined": boolean_option})
         if "drdy" in opts:
             opts["data_ready"] = SysfsDataReady(opts.pop("drdy"))
         try:
@@ -330,10 +331,6 @@ class I2CDriver(FramedStreamDriver):
     def unread(self, bursts: list[bytes]) -> None:
         """Bursts the C step did not take: the next :meth:`read` decodes them first, as if just read."""
         self._unread = self._unread + list(bursts)
-
-
-def _flag(text: str) -> bool:
-    return text.strip().lower() in ("1", "true", "yes")
 
 
 class SysfsDataReady:

@@ -22,7 +22,8 @@ import numpy as np
 import serial
 
 from ..core.samples import SAMPLE_DTYPE
-from .base import PERMISSION_ERRNOS, Backoff, DriverError, DriverSpec, FramedStreamDriver, permission_hint, take_options
+from .base import (PERMISSION_ERRNOS, Backoff, DriverError, DriverSpec, FramedStreamDriver, boolean_option,
+                   permission_hint, take_options)
 from .codec import FRAME_LEN, TICK_HZ, FrameDecoder
 
 DEFAULT_BAUDRATE = 460800
@@ -66,7 +67,7 @@ class SerialDriver(FramedStreamDriver):
     def from_spec(cls, spec: DriverSpec) -> "SerialDriver":
         opts = take_options(
             spec,
-            {"baudrate": int, "latency_budget_s": float, "tick_hz": float, "exclusive": _boolean},
+            {"baudrate": int, "latency_budget_s": float, "tick_hz": float, "exclusive": boolean_option},
         )
         # serial:///dev/ttyUSB0 -> /dev/ttyUSB0; serial:loop:// -> pyserial URL loop://
         port = f"{spec.host}{spec.path}" if spec.host else spec.path
@@ -195,12 +196,3 @@ def _open_error(port: str, exc: serial.SerialException) -> DriverError:
     if code in (errno.EBUSY, errno.EAGAIN, errno.EWOULDBLOCK) or "lock" in str(exc).lower():
         return DriverError(f"serial device {port} is in use by another program")
     return DriverError(f"cannot open serial port {port}: {exc}")
-
-
-def _boolean(value: str) -> bool:
-    v = value.strip().lower()
-    if v in ("1", "true", "yes", "on"):
-        return True
-    if v in ("0", "false", "no", "off"):
-        return False
-    raise ValueError(value)

@@ -22,7 +22,7 @@ import numpy as np
 from smbus2.smbus2 import I2C_M_RD
 
 from ...core.samples import SAMPLE_DTYPE
-from ..base import DriverError, DriverSpec, take_options
+from ..base import DriverError, DriverSpec, boolean_option, take_options
 from ..codec import FRAME_LEN, encode_frames
 from ..i2c import (
     CTRL_ENABLE,
@@ -457,8 +457,8 @@ class FakeI2CDriver(I2CDriver):
         opts = take_options(spec, {
             "scenario": str, "seed": int, "speed": float, "fs": float, "duration": float,
             "fifo_depth": int, "drop": float, "ber": float, "burst_frames": int, "poll_s": float,
-            "tick_hz": float, "latency_budget_s": float, "realtime": lambda v: v.strip().lower() in ("1", "true", "yes"),
-            "combined": lambda v: v.strip().lower() in ("1", "true", "yes"),
+            "tick_hz": float, "latency_budget_s": float, "realtime": boolean_option,
+            "combined": boolean_option,
         })
         address_text = (spec.host or spec.path).strip("/")
         try:
