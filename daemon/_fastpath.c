@@ -14,9 +14,8 @@
  *     or more frames than max_frames: returned as leftover, the driver decodes them as it always does;
  *     with ist[IST_CAN] = 1 + a CAN base id the bytes are slcan lines and a "frame" is a CAN sample's four lines
  *     (the frame kernel's slcan_continuing: anything else is handed back to python-can's reader);
- *   - watchers: delivery only to the snapshot ``server.fast_watchers`` (the one item of ``server.fast_box``
- *     when the server has that list, else the attribute; watching every sample, read per
- *     wake-up; None: some watcher is not plain). A watcher that is closed or whose output is not empty, or
+ *   - watchers: delivery only to the snapshot ``server.fast_watchers``, the one item of the list
+ *     ``server.fast_box`` (watching every sample, read per wake-up; None: some watcher is not plain). A watcher that is closed or whose output is not empty, or
  *     whose policy changed (both told by its ClientRecord's gate, below), or whose socket does not take the
  *     whole block stops the delivery: its lock stays held and the snapshot is returned, so fastpath.py
  *     queues the rest in order (fanout's bookkeeping);
@@ -62,7 +61,7 @@ enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
 enum { ENTRY_CLIENT, ENTRY_RECORD, ENTRY_FD, ENTRY_RAW, ENTRY_WATCH, ENTRY_ACQUIRE, ENTRY_RELEASE, ENTRY_N };
 
 /* attribute names, interned once: a lookup is then a pointer comparison */
-static PyObject *s_fast_watchers, *s_fast_box, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t,
+static PyObject *s_fast_box, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t,
     *s_params_generation;
 
 /* ClientRecord: what the step reads and writes per client, as C fields (no attribute lookup per sample).
@@ -450,19 +449,16 @@ static int call_open(Call *C)
         PyErr_SetString(PyExc_TypeError, "fastpath: processor.params_generation must be one int64");
         return -1;
     }
-    /* the server's snapshot box, when it has one: a list of exactly one item (the server only replaces the item) */
+    /* the server's snapshot box: a list of exactly one item (the server only replaces the item) */
     PyObject *box = PyObject_GetAttr(C->server, s_fast_box);
-    if (box == NULL) {
-        if (!PyErr_ExceptionMatches(PyExc_AttributeError))
-            return -1;
-        PyErr_Clear();
-    } else if (!PyList_CheckExact(box) || PyList_GET_SIZE(box) != 1) {
+    if (box == NULL)
+        return -1;
+    if (!PyList_CheckExact(box) || PyList_GET_SIZE(box) != 1) {
         Py_DECREF(box);
         PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_box must be a list of one watcher snapshot");
         return -1;
-    } else {
-        C->box = box;
     }
+    C->box = box;
     C->ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)C->max_frames);
     if (C->ticks == NULL) {
         PyErr_NoMemory();
@@ -482,17 +478,11 @@ static int call_open(Call *C)
    path's: reason R_NOT_PLAIN), -1 error */
 static int call_prepare(Call *C, PyObject **snapshot)
 {
-    PyObject *snap;
-    if (C->box == NULL) {
-        snap = PyObject_GetAttr(C->server, s_fast_watchers);
-    } else if (PyList_GET_SIZE(C->box) == 1) { /* per wake-up: a pointer read (the list may not shrink meanwhile) */
-        snap = Py_NewRef(PyList_GET_ITEM(C->box, 0));
-    } else {
+    if (PyList_GET_SIZE(C->box) != 1) {
         PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_box must keep exactly one item");
-        snap = NULL;
-    }
-    if (snap == NULL)
         return -1;
+    }
+    PyObject *snap = Py_NewRef(PyList_GET_ITEM(C->box, 0)); /* per wake-up: a pointer read */
     if (snap != Py_None && !PyTuple_Check(snap)) {
         Py_DECREF(snap);
         PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_watchers must be a tuple or None");
@@ -764,7 +754,7 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     struct {
         PyObject **name;
         const char *text;
-    } names[] = {{&s_fast_watchers, "fast_watchers"}, {&s_fast_box, "fast_box"}, {&s_correction, "correction"},
+    } names[] = {{&s_fast_box, "fast_box"}, {&s_correction, "correction"},
                  {&s_gyro_correction, "gyro_correction"}, {&s_analysed, "analysed"}, {&s_offset, "offset"},
                  {&s_kinv_t, "kinv_t"}, {&s_params_generation, "params_generation"}};
     for (size_t i = 0; i < sizeof names / sizeof names[0]; i++)

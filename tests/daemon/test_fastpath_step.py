@@ -33,6 +33,16 @@ def frames(seqs) -> bytes:
     return encode_frames(s)
 
 
+class RigServer:
+    """What the step reads of daemon/server.py's SocketServer: ``fast_box``, a list whose one item is the watcher
+    snapshot, and that item as ``fast_watchers``."""
+
+    def __init__(self, snapshot):
+        self.fast_box = [snapshot]
+
+    fast_watchers = property(lambda self: self.fast_box[0], lambda self, value: self.fast_box.__setitem__(0, value))
+
+
 class Rig:
     """A pipe as the bus, a socketpair as one plain watcher, a processor with a plain calibration."""
 
@@ -43,7 +53,7 @@ class Rig:
         self.mine.setblocking(False)
         self.client = ClientState(id=1, sock=self.mine, queue=OutputQueue(100), connected=0.0,
                                   watch=WatchPolicy(True, raw, 0.0))
-        self.server = SimpleNamespace(fast_watchers=fast_snapshot((self.client,)))
+        self.server = RigServer(fast_snapshot((self.client,)))
         plain = PlainCorrection(np.array([0.5, 0.51, 0.49]), np.diag([0.04, 0.041, 0.039]), STANDARD_GRAVITY)
         self.processor = SimpleNamespace(correction=(plain, None), gyro_correction=(2048.0, 357.36),
                                          analysed=(900, True), params_generation=np.zeros(1, np.int64))
