@@ -13,7 +13,6 @@
 #include <string.h>
 
 #include "_buffers.h"
-#include "_blocksums.h"
 
 /* ---- the reading scan ---------------------------------------------------------------------- */
 
@@ -214,29 +213,10 @@ static inline void track_word(uint64_t w, int n, Py_ssize_t s0, Py_ssize_t *brk_
     *brk_ = brk;
 }
 
-/* blk's blocks computed ahead of the scan, GROUP_ROWS rows or more at a time (an even count of
- * blocks: the paired form), so that the scan reads their rows again from the L1 cache, not from
- * memory; `done` blocks are computed, rows [0, rows) must be. */
-#define GROUP_ROWS 1024
-
-static inline void blocks_ahead(const Chunk *blk, Py_ssize_t *done, Py_ssize_t rows)
-{
-    if (blk == NULL)
-        return;
-    const Py_ssize_t group = 2 * (GROUP_ROWS / (2 * blk->B) + 1);
-    while (*done < blk->m && *done * blk->B < rows) {
-        const Py_ssize_t g = blk->m - *done < group ? blk->m - *done : group;
-        const Chunk sub = sub_chunk(blk, *done, g);
-        block_sums(&sub, 'f');
-        *done += g;
-    }
-}
-
 static inline __attribute__((always_inline)) void scan_record(const Py_buffer *t, const Py_buffer *x,
                                                               const double *prev, double *st, Runs *rr,
-                                                              const int track, const Chunk *blk)
+                                                              const int track)
 {
-    Py_ssize_t blocks_done = 0; /* blk's blocks computed so far: those of the rows scanned and a group more */
     const Py_ssize_t m = t->shape[0], S = t->strides[0];
     const char *row = t->buf;
     __m128 lo = _mm_set1_ps(INFINITY), hi = _mm_set1_ps(-INFINITY), nan = _mm_setzero_ps(), vq = nan;
@@ -258,7 +238,6 @@ static inline __attribute__((always_inline)) void scan_record(const Py_buffer *t
     /* the other rows in words of 64: each row's repeat is one bit, the runs are found per word */
     for (Py_ssize_t k0 = 1; k0 < m; k0 += 64) {
         const Py_ssize_t k1 = m - k0 < 64 ? m : k0 + 64;
-        blocks_ahead(blk, &blocks_done, k1);
         uint64_t bits = 0;
         for (Py_ssize_t k = k0; k < k1; k++) {
             const char *r = row + k * S;
@@ -275,7 +254,6 @@ static inline __attribute__((always_inline)) void scan_record(const Py_buffer *t
         if (track)
             track_word(bits, (int)(k1 - k0), k0 - first, &brk, &n_same, min_run, rr);
     }
-    blocks_ahead(blk, &blocks_done, m); /* a one-row chunk's block */
     if (track)
         TRACK_END(m - first);
     st[S_MINDT] = min_dt;
@@ -291,16 +269,14 @@ static inline __attribute__((always_inline)) void scan_record(const Py_buffer *t
         FOLD_EXTREMES(float, x, m, clo, chi, st);
 }
 
-static void scan_record_runs(const Py_buffer *t, const Py_buffer *x, const double *prev, double *st, Runs *rr,
-                             const Chunk *blk)
+static void scan_record_runs(const Py_buffer *t, const Py_buffer *x, const double *prev, double *st, Runs *rr)
 {
-    scan_record(t, x, prev, st, rr, 1, blk);
+    scan_record(t, x, prev, st, rr, 1);
 }
 
-static void scan_record_only(const Py_buffer *t, const Py_buffer *x, const double *prev, double *st, Runs *rr,
-                             const Chunk *blk)
+static void scan_record_only(const Py_buffer *t, const Py_buffer *x, const double *prev, double *st, Runs *rr)
 {
-    scan_record(t, x, prev, st, rr, 0, blk);
+    scan_record(t, x, prev, st, rr, 0);
 }
 
 /* t float64 then x0, x1, x2 float32 in each row, one stride: the layout scan_record reads */
@@ -315,13 +291,12 @@ static int is_record(const Py_buffer *t, const Py_buffer *x)
 
 static PyObject *scan_chunk(PyObject *self, PyObject *args)
 {
-    PyObject *ot, *ox[3], *oprev, *ost, *oruns, *oblocks = Py_None;
+    PyObject *ot, *ox[3], *oprev, *ost, *oruns;
     Py_ssize_t min_run = 1;
-    if (!PyArg_ParseTuple(args, "OOOOOOO|nO:scan_chunk", &ot, &ox[0], &ox[1], &ox[2], &oprev, &ost, &oruns, &min_run,
-                          &oblocks))
+    if (!PyArg_ParseTuple(args, "OOOOOOO|n:scan_chunk", &ot, &ox[0], &ox[1], &ox[2], &oprev, &ost, &oruns, &min_run))
         return NULL;
-    Py_buffer v[12] = {{0}};
-    Py_buffer *t = v, *x = v + 1, *prev = v + 4, *st = v + 5, *runs = v + 6; /* v + 7 .. 11: the blocks' */
+    Py_buffer v[7] = {{0}};
+    Py_buffer *t = v, *x = v + 1, *prev = v + 4, *st = v + 5, *runs = v + 6;
     static const char *xname[3] = {"channel 0", "channel 1", "channel 2"};
     if (get_strided(ot, t, "t", "d", 1) < 0)
         goto fail;
@@ -351,29 +326,6 @@ static PyObject *scan_chunk(PyObject *self, PyObject *args)
         goto fail;
     }
     const double *pv = oprev != Py_None ? prev->buf : NULL;
-    /* the block statistics of the chunk's first n_blocks * block_n rows, as block_pass computes them
-     * with the row before the chunk (prev) or, without it, from the recording's first row */
-    Chunk blk = {{x[0].buf, x[1].buf, x[2].buf}, t->buf, NULL, {x[0].strides[0], x[1].strides[0], x[2].strides[0]},
-                 t->strides[0]};
-    if (oblocks != Py_None) {
-        PyObject *oaux, *omean, *oscat, *oam, *ouse;
-        Py_ssize_t B, b0, nblk;
-        double max_step;
-        if (!PyTuple_Check(oblocks) ||
-            !PyArg_ParseTuple(oblocks, "OnnndOOOO;blocks must be (aux, block_n, b0, n_blocks, max_step, mean, "
-                              "scatter, aux_mean, usable)", &oaux, &B, &b0, &nblk, &max_step, &omean, &oscat, &oam,
-                              &ouse)) {
-            if (!PyErr_Occurred())
-                PyErr_SetString(PyExc_TypeError, "blocks must be a tuple (aux, block_n, b0, n_blocks, max_step, mean, "
-                                "scatter, aux_mean, usable) or None");
-            goto fail;
-        }
-        if (block_args(oaux, B, b0, nblk, m, max_step, omean, oscat, oam, ouse, v + 7, &blk) < 0)
-            goto fail;
-        if (blk.m > 0)
-            blk.t_before = pv ? pv[0] : *(const double *)t->buf - 0.5 * max_step;
-    }
-    const Chunk *bp = oblocks != Py_None && blk.m > 0 ? &blk : NULL;
     Runs rr = {oruns != Py_None ? runs->buf : NULL, oruns != Py_None ? runs->len / runs->itemsize / 2 : 0, 0, 0,
                min_run, 0};
     Runs *rp = oruns != Py_None ? &rr : NULL;
@@ -382,24 +334,19 @@ static PyObject *scan_chunk(PyObject *self, PyObject *args)
         rp ? (kind == 'f' ? scan_runs_f : scan_runs_d) : (kind == 'f' ? scan_f : scan_d);
 #ifdef HAVE_RECORD_SCAN
     if (is_record(t, x))
-        (rp ? scan_record_runs : scan_record_only)(t, x, pv, st->buf, rp, bp); /* the blocks in the same pass */
-    else
+        scan = rp ? scan_record_runs : scan_record_only;
 #endif
-    {
-        scan(t, x, pv, st->buf, rp);
-        if (bp != NULL)
-            block_sums(bp, kind);
-    }
+    scan(t, x, pv, st->buf, rp);
     Py_END_ALLOW_THREADS
     if (rr.overflow) {
         PyErr_Format(PyExc_ValueError, "runs holds room for %zd runs, the chunk has more: give it m // min_run + 2",
                      rr.cap);
         goto fail;
     }
-    release_all(v, 12);
+    release_all(v, 7);
     return Py_BuildValue("nn", rr.n_runs, rr.n_repeats);
 fail:
-    release_all(v, 12);
+    release_all(v, 7);
     return NULL;
 }
 
@@ -408,9 +355,7 @@ static PyMethodDef methods[] = {
      "scan_chunk(t, x0, x1, x2, prev, state, runs, min_run=1) -> (n_runs, n_repeated_steps)\nThe reading scan of "
      "one chunk folded into state (14 float64: min[3], max[3], count at min[3], count at max[3], smallest\n"
      "step, all finite); runs (cap, 2) int64 or None: (first step, steps) of the runs of rows equal to the row\n"
-     "before (prev: t, x0, x1, x2 of the row before the chunk, or None) of >= min_run steps or at the chunk's ends.\n"
-     "blocks (aux, block_n, b0, n_blocks, max_step, mean, scatter, aux_mean, usable) or None: also block_pass's\n"
-     "statistics of the chunk's first n_blocks * block_n rows (aux: the chunk's rows), in the same pass."},
+     "before (prev: t, x0, x1, x2 of the row before the chunk, or None) of >= min_run steps or at the chunk's ends."},
     {NULL, NULL, 0, NULL},
 };
 

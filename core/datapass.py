@@ -128,20 +128,16 @@ def scan_columns(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags:
         tc = t[i:j] if t_native else np.asarray(t[i:j], dtype=np.float64)
         block = raw[i:j] if native else np.asarray(raw[i:j], dtype=np.float64)
         prev = None if i == 0 else np.array([t[i - 1], *raw[i - 1]], dtype=np.float64)  # the row before
-        blk = None
-        if bp is not None:  # block_pass's statistics of the chunk's whole blocks, in the same pass over its rows
-            a = None if bp.aux is None else bp.aux[i:j]
-            a = a if a is None or (a.dtype.type is np.float64 and a.dtype.isnative) else np.asarray(a, np.float64)
-            blk = (a, bp.B, i // bp.B, max(0, min(j, bp.nb * bp.B) - i) // bp.B, bp.step, bp.mean, bp.scatter,
-                   bp.aux_mean, bp.usable)
         n_runs, n_repeats = scan_chunk(tc, block[:, 0], block[:, 1], block[:, 2], prev, local.state, local.runs,
-                                       min_run, blk)  # releases the GIL
+                                       min_run)  # releases the GIL
         if not (local.state[13] and all(np.isfinite(np.asarray(e[i:j], dtype=np.float64)).all() for e in extra)):
             stop.set()
             return
         n_flag = 0 if flags is None else int(np.count_nonzero(np.asarray(flags[i:j]).astype(np.int64) & FLAG_SATURATED))
         if local.runs is not None:  # the chunk's steps: its rows against the row before (the first has none at 0)
             pieces[i] = (local.runs[:n_runs, 0].copy(), local.runs[:n_runs, 1].copy(), n_repeats)
+        if bp is not None and i < bp.nb * bp.B:
+            bp.chunk(i, min(j, bp.nb * bp.B))
         # a memory-mapped input stays in the page cache but leaves this process's resident set:
         # the pass must not hold the whole file
         drop(i, j)
