@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..windows import Window
+from ._movingstd import moving_std
 from .quasistatic import QuasiStaticDetector
 from .windowing import (
     ToG,
@@ -27,7 +28,7 @@ class MovingVarianceDetector(_Windower):
     a window mean's norm by < 0.1 mg, while any deliberate movement exceeds 20 mg.
 
     Moving sums are running sums of (y_j - y_{j-w}) with y = to_g(raw) minus the first
-    finite sample (np.cumsum with the carried sum prepended: block-invariant). Non-finite
+    finite sample (carried from block to block: block-invariant bit for bit). Non-finite
     samples are held at the last finite value and are never still.
     """
 
@@ -88,15 +89,11 @@ class MovingVarianceDetector(_Windower):
         np.multiply(y, y, out=ext[3:, self.w:])
         if n:
             self._last_y = y[:, -1].copy()
-        inc = np.empty((6, n + 1))
-        inc[:, 0] = self._sum
-        np.subtract(ext[:, self.w:], ext[:, :n], out=inc[:, 1:])
-        sums = np.cumsum(inc, axis=1)[:, 1:]  # sequential: block-invariant bit for bit
+        # the running sums carried in self._sum, the per-axis sample variance and its max as a std, one
+        # compiled pass (_movingstd.c: numpy's cumsum, maximum and clip, bit for bit)
+        det = np.empty(n)
+        moving_std(ext, self.w, self._sum, det)
         self._hist = ext[:, n:].copy()
-        if n:
-            self._sum = sums[:, -1].copy()
-        var = (sums[3:] - sums[:3] * sums[:3] / self.w) / (self.w - 1)
-        det = np.sqrt(np.clip(np.maximum(np.maximum(var[0], var[1]), var[2]), 0.0, None))
         self.last_detection = det
         still = det < self.threshold_g
         if ok is not None:

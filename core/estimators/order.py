@@ -71,6 +71,7 @@ def compare_orders(ws: WindowSet, models: tuple[str, ...], start: Calibration, *
     # comparison, so a lucky reduced chi2 < 1 does not inflate the evidence for extra terms
     r_full = _norm_residuals(fits[models[-1]], ws)
     scale = max(1.0, float(np.sum(w * r_full * r_full)) / max(m - N_PARAMS[models[-1]], 1))
+    splits = fold_splits(ws, order, k_folds) if k_folds >= 2 else []  # every order's folds: the same windows
     for k, cal in fits.items():
         r = _norm_residuals(cal, ws)
         P = N_PARAMS[k]
@@ -85,14 +86,13 @@ def compare_orders(ws: WindowSet, models: tuple[str, ...], start: Calibration, *
         }
         if k_folds >= 2:
             held = np.empty(m)
-            for idx in np.array_split(order, k_folds):
-                train = complement(idx, m)
+            for idx, train, test in splits:
                 try:
-                    c = LottersBatch(k).fit_fold(ws.subset(train), reference_start(k, cal, lab))
+                    c = LottersBatch(k).fit_fold(train, reference_start(k, cal, lab))
                 except ValueError:
                     held[idx] = np.nan
                     continue
-                held[idx] = _norm_residuals(c, ws.subset(idx))
+                held[idx] = _norm_residuals(c, test)
             if np.all(np.isfinite(held)):
                 entry["heldout_rms_mg"] = round(float(np.sqrt(np.mean(held * held))) * 1e3, 4)
         out[k] = entry
@@ -332,11 +332,13 @@ def compare_extended(ws: WindowSet, base: str, model: str, start: Calibration, *
     cache = {} if shared is None else shared
     fits: dict[str, Any] = {}
     helds: dict[str, np.ndarray | None] = {}
+    if ("splits", k_folds) not in cache:
+        cache[("splits", k_folds)] = fold_splits(ws, order, k_folds) if k_folds >= 2 else []
     for k, par in pars.items():
         key = (k, k_folds)
         if key not in cache:
             fit = fit_extended(par, ws, par.pack(start.sensitivity, start.offset), var)
-            cache[key] = (fit, _fold_residuals(par, ws, fit.p, var, order, k_folds))
+            cache[key] = (fit, _fold_residuals(par, ws, fit.p, var, cache[("splits", k_folds)], k_folds))
         fits[k], helds[k] = cache[key]
     scale = max(1.0, fits[model].chi2 / max(m - Pm, 1))
     out: dict[str, dict[str, Any]] = {}
@@ -350,18 +352,23 @@ def compare_extended(ws: WindowSet, base: str, model: str, start: Calibration, *
     return out
 
 
-def _fold_residuals(par: Any, ws: WindowSet, p: np.ndarray, var: np.ndarray, order: np.ndarray,
-                    k_folds: int) -> np.ndarray | None:
-    """1 - |a| [g] of every window from the fit (from ``p``) on the other time-contiguous folds; None for
-    fewer than 2 folds."""
+def _fold_residuals(par: Any, ws: WindowSet, p: np.ndarray, var: np.ndarray,
+                    splits: list[tuple[np.ndarray, WindowSet, WindowSet]], k_folds: int) -> np.ndarray | None:
+    """1 - |a| [g] of every window from the fit (from ``p``) on the other time-contiguous folds (``splits``,
+    fold_splits); None for fewer than 2 folds."""
     if k_folds < 2:
         return None
     held = np.empty(len(ws))
-    for idx in np.array_split(order, k_folds):
-        train = complement(idx, len(ws))
-        f = fit_extended(par, ws.subset(train), p, var[train])
-        held[idx] = extended_residuals_g(par, f.p, ws.subset(idx))
+    for idx, train, test in splits:
+        f = fit_extended(par, train, p, var[complement(idx, len(ws))])
+        held[idx] = extended_residuals_g(par, f.p, test)
     return held
+
+
+def fold_splits(ws: WindowSet, order: np.ndarray, k_folds: int) -> list[tuple[np.ndarray, WindowSet, WindowSet]]:
+    """(held-out indices, training windows, held-out windows) of k_folds time-contiguous folds (``order``: the
+    windows by time), made once for every model compared on them."""
+    return [(idx, ws.subset(complement(idx, len(ws))), ws.subset(idx)) for idx in np.array_split(order, k_folds)]
 
 
 def complement(idx: np.ndarray, m: int) -> np.ndarray:

@@ -1,6 +1,7 @@
 """lotters_chain in two halves (the norm and x; y, z and the within-block std gate), as
-core.fastdetect.lotters_still runs it on two threads for long recordings: every detection signal,
-every scatter and the still mask bit for bit those of the one call on all four channels.
+core.fastdetect.lotters_still runs it on two threads for long recordings without the vector lanes: every
+detection signal, every scatter and the still mask bit for bit those of the one call on all four channels;
+and the vector lanes (AVX2) bit for bit the scalar loops.
 
 Blocks with unusable runs (held at the last usable one, NaN scatter inside), a first usable block
 after 0, movement and stillness, orders 2 and 4 (the constant-trip-count forms and the general one).
@@ -70,8 +71,57 @@ def test_two_halves_are_the_one_call_bit_for_bit(order, seed):
     assert (a & ~b).any() and (b & ~a).any()  # and each half decides some blocks the other does not
 
 
+@pytest.mark.parametrize("order", [2, 4])
+@pytest.mark.parametrize("nb, seed", [(30_000, 0), (30_001, 1), (30_002, 2), (1_027, 5), (43, 6)])
+def test_vector_lanes_are_the_scalar_loops_bit_for_bit(order, nb, seed):
+    """Where the CPU has AVX2, the blocks' own decisions run four blocks per vector and (order 2, all four
+    channels) the four channels' filters in the lanes of one vector: every signal, scatter and still flag
+    equals the one-block-one-channel loops' (vector=False), for the one call, the two halves and the norm
+    alone; block counts off the multiples of 4 and of the chunk, unusable runs inside and at the start."""
+    bs = _blocks(nb, seed)
+    b0 = int(np.argmax(bs.usable))
+    args = _args(bs, order, TO_G)
+    limits = (0.02, 0.02 ** 2 * B, b0)
+    for chans, first, gate in ((4, 0, True), (2, 0, False), (4, 2, True), (1, 0, True)):
+        runs = []
+        for vector in (False, True):
+            still, trace = np.zeros(nb, dtype=bool), np.full((7, nb), np.nan)
+            lotters_chain(*args, chans, *limits, still, trace, first, gate, vector)
+            runs.append((still, trace))
+        (s0, t0), (s1, t1) = runs
+        np.testing.assert_array_equal(t1[first:chans], t0[first:chans])
+        if gate:
+            np.testing.assert_array_equal(t1[4:], t0[4:])  # NaN where a block's scatter is NaN, in both
+        np.testing.assert_array_equal(s1, s0)
+        if nb > 1000:
+            assert 0.05 < s0.mean() < 0.95
+
+
+def test_lotters_still_runs_one_call_in_the_vector_lanes(monkeypatch):
+    """Order 2 where the kernel filters the four channels in one vector: one call, equal to the two halves."""
+    bs = _blocks(40_000, 3)
+    monkeypatch.setattr(fastdetect, "CHAIN_LANES_MIN_BLOCKS", 1000)
+    monkeypatch.setattr(fastdetect, "CHAIN_VECTOR", False)
+    halves = fastdetect.lotters_still(bs, TO_G)
+    calls = []
+    real = fastdetect.lotters_chain
+
+    def spy(*args):
+        calls.append(args[8:9] + args[14:])
+        return real(*args)
+
+    monkeypatch.setattr(fastdetect, "lotters_chain", spy)
+    monkeypatch.setattr(fastdetect, "CHAIN_VECTOR", True)
+    np.testing.assert_array_equal(fastdetect.lotters_still(bs, TO_G), halves)
+    assert calls == [(4,)]
+    calls.clear()
+    fastdetect.lotters_still(bs, TO_G, order=4)  # no vector form of order 4: the halves
+    assert sorted(calls) == [(2, 0, False), (4, 2, True)]
+
+
 def test_lotters_still_on_two_threads_equals_one(monkeypatch):
     bs = _blocks(40_000, 3)
+    monkeypatch.setattr(fastdetect, "CHAIN_VECTOR", False)  # the halves also where the CPU has the vector lanes
     monkeypatch.setattr(fastdetect, "CHAIN_LANES_MIN_BLOCKS", 1 << 62)
     single = fastdetect.lotters_still(bs, TO_G)
     calls = []

@@ -60,6 +60,33 @@ def test_compare_extended_with_shared_base_fits_equals_separate_comparisons(ramp
     assert len(calls) - calls.count("6") == sum(1 + k for k in ks)
 
 
+def test_fold_windows_are_made_once_per_comparison(ramp_windows, monkeypatch):
+    """compare_orders and a round of compare_extended take each fold's training and held-out windows once
+    (order.fold_splits) for every model they compare, with the scores of subsets made per model."""
+    ws, at = ramp_windows
+    terms = terms_testable_on(ws)
+    cands = [model_name("6", (t,)) for t in terms]
+    made = []
+    real = type(ws).subset
+    monkeypatch.setattr(type(ws), "subset", lambda self, idx: made.append(len(idx)) or real(self, idx))
+    shared: dict = {}
+    together = [order.compare_extended(ws, "6", c, at, shared=shared) for c in cands]
+    assert len(made) == 2 * 5  # 5 folds (100 windows, 9 parameters), a training and a held-out set each
+    made.clear()
+    scores = order.compare_orders(ws, ("6", "9"), at)
+    assert len(made) == 2 * 5
+    # the same scores from subsets made afresh for every model and fold
+    monkeypatch.setattr(order, "fold_splits", lambda w, o, k: [(i, real(w, order.complement(i, len(w))), real(w, i))
+                                                                for i in np.array_split(o, k)])
+    fresh_splits = order.fold_splits
+    calls = []
+    monkeypatch.setattr(order, "fold_splits", lambda *a: calls.append(1) or fresh_splits(*a))
+    assert [order.compare_extended(ws, "6", c, at) for c in cands] == together
+    fresh = order.compare_orders(ws, ("6", "9"), at)
+    fresh.pop("_fits"), scores.pop("_fits")
+    assert fresh == scores and len(calls) == len(cands) + 1
+
+
 def test_complement_is_setdiff1d_of_a_permutation():
     rng = np.random.default_rng(3)
     for m in (1, 2, 7, 100, 1001):
