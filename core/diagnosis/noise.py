@@ -171,37 +171,17 @@ def quantization_test(stretches_raw: list[np.ndarray], scale: np.ndarray) -> dic
         if lsb == 0.0:
             res["axes"].append({"lsb_mg": 0.0, "delta_bic": None})
             continue
-        # integer grid offsets relative to each stretch's rounded mean (mu estimated per stretch)
-        def loglik(vals: list[np.ndarray], s: float) -> tuple[float, float]:
-            la, lb = 0.0, 0.0
-            for v in vals:
-                mu = float(v.mean())
-                z = (v - mu) / s
-                la += float(np.sum(-0.5 * z * z - math.log(s * math.sqrt(2 * math.pi)) + math.log(lsb)))
-                p = ndtr((v - mu + lsb / 2) / s) - ndtr((v - mu - lsb / 2) / s)
-                lb += float(np.sum(np.log(np.maximum(p, 1e-300))))
-            return la, lb
-
-        def best_s(vals: list[np.ndarray]) -> tuple[float, float]:
-            # continuous: ML s = sample std; quantised: latent s by a 1-D search (Sheppard: s² ~ var - lsb²/12)
-            var = float(np.mean(np.concatenate([v - v.mean() for v in vals]) ** 2))
-            s_a = math.sqrt(max(var, 1e-30))
-            grid = s_a * np.linspace(0.05, 1.2, 47)
-            lb = [loglik(vals, g)[1] for g in grid]
-            return s_a, float(grid[int(np.argmax(lb))])
-
-        s_a, s_b = best_s(parts)
-        la, _ = loglik(parts, s_a)
-        _, lb = loglik(parts, s_b)
+        grids = [_on_grid(v) for v in parts]
+        s_a, s_b = _best_s(grids, lsb)
+        la = _loglik_continuous(grids, s_a, lsb)
+        lb = _loglik_quantised(grids, s_b, lsb)
         n = allv.size
         d_bic = 2 * (lb - la) - math.log(n)
         half = len(parts) // 2  # earlier stretches fit, later ones judge (contiguous in time)
-        early, late = parts[:half], parts[half:]
+        early, late = grids[:half], grids[half:]
         if early:
-            sa_e, sb_e = best_s(early)
-            la_o, _ = loglik(late, sa_e)
-            _, lb_o = loglik(late, sb_e)
-            held = lb_o - la_o
+            sa_e, sb_e = _best_s(early, lsb)
+            held = _loglik_quantised(late, sb_e, lsb) - _loglik_continuous(late, sa_e, lsb)
         else:
             held = 0.0
         dbic_tot += d_bic
@@ -212,3 +192,49 @@ def quantization_test(stretches_raw: list[np.ndarray], scale: np.ndarray) -> dic
     res["heldout_loglik_gain"] = round(held_gain_tot, 2)
     res["found"] = bool(dbic_tot > DELTA_BIC and held_gain_tot > 0)
     return res
+
+
+@dataclass
+class _GridStretch:
+    """One stretch's samples of one axis as its distinct values: each sample is ``values[index]``, so an
+    elementwise function of the samples is the function of the few distinct values, gathered."""
+
+    samples: np.ndarray  # (n,) the stretch's samples (a view)
+    mu: float  # their mean (mu estimated per stretch)
+    values: np.ndarray  # (u,) distinct samples, sorted
+    index: np.ndarray  # (n,) position of each sample in ``values``
+
+
+def _on_grid(v: np.ndarray) -> _GridStretch:
+    values, index = np.unique(v, return_inverse=True)
+    mu = float(v.mean())
+    return _GridStretch(v, mu, values, index.reshape(-1))
+
+
+def _loglik_continuous(parts: list[_GridStretch], s: float, lsb: float) -> float:
+    """Model A: sum of log(N(x; mu, s²) lsb) over the samples (the density times the bin width)."""
+    total = 0.0
+    for g in parts:
+        z = (g.values - g.mu) / s
+        total += float(np.sum((-0.5 * z * z - math.log(s * math.sqrt(2 * math.pi)) + math.log(lsb))[g.index]))
+    return total
+
+
+def _loglik_quantised(parts: list[_GridStretch], s: float, lsb: float) -> float:
+    """Model B: sum of log P(bin of x) = log(Phi((x - mu + lsb/2)/s) - Phi((x - mu - lsb/2)/s)); the normal
+    CDF evaluated once per distinct value, the per-sample terms summed in sample order (the same float sum
+    as evaluating every sample)."""
+    total = 0.0
+    for g in parts:
+        p = ndtr((g.values - g.mu + lsb / 2) / s) - ndtr((g.values - g.mu - lsb / 2) / s)
+        total += float(np.sum(np.log(np.maximum(p, 1e-300))[g.index]))
+    return total
+
+
+def _best_s(parts: list[_GridStretch], lsb: float) -> tuple[float, float]:
+    """Continuous: ML s = sample std; quantised: latent s by a 1-D search (Sheppard: s² ~ var - lsb²/12)."""
+    var = float(np.mean(np.concatenate([g.samples - g.mu for g in parts]) ** 2))
+    s_a = math.sqrt(max(var, 1e-30))
+    grid = s_a * np.linspace(0.05, 1.2, 47)
+    lb = [_loglik_quantised(parts, g, lsb) for g in grid]
+    return s_a, float(grid[int(np.argmax(lb))])
