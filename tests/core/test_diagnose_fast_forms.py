@@ -15,6 +15,11 @@ from scipy.special import ndtr
 
 from gravcal.core.diagnosis.noise import (DELTA_BIC, _loglik_continuous, _loglik_quantised, _on_grid, lsb_of,
                                          quantization_test)
+from gravcal.core.diagnosis.synthetic import PLANT, window_session
+from gravcal.core.diagnosis.terms import TermSelector, lag_grid
+from gravcal.core.estimators.extended import fit_extended
+from gravcal.core.estimators.lotters import LottersBatch
+from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
 
 
 def loglik_oracle(vals: list[np.ndarray], s: float, lsb: float) -> tuple[float, float]:
@@ -114,3 +119,69 @@ def test_quantization_found_and_not_found_as_the_per_sample_form_says():
     for parts, found in ((coarse, True), (fine, False)):
         r = quantization_test(parts, np.ones(3) * 100)
         assert r["found"] is found and r == quantization_oracle(parts, np.ones(3) * 100)
+
+
+# -- TermSelector: the covariate rows, starts, free masks, fold windows and confounding checks it keeps --------
+# (each built once per model and window set; a key that misses what the value depends on would serve a stale one)
+def selector(seed: int, effects: dict[str, float]) -> TermSelector:
+    s = window_session(seed, effects)
+    sel = TermSelector(s.ws, "6", LottersBatch("6").fit(s.ws, s.start), has_temp=True)
+    sel.var = sel.var0 + 1e-6
+    return sel
+
+
+def fit_afresh(sel, terms, held, train=None):
+    """The plain form: the parameterization built, bound to the windows and started at the baseline anew."""
+    par = sel._new_par(terms)
+    ws, var = (sel.ws, sel.var) if train is None else (sel.ws.subset(train), sel.var[train])
+    return fit_extended(par, ws, par.pack(sel.base_cal.sensitivity, sel.base_cal.offset), var,
+                        free=sel.free_mask(par, held))
+
+
+def same_fit(a, b) -> bool:
+    return (np.array_equal(a.p, b.p) and np.array_equal(a.cov, b.cov) and a.chi2 == b.chi2
+            and np.array_equal(a.resid_g, b.resid_g) and a.iterations == b.iterations)
+
+
+def test_selector_fits_equal_the_fits_built_afresh_bit_for_bit():
+    lagged = next(t for t in CALIBRATION_TERMS if calibration_view(t).profiled is not None)
+    sel = selector(21, {"temperature_offset": PLANT["temperature_offset"], "offset_drift": PLANT["offset_drift"]})
+    k = 5
+    folds = [(np.setdiff1d(sel.order, test), test) for test in np.array_split(sel.order, k)]
+    cases = [((), {}), (("temperature_offset",), {}), (("temperature_offset",), {"temperature_offset": [1]}),
+             (("temperature_offset", "offset_drift"), {"offset_drift": [0, 2]}), ((lagged,), {})]
+    for tau in (lag_grid()[2], lag_grid()[9]):  # a bound at one time constant must not serve another
+        sel.lag_tau_s = float(tau)
+        for terms, held in cases:  # the same model with other held axes: its own free mask
+            assert same_fit(sel._fit(terms, held, None)[1], fit_afresh(sel, terms, held))
+            for i, (train, test) in enumerate(folds):
+                assert np.array_equal(sel.fold_sets(k)[i][0], train) and np.array_equal(sel.fold_sets(k)[i][1], test)
+                assert same_fit(sel._fit(terms, held, (k, i))[1], fit_afresh(sel, terms, held, train))
+    assert not same_fit(fit_afresh(sel, (lagged,), {}), fit_afresh(sel, ("temperature_offset",), {}))
+
+
+def test_confounded_axes_follow_the_held_axes_and_the_weights():
+    """A temperature rising linearly in time: temperature_offset is offset_drift's column on every axis it
+    shares free with it."""
+    sel = selector(22, {})
+    sel.ws.aux[:, 0] = 25.0 + 2.0 * (sel.ws.t - sel.ws.t.min()) / 3600.0
+    plain = type(sel)._confounded
+    expected = {(): [0, 1, 2], (0, 1, 2): [], (2,): [0, 1], (0,): [1, 2]}  # held offset_drift axes -> confounded
+    for var in (sel.var, sel.var0 * np.linspace(1.0, 100.0, sel.m)):
+        sel.var = var
+        for held_axes, axes in expected.items():
+            held = {"offset_drift": list(held_axes)}
+            terms = ("offset_drift",)
+            got = sel.confounded(terms, held, "temperature_offset")
+            assert got == plain(sel, terms, held, "temperature_offset") == axes, (held_axes, got)
+        assert sel.confounded((), {}, "temperature_offset") == []  # without offset_drift: a column of its own
+    # one window 0.3 °C off the line: within 2 % of the column at equal weights, far outside when it weighs 100 x
+    j = sel.m // 2
+    sel.ws.aux[j, 0] += 0.3
+    sel._bound_memo.clear()  # the windows' covariates changed in place (a selector's windows never do)
+    verdicts = []
+    for var in (sel.var0 + 1e-6, np.where(np.arange(sel.m) == j, 0.01, 1.0) * (sel.var0 + 1e-6)):
+        sel.var = var
+        verdicts.append(sel.confounded(("offset_drift",), {}, "temperature_offset"))
+        assert verdicts[-1] == plain(sel, ("offset_drift",), {}, "temperature_offset")
+    assert verdicts == [[0, 1, 2], []]
