@@ -171,15 +171,16 @@ def quantization_test(stretches_raw: list[np.ndarray], scale: np.ndarray) -> dic
         if lsb == 0.0:
             res["axes"].append({"lsb_mg": 0.0, "delta_bic": None})
             continue
-        grids = [_on_grid(v) for v in parts]
-        s_a, s_b = _best_s(grids, lsb)
-        la = _loglik_continuous(grids, s_a, lsb)
-        lb = _loglik_quantised(grids, s_b, lsb)
+        distinct = [_distinct(v) for v in parts]
+        pool = _pooled(distinct)
+        s_a, s_b = _best_s(pool, lsb)
+        la = _loglik_continuous(pool, s_a, lsb)
+        lb = _loglik_quantised(pool, s_b, lsb)
         n = allv.size
         d_bic = 2 * (lb - la) - math.log(n)
         half = len(parts) // 2  # earlier stretches fit, later ones judge (contiguous in time)
-        early, late = grids[:half], grids[half:]
-        if early:
+        if half:
+            early, late = _pooled(distinct[:half]), _pooled(distinct[half:])
             sa_e, sb_e = _best_s(early, lsb)
             held = _loglik_quantised(late, sb_e, lsb) - _loglik_continuous(late, sa_e, lsb)
         else:
@@ -195,46 +196,65 @@ def quantization_test(stretches_raw: list[np.ndarray], scale: np.ndarray) -> dic
 
 
 @dataclass
-class _GridStretch:
-    """One stretch's samples of one axis as its distinct values: each sample is ``values[index]``, so an
-    elementwise function of the samples is the function of the few distinct values, gathered."""
+class _Pooled:
+    """Stretches of one axis as their distinct values: sample j of the pool is ``values[index[j]]``, so an
+    elementwise function of the samples is the function of the few distinct values, gathered; stretch k's
+    samples are ``index[bounds[k][0]:bounds[k][1]]``."""
 
-    samples: np.ndarray  # (n,) the stretch's samples (a view)
-    mu: float  # their mean (mu estimated per stretch)
-    values: np.ndarray  # (u,) distinct samples, sorted
-    index: np.ndarray  # (n,) position of each sample in ``values``
+    samples: list[np.ndarray]  # each stretch's samples (views)
+    means: list[float]  # each stretch's mean (mu estimated per stretch)
+    values: np.ndarray  # each stretch's distinct samples, sorted, the stretches concatenated
+    mu: np.ndarray  # the mean of the stretch each distinct value belongs to
+    index: np.ndarray  # (N,) each sample's position in ``values``
+    bounds: list[tuple[int, int]]
 
 
-def _on_grid(v: np.ndarray) -> _GridStretch:
+def _distinct(v: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """(samples, mean, distinct values, each sample's position among them) of one stretch."""
     values, index = np.unique(v, return_inverse=True)
-    mu = float(v.mean())
-    return _GridStretch(v, mu, values, index.reshape(-1))
+    return v, float(v.mean()), values, index.reshape(-1)
 
 
-def _loglik_continuous(parts: list[_GridStretch], s: float, lsb: float) -> float:
+def _pooled(stretches: list[tuple[np.ndarray, float, np.ndarray, np.ndarray]]) -> _Pooled:
+    values, mu, index, bounds = [], [], [], []
+    n_values = n_samples = 0
+    for _, mean, vals, idx in stretches:
+        values.append(vals)
+        mu.append(np.full(vals.size, mean))
+        index.append(idx + n_values)
+        bounds.append((n_samples, n_samples + idx.size))
+        n_values += vals.size
+        n_samples += idx.size
+    return _Pooled([st[0] for st in stretches], [st[1] for st in stretches], np.concatenate(values),
+                   np.concatenate(mu), np.concatenate(index), bounds)
+
+
+def _stretch_sums(per_sample: np.ndarray, pool: _Pooled) -> float:
+    """Sum over the stretches of each stretch's sum of its samples' terms (each a numpy sum over that
+    stretch's samples in their order: the float sums of the per-sample form)."""
+    total = 0.0
+    for a, b in pool.bounds:
+        total += float(np.add.reduce(per_sample[a:b]))
+    return total
+
+
+def _loglik_continuous(pool: _Pooled, s: float, lsb: float) -> float:
     """Model A: sum of log(N(x; mu, s²) lsb) over the samples (the density times the bin width)."""
-    total = 0.0
-    for g in parts:
-        z = (g.values - g.mu) / s
-        total += float(np.sum((-0.5 * z * z - math.log(s * math.sqrt(2 * math.pi)) + math.log(lsb))[g.index]))
-    return total
+    z = (pool.values - pool.mu) / s
+    return _stretch_sums((-0.5 * z * z - math.log(s * math.sqrt(2 * math.pi)) + math.log(lsb))[pool.index], pool)
 
 
-def _loglik_quantised(parts: list[_GridStretch], s: float, lsb: float) -> float:
-    """Model B: sum of log P(bin of x) = log(Phi((x - mu + lsb/2)/s) - Phi((x - mu - lsb/2)/s)); the normal
-    CDF evaluated once per distinct value, the per-sample terms summed in sample order (the same float sum
-    as evaluating every sample)."""
-    total = 0.0
-    for g in parts:
-        p = ndtr((g.values - g.mu + lsb / 2) / s) - ndtr((g.values - g.mu - lsb / 2) / s)
-        total += float(np.sum(np.log(np.maximum(p, 1e-300))[g.index]))
-    return total
+def _loglik_quantised(pool: _Pooled, s: float, lsb: float) -> float:
+    """Model B: sum of log P(bin of x) = log(Phi((x - mu + lsb/2)/s) - Phi((x - mu - lsb/2)/s)), the normal
+    CDF evaluated once per distinct value."""
+    p = ndtr((pool.values - pool.mu + lsb / 2) / s) - ndtr((pool.values - pool.mu - lsb / 2) / s)
+    return _stretch_sums(np.log(np.maximum(p, 1e-300))[pool.index], pool)
 
 
-def _best_s(parts: list[_GridStretch], lsb: float) -> tuple[float, float]:
+def _best_s(pool: _Pooled, lsb: float) -> tuple[float, float]:
     """Continuous: ML s = sample std; quantised: latent s by a 1-D search (Sheppard: s² ~ var - lsb²/12)."""
-    var = float(np.mean(np.concatenate([g.samples - g.mu for g in parts]) ** 2))
+    var = float(np.mean(np.concatenate([v - mu for v, mu in zip(pool.samples, pool.means)]) ** 2))
     s_a = math.sqrt(max(var, 1e-30))
     grid = s_a * np.linspace(0.05, 1.2, 47)
-    lb = [_loglik_quantised(parts, g, lsb) for g in grid]
+    lb = [_loglik_quantised(pool, g, lsb) for g in grid]
     return s_a, float(grid[int(np.argmax(lb))])

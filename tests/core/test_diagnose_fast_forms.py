@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from scipy.special import ndtr
 
-from gravcal.core.diagnosis.noise import (DELTA_BIC, _loglik_continuous, _loglik_quantised, _on_grid, lsb_of,
-                                         quantization_test)
+from gravcal.core.diagnosis.noise import (DELTA_BIC, _distinct, _loglik_continuous, _loglik_quantised, _pooled,
+                                         lsb_of, quantization_test)
 from gravcal.core.diagnosis.synthetic import PLANT, window_session
 from gravcal.core.diagnosis.terms import TermSelector, lag_grid
 from gravcal.core.estimators.extended import fit_extended
@@ -94,7 +94,7 @@ def stretches(seed: int, noise_lsb: float, lsb: float, n_parts: int) -> list[np.
 
 
 @pytest.mark.parametrize("seed,noise_lsb,lsb,n_parts", [(0, 0.35, 1.0, 4), (1, 4.0, 1.0, 4), (2, 0.6, 0.25, 1),
-                                                        (3, 1.0, 2.0, 7), (4, 0.2, 1.0, 2)])
+                                                        (3, 1.0, 2.0, 7), (4, 0.2, 1.0, 2), (7, 0.5, 1.0, 60)])
 def test_quantization_test_equals_the_per_sample_form(seed, noise_lsb, lsb, n_parts):
     parts = stretches(seed, noise_lsb, lsb, n_parts)
     scale = np.array([100.0, 110.0, 95.0])
@@ -108,7 +108,7 @@ def test_likelihoods_equal_the_per_sample_sums_bit_for_bit(seed):
     """The two log-likelihoods themselves (unrounded) at latent stds across the search range."""
     lsb = (1.0, 0.25, 2.0, 1.0)[seed]
     parts = [p[:, 0] for p in stretches(10 + seed, (0.3, 0.8, 2.0, 6.0)[seed], lsb, 3 + seed)]
-    grids = [_on_grid(v) for v in parts]
+    grids = _pooled([_distinct(v) for v in parts])
     for s in np.std(np.concatenate(parts)) * np.array([0.05, 0.3, 0.77, 1.0, 1.2]):
         la, lb = loglik_oracle(parts, float(s), lsb)
         assert (_loglik_continuous(grids, float(s), lsb), _loglik_quantised(grids, float(s), lsb)) == (la, lb)

@@ -66,7 +66,7 @@ FED_SEEDS = 3
 @pytest.fixture(scope="module")
 def fed_runs() -> dict:
     """Every scenario's seeds fed like the daemon, in one pool: the six runs share the cores, longest first
-    (a pool per scenario left one core idle while the other ran its third seed)."""
+    (a pool per scenario would leave one core idle while the other runs its third seed)."""
     runs = [(scenario, seed) for scenario in FED_SCENARIOS for seed in range(FED_SEEDS)]
     results = pmap(fed_like_the_daemon, runs)
     return {scenario: [r for (sc, _), r in zip(runs, results) if sc == scenario] for scenario in FED_SCENARIOS}
