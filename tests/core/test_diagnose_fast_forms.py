@@ -185,3 +185,29 @@ def test_confounded_axes_follow_the_held_axes_and_the_weights():
         verdicts.append(sel.confounded(("offset_drift",), {}, "temperature_offset"))
         assert verdicts[-1] == plain(sel, ("offset_drift",), {}, "temperature_offset")
     assert verdicts == [[0, 1, 2], []]
+
+
+# -- the seed pool's workers: one BLAS thread each, the same numbers as in this process ----------------------
+def blas_threads(_task: int) -> list[int]:
+    from threadpoolctl import threadpool_info
+
+    return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+
+def session_numbers(seed: int) -> tuple:
+    from gravcal.core.diagnosis import diagnose_windows
+
+    s = window_session(seed, {"temperature_offset": PLANT["temperature_offset"]})
+    d = diagnose_windows(s.ws, s.start, has_temp=True, candidates=CALIBRATION_TERMS, simulate=False, nested=False)
+    return (d.findings, d.selection_heldout_mg, d.floor_mg, d.resid_extended_g.tobytes(),
+            [(t.effect, t.delta_bic, t.heldout_before_mg, t.heldout_after_mg) for t in d.tests])
+
+
+def test_pool_workers_run_one_blas_thread_and_give_this_process_numbers():
+    from seed_pool import pmap, workers
+
+    if workers() < 2:
+        pytest.skip("the seed pool runs in this process (one worker)")
+    in_workers = pmap(blas_threads, [(0,), (1,)])
+    assert len(in_workers) == 2 and all(t and t == [1] * len(t) for t in in_workers), in_workers
+    assert pmap(session_numbers, [(5,)]) == [session_numbers(5)]
