@@ -171,37 +171,18 @@ def quantization_test(stretches_raw: list[np.ndarray], scale: np.ndarray) -> dic
         if lsb == 0.0:
             res["axes"].append({"lsb_mg": 0.0, "delta_bic": None})
             continue
-        # integer grid offsets relative to each stretch's rounded mean (mu estimated per stretch)
-        def loglik(vals: list[np.ndarray], s: float) -> tuple[float, float]:
-            la, lb = 0.0, 0.0
-            for v in vals:
-                mu = float(v.mean())
-                z = (v - mu) / s
-                la += float(np.sum(-0.5 * z * z - math.log(s * math.sqrt(2 * math.pi)) + math.log(lsb)))
-                p = ndtr((v - mu + lsb / 2) / s) - ndtr((v - mu - lsb / 2) / s)
-                lb += float(np.sum(np.log(np.maximum(p, 1e-300))))
-            return la, lb
-
-        def best_s(vals: list[np.ndarray]) -> tuple[float, float]:
-            # continuous: ML s = sample std; quantised: latent s by a 1-D search (Sheppard: s² ~ var - lsb²/12)
-            var = float(np.mean(np.concatenate([v - v.mean() for v in vals]) ** 2))
-            s_a = math.sqrt(max(var, 1e-30))
-            grid = s_a * np.linspace(0.05, 1.2, 47)
-            lb = [loglik(vals, g)[1] for g in grid]
-            return s_a, float(grid[int(np.argmax(lb))])
-
-        s_a, s_b = best_s(parts)
-        la, _ = loglik(parts, s_a)
-        _, lb = loglik(parts, s_b)
+        distinct = [_distinct(v) for v in parts]
+        pool = _pooled(distinct)
+        s_a, s_b = _best_s(pool, lsb)
+        la = _loglik_continuous(pool, s_a, lsb)
+        lb = _loglik_quantised(pool, s_b, lsb)
         n = allv.size
         d_bic = 2 * (lb - la) - math.log(n)
         half = len(parts) // 2  # earlier stretches fit, later ones judge (contiguous in time)
-        early, late = parts[:half], parts[half:]
-        if early:
-            sa_e, sb_e = best_s(early)
-            la_o, _ = loglik(late, sa_e)
-            _, lb_o = loglik(late, sb_e)
-            held = lb_o - la_o
+        if half:
+            early, late = _pooled(distinct[:half]), _pooled(distinct[half:])
+            sa_e, sb_e = _best_s(early, lsb)
+            held = _loglik_quantised(late, sb_e, lsb) - _loglik_continuous(late, sa_e, lsb)
         else:
             held = 0.0
         dbic_tot += d_bic
@@ -212,3 +193,68 @@ def quantization_test(stretches_raw: list[np.ndarray], scale: np.ndarray) -> dic
     res["heldout_loglik_gain"] = round(held_gain_tot, 2)
     res["found"] = bool(dbic_tot > DELTA_BIC and held_gain_tot > 0)
     return res
+
+
+@dataclass
+class _Pooled:
+    """Stretches of one axis as their distinct values: sample j of the pool is ``values[index[j]]``, so an
+    elementwise function of the samples is the function of the few distinct values, gathered; stretch k's
+    samples are ``index[bounds[k][0]:bounds[k][1]]``."""
+
+    samples: list[np.ndarray]  # each stretch's samples (views)
+    means: list[float]  # each stretch's mean (mu estimated per stretch)
+    values: np.ndarray  # each stretch's distinct samples, sorted, the stretches concatenated
+    mu: np.ndarray  # the mean of the stretch each distinct value belongs to
+    index: np.ndarray  # (N,) each sample's position in ``values``
+    bounds: list[tuple[int, int]]
+
+
+def _distinct(v: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """(samples, mean, distinct values, each sample's position among them) of one stretch."""
+    values, index = np.unique(v, return_inverse=True)
+    return v, float(v.mean()), values, index.reshape(-1)
+
+
+def _pooled(stretches: list[tuple[np.ndarray, float, np.ndarray, np.ndarray]]) -> _Pooled:
+    values, mu, index, bounds = [], [], [], []
+    n_values = n_samples = 0
+    for _, mean, vals, idx in stretches:
+        values.append(vals)
+        mu.append(np.full(vals.size, mean))
+        index.append(idx + n_values)
+        bounds.append((n_samples, n_samples + idx.size))
+        n_values += vals.size
+        n_samples += idx.size
+    return _Pooled([st[0] for st in stretches], [st[1] for st in stretches], np.concatenate(values),
+                   np.concatenate(mu), np.concatenate(index), bounds)
+
+
+def _stretch_sums(per_sample: np.ndarray, pool: _Pooled) -> float:
+    """Sum over the stretches of each stretch's sum of its samples' terms (each a numpy sum over that
+    stretch's samples in their order: the float sums of the per-sample form)."""
+    total = 0.0
+    for a, b in pool.bounds:
+        total += float(np.add.reduce(per_sample[a:b]))
+    return total
+
+
+def _loglik_continuous(pool: _Pooled, s: float, lsb: float) -> float:
+    """Model A: sum of log(N(x; mu, s²) lsb) over the samples (the density times the bin width)."""
+    z = (pool.values - pool.mu) / s
+    return _stretch_sums((-0.5 * z * z - math.log(s * math.sqrt(2 * math.pi)) + math.log(lsb))[pool.index], pool)
+
+
+def _loglik_quantised(pool: _Pooled, s: float, lsb: float) -> float:
+    """Model B: sum of log P(bin of x) = log(Phi((x - mu + lsb/2)/s) - Phi((x - mu - lsb/2)/s)), the normal
+    CDF evaluated once per distinct value."""
+    p = ndtr((pool.values - pool.mu + lsb / 2) / s) - ndtr((pool.values - pool.mu - lsb / 2) / s)
+    return _stretch_sums(np.log(np.maximum(p, 1e-300))[pool.index], pool)
+
+
+def _best_s(pool: _Pooled, lsb: float) -> tuple[float, float]:
+    """Continuous: ML s = sample std; quantised: latent s by a 1-D search (Sheppard: s² ~ var - lsb²/12)."""
+    var = float(np.mean(np.concatenate([v - mu for v, mu in zip(pool.samples, pool.means)]) ** 2))
+    s_a = math.sqrt(max(var, 1e-30))
+    grid = s_a * np.linspace(0.05, 1.2, 47)
+    lb = [_loglik_quantised(pool, g, lsb) for g in grid]
+    return s_a, float(grid[int(np.argmax(lb))])

@@ -93,6 +93,13 @@ class TermSelector:
         self._heldout_memo: dict[tuple, float | None] = {}
         self._fit_memo: dict[tuple, tuple] = {}
         self._par_memo: dict[tuple, Any] = {}
+        # what every fit of a model (or on a fold) recomputed: the windows' covariate rows, the start, the
+        # free mask; the folds' index sets and windows; the confounding checks of the stepwise passes
+        self._bound_memo: dict[tuple, Any] = {}
+        self._p0_memo: dict[tuple, np.ndarray] = {}
+        self._free_memo: dict[tuple, np.ndarray] = {}
+        self._fold_memo: dict[int, list[tuple[np.ndarray, np.ndarray, WindowSet, WindowSet]]] = {}
+        self._confounded_memo: dict[tuple, list[int]] = {}
         # base parameters these windows do not determine (e.g. the offsets across the axis of a single
         # posture) stay at base_cal: left free, they would let the fit turn the direction and hide a trend
         self.held_base: list[int] = list(held_base or [])
@@ -136,31 +143,64 @@ class TermSelector:
                 k += 3
         return free
 
-    def fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None = None):
-        if idx is None:  # the same model on all windows is asked for by every candidate's test: fitted once
-            key = (terms, tuple(sorted((t, tuple(v)) for t, v in held.items() if t in terms)),
-                   tuple(self.held_base), float(self.var.sum()), self.lag_tau_s)
-            if key not in self._fit_memo:
-                self._fit_memo[key] = self._fit(terms, held, None)
-            return self._fit_memo[key]
-        return self._fit(terms, held, idx)
+    def fit(self, terms: tuple[str, ...], held: dict[str, list[int]]):
+        """base + ``terms`` fitted on all windows (the same model is asked for by every candidate's test:
+        fitted once)."""
+        key = (terms, _held_key(terms, held), tuple(self.held_base), float(self.var.sum()), self.lag_tau_s)
+        if key not in self._fit_memo:
+            self._fit_memo[key] = self._fit(terms, held, None)
+        return self._fit_memo[key]
 
-    def _fit(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray | None,
+    def _fit(self, terms: tuple[str, ...], held: dict[str, list[int]], fold: tuple[int, int] | None,
              p0: np.ndarray | None = None):
+        """base + ``terms`` fitted on all windows (``fold`` None) or on the training windows of fold
+        ``fold`` = (number of folds, which)."""
         par = self.par(terms)
-        ws = self.ws if idx is None else self.ws.subset(idx)
-        var = self.var if idx is None else self.var[idx]
-        if p0 is None:
-            p0 = par.pack(self.base_cal.sensitivity, self.base_cal.offset)
-        return par, fit_extended(par, ws, p0, var, free=self.free_mask(par, held))
+        if fold is None:
+            ws, var = self.ws, self.var
+        else:
+            train, _, ws, _ = self.fold_sets(fold[0])[fold[1]]
+            var = self.var[train]
+        free_key = (terms, self.lag_tau_s, _held_key(terms, held), tuple(self.held_base))
+        if free_key not in self._free_memo:
+            self._free_memo[free_key] = self.free_mask(par, held)
+        return par, fit_extended(self.bound(terms, fold), ws, self.start(terms) if p0 is None else p0, var,
+                                 free=self._free_memo[free_key])
+
+    def start(self, terms: tuple[str, ...]) -> np.ndarray:
+        """The parameters of base_cal in par(terms) (the terms without effect): every fit's default start."""
+        key = (terms, self.lag_tau_s)
+        if key not in self._p0_memo:
+            self._p0_memo[key] = self.par(terms).pack(self.base_cal.sensitivity, self.base_cal.offset)
+        return self._p0_memo[key]
+
+    def bound(self, terms: tuple[str, ...], fold: tuple[int, int] | None = None):
+        """par(terms) bound to the covariates of all windows or of fold ``fold``'s training windows (what
+        fit_extended binds on every call; built once per model and window set)."""
+        par = self.par(terms)
+        if not isinstance(par, ExtendedParameterization):
+            return par
+        key = (terms, self.lag_tau_s, fold)
+        if key not in self._bound_memo:
+            self._bound_memo[key] = par.at_windows(self.ws if fold is None else self.fold_sets(fold[0])[fold[1]][2])
+        return self._bound_memo[key]
+
+    def fold_sets(self, k: int) -> list[tuple[np.ndarray, np.ndarray, WindowSet, WindowSet]]:
+        """(train indices, test indices, train windows, test windows) of the ``k`` time-contiguous folds."""
+        if k not in self._fold_memo:
+            out = []
+            for test in np.array_split(self.order, k):
+                train = np.setdiff1d(self.order, test)
+                out.append((train, test, self.ws.subset(train), self.ws.subset(test)))
+            self._fold_memo[k] = out
+        return self._fold_memo[k]
 
     def n_folds(self, n_params: int) -> int:
         return int(min(self.folds, self.m // max(n_params, 1)))  # training folds keep >= (k-1)/k m >= P windows
 
     def heldout_mg(self, terms: tuple[str, ...], held: dict[str, list[int]], n_params_max: int) -> float | None:
         """RMS 1 - |a| [mg] over time-contiguous held-out folds (None: too few windows for 2 folds)."""
-        key = (terms, tuple(sorted((t, tuple(v)) for t, v in held.items() if t in terms)), n_params_max,
-               float(self.var.sum()), self.lag_tau_s)
+        key = (terms, _held_key(terms, held), n_params_max, float(self.var.sum()), self.lag_tau_s)
         if key not in self._heldout_memo:
             self._heldout_memo[key] = self._heldout_mg(terms, held, n_params_max)
         return self._heldout_memo[key]
@@ -182,31 +222,30 @@ class TermSelector:
             except (ValueError, np.linalg.LinAlgError):
                 pass
         try:
-            for test in np.array_split(self.order, k):
-                train = np.setdiff1d(self.order, test)
+            for i, (_, test, _, wte) in enumerate(self.fold_sets(k)):
                 try:
                     if profiled:  # the time constant is chosen on the training folds too: nothing seen of the test
-                        par, f = min(self._grid_fits(terms, held, train), key=lambda pf: pf[1].chi2)
+                        par, f = min(self._grid_fits(terms, held, (k, i)), key=lambda pf: pf[1].chi2)
                         if par is None:  # no time constant of the grid could be fitted
                             return None
                     else:
-                        par, f = self._fit(terms, held, train, start)
+                        par, f = self._fit(terms, held, (k, i), start)
                 except (ValueError, np.linalg.LinAlgError):
                     return None
-                res[test] = extended_residuals_g(par, f.p, self.ws.subset(test))
+                res[test] = extended_residuals_g(par, f.p, wte)
         finally:
             self.lag_tau_s = tau_all
         return float(np.sqrt(np.mean(res * res)) * 1e3)
 
-    def _grid_fits(self, terms: tuple[str, ...], held: dict[str, list[int]], idx: np.ndarray) -> list[tuple]:
-        """(par, fit) of ``terms`` at each time constant of the lag grid on windows ``idx`` (a failed fit has
+    def _grid_fits(self, terms: tuple[str, ...], held: dict[str, list[int]], fold: tuple[int, int]) -> list[tuple]:
+        """(par, fit) of ``terms`` at each time constant of the lag grid on fold ``fold`` (a failed fit has
         chi2 inf). Each fit starts from the previous grid point's solution: neighbouring time constants have
         nearly the same optimum, so Gauss-Newton needs fewer steps to the same converged point."""
         out, p0 = [], None
         for tau in lag_grid():
             self.lag_tau_s = float(tau)
             try:
-                par, f = self._fit(terms, held, idx, p0)
+                par, f = self._fit(terms, held, fold, p0)
             except (ValueError, np.linalg.LinAlgError):
                 out.append((None, type("Failed", (), {"chi2": math.inf})()))
                 continue
@@ -225,10 +264,15 @@ class TermSelector:
 
     def confounded(self, terms: tuple[str, ...], held: dict[str, list[int]], term: str) -> list[int]:
         """Axes of ``term`` whose Jacobian column lies (almost) in the span of the current model's free columns."""
+        key = (terms, _held_key(terms + (term,), held), term, tuple(self.held_base), float(self.var.sum()),
+               self.lag_tau_s)
+        if key not in self._confounded_memo:
+            self._confounded_memo[key] = self._confounded(terms, held, term)
+        return list(self._confounded_memo[key])
+
+    def _confounded(self, terms: tuple[str, ...], held: dict[str, list[int]], term: str) -> list[int]:
         par = self.par(terms + (term,))
-        p = par.pack(self.base_cal.sensitivity, self.base_cal.offset)
-        bound = par.at_windows(self.ws)
-        _, B, _ = bound.norm_and_jacobian(p, self.ws.mean)
+        _, B, _ = self.bound(terms + (term,)).norm_and_jacobian(self.start(terms + (term,)), self.ws.mean)
         w = 1.0 / np.sqrt(self.var)
         Bw = B * w[:, None]
         k = par.base.n_params + 3 * list(par.terms).index(term)
@@ -486,6 +530,11 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
         tests[term] = tt
     ordered = [tests[t] for t in candidates if t in tests]
     return chosen, held, ordered
+
+
+def _held_key(terms: tuple[str, ...], held: dict[str, list[int]]) -> tuple:
+    """The held axes of ``terms`` as a hashable key (held axes of terms not in the model do not matter)."""
+    return tuple(sorted((t, tuple(v)) for t, v in held.items() if t in terms))
 
 
 def _r(x: float | None) -> float | None:
