@@ -60,7 +60,8 @@ def test_non_finite_values_propagate_as_numpy():
     ext[0, w + 300] = -np.inf
     sums = np.zeros(6)
     want_sums, want = sums.copy(), np.empty(n)
-    numpy_moving_std(ext, w, want_sums, want)
+    with np.errstate(invalid="ignore"):  # inf - inf in the oracle's running sums is the point of this case
+        numpy_moving_std(ext, w, want_sums, want)
     got_sums, got = sums.copy(), np.empty(n)
     moving_std(ext, w, got_sums, got)
     assert np.isnan(want).any()
