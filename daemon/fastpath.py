@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from ..core.samples import SAMPLE_DTYPE
-from ._fastpath import step, take
+from ._fastpath import latest, step, take
 from .processing import STATIC_MAX_AGE_S
 from .protocol import ImuBlock
 
@@ -161,8 +161,8 @@ class FastPath:
 
 
 class _Latest:
-    """?POLL's newest sample while the C step publishes: encoded when asked from the arrays the step writes
-    (under the GIL, so never half-written)."""
+    """?POLL's newest sample while the C step publishes: copied out of the arrays the step writes under its
+    lock (it writes them without the GIL), then encoded."""
 
     __slots__ = ("fast",)
 
@@ -171,8 +171,7 @@ class _Latest:
 
     def last_message(self, raw: bool = False) -> dict[str, Any] | None:
         f = self.fast
-        k = int(f.ist[IST_BATCH])
-        if k <= 0:
+        one = (np.zeros(1, dtype=SAMPLE_DTYPE), np.zeros((1, 3)), np.zeros(1), np.zeros(1, dtype=np.int8))
+        if not latest(f.ist, f.rows, f.acc, f.gyro, f.codes, *one):
             return None
-        i = slice(k - 1, k)
-        return ImuBlock(f.rows[i], f.acc[i], f.gyro[i], f.codes[i]).last_message(raw)
+        return ImuBlock(*one).last_message(raw)
