@@ -55,7 +55,7 @@
 
 /* ist (int64) and fst (float64) slots: the state shared with daemon/fastpath.py */
 enum { IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH,
-       IST_STAGE_LIMIT, IST_CAN, IST_N };
+       IST_STAGE_LIMIT, IST_CAN, IST_NOGIL, IST_N }; /* IST_NOGIL: the call's batches delivered without the GIL */
 enum { FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N };
 enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
 /* a watcher entry of server.fast_watchers (daemon/fanout.py fast_snapshot) */
@@ -357,6 +357,30 @@ static int box_ass_item(WatcherBox *b, Py_ssize_t i, PyObject *value)
     return box_set(b, value);
 }
 
+/* table() -> ((record, fd, raw, watch), ...) as the step reads it, or None while it reads box[0] with the GIL */
+static PyObject *box_table(WatcherBox *b, PyObject *unused)
+{
+    lock_with_gil(&b->mu, 1, -1.0);
+    PyObject *out = b->ready ? PyTuple_New(b->n) : Py_NewRef(Py_None);
+    for (Py_ssize_t j = 0; b->ready && out != NULL && j < b->n; j++) {
+        PyObject *e = Py_BuildValue("(OiOO)", b->w[j].rec, b->w[j].fd, b->w[j].raw ? Py_True : Py_False,
+                                    b->w[j].watch);
+        if (e == NULL)
+            Py_CLEAR(out);
+        else
+            PyTuple_SET_ITEM(out, j, e);
+    }
+    pthread_mutex_unlock(&b->mu);
+    return out;
+}
+
+static PyMethodDef box_methods[] = {
+    {"table", (PyCFunction)box_table, METH_NOARGS,
+     "table() -> ((record, fd, raw, watch), ...): the C table the step reads without the GIL; None: it reads box[0] "
+     "with the GIL (None there, or a malformed snapshot)"},
+    {NULL},
+};
+
 static PySequenceMethods box_as_sequence = {.sq_length = (lenfunc)box_len, .sq_item = (ssizeargfunc)box_item,
                                             .sq_ass_item = (ssizeobjargproc)box_ass_item};
 
@@ -370,6 +394,7 @@ static PyTypeObject WatcherBoxType = {
     .tp_clear = (inquiry)box_clear,
     .tp_dealloc = (destructor)box_dealloc,
     .tp_as_sequence = &box_as_sequence,
+    .tp_methods = box_methods,
 };
 
 /* call a lock's bound ``release`` keeping the pending exception, if any: 0, or -1 when the release failed */
@@ -707,7 +732,7 @@ static int call_open(Call *C)
         PyErr_NoMemory();
         return -1;
     }
-    S->ist[IST_FRAMES] = S->ist[IST_UNKNOWN] = 0;
+    S->ist[IST_FRAMES] = S->ist[IST_UNKNOWN] = S->ist[IST_NOGIL] = 0;
     S->ist[IST_CLIENT] = S->ist[IST_SENT] = -1;
     S->ist[IST_REASON] = R_DUE;
     C->started = 1;
@@ -869,6 +894,7 @@ static int call_process_nogil(Call *C, const unsigned char *buf, Py_ssize_t n, P
         return 0;
     }
     pthread_mutex_unlock(&box->mu);
+    S->ist[IST_NOGIL] += 1;
     return 1;
 }
 

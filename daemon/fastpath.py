@@ -32,7 +32,7 @@ HOUSEKEEPING_S = 0.25  # the longest the C step runs before the Python loop's ho
 
 # The state arrays shared with the C step (the slot names are its enums)
 IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH, \
-    IST_STAGE_LIMIT, IST_CAN, IST_N = range(12)
+    IST_STAGE_LIMIT, IST_CAN, IST_NOGIL, IST_N = range(13)
 FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N = range(6)
 R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR = range(6)
 
