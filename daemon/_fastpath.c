@@ -677,7 +677,9 @@ typedef struct {
     int started; /* S holds the caller's state (copied back at the end) */
 } Call;
 
-static int call_open(Call *C)
+/* ``batch_frames``: the most frames one batch of this call can hold (the stage keeps room for one beyond the
+   stage limit) */
+static int call_open(Call *C, Py_ssize_t batch_frames)
 {
     C->leftover = NULL;
     C->stopped = Py_NewRef(Py_None);
@@ -727,8 +729,9 @@ static int call_open(Call *C)
     memcpy(S->fst, C->fst.buf, sizeof S->fst);
     /* the stage: what the step may add before its stage check stops it, and one batch (take's only one) */
     C->had = PyByteArray_GET_SIZE(C->staged);
-    long long room = S->ist[IST_STAGE_LIMIT] - C->had;
-    if (reserve(&C->stage, (room > 0 ? (Py_ssize_t)room : 0) + (Py_ssize_t)C->max_frames * GRAVCAL_SAMPLE_SIZE) < 0) {
+    long long room = batch_frames < C->max_frames ? 0 : S->ist[IST_STAGE_LIMIT] - C->had;
+    batch_frames = batch_frames < C->max_frames ? batch_frames : C->max_frames;
+    if (reserve(&C->stage, (room > 0 ? (Py_ssize_t)room : 0) + batch_frames * GRAVCAL_SAMPLE_SIZE) < 0) {
         PyErr_NoMemory();
         return -1;
     }
@@ -992,7 +995,7 @@ static PyObject *step(PyObject *self, PyObject *args)
     unsigned char *buf = NULL;
     int ok = 0, ep = -1;
     PyThreadState *ts = NULL;
-    if (call_open(&C) < 0)
+    if (call_open(&C, MAX_FRAMES_LIMIT) < 0)
         goto done;
     if (fd < 0 || !(seconds >= 0)) {
         PyErr_SetString(PyExc_ValueError, "fastpath.step: needs fd >= 0 and seconds >= 0");
@@ -1103,7 +1106,7 @@ static PyObject *take(PyObject *self, PyObject *args)
                           &C.staged, &C.server, &C.processor, &C.rows, &C.acc, &C.gyro, &C.codes))
         return NULL;
     int ok = 0;
-    if (call_open(&C) == 0) {
+    if (call_open(&C, data.len / GRAVCAL_FRAME_LEN + 1) == 0) { /* its one batch: whole 29-byte frames at most */
         PyObject *snapshot;
         int plain = call_prepare(&C, &snapshot);
         if (plain == 0)
