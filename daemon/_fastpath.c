@@ -28,7 +28,7 @@
  *   encoding, one non-blocking send() per watcher in snapshot order under the client's lock;
  *   Gravcald._acquire: the records appended to ``staged`` (the analysis' bytes). It returns at the latest
  *   after ``seconds`` or once ``staged`` holds ist[IST_STAGE_LIMIT] bytes, for the Python loop's housekeeping.
- * step holds the GIL only for what needs Python (see step and "Locks" below); take holds it throughout.
+ * step holds the GIL only for what needs Python (see step and "Locks" in _clienttable.h); take holds it throughout.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -46,6 +46,7 @@
 
 #include "../core/_correctkernel.h"
 #include "../drivers/_framekernel.h"
+#include "_clienttable.h"
 #include "_linekernel.h"
 
 #define READ_BYTES 65536 /* drivers/serial.py READ_BYTES: more than the kernel's tty buffer holds */
@@ -58,344 +59,10 @@ enum { IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_C
        IST_STAGE_LIMIT, IST_CAN, IST_NOGIL, IST_N }; /* IST_NOGIL: the call's batches delivered without the GIL */
 enum { FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N };
 enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
-/* a watcher entry of server.fast_watchers (daemon/fanout.py fast_snapshot) */
-enum { ENTRY_CLIENT, ENTRY_RECORD, ENTRY_FD, ENTRY_RAW, ENTRY_WATCH, ENTRY_ACQUIRE, ENTRY_RELEASE, ENTRY_N };
 
 /* attribute names, interned once: a lookup is then a pointer comparison */
 static PyObject *s_fast_box, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t,
     *s_params_generation;
-
-/* ClientRecord: what the step reads and writes per client, as C fields (no attribute lookup per sample).
- *   policy: the watch policy the step may send under, None while it must not (the client is closed or has
- *     output pending); set by ClientState.regate (daemon/client_limits.py) each time the client's lock is
- *     released by Python, so it is exact whenever the step holds that lock;
- *   sent_messages, sent_bytes, last_progress: what fanout.deliver adds to the ClientState for a block taken
- *     whole, accumulated here and folded into the ClientState by take() (under the client's lock). */
-typedef struct {
-    PyObject_HEAD
-    PyObject *policy;
-    long long sent_messages, sent_bytes;
-    double last_progress;
-    pthread_mutex_t mu; /* the client's lock (ClientState.lock): recursive, taken by Python through lock()/unlock()
-                           and by the step without the GIL (see "Locks" below) */
-} ClientRecord;
-
-/* Locks. The step delivers, corrects and stages without the GIL; three C mutexes guard what it shares:
- *   WatcherBox.mu    the watcher table (server.fast_box), held by the step from its check through the sends;
- *   ClientRecord.mu  one client's socket and gate (ClientState.lock), tried (never waited for) under the box's;
- *   latest_mu        the batch arrays ?POLL reads (FastPath.latest), held around writing or copying them only.
- * Order: box -> record (trylock) ; box -> latest. Deadlock freedom rests on two rules: a thread holding the GIL
- * never blocks on a box or record mutex (lock_with_gil: trylock, else release the GIL and wait), so the step may
- * take the GIL while holding them; and no thread waits for the GIL while holding latest_mu. */
-static pthread_mutex_t latest_mu = PTHREAD_MUTEX_INITIALIZER;
-
-/* take ``m`` from a thread holding the GIL: 1, or 0 when not taken (not blocking, or ``timeout`` s passed) */
-static int lock_with_gil(pthread_mutex_t *m, int blocking, double timeout)
-{
-    if (pthread_mutex_trylock(m) == 0)
-        return 1;
-    if (!blocking)
-        return 0;
-    int rc;
-    Py_BEGIN_ALLOW_THREADS
-    if (timeout < 0) {
-        rc = pthread_mutex_lock(m);
-    } else {
-        struct timespec ts;
-        clock_gettime(CLOCK_REALTIME, &ts); /* pthread_mutex_timedlock's clock */
-        double end = (double)ts.tv_nsec * 1e-9 + timeout;
-        ts.tv_sec += (time_t)end;
-        ts.tv_nsec = (long)((end - floor(end)) * 1e9);
-        rc = pthread_mutex_timedlock(m, &ts);
-    }
-    Py_END_ALLOW_THREADS
-    return rc == 0;
-}
-
-static PyObject *record_new(PyTypeObject *type, PyObject *args, PyObject *kwds)
-{
-    if (PyTuple_GET_SIZE(args) != 0 || (kwds != NULL && PyDict_GET_SIZE(kwds) != 0)) {
-        PyErr_SetString(PyExc_TypeError, "ClientRecord() takes no arguments");
-        return NULL;
-    }
-    ClientRecord *r = (ClientRecord *)type->tp_alloc(type, 0);
-    if (r == NULL)
-        return NULL;
-    r->policy = Py_NewRef(Py_None);
-    pthread_mutexattr_t a;
-    pthread_mutexattr_init(&a);
-    pthread_mutexattr_settype(&a, PTHREAD_MUTEX_RECURSIVE); /* threading.RLock's: a holder may take it again */
-    int rc = pthread_mutex_init(&r->mu, &a);
-    pthread_mutexattr_destroy(&a);
-    if (rc != 0) {
-        Py_DECREF(r);
-        PyErr_SetString(PyExc_RuntimeError, "ClientRecord: cannot create its lock");
-        return NULL;
-    }
-    return (PyObject *)r;
-}
-
-static int record_traverse(ClientRecord *r, visitproc visit, void *arg)
-{
-    Py_VISIT(r->policy);
-    return 0;
-}
-
-static int record_clear(ClientRecord *r)
-{
-    Py_CLEAR(r->policy);
-    return 0;
-}
-
-static void record_dealloc(ClientRecord *r)
-{
-    PyObject_GC_UnTrack(r);
-    record_clear(r);
-    pthread_mutex_destroy(&r->mu);
-    Py_TYPE(r)->tp_free((PyObject *)r);
-}
-
-static PyObject *record_get_policy(ClientRecord *r, void *closure)
-{
-    return Py_NewRef(r->policy);
-}
-
-static int record_set_policy(ClientRecord *r, PyObject *value, void *closure)
-{
-    if (value == NULL) {
-        PyErr_SetString(PyExc_AttributeError, "ClientRecord.policy cannot be deleted (None: the step may not send)");
-        return -1;
-    }
-    Py_SETREF(r->policy, Py_NewRef(value));
-    return 0;
-}
-
-/* the counters since the last take, zeroed: one C call, so atomic under the GIL against the step's writes */
-static PyObject *record_take(ClientRecord *r, PyObject *unused)
-{
-    PyObject *out = Py_BuildValue("(LLd)", r->sent_messages, r->sent_bytes, r->last_progress);
-    if (out != NULL) {
-        r->sent_messages = r->sent_bytes = 0;
-        r->last_progress = 0.0;
-    }
-    return out;
-}
-
-static PyObject *record_lock(ClientRecord *r, PyObject *args, PyObject *kwds)
-{
-    static char *kw[] = {"blocking", "timeout", NULL};
-    int blocking = 1;
-    double timeout = -1.0;
-    if (!PyArg_ParseTupleAndKeywords(args, kwds, "|pd:lock", kw, &blocking, &timeout))
-        return NULL;
-    return PyBool_FromLong(lock_with_gil(&r->mu, blocking, timeout));
-}
-
-static PyObject *record_unlock(ClientRecord *r, PyObject *unused)
-{
-    if (pthread_mutex_unlock(&r->mu) != 0) {
-        PyErr_SetString(PyExc_RuntimeError, "ClientRecord.unlock: the lock is not held by this thread");
-        return NULL;
-    }
-    Py_RETURN_NONE;
-}
-
-static PyGetSetDef record_getset[] = {
-    {"policy", (getter)record_get_policy, (setter)record_set_policy,
-     "the watch policy the step may send under; None: it may not (closed, output pending)", NULL},
-    {NULL},
-};
-
-static PyMethodDef record_methods[] = {
-    {"take", (PyCFunction)record_take, METH_NOARGS,
-     "take() -> (messages, bytes, last_progress): the counters the step added since the last take, zeroed"},
-    {"lock", (PyCFunction)(void (*)(void))record_lock, METH_VARARGS | METH_KEYWORDS,
-     "lock(blocking=True, timeout=-1) -> bool: take the client's lock (reentrant; the GIL released while waiting)"},
-    {"unlock", (PyCFunction)record_unlock, METH_NOARGS, "unlock(): release the client's lock once"},
-    {NULL},
-};
-
-static PyTypeObject ClientRecordType = {
-    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "gravcal.daemon._fastpath.ClientRecord",
-    .tp_basicsize = sizeof(ClientRecord),
-    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
-    .tp_doc = "What the C step reads and writes for one client: its send gate and counters (see _fastpath.c).",
-    .tp_new = record_new,
-    .tp_traverse = (traverseproc)record_traverse,
-    .tp_clear = (inquiry)record_clear,
-    .tp_dealloc = (destructor)record_dealloc,
-    .tp_getset = record_getset,
-    .tp_methods = record_methods,
-};
-
-/* WatcherBox: server.fast_box, whose one item box[0] is the watcher snapshot (fanout.fast_snapshot, None while
-   some watcher is not plain). Setting it (under the GIL) also writes the C table the step reads without the GIL:
-   each entry's record, policy, fd and encoding, borrowed from the item (a tuple: immutable, and kept alive by the
-   box until it is replaced under ``mu``). ``ready``: the item is a tuple of well-formed entries; otherwise the step
-   takes the GIL and reads the item itself (None: not plain; malformed: its TypeError). */
-typedef struct {
-    ClientRecord *rec;
-    PyObject *watch;
-    int fd, raw;
-} Watcher;
-
-typedef struct {
-    PyObject_HEAD
-    pthread_mutex_t mu;
-    PyObject *item;
-    Watcher *w;
-    Py_ssize_t n;
-    int ready, need[2];
-} WatcherBox;
-
-static int box_set(WatcherBox *b, PyObject *item)
-{
-    Watcher *w = NULL;
-    Py_ssize_t n = PyTuple_Check(item) ? PyTuple_GET_SIZE(item) : 0;
-    int ready = PyTuple_Check(item), need[2] = {0, 0};
-    if (n > 0 && (w = PyMem_Malloc(sizeof(Watcher) * (size_t)n)) == NULL) {
-        PyErr_NoMemory();
-        return -1;
-    }
-    for (Py_ssize_t j = 0; ready && j < n; j++) {
-        PyObject *e = PyTuple_GET_ITEM(item, j);
-        if (!PyTuple_Check(e) || PyTuple_GET_SIZE(e) != ENTRY_N ||
-            !PyObject_TypeCheck(PyTuple_GET_ITEM(e, ENTRY_RECORD), &ClientRecordType) ||
-            !PyLong_Check(PyTuple_GET_ITEM(e, ENTRY_FD))) {
-            ready = 0;
-            break;
-        }
-        long fd = PyLong_AsLong(PyTuple_GET_ITEM(e, ENTRY_FD));
-        int raw = PyObject_IsTrue(PyTuple_GET_ITEM(e, ENTRY_RAW));
-        if (fd < 0 || fd > INT32_MAX || raw < 0) {
-            PyErr_Clear(); /* the step's GIL path reports a malformed entry */
-            ready = 0;
-            break;
-        }
-        w[j] = (Watcher){(ClientRecord *)PyTuple_GET_ITEM(e, ENTRY_RECORD), PyTuple_GET_ITEM(e, ENTRY_WATCH), (int)fd,
-                         raw};
-        need[raw] = 1;
-    }
-    Py_INCREF(item);
-    lock_with_gil(&b->mu, 1, -1.0);
-    PyObject *old_item = b->item;
-    Watcher *old_w = b->w;
-    b->item = item;
-    b->w = w;
-    b->n = n;
-    b->ready = ready;
-    b->need[0] = need[0];
-    b->need[1] = need[1];
-    pthread_mutex_unlock(&b->mu);
-    Py_XDECREF(old_item); /* after the unlock: the step no longer reads the old table */
-    PyMem_Free(old_w);
-    return 0;
-}
-
-static PyObject *box_new(PyTypeObject *type, PyObject *args, PyObject *kwds)
-{
-    PyObject *item = NULL;
-    if ((kwds != NULL && PyDict_GET_SIZE(kwds) != 0) || !PyArg_ParseTuple(args, "O:WatcherBox", &item))
-        return NULL;
-    WatcherBox *b = (WatcherBox *)type->tp_alloc(type, 0);
-    if (b == NULL)
-        return NULL;
-    if (pthread_mutex_init(&b->mu, NULL) != 0) {
-        Py_DECREF(b);
-        PyErr_SetString(PyExc_RuntimeError, "WatcherBox: cannot create its lock");
-        return NULL;
-    }
-    b->w = NULL;
-    if (box_set(b, item) < 0) {
-        Py_DECREF(b);
-        return NULL;
-    }
-    return (PyObject *)b;
-}
-
-static int box_traverse(WatcherBox *b, visitproc visit, void *arg)
-{
-    Py_VISIT(b->item);
-    return 0;
-}
-
-static int box_clear(WatcherBox *b)
-{
-    Py_CLEAR(b->item); /* only from the collector or dealloc: no step holds the box then (it holds a reference) */
-    PyMem_Free(b->w);
-    b->w = NULL;
-    b->n = 0;
-    b->ready = 0;
-    return 0;
-}
-
-static void box_dealloc(WatcherBox *b)
-{
-    PyObject_GC_UnTrack(b);
-    box_clear(b);
-    pthread_mutex_destroy(&b->mu);
-    Py_TYPE(b)->tp_free((PyObject *)b);
-}
-
-static Py_ssize_t box_len(WatcherBox *b) { return 1; }
-
-static PyObject *box_item(WatcherBox *b, Py_ssize_t i)
-{
-    if (i != 0) {
-        PyErr_SetString(PyExc_IndexError, "WatcherBox holds one item: box[0]");
-        return NULL;
-    }
-    return Py_NewRef(b->item != NULL ? b->item : Py_None);
-}
-
-static int box_ass_item(WatcherBox *b, Py_ssize_t i, PyObject *value)
-{
-    if (i != 0 || value == NULL) {
-        PyErr_SetString(PyExc_IndexError, "WatcherBox holds one item: only box[0] = snapshot");
-        return -1;
-    }
-    return box_set(b, value);
-}
-
-/* table() -> ((record, fd, raw, watch), ...) as the step reads it, or None while it reads box[0] with the GIL */
-static PyObject *box_table(WatcherBox *b, PyObject *unused)
-{
-    lock_with_gil(&b->mu, 1, -1.0);
-    PyObject *out = b->ready ? PyTuple_New(b->n) : Py_NewRef(Py_None);
-    for (Py_ssize_t j = 0; b->ready && out != NULL && j < b->n; j++) {
-        PyObject *e = Py_BuildValue("(OiOO)", b->w[j].rec, b->w[j].fd, b->w[j].raw ? Py_True : Py_False,
-                                    b->w[j].watch);
-        if (e == NULL)
-            Py_CLEAR(out);
-        else
-            PyTuple_SET_ITEM(out, j, e);
-    }
-    pthread_mutex_unlock(&b->mu);
-    return out;
-}
-
-static PyMethodDef box_methods[] = {
-    {"table", (PyCFunction)box_table, METH_NOARGS,
-     "table() -> ((record, fd, raw, watch), ...): the C table the step reads without the GIL; None: it reads box[0] "
-     "with the GIL (None there, or a malformed snapshot)"},
-    {NULL},
-};
-
-static PySequenceMethods box_as_sequence = {.sq_length = (lenfunc)box_len, .sq_item = (ssizeargfunc)box_item,
-                                            .sq_ass_item = (ssizeobjargproc)box_ass_item};
-
-static PyTypeObject WatcherBoxType = {
-    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "gravcal.daemon._fastpath.WatcherBox",
-    .tp_basicsize = sizeof(WatcherBox),
-    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
-    .tp_doc = "WatcherBox(snapshot): the server's watcher snapshot as box[0], and the C table the step reads from it.",
-    .tp_new = box_new,
-    .tp_traverse = (traverseproc)box_traverse,
-    .tp_clear = (inquiry)box_clear,
-    .tp_dealloc = (destructor)box_dealloc,
-    .tp_as_sequence = &box_as_sequence,
-    .tp_methods = box_methods,
-};
 
 /* call a lock's bound ``release`` keeping the pending exception, if any: 0, or -1 when the release failed */
 static int release_keeping_error(PyObject *release)
@@ -546,7 +213,7 @@ static long long static_code(const Params *p, long long seq, double max_age)
 static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double now, Py_ssize_t *sent)
 {
     if (!PyTuple_Check(entry) || PyTuple_GET_SIZE(entry) != ENTRY_N ||
-        !PyObject_TypeCheck(PyTuple_GET_ITEM(entry, ENTRY_RECORD), &ClientRecordType)) {
+        !PyObject_TypeCheck(PyTuple_GET_ITEM(entry, ENTRY_RECORD), &GravcalClientRecordType)) {
         PyErr_SetString(PyExc_TypeError, "fastpath: a watcher entry is (client, ClientRecord, fd, raw, watch, "
                                          "lock.acquire, lock.release_unchanged)");
         return -1;
@@ -586,7 +253,7 @@ typedef struct {
 /* One read's records (written and stamped by the frame kernel) through correction and staging, as
    Processor.correct and Gravcald._acquire do: the acceleration a = K^-T applied to (raw - o) and the gyro rate
    (core/_correctkernel.c), the static code, the records appended to the staging area. No Python: runs with or
-   without the GIL, under latest_mu (the arrays ?POLL reads). */
+   without the GIL, under gravcal_latest_mu (the arrays ?POLL reads). */
 static void correct_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t *ticks, const Params *P,
                           double t_recv, unsigned char *rows, double *acc, double *gyro, signed char *codes, Bytes *stage)
 {
@@ -604,7 +271,7 @@ static void correct_batch(State *S, long long *live_ist, Py_ssize_t k, const uin
     S->ist[IST_SEQ] += k;
     S->ist[IST_FRAMES] += k;
     S->ist[IST_BATCH] = k;
-    live_ist[IST_BATCH] = k; /* ?POLL reads the newest batch's last record meanwhile (under latest_mu) */
+    live_ist[IST_BATCH] = k; /* ?POLL reads the newest batch's last record meanwhile (under gravcal_latest_mu) */
     S->ist[IST_TICK] = ticks[k - 1];
     if (k >= 2) /* SeqUnwrapper._learn_ticks: device ticks per sample */
         S->fst[FST_TICK_PERIOD] = (double)(uint32_t)(ticks[k - 1] - ticks[0]) / (double)(k - 1);
@@ -713,7 +380,7 @@ static int call_open(Call *C, Py_ssize_t batch_frames)
     PyObject *box = PyObject_GetAttr(C->server, s_fast_box);
     if (box == NULL)
         return -1;
-    if (!PyObject_TypeCheck(box, &WatcherBoxType)) {
+    if (!PyObject_TypeCheck(box, &GravcalWatcherBoxType)) {
         Py_DECREF(box);
         PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_box must be a WatcherBox (daemon/_fastpath.c)");
         return -1;
@@ -767,14 +434,14 @@ static int call_prepare(Call *C, PyObject **snapshot)
     return 1;
 }
 
-/* The frames of one read, corrected and staged (the frame kernel, then correct_batch), under latest_mu: their
+/* The frames of one read, corrected and staged (the frame kernel, then correct_batch), under gravcal_latest_mu: their
    count, 0 when the bytes are not such frames (nothing consumed). With or without the GIL. */
 static Py_ssize_t call_frames(Call *C, const unsigned char *buf, Py_ssize_t n, double t_recv)
 {
     State *S = &C->S;
     /* the records source: ist[IST_CAN] 0 the serial frames, else slcan lines of CAN samples from base id - 1 */
     long long can_base = S->ist[IST_CAN] - 1;
-    pthread_mutex_lock(&latest_mu); /* held by no thread that waits for the GIL: a plain wait */
+    pthread_mutex_lock(&gravcal_latest_mu); /* held by no thread that waits for the GIL: a plain wait */
     Py_ssize_t k = can_base < 0 ? frame_api->continuing(buf, n, S->ist[IST_EXPECT], C->max_frames, S->ist[IST_SEQ],
                                                         S->fst[FST_TICK_HZ], t_recv, &S->fst[FST_LAST_T],
                                                         C->rows.buf, C->ticks)
@@ -784,7 +451,7 @@ static Py_ssize_t call_frames(Call *C, const unsigned char *buf, Py_ssize_t n, d
     if (k > 0)
         correct_batch(S, C->ist.buf, k, C->ticks, &C->P, t_recv, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf,
                       &C->stage);
-    pthread_mutex_unlock(&latest_mu);
+    pthread_mutex_unlock(&gravcal_latest_mu);
     return k;
 }
 
@@ -853,7 +520,7 @@ static int call_process_nogil(Call *C, const unsigned char *buf, Py_ssize_t n, P
         return C->leftover == NULL ? -1 : 0;
     }
     int rc = batch_lines(k, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf, box->need, C->lines, 1);
-    if (rc == -2) { /* the box's mutex held while taking the GIL: allowed (see "Locks") */
+    if (rc == -2) { /* the box's mutex held while taking the GIL: allowed (see "Locks" in _clienttable.h) */
         take_gil(ts);
         rc = batch_lines(k, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf, box->need, C->lines, 0);
     }
@@ -884,7 +551,7 @@ static int call_process_nogil(Call *C, const unsigned char *buf, Py_ssize_t n, P
         PyObject *snapshot = Py_NewRef(box->item);
         pthread_mutex_unlock(&box->mu);
         if (!held) { /* the lock is busy (the server thread is at this client): wait for it as fanout would */
-            if (!lock_with_gil(&rec->mu, 1, -1.0)) {
+            if (!gravcal_lock_with_gil(&rec->mu, 1, -1.0)) {
                 Py_DECREF(snapshot);
                 PyErr_SetString(PyExc_RuntimeError, "fastpath: a client's lock could not be taken");
                 return -1;
@@ -1118,7 +785,7 @@ static PyObject *take(PyObject *self, PyObject *args)
 }
 
 /* latest(ist, rows, acc, gyro, static, row, acc1, gyro1, static1): the newest batch's last sample copied out under
-   latest_mu (the step may be writing the arrays without the GIL): whether there was one */
+   gravcal_latest_mu (the step may be writing the arrays without the GIL): whether there was one */
 static PyObject *latest(PyObject *self, PyObject *args)
 {
     Py_buffer in[5], out[4];
@@ -1131,14 +798,14 @@ static PyObject *latest(PyObject *self, PyObject *args)
         ok = ok && out[i].len == size[i] && in[i + 1].len % size[i] == 0;
     if (ok) {
         Py_BEGIN_ALLOW_THREADS
-        pthread_mutex_lock(&latest_mu);
+        pthread_mutex_lock(&gravcal_latest_mu);
         long long k = ((const long long *)in[0].buf)[IST_BATCH];
         have = k > 0;
         for (int i = 0; i < 4 && have; i++)
             have = k <= in[i + 1].len / size[i];
         for (int i = 0; i < 4 && have; i++)
             memcpy(out[i].buf, (const char *)in[i + 1].buf + (k - 1) * size[i], (size_t)size[i]);
-        pthread_mutex_unlock(&latest_mu);
+        pthread_mutex_unlock(&gravcal_latest_mu);
         Py_END_ALLOW_THREADS
     }
     for (int i = 0; i < 5; i++)
@@ -1194,11 +861,11 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     frame_api = import_api("gravcal.drivers._framekernel", GRAVCAL_FRAME_CAPSULE);
     correct_api = frame_api ? import_api("gravcal.core._correctkernel", GRAVCAL_CORRECT_CAPSULE) : NULL;
     line_api = correct_api ? import_api("gravcal.daemon._linekernel", GRAVCAL_LINE_CAPSULE) : NULL;
-    if (line_api == NULL || PyType_Ready(&ClientRecordType) < 0 || PyType_Ready(&WatcherBoxType) < 0)
+    if (line_api == NULL || PyType_Ready(&GravcalClientRecordType) < 0 || PyType_Ready(&GravcalWatcherBoxType) < 0)
         return NULL;
     PyObject *m = PyModule_Create(&module);
-    if (m != NULL && (PyModule_AddObjectRef(m, "ClientRecord", (PyObject *)&ClientRecordType) < 0 ||
-                      PyModule_AddObjectRef(m, "WatcherBox", (PyObject *)&WatcherBoxType) < 0))
+    if (m != NULL && (PyModule_AddObjectRef(m, "ClientRecord", (PyObject *)&GravcalClientRecordType) < 0 ||
+                      PyModule_AddObjectRef(m, "WatcherBox", (PyObject *)&GravcalWatcherBoxType) < 0))
         Py_CLEAR(m);
     return m;
 }
