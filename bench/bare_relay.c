@@ -159,7 +159,7 @@ int main(int argc, char **argv)
                     frame_bytes == 29 && carry_before == 0 ? (int)((unsigned char)buf[i * 29 + 3] |
                                                                    (unsigned char)buf[i * 29 + 4] << 8)
                                                            : -1);
-        for (int i = 0; i < nclients; i++) {
+        for (int i = nclients - 1; i >= 0; i--) { /* the first client (bench_latency's timed one) last: the worst */
             ssize_t s = send(fds[i], lines, need, MSG_DONTWAIT | MSG_NOSIGNAL);
             if (s > 0)
                 sent_bytes += s;

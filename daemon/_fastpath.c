@@ -406,7 +406,11 @@ static int call_open(Call *C, Py_ssize_t batch_frames)
     S->ist[IST_CLIENT] = S->ist[IST_SENT] = -1;
     S->ist[IST_REASON] = R_DUE;
     C->started = 1;
-    return 0;
+    /* the parameters now, while the caller holds the GIL: the first wake-up needs it only when they change */
+    C->P.generation = *(const long long *)C->generation.buf;
+    int plain = load_params(C->processor, &C->P);
+    C->P.loaded = plain == 1;
+    return plain < 0 ? -1 : 0;
 }
 
 /* The watcher snapshot and the correction for the next bytes, with the GIL: 1 plain (*snapshot set), 0 not (the
