@@ -279,3 +279,25 @@ def test_every_record_is_staged_once_and_in_order_under_load(rig):
     seqs = [json.loads(x)["seq"] for x in bytes(got).splitlines() if b'"IMU"' in x]
     assert seqs == list(range(total))
     assert stopped_n >= 1 and nogil >= 1  # both: batches without the GIL, deliveries the churn sent to fanout
+
+
+def test_poll_copies_the_newest_batchs_last_sample_and_refuses_bad_buffers(rig):
+    from gravcal.daemon._fastpath import latest
+    one = (np.zeros(1, SAMPLE_DTYPE), np.zeros((1, 3)), np.zeros(1), np.zeros(1, np.int8))
+    arrays = (rig.ist, rig.rows, rig.acc, rig.gyro, rig.codes)
+    assert latest(*arrays, *one) is False  # nothing published yet
+    n = 3
+    rig.ist[fp.IST_STAGE_LIMIT] = n * SAMPLE_DTYPE.itemsize
+    t = _feed(rig, range(5, 5 + n), 0.004)
+    rig.step(5, 100, seconds=5.0)
+    t.join()
+    assert latest(*arrays, *one) is True
+    k = int(rig.ist[fp.IST_BATCH])
+    assert one[0]["seq"][0] == 100 + n - 1 and one[0].tobytes() == rig.rows[k - 1:k].tobytes()
+    assert one[1][0].tolist() == rig.acc[k - 1].tolist() and one[2][0] == rig.gyro[k - 1]
+    assert one[3][0] == rig.codes[k - 1]
+    for bad in ((np.zeros(2, SAMPLE_DTYPE),) + one[1:], (rig.ist[:3],) + arrays[1:]):
+        with pytest.raises(ValueError, match="latest"):
+            latest(*(bad if len(bad) == 5 else arrays), *(bad if len(bad) == 4 else one))
+    rig.ist[fp.IST_BATCH] = 10 ** 6  # beyond the arrays: nothing is read
+    assert latest(*arrays, *one) is False
