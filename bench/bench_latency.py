@@ -261,7 +261,11 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
     dev0, dev1 = status0.get("device", {}), status1.get("device", {})
     in_c = None if "samples_in_c" not in dev1 else (
         (dev1["samples_in_c"] - dev0["samples_in_c"]) / max(1, dev1["samples"] - dev0["samples"]))
+    # the C step's batches (reads) delivered without taking the GIL, per sample (None: a tree without the count)
+    nogil = None if "batches_without_gil" not in dev1 else (
+        (dev1["batches_without_gil"] - dev0["batches_without_gil"]) / max(1, dev1["samples"] - dev0["samples"]))
     return {"bus": bus, "clients": clients, "samples": int(a.shape[0]), "seconds": wall, "share_in_c": in_c,
+            "nogil_batches_per_sample": nogil,
             "samples_per_s": a.shape[0] / wall, "latency_ms": pct, "cpu_percent": cpu / wall * 100,
             "cpu_percent_daemon": None if device is None else cpu / wall * 100 - device,
             "cpu_percent_emulated_device": device,
@@ -366,7 +370,9 @@ def _show(r: dict) -> str:
     return (f"{budget}{r['bus']:6s} {r['clients']:3d} client(s)  {r['samples_per_s']:6.1f}/s  latency p50 {lat['p50']:7.2f} "
             f"p99 {lat['p99']:7.2f} p99.9 {lat['p99.9']:7.2f} ms  CPU {r['cpu_percent']:5.2f} %  "
             f"RSS {r['rss_mb']:6.1f} MB (peak {r['rss_peak_mb']:.1f})"
-            + ("" if r.get("share_in_c") is None else f"  C step {r['share_in_c'] * 100:.1f} % of samples") + "\n"
+            + ("" if r.get("share_in_c") is None else f"  C step {r['share_in_c'] * 100:.1f} % of samples")
+            + ("" if r.get("nogil_batches_per_sample") is None
+               else f", {r['nogil_batches_per_sample']:.3f} batches per sample without the GIL") + "\n"
             f"{'':9s}CPU by thread:" + "".join(f" {k} {v:.2f} %" for k, v in sorted(
                 r["cpu_percent_by_thread"].items(), key=lambda kv: -kv[1]) if v >= 0.005)
             + ("" if not r.get("wakeups_by_thread") else f"\n{'':9s}wake-ups per sample by thread (voluntary + "

@@ -57,6 +57,7 @@ class FastPath:
         self.codes = np.zeros(self.max_frames, dtype=np.int8)
         self.latest = _Latest(self)
         self.taken = 0
+        self.nogil = 0  # batches the step delivered without taking the GIL
 
     @classmethod
     def for_driver(cls, driver: Any, *args: Any, **kwargs: Any) -> "FastPath | None":
@@ -82,6 +83,7 @@ class FastPath:
             leftover, stopped = step(fd, seconds, self.max_frames, self.ist, self.fst, staged, self.server,
                                      self.processor, self.rows, self.acc, self.gyro, self.codes)
         finally:
+            self.nogil += int(self.ist[IST_NOGIL])
             try:
                 n = self._account(int(self.ist[IST_FRAMES]), int(self.ist[IST_UNKNOWN]))
             finally:  # a stopped delivery holds a client's lock: it is finished (and released) whatever happened
