@@ -568,7 +568,7 @@ static int call_process_nogil(Call *C, const unsigned char *buf, Py_ssize_t n, P
         return 0;
     }
     pthread_mutex_unlock(&box->mu);
-    S->ist[IST_NOGIL] += 1;
+    S->ist[IST_NOGIL] += *ts != NULL; /* the whole batch without the GIL */
     return 1;
 }
 

@@ -301,3 +301,22 @@ def test_poll_copies_the_newest_batchs_last_sample_and_refuses_bad_buffers(rig):
             latest(*(bad if len(bad) == 5 else arrays), *(bad if len(bad) == 4 else one))
     rig.ist[fp.IST_BATCH] = 10 ** 6  # beyond the arrays: nothing is read
     assert latest(*arrays, *one) is False
+
+
+def test_a_number_beyond_the_integer_formatting_takes_the_gil_for_its_line(rig):
+    """acc ~1e300: the line kernel's integer path cannot write it, so that batch's lines are written with the
+    GIL (PyOS_double_to_string), the same bytes as the Python encoder's, and the wake-ups still deliver."""
+    from gravcal.core.correction import PlainCorrection
+    from gravcal.daemon.protocol import STANDARD_GRAVITY
+    rig.processor.correction = (PlainCorrection(np.array([0.5, 0.51, 0.49]), np.diag([1e-302, 0.041, 0.039]),
+                                                STANDARD_GRAVITY), None)
+    n = 4
+    rig.ist[fp.IST_STAGE_LIMIT] = n * SAMPLE_DTYPE.itemsize
+    t = _feed(rig, range(5, 5 + n), 0.004)
+    leftover, stopped = rig.step(5, 100, seconds=5.0)
+    t.join()
+    assert (leftover, stopped) == (b"", None) and rig.ist[fp.IST_FRAMES] == n
+    assert rig.ist[fp.IST_NOGIL] == 0  # each batch took the GIL for its lines
+    got = rig.received()
+    assert b"e+" not in got and len(got.split(b"\n")[0]) > 300  # %f digits of a ~1e300 number
+    assert got == _expected_lines(rig)
