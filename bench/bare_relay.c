@@ -7,6 +7,9 @@
  *
  * TTY is put in raw mode with VMIN = FRAME_BYTES, as gravcald's drivers do, so epoll wakes once a whole frame
  * (serial) or CAN sample (slcan) is there; OPEN_COMMAND (e.g. "O" for slcan) is written first, followed by CR.
+ * Each line is JSON, {"class":"IMU","seq":N,"pad":"xx..."} of LINE_BYTES (at least 64): N is the frame's 16-bit
+ * sequence number for serial frames (FRAME_BYTES 29; the wire format's bytes 3-4, little-endian), so a client can
+ * time it as it times gravcald's lines; -1 for slcan, whose number is not parsed here.
  * It prints "listening" once the socket is bound, "ready" once NCLIENTS are connected, and on SIGTERM the
  * wake-ups, lines and bytes sent.
  */
@@ -26,7 +29,22 @@
 #define READ_BYTES 65536
 #define TTY_CHUNK 64
 
+#define SEQ_HEAD "{\"class\":\"IMU\",\"seq\":"
+#define SEQ_DIGITS 5
+#define PAD_HEAD ",\"pad\":\""
+
 static volatile sig_atomic_t stop;
+
+static void put_seq(char *out, int seq)
+{
+    memset(out, ' ', SEQ_DIGITS);
+    int v = seq < 0 ? 1 : seq, i = SEQ_DIGITS;
+    do
+        out[--i] = (char)('0' + v % 10);
+    while ((v /= 10) > 0 && i > 0);
+    if (seq < 0 && i > 0)
+        out[--i] = '-';
+}
 
 static void on_term(int sig)
 {
@@ -41,7 +59,7 @@ int main(int argc, char **argv)
         return 2;
     }
     int nclients = atoi(argv[3]), line_bytes = atoi(argv[4]), frame_bytes = atoi(argv[5]);
-    if (nclients < 1 || nclients > 1024 || line_bytes < 2 || frame_bytes < 1 || frame_bytes > 255) {
+    if (nclients < 1 || nclients > 1024 || line_bytes < 64 || frame_bytes < 1 || frame_bytes > 255) {
         fprintf(stderr, "bare_relay: bad NCLIENTS, LINE_BYTES or FRAME_BYTES\n");
         return 2;
     }
@@ -119,6 +137,7 @@ int main(int argc, char **argv)
             n += last;
         }
         wakeups++;
+        int carry_before = carry;
         int k = (int)((carry + n) / frame_bytes);
         carry = (int)((carry + n) % frame_bytes);
         if (k == 0)
@@ -126,11 +145,21 @@ int main(int argc, char **argv)
         size_t need = (size_t)k * (size_t)line_bytes;
         if (need > lines_cap) {
             lines = realloc(lines, need);
-            for (size_t i = 0; i < need; i++) /* k lines of line_bytes - 1 characters and a newline */
-                lines[i] = (i + 1) % (size_t)line_bytes ? 'x' : '\n';
+            for (size_t i = 0; i < (size_t)k; i++) { /* k lines of line_bytes, padded with x */
+                char *l = lines + i * (size_t)line_bytes;
+                memset(l, 'x', (size_t)line_bytes);
+                memcpy(l, SEQ_HEAD, sizeof SEQ_HEAD - 1);
+                memcpy(l + sizeof SEQ_HEAD - 1 + SEQ_DIGITS, PAD_HEAD, sizeof PAD_HEAD - 1);
+                memcpy(l + line_bytes - 3, "\"}\n", 3);
+            }
             lines_cap = need;
         }
-        for (int i = 0; i < nclients; i++) {
+        for (int i = 0; i < k; i++) /* each line's seq, right-aligned in its 5 characters (JSON allows the spaces) */
+            put_seq(lines + (size_t)i * (size_t)line_bytes + sizeof SEQ_HEAD - 1,
+                    frame_bytes == 29 && carry_before == 0 ? (int)((unsigned char)buf[i * 29 + 3] |
+                                                                   (unsigned char)buf[i * 29 + 4] << 8)
+                                                           : -1);
+        for (int i = nclients - 1; i >= 0; i--) { /* the first client (bench_latency's timed one) last: the worst */
             ssize_t s = send(fds[i], lines, need, MSG_DONTWAIT | MSG_NOSIGNAL);
             if (s > 0)
                 sent_bytes += s;

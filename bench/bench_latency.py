@@ -27,7 +27,8 @@ first on PYTHONPATH) and report the ratios, measured in the same session on the 
 The floor (serial, can; after each run unless ``--no-floor``): bench/bare_relay.c, built with the system
 compiler ``cc`` into a temporary directory, relays the same emulator's tty (or slcan pty) to the same
 number of client processes: one poll(), the reads, and one send() per client of one line per frame, of the
-length gravcald's lines had in the run just before. Its CPU is what the wake-ups and the send() calls (each
+length gravcald's lines had in the run just before. On serial its lines carry the frame's number, so its
+latency is timed as gravcald's (the floor for latency too; slcan's lines are not numbered). Its CPU is what the wake-ups and the send() calls (each
 waking a client process) cost on this machine with no daemon work at all. I2C has no floor here (no kernel
 bus: the fake device runs in gravcald's process).
 """
@@ -260,7 +261,11 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
     dev0, dev1 = status0.get("device", {}), status1.get("device", {})
     in_c = None if "samples_in_c" not in dev1 else (
         (dev1["samples_in_c"] - dev0["samples_in_c"]) / max(1, dev1["samples"] - dev0["samples"]))
+    # the C step's batches (reads) delivered without taking the GIL, per sample (None: a tree without the count)
+    nogil = None if "batches_without_gil" not in dev1 else (
+        (dev1["batches_without_gil"] - dev0["batches_without_gil"]) / max(1, dev1["samples"] - dev0["samples"]))
     return {"bus": bus, "clients": clients, "samples": int(a.shape[0]), "seconds": wall, "share_in_c": in_c,
+            "nogil_batches_per_sample": nogil,
             "samples_per_s": a.shape[0] / wall, "latency_ms": pct, "cpu_percent": cpu / wall * 100,
             "cpu_percent_daemon": None if device is None else cpu / wall * 100 - device,
             "cpu_percent_emulated_device": device,
@@ -308,19 +313,22 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int) -
                                        *([open_cmd] if open_cmd else [])], stdout=subprocess.PIPE, text=True)
         if relay_proc.stdout.readline().strip() != "listening":
             raise SystemExit("the bare relay did not start")
-        readers = [ctx.Process(target=_extra_watcher, args=(path, 0, stop), daemon=True) for _ in range(clients)]
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)  # its first client: the lines timed here
+        probe.connect(path)
+        readers = [ctx.Process(target=_extra_watcher, args=(path, 0, stop), daemon=True) for _ in range(clients - 1)]
         for p in readers:
             p.start()
         if relay_proc.stdout.readline().strip() != "ready":
             raise SystemExit("the bare relay did not get its clients")
         ready = time.monotonic()
-        time.sleep(3.0)  # the emulator's start, the clients' first reads
+        _lines(probe, 3.0)  # the emulator's start, the clients' first reads
         cpu0, t0 = _cpu_s(relay_proc.pid), time.monotonic()
         sw0 = _switches(f"/proc/{relay_proc.pid}/status")
-        time.sleep(seconds)
+        rows = [r for r in _lines(probe, seconds) if r[1] >= 0]  # serial: each line's frame number
         cpu, wall = _cpu_s(relay_proc.pid) - cpu0, time.monotonic() - t0
         sw1 = _switches(f"/proc/{relay_proc.pid}/status")
         stop.set()  # the clients leave first, then the relay says what it sent
+        probe.close()
         for p in readers:
             p.join(5)
         relay_proc.send_signal(signal.SIGTERM)
@@ -335,12 +343,25 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int) -
                 proc.kill()
                 proc.wait()
     stats = dict(zip(counts[::2], map(int, counts[1::2])))
+    pct = None
+    if len(rows) > 100:  # the 16-bit numbers unwrapped; the spread above the best case, as for gravcald
+        a = np.array(rows, dtype=float)
+        seq = a[:, 1] + 65536 * np.concatenate([[0], np.cumsum(np.diff(a[:, 1]) < -32768)])
+        delay = a[:, 0] - seq / FS
+        spread = (delay - delay.min()) * 1e3
+        pct = {f"p{q:g}": float(np.percentile(spread, q)) for q in (50, 99, 99.9)}
     return {"bus": bus, "clients": clients, "cpu_percent": cpu / wall * 100, "line_bytes": line_bytes,
+            "latency_ms": pct,
             "lines_per_s_per_client": stats.get("lines", 0) / clients / lifetime if stats else None,
             "wakeups_per_s": stats.get("wakeups", 0) / lifetime if stats else None,
             "voluntary_switches_per_s": (sw1[0] - sw0[0]) / wall,
             "involuntary_switches_per_s": (sw1[1] - sw0[1]) / wall,
             "bytes_per_s_per_client": stats.get("bytes", 0) / clients / lifetime if stats else None}
+
+
+def _floor_latency(f: dict) -> str:
+    lat = f.get("latency_ms")
+    return "" if not lat else f"  latency p50 {lat['p50']:.2f} p99 {lat['p99']:.2f} p99.9 {lat['p99.9']:.2f} ms"
 
 
 def _show(r: dict) -> str:
@@ -349,7 +370,9 @@ def _show(r: dict) -> str:
     return (f"{budget}{r['bus']:6s} {r['clients']:3d} client(s)  {r['samples_per_s']:6.1f}/s  latency p50 {lat['p50']:7.2f} "
             f"p99 {lat['p99']:7.2f} p99.9 {lat['p99.9']:7.2f} ms  CPU {r['cpu_percent']:5.2f} %  "
             f"RSS {r['rss_mb']:6.1f} MB (peak {r['rss_peak_mb']:.1f})"
-            + ("" if r.get("share_in_c") is None else f"  C step {r['share_in_c'] * 100:.1f} % of samples") + "\n"
+            + ("" if r.get("share_in_c") is None else f"  C step {r['share_in_c'] * 100:.1f} % of samples")
+            + ("" if r.get("nogil_batches_per_sample") is None
+               else f", {r['nogil_batches_per_sample']:.3f} batches per sample without the GIL") + "\n"
             f"{'':9s}CPU by thread:" + "".join(f" {k} {v:.2f} %" for k, v in sorted(
                 r["cpu_percent_by_thread"].items(), key=lambda kv: -kv[1]) if v >= 0.005)
             + ("" if not r.get("wakeups_by_thread") else f"\n{'':9s}wake-ups per sample by thread (voluntary + "
@@ -404,7 +427,8 @@ def main(argv=None) -> int:
                       f"{f['voluntary_switches_per_s']:.1f} + "
                       f"{f['involuntary_switches_per_s']:.1f}/s, {f['voluntary_switches_per_s'] / FS:.3f} + "
                       f"{f['involuntary_switches_per_s'] / FS:.3f} per sample): "
-                      f"CPU {f['cpu_percent']:.2f} %  (gravcald {t['cpu_percent']:.2f} %)", flush=True)
+                      f"CPU {f['cpu_percent']:.2f} %  (gravcald {t['cpu_percent']:.2f} %)" + _floor_latency(f),
+                      flush=True)
             results.append(pair)
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:

@@ -28,13 +28,14 @@
  *   encoding, one non-blocking send() per watcher in snapshot order under the client's lock;
  *   Gravcald._acquire: the records appended to ``staged`` (the analysis' bytes). It returns at the latest
  *   after ``seconds`` or once ``staged`` holds ist[IST_STAGE_LIMIT] bytes, for the Python loop's housekeeping.
- * The GIL is released only while waiting in poll().
+ * step holds the GIL only for what needs Python (see step and "Locks" in _clienttable.h); take holds it throughout.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 #include <errno.h>
 #include <math.h>
 #include <poll.h>
+#include <pthread.h>
 #include <sys/epoll.h>
 #include <stdint.h>
 #include <string.h>
@@ -45,6 +46,7 @@
 
 #include "../core/_correctkernel.h"
 #include "../drivers/_framekernel.h"
+#include "_clienttable.h"
 #include "_linekernel.h"
 
 #define READ_BYTES 65536 /* drivers/serial.py READ_BYTES: more than the kernel's tty buffer holds */
@@ -54,110 +56,13 @@
 
 /* ist (int64) and fst (float64) slots: the state shared with daemon/fastpath.py */
 enum { IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH,
-       IST_STAGE_LIMIT, IST_CAN, IST_N };
+       IST_STAGE_LIMIT, IST_CAN, IST_NOGIL, IST_N }; /* IST_NOGIL: the call's batches delivered without the GIL */
 enum { FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N };
 enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
-/* a watcher entry of server.fast_watchers (daemon/fanout.py fast_snapshot) */
-enum { ENTRY_CLIENT, ENTRY_RECORD, ENTRY_FD, ENTRY_RAW, ENTRY_WATCH, ENTRY_ACQUIRE, ENTRY_RELEASE, ENTRY_N };
 
 /* attribute names, interned once: a lookup is then a pointer comparison */
 static PyObject *s_fast_box, *s_correction, *s_gyro_correction, *s_analysed, *s_offset, *s_kinv_t,
     *s_params_generation;
-
-/* ClientRecord: what the step reads and writes per client, as C fields (no attribute lookup per sample).
- *   policy: the watch policy the step may send under, None while it must not (the client is closed or has
- *     output pending); set by ClientState.regate (daemon/client_limits.py) each time the client's lock is
- *     released by Python, so it is exact whenever the step holds that lock;
- *   sent_messages, sent_bytes, last_progress: what fanout.deliver adds to the ClientState for a block taken
- *     whole, accumulated here and folded into the ClientState by take() (under the client's lock). */
-typedef struct {
-    PyObject_HEAD
-    PyObject *policy;
-    long long sent_messages, sent_bytes;
-    double last_progress;
-} ClientRecord;
-
-static PyObject *record_new(PyTypeObject *type, PyObject *args, PyObject *kwds)
-{
-    if (PyTuple_GET_SIZE(args) != 0 || (kwds != NULL && PyDict_GET_SIZE(kwds) != 0)) {
-        PyErr_SetString(PyExc_TypeError, "ClientRecord() takes no arguments");
-        return NULL;
-    }
-    ClientRecord *r = (ClientRecord *)type->tp_alloc(type, 0);
-    if (r != NULL)
-        r->policy = Py_NewRef(Py_None);
-    return (PyObject *)r;
-}
-
-static int record_traverse(ClientRecord *r, visitproc visit, void *arg)
-{
-    Py_VISIT(r->policy);
-    return 0;
-}
-
-static int record_clear(ClientRecord *r)
-{
-    Py_CLEAR(r->policy);
-    return 0;
-}
-
-static void record_dealloc(ClientRecord *r)
-{
-    PyObject_GC_UnTrack(r);
-    record_clear(r);
-    Py_TYPE(r)->tp_free((PyObject *)r);
-}
-
-static PyObject *record_get_policy(ClientRecord *r, void *closure)
-{
-    return Py_NewRef(r->policy);
-}
-
-static int record_set_policy(ClientRecord *r, PyObject *value, void *closure)
-{
-    if (value == NULL) {
-        PyErr_SetString(PyExc_AttributeError, "ClientRecord.policy cannot be deleted (None: the step may not send)");
-        return -1;
-    }
-    Py_SETREF(r->policy, Py_NewRef(value));
-    return 0;
-}
-
-/* the counters since the last take, zeroed: one C call, so atomic under the GIL against the step's writes */
-static PyObject *record_take(ClientRecord *r, PyObject *unused)
-{
-    PyObject *out = Py_BuildValue("(LLd)", r->sent_messages, r->sent_bytes, r->last_progress);
-    if (out != NULL) {
-        r->sent_messages = r->sent_bytes = 0;
-        r->last_progress = 0.0;
-    }
-    return out;
-}
-
-static PyGetSetDef record_getset[] = {
-    {"policy", (getter)record_get_policy, (setter)record_set_policy,
-     "the watch policy the step may send under; None: it may not (closed, output pending)", NULL},
-    {NULL},
-};
-
-static PyMethodDef record_methods[] = {
-    {"take", (PyCFunction)record_take, METH_NOARGS,
-     "take() -> (messages, bytes, last_progress): the counters the step added since the last take, zeroed"},
-    {NULL},
-};
-
-static PyTypeObject ClientRecordType = {
-    PyVarObject_HEAD_INIT(NULL, 0).tp_name = "gravcal.daemon._fastpath.ClientRecord",
-    .tp_basicsize = sizeof(ClientRecord),
-    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
-    .tp_doc = "What the C step reads and writes for one client: its send gate and counters (see _fastpath.c).",
-    .tp_new = record_new,
-    .tp_traverse = (traverseproc)record_traverse,
-    .tp_clear = (inquiry)record_clear,
-    .tp_dealloc = (destructor)record_dealloc,
-    .tp_getset = record_getset,
-    .tp_methods = record_methods,
-};
 
 /* call a lock's bound ``release`` keeping the pending exception, if any: 0, or -1 when the release failed */
 static int release_keeping_error(PyObject *release)
@@ -192,6 +97,7 @@ typedef struct {
     Py_ssize_t n, cap;
 } Bytes;
 
+/* room for ``more`` bytes: 0, or -1 out of memory (no exception set: callable without the GIL) */
 static int reserve(Bytes *b, Py_ssize_t more)
 {
     if (b->n + more <= b->cap)
@@ -199,11 +105,9 @@ static int reserve(Bytes *b, Py_ssize_t more)
     Py_ssize_t cap = b->cap ? b->cap : 4096;
     while (cap < b->n + more)
         cap *= 2;
-    char *p = PyMem_Realloc(b->buf, (size_t)cap);
-    if (p == NULL) {
-        PyErr_NoMemory();
+    char *p = PyMem_RawRealloc(b->buf, (size_t)cap);
+    if (p == NULL)
         return -1;
-    }
     b->buf = p;
     b->cap = cap;
     return 0;
@@ -309,7 +213,7 @@ static long long static_code(const Params *p, long long seq, double max_age)
 static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double now, Py_ssize_t *sent)
 {
     if (!PyTuple_Check(entry) || PyTuple_GET_SIZE(entry) != ENTRY_N ||
-        !PyObject_TypeCheck(PyTuple_GET_ITEM(entry, ENTRY_RECORD), &ClientRecordType)) {
+        !PyObject_TypeCheck(PyTuple_GET_ITEM(entry, ENTRY_RECORD), &GravcalClientRecordType)) {
         PyErr_SetString(PyExc_TypeError, "fastpath: a watcher entry is (client, ClientRecord, fd, raw, watch, "
                                          "lock.acquire, lock.release_unchanged)");
         return -1;
@@ -346,11 +250,12 @@ typedef struct {
     double fst[FST_N];
 } State;
 
-/* One read's records (written and stamped by the frame kernel) through correction, staging and the lines:
-   0, or -1 with an exception */
-static int run_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t *ticks, const Params *P,
-                     double t_recv, unsigned char *rows, double *acc, double *gyro, signed char *codes,
-                     PyObject *staged, PyObject *snapshot, Bytes lines[2])
+/* One read's records (written and stamped by the frame kernel) through correction and staging, as
+   Processor.correct and Gravcald._acquire do: the acceleration a = K^-T applied to (raw - o) and the gyro rate
+   (core/_correctkernel.c), the static code, the records appended to the staging area. No Python: runs with or
+   without the GIL, under gravcal_latest_mu (the arrays ?POLL reads). */
+static void correct_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t *ticks, const Params *P,
+                          double t_recv, unsigned char *rows, double *acc, double *gyro, signed char *codes, Bytes *stage)
 {
     for (Py_ssize_t i = 0; i < k; i++) {
         long long seq = correct_api->correct(rows + i * GRAVCAL_SAMPLE_SIZE, P->o, P->k, P->bias, P->sens, acc + 3 * i,
@@ -359,20 +264,51 @@ static int run_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t
         codes[i] = (signed char)code;
         S->ist[IST_UNKNOWN] += code < 0;
     }
-    Py_ssize_t had = PyByteArray_GET_SIZE(staged);
-    if (PyByteArray_Resize(staged, had + k * GRAVCAL_SAMPLE_SIZE) < 0)
-        return -1;
-    memcpy(PyByteArray_AS_STRING(staged) + had, rows, (size_t)(k * GRAVCAL_SAMPLE_SIZE));
+    /* room for a whole batch is kept by call_open and the step's stage check */
+    memcpy(stage->buf + stage->n, rows, (size_t)(k * GRAVCAL_SAMPLE_SIZE));
+    stage->n += k * GRAVCAL_SAMPLE_SIZE;
     S->ist[IST_EXPECT] = (S->ist[IST_EXPECT] + k) & 0xFFFF;
     S->ist[IST_SEQ] += k;
     S->ist[IST_FRAMES] += k;
     S->ist[IST_BATCH] = k;
-    memcpy(live_ist + IST_BATCH, &S->ist[IST_BATCH], 8); /* ?POLL reads the newest batch's last record meanwhile */
+    live_ist[IST_BATCH] = k; /* ?POLL reads the newest batch's last record meanwhile (under gravcal_latest_mu) */
     S->ist[IST_TICK] = ticks[k - 1];
     if (k >= 2) /* SeqUnwrapper._learn_ticks: device ticks per sample */
         S->fst[FST_TICK_PERIOD] = (double)(uint32_t)(ticks[k - 1] - ticks[0]) / (double)(k - 1);
     S->fst[FST_T_RECV] = t_recv;
-    int need[2] = {0, 0};
+}
+
+/* The batch's IMU lines per encoding a watcher needs (ImuBlock.joined): 0; -1 with an exception (with the GIL);
+   -2 without the GIL when a line needs it (call again with nogil 0) */
+static int batch_lines(Py_ssize_t k, const unsigned char *rows, const double *acc, const double *gyro,
+                       const signed char *codes, const int need[2], Bytes lines[2], int nogil)
+{
+    for (int raw = 0; raw < 2; raw++) {
+        lines[raw].n = 0;
+        for (Py_ssize_t i = 0; need[raw] && i < k; i++) {
+            if (reserve(&lines[raw], GRAVCAL_IMU_LINE_MAX) < 0) {
+                if (nogil)
+                    return -2;
+                PyErr_NoMemory();
+                return -1;
+            }
+            const unsigned char *row = rows + i * GRAVCAL_SAMPLE_SIZE;
+            char *out = lines[raw].buf + lines[raw].n;
+            Py_ssize_t cap = lines[raw].cap - lines[raw].n,
+                       m = nogil ? line_api->line_nogil(row, acc + 3 * i, gyro[i], codes[i], raw, out, cap)
+                                 : line_api->line(row, acc + 3 * i, gyro[i], codes[i], raw, out, cap);
+            if (m < 0)
+                return (int)m;
+            lines[raw].n += m;
+        }
+    }
+    return 0;
+}
+
+/* the encodings the watchers of a snapshot tuple need (with the GIL): 0, or -1 with an exception */
+static int snapshot_need(PyObject *snapshot, int need[2])
+{
+    need[0] = need[1] = 0;
     for (Py_ssize_t j = 0; j < PyTuple_GET_SIZE(snapshot); j++) {
         PyObject *e = PyTuple_GET_ITEM(snapshot, j);
         int raw =
@@ -380,18 +316,6 @@ static int run_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t
         if (raw < 0)
             return -1;
         need[raw] = 1;
-    }
-    for (int raw = 0; raw < 2; raw++) {
-        lines[raw].n = 0;
-        for (Py_ssize_t i = 0; need[raw] && i < k; i++) {
-            if (reserve(&lines[raw], GRAVCAL_IMU_LINE_MAX) < 0)
-                return -1;
-            Py_ssize_t m = line_api->line(rows + i * GRAVCAL_SAMPLE_SIZE, acc + 3 * i, gyro[i], codes[i], raw,
-                                          lines[raw].buf + lines[raw].n, lines[raw].cap - lines[raw].n);
-            if (m < 0)
-                return -1;
-            lines[raw].n += m;
-        }
     }
     return 0;
 }
@@ -411,19 +335,23 @@ typedef struct {
     PyObject *staged, *server, *processor, *leftover, *stopped;
     uint32_t *ticks;
     Bytes lines[2];
+    Bytes stage; /* the records taken, appended to ``staged`` at the end (with the GIL: one resize per call) */
+    Py_ssize_t had; /* len(staged) at the start */
     State S;
     Params P;
     Py_buffer generation; /* processor.params_generation: one int64 */
-    PyObject *box; /* server.fast_box, a list whose one item is the watcher snapshot (NULL: read fast_watchers) */
+    WatcherBox *box;      /* server.fast_box */
     int started; /* S holds the caller's state (copied back at the end) */
 } Call;
 
-static int call_open(Call *C)
+/* ``batch_frames``: the most frames one batch of this call can hold (the stage keeps room for one beyond the
+   stage limit) */
+static int call_open(Call *C, Py_ssize_t batch_frames)
 {
     C->leftover = NULL;
     C->stopped = Py_NewRef(Py_None);
     C->ticks = NULL;
-    C->lines[0] = C->lines[1] = (Bytes){NULL, 0, 0};
+    C->lines[0] = C->lines[1] = C->stage = (Bytes){NULL, 0, 0};
     C->P = (Params){NULL, NULL};
     C->generation.obj = NULL;
     C->box = NULL;
@@ -445,20 +373,19 @@ static int call_open(Call *C)
         return -1;
     }
     if (C->generation.len != 8 || C->generation.itemsize != 8 || C->generation.format == NULL ||
-        strpbrk(C->generation.format, "lq") == NULL) {
-        PyErr_SetString(PyExc_TypeError, "fastpath: processor.params_generation must be one int64");
+        strpbrk(C->generation.format, "lq") == NULL || ((uintptr_t)C->generation.buf & 7) != 0) {
+        PyErr_SetString(PyExc_TypeError, "fastpath: processor.params_generation must be one aligned int64");
         return -1;
     }
-    /* the server's snapshot box: a list of exactly one item (the server only replaces the item) */
     PyObject *box = PyObject_GetAttr(C->server, s_fast_box);
     if (box == NULL)
         return -1;
-    if (!PyList_CheckExact(box) || PyList_GET_SIZE(box) != 1) {
+    if (!PyObject_TypeCheck(box, &GravcalWatcherBoxType)) {
         Py_DECREF(box);
-        PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_box must be a list of one watcher snapshot");
+        PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_box must be a WatcherBox (daemon/_fastpath.c)");
         return -1;
     }
-    C->box = box;
+    C->box = (WatcherBox *)box;
     C->ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)C->max_frames);
     if (C->ticks == NULL) {
         PyErr_NoMemory();
@@ -467,22 +394,30 @@ static int call_open(Call *C)
     State *S = &C->S;
     memcpy(S->ist, C->ist.buf, sizeof S->ist);
     memcpy(S->fst, C->fst.buf, sizeof S->fst);
-    S->ist[IST_FRAMES] = S->ist[IST_UNKNOWN] = 0;
+    /* the stage: what the step may add before its stage check stops it, and one batch (take's only one) */
+    C->had = PyByteArray_GET_SIZE(C->staged);
+    long long room = batch_frames < C->max_frames ? 0 : S->ist[IST_STAGE_LIMIT] - C->had;
+    batch_frames = batch_frames < C->max_frames ? batch_frames : C->max_frames;
+    if (reserve(&C->stage, (room > 0 ? (Py_ssize_t)room : 0) + batch_frames * GRAVCAL_SAMPLE_SIZE) < 0) {
+        PyErr_NoMemory();
+        return -1;
+    }
+    S->ist[IST_FRAMES] = S->ist[IST_UNKNOWN] = S->ist[IST_NOGIL] = 0;
     S->ist[IST_CLIENT] = S->ist[IST_SENT] = -1;
     S->ist[IST_REASON] = R_DUE;
     C->started = 1;
-    return 0;
+    /* the parameters now, while the caller holds the GIL: the first wake-up needs it only when they change */
+    C->P.generation = *(const long long *)C->generation.buf;
+    int plain = load_params(C->processor, &C->P);
+    C->P.loaded = plain == 1;
+    return plain < 0 ? -1 : 0;
 }
 
-/* The watcher snapshot and the correction for the next bytes: 1 plain (*snapshot set), 0 not (the Python
-   path's: reason R_NOT_PLAIN), -1 error */
+/* The watcher snapshot and the correction for the next bytes, with the GIL: 1 plain (*snapshot set), 0 not (the
+   Python path's: reason R_NOT_PLAIN), -1 error */
 static int call_prepare(Call *C, PyObject **snapshot)
 {
-    if (PyList_GET_SIZE(C->box) != 1) {
-        PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_box must keep exactly one item");
-        return -1;
-    }
-    PyObject *snap = Py_NewRef(PyList_GET_ITEM(C->box, 0)); /* per wake-up: a pointer read */
+    PyObject *snap = Py_NewRef(C->box->item); /* per wake-up: a pointer read */
     if (snap != Py_None && !PyTuple_Check(snap)) {
         Py_DECREF(snap);
         PyErr_SetString(PyExc_TypeError, "fastpath: server.fast_watchers must be a tuple or None");
@@ -503,28 +438,43 @@ static int call_prepare(Call *C, PyObject **snapshot)
     return 1;
 }
 
-/* One read's bytes: 1 taken and delivered, 0 stopped (bytes handed back, or a delivery for fanout), -1 error.
-   Consumes the reference to ``snapshot``. */
-static int call_process(Call *C, const unsigned char *buf, Py_ssize_t n, PyObject *snapshot)
+/* The frames of one read, corrected and staged (the frame kernel, then correct_batch), under gravcal_latest_mu: their
+   count, 0 when the bytes are not such frames (nothing consumed). With or without the GIL. */
+static Py_ssize_t call_frames(Call *C, const unsigned char *buf, Py_ssize_t n, double t_recv)
 {
     State *S = &C->S;
-    double t_recv = now_s();
     /* the records source: ist[IST_CAN] 0 the serial frames, else slcan lines of CAN samples from base id - 1 */
     long long can_base = S->ist[IST_CAN] - 1;
+    pthread_mutex_lock(&gravcal_latest_mu); /* held by no thread that waits for the GIL: a plain wait */
     Py_ssize_t k = can_base < 0 ? frame_api->continuing(buf, n, S->ist[IST_EXPECT], C->max_frames, S->ist[IST_SEQ],
                                                         S->fst[FST_TICK_HZ], t_recv, &S->fst[FST_LAST_T],
                                                         C->rows.buf, C->ticks)
                                 : frame_api->slcan_continuing(buf, n, can_base, S->ist[IST_EXPECT], C->max_frames,
                                                               S->ist[IST_SEQ], S->fst[FST_TICK_HZ], t_recv,
                                                               &S->fst[FST_LAST_T], C->rows.buf, C->ticks);
+    if (k > 0)
+        correct_batch(S, C->ist.buf, k, C->ticks, &C->P, t_recv, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf,
+                      &C->stage);
+    pthread_mutex_unlock(&gravcal_latest_mu);
+    return k;
+}
+
+/* One read's bytes with the GIL: 1 taken and delivered, 0 stopped (bytes handed back, or a delivery for fanout),
+   -1 error. Consumes the reference to ``snapshot``. */
+static int call_process(Call *C, const unsigned char *buf, Py_ssize_t n, PyObject *snapshot)
+{
+    State *S = &C->S;
+    double t_recv = now_s();
+    Py_ssize_t k = call_frames(C, buf, n, t_recv);
     if (k == 0) {
         Py_DECREF(snapshot);
         C->leftover = PyBytes_FromStringAndSize((const char *)buf, n);
         S->ist[IST_REASON] = R_BYTES;
         return C->leftover == NULL ? -1 : 0;
     }
-    if (run_batch(S, C->ist.buf, k, C->ticks, &C->P, t_recv, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf,
-                  C->staged, snapshot, C->lines) < 0) {
+    int need[2];
+    if (snapshot_need(snapshot, need) < 0 ||
+        batch_lines(k, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf, need, C->lines, 0) < 0) {
         Py_DECREF(snapshot);
         return -1;
     }
@@ -547,10 +497,99 @@ static int call_process(Call *C, const unsigned char *buf, Py_ssize_t n, PyObjec
     return 1;
 }
 
-/* (leftover, stopped) or NULL; the state copied back either way (what was consumed stays accounted) */
+static void take_gil(PyThreadState **ts)
+{
+    if (*ts != NULL) {
+        PyEval_RestoreThread(*ts);
+        *ts = NULL;
+    }
+}
+
+/* One read's bytes without the GIL, called holding the box's mutex (released here), its table ready and the
+   parameters current: as call_process, each watcher's lock tried, never waited for. The GIL is taken only for
+   what needs Python: bytes that are not frames (handed back), a line beyond the integer formatting, a stopped
+   delivery (a busy lock, a closed gate, a short send: the snapshot and that client's lock go to fanout as from
+   call_process). 1, 0 or -1 as call_process; the GIL is held on return unless 1. */
+static int call_process_nogil(Call *C, const unsigned char *buf, Py_ssize_t n, PyThreadState **ts)
+{
+    State *S = &C->S;
+    WatcherBox *box = C->box;
+    double t_recv = now_s();
+    Py_ssize_t k = call_frames(C, buf, n, t_recv);
+    if (k == 0) {
+        pthread_mutex_unlock(&box->mu);
+        take_gil(ts);
+        C->leftover = PyBytes_FromStringAndSize((const char *)buf, n);
+        S->ist[IST_REASON] = R_BYTES;
+        return C->leftover == NULL ? -1 : 0;
+    }
+    int rc = batch_lines(k, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf, box->need, C->lines, 1);
+    if (rc == -2) { /* the box's mutex held while taking the GIL: allowed (see "Locks" in _clienttable.h) */
+        take_gil(ts);
+        rc = batch_lines(k, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf, box->need, C->lines, 0);
+    }
+    if (rc < 0) {
+        pthread_mutex_unlock(&box->mu);
+        take_gil(ts);
+        return -1;
+    }
+    for (Py_ssize_t j = 0; j < box->n; j++) {
+        const Watcher *w = &box->w[j];
+        ClientRecord *rec = w->rec;
+        Py_ssize_t sent = -1;
+        int held = pthread_mutex_trylock(&rec->mu) == 0;
+        /* deliver_one's gate and send: the policy pointer, compared only (the snapshot keeps ``watch`` alive) */
+        if (held && rec->policy == w->watch) {
+            const Bytes *b = &C->lines[w->raw];
+            ssize_t s = send(w->fd, b->buf, (size_t)b->n, MSG_NOSIGNAL | MSG_DONTWAIT);
+            if (s == b->n) {
+                rec->sent_messages += k; /* fanout.deliver's counters for a block taken whole */
+                rec->sent_bytes += s;
+                rec->last_progress = t_recv;
+                pthread_mutex_unlock(&rec->mu);
+                continue;
+            }
+            sent = s > 0 ? s : 0;
+        }
+        take_gil(ts);
+        PyObject *snapshot = Py_NewRef(box->item);
+        pthread_mutex_unlock(&box->mu);
+        if (!held) { /* the lock is busy (the server thread is at this client): wait for it as fanout would */
+            if (!gravcal_lock_with_gil(&rec->mu, 1, -1.0)) {
+                Py_DECREF(snapshot);
+                PyErr_SetString(PyExc_RuntimeError, "fastpath: a client's lock could not be taken");
+                return -1;
+            }
+        }
+        S->ist[IST_CLIENT] = j;
+        S->ist[IST_SENT] = sent;
+        S->ist[IST_REASON] = R_DELIVERY;
+        Py_SETREF(C->stopped, snapshot);
+        return 0;
+    }
+    pthread_mutex_unlock(&box->mu);
+    S->ist[IST_NOGIL] += *ts != NULL; /* the whole batch without the GIL */
+    return 1;
+}
+
+/* (leftover, stopped) or NULL; the records staged and the state copied back either way (what was consumed stays
+   accounted) */
 static PyObject *call_close(Call *C, int ok)
 {
     PyObject *result = NULL;
+    if (C->stage.n > 0) {
+        PyObject *type, *value, *tb;
+        PyErr_Fetch(&type, &value, &tb);
+        Py_ssize_t had = PyByteArray_GET_SIZE(C->staged);
+        if (PyByteArray_Resize(C->staged, had + C->stage.n) == 0)
+            memcpy(PyByteArray_AS_STRING(C->staged) + had, C->stage.buf, (size_t)C->stage.n);
+        else if (type == NULL)
+            ok = 0; /* the records are lost: MemoryError */
+        else
+            PyErr_Clear();
+        if (type != NULL)
+            PyErr_Restore(type, value, tb);
+    }
     if (ok) {
         if (C->leftover == NULL)
             C->leftover = PyBytes_FromStringAndSize(NULL, 0);
@@ -569,8 +608,9 @@ static PyObject *call_close(Call *C, int ok)
     Py_XDECREF(C->P.correction);
     Py_XDECREF(C->P.gyro);
     PyMem_Free(C->ticks);
-    PyMem_Free(C->lines[0].buf);
-    PyMem_Free(C->lines[1].buf);
+    PyMem_RawFree(C->lines[0].buf);
+    PyMem_RawFree(C->lines[1].buf);
+    PyMem_RawFree(C->stage.buf);
     PyBuffer_Release(&C->ist);
     PyBuffer_Release(&C->fst);
     PyBuffer_Release(&C->rows);
@@ -582,7 +622,39 @@ static PyObject *call_close(Call *C, int ok)
     return result;
 }
 
-/* step(fd, seconds, ...): wait on fd (the GIL released) and read it, until due or stopped */
+/* Everything that had arrived on fd, without the GIL: its length, 0 end of file, -1 with errno.
+   Never ask a tty for more than it holds: n_tty_read, short of VMIN in the 64-byte chunk tty_read hands it last
+   (the 14 bytes after the first 64 of a 78-byte slcan sample), waits for the tty's flush work still running after
+   the wake-up: a second sleep and wake-up. So one chunk first (a 29-byte frame: all there was, one read), and
+   while a read filled what it asked, FIONREAD says how much more to take. What arrives later queues the next
+   epoll event. */
+static ssize_t read_arrived(int fd, unsigned char *buf, ssize_t unit)
+{
+    size_t ask = TTY_CHUNK;
+    ssize_t n = read(fd, buf, ask);
+    if (n <= 0)
+        return n;
+    int avail;
+    ssize_t last = n;
+    while ((size_t)last == ask && n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
+        ask = (size_t)avail < (size_t)(READ_BYTES - n) ? (size_t)avail : (size_t)(READ_BYTES - n);
+        last = read(fd, buf + n, ask);
+        if (last <= 0)
+            break;
+        n += last;
+    }
+    /* A read that ends inside a frame (a CAN sample's lines) may have come while the tty's flush work was still
+       delivering the rest: one more read, which waits for that work, keeps the batch whole and in C (the frame
+       kernel takes only whole frames); anything else (a stray byte) costs one read that finds nothing. */
+    if (n % unit && n < READ_BYTES && (last = read(fd, buf + n, (size_t)(READ_BYTES - n))) > 0)
+        n += last;
+    return n;
+}
+
+/* step(fd, seconds, ...): wait on fd and read it, until due or stopped. The GIL is released for the whole loop and
+   taken only when a wake-up needs Python: the first of the call (the parameters are read), a changed
+   params_generation or a box that is not ready (call_prepare and call_process, as with the GIL throughout), and
+   what call_process_nogil hands to Python. */
 static PyObject *step(PyObject *self, PyObject *args)
 {
     int fd;
@@ -593,7 +665,8 @@ static PyObject *step(PyObject *self, PyObject *args)
         return NULL;
     unsigned char *buf = NULL;
     int ok = 0, ep = -1;
-    if (call_open(&C) < 0)
+    PyThreadState *ts = NULL;
+    if (call_open(&C, MAX_FRAMES_LIMIT) < 0)
         goto done;
     if (fd < 0 || !(seconds >= 0)) {
         PyErr_SetString(PyExc_ValueError, "fastpath.step: needs fd >= 0 and seconds >= 0");
@@ -605,6 +678,8 @@ static PyObject *step(PyObject *self, PyObject *args)
         goto done;
     }
     State *S = &C.S;
+    const long long *generation = C.generation.buf;
+    ssize_t unit = S->ist[IST_CAN] ? SLCAN_SAMPLE_BYTES : GRAVCAL_FRAME_LEN;
     double deadline = now_s() + seconds;
     /* Edge-triggered epoll: the tty is looked at only when the kernel's line discipline wakes it (a frame came
        in). poll() instead asks n_tty_poll on every entry, which, with fewer than VMIN bytes there, waits for the
@@ -621,7 +696,9 @@ static PyObject *step(PyObject *self, PyObject *args)
         }
     }
     for (;;) {
-        if (PyByteArray_GET_SIZE(C.staged) >= S->ist[IST_STAGE_LIMIT])
+        if (ts == NULL)
+            ts = PyEval_SaveThread();
+        if (C.had + C.stage.n >= S->ist[IST_STAGE_LIMIT])
             break;
         double left = deadline - now_s();
         if (left <= 0)
@@ -630,16 +707,12 @@ static PyObject *step(PyObject *self, PyObject *args)
         unsigned revents = 0;
         if (ep >= 0) {
             struct epoll_event ev;
-            Py_BEGIN_ALLOW_THREADS
             r = epoll_wait(ep, &ev, 1, timeout_ms);
-            Py_END_ALLOW_THREADS
             if (r > 0)
                 revents = (ev.events & EPOLLIN ? POLLIN : 0) | (ev.events & (EPOLLHUP | EPOLLERR) ? POLLHUP : 0);
         } else {
             struct pollfd pfd = {fd, POLLIN, 0};
-            Py_BEGIN_ALLOW_THREADS
             r = poll(&pfd, 1, timeout_ms);
-            Py_END_ALLOW_THREADS
             revents = (unsigned)pfd.revents;
         }
         if (r < 0 && errno == EINTR)
@@ -654,44 +727,33 @@ static PyObject *step(PyObject *self, PyObject *args)
             S->ist[IST_REASON] = R_EOF;
             break;
         }
-        PyObject *snapshot;
-        int plain = call_prepare(&C, &snapshot); /* before reading: bytes for the Python path stay unread */
-        if (plain < 0)
-            goto done;
-        if (plain == 0)
-            break;
-        /* Never ask a tty for more than it holds: n_tty_read, short of VMIN in the 64-byte chunk tty_read hands
-           it last (the 14 bytes after the first 64 of a 78-byte slcan sample), waits for the tty's flush work
-           still running after the wake-up: a second sleep and wake-up. So one chunk first (a 29-byte frame: all
-           there was, one read), and while a read filled what it asked, FIONREAD says how much more to take.
-           What arrives later queues the next epoll event. */
-        size_t ask = TTY_CHUNK;
-        ssize_t n = read(fd, buf, ask);
-        if (n < 0 && (errno == EAGAIN || errno == EINTR)) {
-            Py_DECREF(snapshot);
-            continue;
+        /* before reading: bytes for the Python path stay unread */
+        PyObject *snapshot = NULL;
+        pthread_mutex_lock(&C.box->mu); /* without the GIL: a plain wait */
+        int fast = C.box->ready && C.P.loaded && C.P.generation == __atomic_load_n(generation, __ATOMIC_ACQUIRE);
+        if (!fast)
+            pthread_mutex_unlock(&C.box->mu);
+        if (!fast) {
+            take_gil(&ts);
+            int plain = call_prepare(&C, &snapshot);
+            if (plain < 0)
+                goto done;
+            if (plain == 0)
+                break;
         }
+        ssize_t n = read_arrived(fd, buf, unit);
         if (n <= 0) {
-            Py_DECREF(snapshot);
+            int again = n < 0 && (errno == EAGAIN || errno == EINTR);
+            if (fast)
+                pthread_mutex_unlock(&C.box->mu);
+            else
+                Py_DECREF(snapshot);
+            if (again)
+                continue;
             S->ist[IST_REASON] = n == 0 ? R_EOF : R_ERROR;
             break;
         }
-        int avail;
-        ssize_t last = n;
-        while ((size_t)last == ask && n < READ_BYTES && ioctl(fd, FIONREAD, &avail) == 0 && avail > 0) {
-            ask = (size_t)avail < (size_t)(READ_BYTES - n) ? (size_t)avail : (size_t)(READ_BYTES - n);
-            last = read(fd, buf + n, ask);
-            if (last <= 0)
-                break;
-            n += last;
-        }
-        /* A read that ends inside a frame (a CAN sample's lines) may have come while the tty's flush work was still
-           delivering the rest: one more read, which waits for that work, keeps the batch whole and in C (the
-           frame kernel takes only whole frames); anything else (a stray byte) costs one read that finds nothing. */
-        ssize_t unit = S->ist[IST_CAN] ? SLCAN_SAMPLE_BYTES : GRAVCAL_FRAME_LEN;
-        if (n % unit && n < READ_BYTES && (last = read(fd, buf + n, (size_t)(READ_BYTES - n))) > 0)
-            n += last;
-        int more = call_process(&C, buf, n, snapshot);
+        int more = fast ? call_process_nogil(&C, buf, n, &ts) : call_process(&C, buf, n, snapshot);
         if (more < 0)
             goto done;
         if (more == 0)
@@ -699,6 +761,7 @@ static PyObject *step(PyObject *self, PyObject *args)
     }
     ok = 1;
 done:
+    take_gil(&ts);
     if (ep >= 0)
         close(ep);
     PyMem_Free(buf);
@@ -714,7 +777,7 @@ static PyObject *take(PyObject *self, PyObject *args)
                           &C.staged, &C.server, &C.processor, &C.rows, &C.acc, &C.gyro, &C.codes))
         return NULL;
     int ok = 0;
-    if (call_open(&C) == 0) {
+    if (call_open(&C, data.len / GRAVCAL_FRAME_LEN + 1) == 0) { /* its one batch: whole 29-byte frames at most */
         PyObject *snapshot;
         int plain = call_prepare(&C, &snapshot);
         if (plain == 0)
@@ -725,6 +788,42 @@ static PyObject *take(PyObject *self, PyObject *args)
     return call_close(&C, ok);
 }
 
+/* latest(ist, rows, acc, gyro, static, row, acc1, gyro1, static1): the newest batch's last sample copied out under
+   gravcal_latest_mu (the step may be writing the arrays without the GIL): whether there was one */
+static PyObject *latest(PyObject *self, PyObject *args)
+{
+    Py_buffer in[5], out[4];
+    if (!PyArg_ParseTuple(args, "w*w*w*w*w*w*w*w*w*:latest", &in[0], &in[1], &in[2], &in[3], &in[4], &out[0], &out[1],
+                          &out[2], &out[3]))
+        return NULL;
+    static const Py_ssize_t size[4] = {GRAVCAL_SAMPLE_SIZE, 24, 8, 1}; /* a row, acc, gyro, static */
+    int ok = in[0].len >= IST_N * 8 && ((uintptr_t)in[0].buf & 7) == 0, have = 0;
+    for (int i = 0; i < 4; i++)
+        ok = ok && out[i].len == size[i] && in[i + 1].len % size[i] == 0;
+    if (ok) {
+        Py_BEGIN_ALLOW_THREADS
+        pthread_mutex_lock(&gravcal_latest_mu);
+        long long k = ((const long long *)in[0].buf)[IST_BATCH];
+        have = k > 0;
+        for (int i = 0; i < 4 && have; i++)
+            have = k <= in[i + 1].len / size[i];
+        for (int i = 0; i < 4 && have; i++)
+            memcpy(out[i].buf, (const char *)in[i + 1].buf + (k - 1) * size[i], (size_t)size[i]);
+        pthread_mutex_unlock(&gravcal_latest_mu);
+        Py_END_ALLOW_THREADS
+    }
+    for (int i = 0; i < 5; i++)
+        PyBuffer_Release(&in[i]);
+    for (int i = 0; i < 4; i++)
+        PyBuffer_Release(&out[i]);
+    if (!ok) {
+        PyErr_SetString(PyExc_ValueError, "fastpath.latest: ist, then rows, acc, gyro, static of whole records, "
+                                          "then one record of each");
+        return NULL;
+    }
+    return PyBool_FromLong(have);
+}
+
 static PyMethodDef methods[] = {
     {"step", step, METH_VARARGS,
      "step(fd, seconds, max_frames, ist, fst, staged, server, processor, rows, acc, gyro, static) -> (leftover, "
@@ -732,6 +831,9 @@ static PyMethodDef methods[] = {
     {"take", take, METH_VARARGS,
      "take(data, max_frames, ist, fst, staged, server, processor, rows, acc, gyro, static) -> (leftover, stopped "
      "snapshot or None): as step for the bytes of one read made by the caller."},
+    {"latest", latest, METH_VARARGS,
+     "latest(ist, rows, acc, gyro, static, row, acc1, gyro1, static1) -> bool: the newest batch's last sample copied "
+     "into the one-record buffers (False: none yet)."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -763,10 +865,11 @@ PyMODINIT_FUNC PyInit__fastpath(void)
     frame_api = import_api("gravcal.drivers._framekernel", GRAVCAL_FRAME_CAPSULE);
     correct_api = frame_api ? import_api("gravcal.core._correctkernel", GRAVCAL_CORRECT_CAPSULE) : NULL;
     line_api = correct_api ? import_api("gravcal.daemon._linekernel", GRAVCAL_LINE_CAPSULE) : NULL;
-    if (line_api == NULL || PyType_Ready(&ClientRecordType) < 0)
+    if (line_api == NULL || PyType_Ready(&GravcalClientRecordType) < 0 || PyType_Ready(&GravcalWatcherBoxType) < 0)
         return NULL;
     PyObject *m = PyModule_Create(&module);
-    if (m != NULL && PyModule_AddObjectRef(m, "ClientRecord", (PyObject *)&ClientRecordType) < 0)
+    if (m != NULL && (PyModule_AddObjectRef(m, "ClientRecord", (PyObject *)&GravcalClientRecordType) < 0 ||
+                      PyModule_AddObjectRef(m, "WatcherBox", (PyObject *)&GravcalWatcherBoxType) < 0))
         Py_CLEAR(m);
     return m;
 }

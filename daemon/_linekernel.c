@@ -36,6 +36,7 @@ typedef struct {
     char buf[IMU_LINE_MAX];
     size_t n;
     int failed;
+    int nogil; /* written without the GIL: a number put_f_exact cannot write fails the line (-2: ask with the GIL) */
 } Line;
 
 static void put(Line *L, const char *s, size_t k)
@@ -111,6 +112,10 @@ static void put_f(Line *L, double x, int prec)
     }
     if (put_f_exact(L, x, prec))
         return;
+    if (L->nogil) {
+        L->failed = 1;
+        return;
+    }
     char *s = PyOS_double_to_string(x, 'f', prec, 0, NULL);
     if (s == NULL) {
         L->failed = 1;
@@ -233,7 +238,7 @@ static Py_ssize_t line_c(const unsigned char *row, const double *acc, double gyr
         return -1;
     }
     L->n = 0;
-    L->failed = 0;
+    L->failed = L->nogil = 0;
     write_line(L, row, acc, gyro, word_of(static_code), raw);
     Py_ssize_t n = -1;
     if (L->failed || (Py_ssize_t)L->n > cap) {
@@ -247,7 +252,22 @@ static Py_ssize_t line_c(const unsigned char *row, const double *acc, double gyr
     return n;
 }
 
-static const GravcalLineAPI c_api = {line_c};
+/* line_c without the GIL: -2 when the line needs it (a number beyond put_f_exact, or it does not fit ``cap``) */
+static Py_ssize_t line_nogil_c(const unsigned char *row, const double *acc, double gyro, long long static_code,
+                               int raw, char *out, Py_ssize_t cap)
+{
+    Line L;
+    L.n = 0;
+    L.failed = 0;
+    L.nogil = 1;
+    write_line(&L, row, acc, gyro, word_of(static_code), raw);
+    if (L.failed || (Py_ssize_t)L.n > cap)
+        return -2;
+    memcpy(out, L.buf, L.n);
+    return (Py_ssize_t)L.n;
+}
+
+static const GravcalLineAPI c_api = {line_c, line_nogil_c};
 
 static PyObject *imu_line(PyObject *self, PyObject *args)
 {
@@ -278,7 +298,7 @@ static PyObject *imu_line(PyObject *self, PyObject *args)
         return PyErr_NoMemory();
     }
     L->n = 0;
-    L->failed = 0;
+    L->failed = L->nogil = 0;
     write_line(L, row.buf, acc.buf, gyro_rate, word, raw);
     PyBuffer_Release(&row);
     PyBuffer_Release(&acc);

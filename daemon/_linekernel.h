@@ -10,6 +10,9 @@ typedef struct {
        Python exception set. ``static_code``: 1 still, 0 moving, <= -1 unknown. Needs the GIL. */
     Py_ssize_t (*line)(const unsigned char *row, const double *acc, double gyro, long long static_code, int raw,
                        char *out, Py_ssize_t cap);
+    /* the same without the GIL: the length, or -2 when the line needs the GIL (call ``line`` then) */
+    Py_ssize_t (*line_nogil)(const unsigned char *row, const double *acc, double gyro, long long static_code, int raw,
+                             char *out, Py_ssize_t cap);
 } GravcalLineAPI;
 
 #define GRAVCAL_LINE_CAPSULE "gravcal.daemon._linekernel._C_API"

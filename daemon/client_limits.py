@@ -10,7 +10,6 @@ import ctypes.util
 import logging
 import select
 import socket
-import threading
 from dataclasses import dataclass, field
 from typing import Any, Iterable
 
@@ -48,27 +47,27 @@ def check_due_in(clients: list["ClientState"], cfg: "ServerConfig", now: float, 
 
 class ClientLock:
     """A client's lock (reentrant), held by both writers of its socket: the server thread and the acquisition
-    thread (fanout.py, and the C step of daemon/fastpath.py). Every Python holder may change what decides
-    whether the C step may send (closed, out, queue, dropped_unreported, watch), so releasing it recomputes
-    the client's gate (ClientState.regate) first: the gate is exact whenever the lock is free."""
+    thread (fanout.py, and the C step of daemon/fastpath.py, which takes it without the GIL: it is the mutex of
+    the client's ClientRecord). Every Python holder may change what decides whether the C step may send (closed,
+    out, queue, dropped_unreported, watch), so releasing it recomputes the client's gate (ClientState.regate)
+    first: the gate is exact whenever the lock is free."""
 
-    __slots__ = ("_rlock", "_client", "acquire", "release_unchanged")
+    __slots__ = ("_client", "acquire", "release_unchanged")
 
     def __init__(self, client: "ClientState"):
-        self._rlock = threading.RLock()
         self._client = client
-        self.acquire = self._rlock.acquire
+        self.acquire = client.record.lock  # (blocking=True, timeout=-1) -> bool, the GIL released while waiting
         # for a holder that changed none of it (the C step after a whole send): no recomputation
-        self.release_unchanged = self._rlock.release
+        self.release_unchanged = client.record.unlock
 
     def release(self) -> None:
         try:
             self._client.regate()
         finally:
-            self._rlock.release()
+            self.release_unchanged()
 
     def __enter__(self) -> "ClientLock":
-        self._rlock.acquire()
+        self.acquire()
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -111,8 +110,8 @@ class ClientState:
     record: ClientRecord = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self.lock = ClientLock(self)
         self.record = ClientRecord()
+        self.lock = ClientLock(self)
         self.regate()
 
     def pending(self) -> bool:

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from ..core.samples import SAMPLE_DTYPE
-from ._fastpath import step, take
+from ._fastpath import latest, step, take
 from .processing import STATIC_MAX_AGE_S
 from .protocol import ImuBlock
 
@@ -32,7 +32,7 @@ HOUSEKEEPING_S = 0.25  # the longest the C step runs before the Python loop's ho
 
 # The state arrays shared with the C step (the slot names are its enums)
 IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH, \
-    IST_STAGE_LIMIT, IST_CAN, IST_N = range(12)
+    IST_STAGE_LIMIT, IST_CAN, IST_NOGIL, IST_N = range(13)
 FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N = range(6)
 R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR = range(6)
 
@@ -57,6 +57,7 @@ class FastPath:
         self.codes = np.zeros(self.max_frames, dtype=np.int8)
         self.latest = _Latest(self)
         self.taken = 0
+        self.nogil = 0  # batches the step delivered without taking the GIL
 
     @classmethod
     def for_driver(cls, driver: Any, *args: Any, **kwargs: Any) -> "FastPath | None":
@@ -82,6 +83,7 @@ class FastPath:
             leftover, stopped = step(fd, seconds, self.max_frames, self.ist, self.fst, staged, self.server,
                                      self.processor, self.rows, self.acc, self.gyro, self.codes)
         finally:
+            self.nogil += int(self.ist[IST_NOGIL])
             try:
                 n = self._account(int(self.ist[IST_FRAMES]), int(self.ist[IST_UNKNOWN]))
             finally:  # a stopped delivery holds a client's lock: it is finished (and released) whatever happened
@@ -161,8 +163,8 @@ class FastPath:
 
 
 class _Latest:
-    """?POLL's newest sample while the C step publishes: encoded when asked from the arrays the step writes
-    (under the GIL, so never half-written)."""
+    """?POLL's newest sample while the C step publishes: copied out of the arrays the step writes under its
+    lock (it writes them without the GIL), then encoded."""
 
     __slots__ = ("fast",)
 
@@ -171,8 +173,7 @@ class _Latest:
 
     def last_message(self, raw: bool = False) -> dict[str, Any] | None:
         f = self.fast
-        k = int(f.ist[IST_BATCH])
-        if k <= 0:
+        one = (np.zeros(1, dtype=SAMPLE_DTYPE), np.zeros((1, 3)), np.zeros(1), np.zeros(1, dtype=np.int8))
+        if not latest(f.ist, f.rows, f.acc, f.gyro, f.codes, *one):
             return None
-        i = slice(k - 1, k)
-        return ImuBlock(f.rows[i], f.acc[i], f.gyro[i], f.codes[i]).last_message(raw)
+        return ImuBlock(*one).last_message(raw)

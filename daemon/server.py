@@ -36,6 +36,7 @@ from typing import Any, Callable
 import numpy as np
 
 from . import protocol
+from ._fastpath import WatcherBox
 from .fanout import deliver, deliver_line, fast_snapshot, finish_delivery
 from .client_limits import ClientState as _Client
 from .client_limits import RequestBudget, ServerConfig, check_due_in, hung_up, return_memory_to_os
@@ -89,8 +90,7 @@ class SocketServer:
         self._calib_lock = threading.Lock()  # a new watcher gets the CALIB that is current
         self._clients: dict[int, _Client] = {}
         self._watchers: tuple[_Client, ...] = ()  # replaced, never mutated: publish() reads it unlocked
-        # the C step's watchers (fanout.fast_snapshot; None: one is decimated), in a list it holds per call
-        self.fast_box: list[tuple[tuple[Any, ...], ...] | None] = [()]
+        self.fast_box = WatcherBox(())  # the C step's watchers: fast_box[0] = fanout.fast_snapshot(...)
         self._next_id = 1
         self._calib: dict[str, Any] | None = None
         self._last_block: ImuBlock | None = None

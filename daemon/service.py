@@ -300,6 +300,7 @@ class Gravcald:
         return {
             "device": {"spec": self.cfg.device.spec, "rate_hz": round(self._rate_hz, 2), "samples": self.samples_in,
                        "samples_in_c": self._fast.taken if self._fast is not None else 0,
+                       "batches_without_gil": self._fast.nogil if self._fast is not None else 0,
                        "read_errors": self.read_errors, "reopens": self.driver_reopens, **drv_stats},
             "ring": self.ring.stats(),
             "processing": {"errors": self.process_errors, **self._lag()},

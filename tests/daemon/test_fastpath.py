@@ -203,6 +203,7 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
             polled = c.poll()["imu"][0]["seq"]
         ids["late"] = len(ids) + 2  # after the decimated watcher
         stats = {**d.driver.stats(), "taken_by_c": taken, "published": d.server.published_samples, "polled": polled,
+                 "nogil": d._fast.nogil if d._fast is not None else 0,
                  "sent_and_received": sent_and_received(cfg.socket.path, readers, ids)}
     finally:
         out.update(stop_all(d, readers, link))
@@ -260,6 +261,8 @@ def assert_same_counts(slow_stats: dict, fast_stats: dict, counters, min_share: 
     assert slow_stats["taken_by_c"] == 0
     assert fast_stats["taken_by_c"] >= min_share * fast_stats["published"], fast_stats
     assert fast_stats["taken_by_c"] < fast_stats["published"], fast_stats
+    if "nogil" in fast_stats:  # the step's buses (serial, slcan): its batches delivered without the GIL
+        assert slow_stats["nogil"] == 0 and fast_stats["nogil"] >= 1, fast_stats
     for key in counters:
         assert fast_stats[key] == slow_stats[key], (key, fast_stats, slow_stats)
 

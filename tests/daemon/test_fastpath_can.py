@@ -94,6 +94,7 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
         while d.server.published_samples == n and time.monotonic() < end:
             time.sleep(0.01)
         stats = {**d.driver.stats(), "taken_by_c": d._fast.taken if d._fast is not None else 0,
+                 "nogil": d._fast.nogil if d._fast is not None else 0,
                  "published": d.server.published_samples}
     finally:
         out = stop_all(d, readers, link)
