@@ -164,6 +164,25 @@ class _Bound(Parameterization):
                                            else np.zeros((len(ws), 0)), dtype=float)
         self.dK, self.do = (self.dK_rows[0], self.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
 
+    def subset(self, idx: np.ndarray, ws: WindowSet | None = None) -> "_Bound":
+        """This binding restricted to the windows ``idx`` (``ws``: this binding's windows' ``subset(idx)`` when the
+        caller has it). Every covariate value is an elementwise function of its own window (a lag runs over
+        the recording's history), so the rows are sliced, equal bit for bit to binding the subset; a lag
+        without a history and the reference acceleration (a matrix product) are bound anew."""
+        par = self.parent
+        lag_restarts = par.lag_history is None and any(calibration_view(t).acts_on == "lagged_offset"
+                                                       for t in par.terms)
+        idx = np.asarray(idx)
+        ws = self._ws.subset(idx) if ws is None else ws
+        if lag_restarts or any(calibration_view(t).covariate == "accel" for t in par.terms):
+            return _Bound(par, ws)
+        out = object.__new__(_Bound)
+        out.__dict__.update(self.__dict__)
+        out.n_rows, out._ws, out._rows = len(ws), ws, None
+        out.values = np.ascontiguousarray(self.values[idx])
+        out.dK, out.do = (out.dK_rows[0], out.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
+        return out
+
     @property
     def dK_rows(self) -> np.ndarray:
         """Per-window dK (M, P, 3, 3) (row_derivatives; built on first use)."""
@@ -363,9 +382,13 @@ def fit_extended(par: Parameterization, ws: WindowSet, p0: np.ndarray, var_g2: n
 
 
 def extended_residuals_g(par: Parameterization, p: np.ndarray, ws: WindowSet) -> np.ndarray:
-    """1 - |a| [g] of windows ``ws`` under parameters p (covariates of ``ws``)."""
-    par = getattr(par, "parent", par)  # unbind
-    bound = par.at_windows(ws) if isinstance(par, ExtendedParameterization) else par
+    """1 - |a| [g] of windows ``ws`` under parameters p (covariates of ``ws``); ``par`` bound to ``ws`` itself
+    (``at_windows(ws)`` or a ``subset``) is used as it is."""
+    if isinstance(par, _Bound) and par._ws is ws:
+        bound = par  # already bound to these windows
+    else:
+        par = getattr(par, "parent", par)  # unbind
+        bound = par.at_windows(ws) if isinstance(par, ExtendedParameterization) else par
     a, _ = bound.accel_and_jacobian(p, ws.mean)
     return 1.0 - np.linalg.norm(a, axis=1)
 
