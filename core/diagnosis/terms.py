@@ -182,7 +182,11 @@ class TermSelector:
             return par
         key = (terms, self.lag_tau_s, fold)
         if key not in self._bound_memo:
-            self._bound_memo[key] = par.at_windows(self.ws if fold is None else self.fold_sets(fold[0])[fold[1]][2])
+            if fold is None:
+                self._bound_memo[key] = par.at_windows(self.ws)
+            else:  # the all-window binding's rows sliced (equal to binding the fold's windows)
+                train, _, ws, _ = self.fold_sets(fold[0])[fold[1]]
+                self._bound_memo[key] = self.bound(terms).subset(train, ws)
         return self._bound_memo[key]
 
     def fold_sets(self, k: int) -> list[tuple[np.ndarray, np.ndarray, WindowSet, WindowSet]]:
@@ -232,6 +236,8 @@ class TermSelector:
                         par, f = self._fit(terms, held, (k, i), start)
                 except (ValueError, np.linalg.LinAlgError):
                     return None
+                if not profiled and isinstance(par, ExtendedParameterization):  # bound at the fit's time constant
+                    par = self.bound(terms).subset(test, wte)
                 res[test] = extended_residuals_g(par, f.p, wte)
         finally:
             self.lag_tau_s = tau_all

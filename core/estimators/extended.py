@@ -164,6 +164,25 @@ class _Bound(Parameterization):
                                            else np.zeros((len(ws), 0)), dtype=float)
         self.dK, self.do = (self.dK_rows[0], self.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
 
+    def subset(self, idx: np.ndarray, ws: WindowSet | None = None) -> "_Bound":
+        """This binding restricted to the windows ``idx`` (``ws``: this binding's windows' ``subset(idx)`` when the
+        caller has it). Every covariate value is an elementwise function of its own window (a lag runs over
+        the recording's history), so the rows are sliced, equal bit for bit to binding the subset; a lag
+        without a history and the reference acceleration (a matrix product) are bound anew."""
+        par = self.parent
+        lag_restarts = par.lag_history is None and any(calibration_view(t).acts_on == "lagged_offset"
+                                                       for t in par.terms)
+        idx = np.asarray(idx)
+        ws = self._ws.subset(idx) if ws is None else ws
+        if lag_restarts or any(calibration_view(t).covariate == "accel" for t in par.terms):
+            return _Bound(par, ws)
+        out = object.__new__(_Bound)
+        out.__dict__.update(self.__dict__)
+        out.n_rows, out._ws, out._rows = len(ws), ws, None
+        out.values = np.ascontiguousarray(self.values[idx])
+        out.dK, out.do = (out.dK_rows[0], out.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
+        return out
+
     @property
     def dK_rows(self) -> np.ndarray:
         """Per-window dK (M, P, 3, 3) (row_derivatives; built on first use)."""
@@ -280,6 +299,21 @@ def extended_metadata(par: Parameterization, p: np.ndarray, std: np.ndarray | No
 
 
 # -- batch fit with fixed weights ------------------------------------------------------------------
+def _raise_svd(err, flag):
+    raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
+
+
+def lstsq_solution(a: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
+    """``np.linalg.lstsq(a, b, rcond)[0]`` for a float (n, n) system and a vector b: the same LAPACK call
+    (numpy's gufunc, dgelsd), without the wrapper's checks and conversions, which cost more than the
+    solve on the fit's systems of at most 30 parameters. numpy's own wrapper where its gufunc is absent."""
+    gufunc = getattr(getattr(np.linalg, "_umath_linalg", None), "lstsq", None)
+    if gufunc is None:
+        return np.linalg.lstsq(a, b, rcond=rcond)[0]
+    with np.errstate(call=_raise_svd, invalid="call", over="ignore", divide="ignore", under="ignore"):
+        return gufunc(a, b[:, None], rcond, signature="ddd->ddid")[0][:, 0]
+
+
 @dataclass
 class ExtendedFit:
     """Result of :func:`fit_extended`: parameter vector p and covariance (raw units), residuals 1 - |a| [g]."""
@@ -335,7 +369,7 @@ def fit_extended(par: Parameterization, ws: WindowSet, p0: np.ndarray, var_g2: n
         scale = np.sqrt(np.maximum(np.diag(F), 1e-300))
         Fn = F / np.outer(scale, scale)
         step = np.zeros(len(p))
-        step[free] = np.linalg.lstsq(Fn, (Bw @ xi) / scale, rcond=1e-12)[0] / scale
+        step[free] = lstsq_solution(Fn, (Bw @ xi) / scale, 1e-12) / scale
         lam = 1.0
         while lam > 1e-6:
             try:
@@ -363,9 +397,13 @@ def fit_extended(par: Parameterization, ws: WindowSet, p0: np.ndarray, var_g2: n
 
 
 def extended_residuals_g(par: Parameterization, p: np.ndarray, ws: WindowSet) -> np.ndarray:
-    """1 - |a| [g] of windows ``ws`` under parameters p (covariates of ``ws``)."""
-    par = getattr(par, "parent", par)  # unbind
-    bound = par.at_windows(ws) if isinstance(par, ExtendedParameterization) else par
+    """1 - |a| [g] of windows ``ws`` under parameters p (covariates of ``ws``); ``par`` bound to ``ws`` itself
+    (``at_windows(ws)`` or a ``subset``) is used as it is."""
+    if isinstance(par, _Bound) and par._ws is ws:
+        bound = par  # already bound to these windows
+    else:
+        par = getattr(par, "parent", par)  # unbind
+        bound = par.at_windows(ws) if isinstance(par, ExtendedParameterization) else par
     a, _ = bound.accel_and_jacobian(p, ws.mean)
     return 1.0 - np.linalg.norm(a, axis=1)
 

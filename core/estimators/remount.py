@@ -245,11 +245,19 @@ class RemountDetector:
 
 
 # -- window-level sessions (tests, benches) ------------------------------------------------------------
+def session_motion(scenario: str = "daily_living", *, seed: int = 0, duration: float = 86400.0,
+                   fs_motion: float = 2.0, **scenario_kw: Any) -> Any:
+    """The scenario's motion as :func:`session_windows` renders it (pass it there as ``motion``)."""
+    from ..scenarios import make_motion  # noqa: PLC0415
+
+    return make_motion(scenario, duration=duration, fs=fs_motion, rng=seed, **scenario_kw)
+
+
 def session_windows(scenario: str = "daily_living", *, seed: int = 0, duration: float = 86400.0, model: Any = None,
                     fs_motion: float = 2.0, sample_fs: float = 200.0, noise_g: float = 0.003,
                     max_window_s: float = 10.0, min_window_s: float = 1.0, temp_c: Any = None,
                     remount_at: float | None = None, remount_rotvec: Any = None, temperature: bool = True,
-                    **scenario_kw: Any):
+                    motion: Any = None, **scenario_kw: Any):
     """Quasi-static windows of a simulated session, at window level (fast: a day in ~1 s).
 
     The scenario (core.scenarios) is rendered at ``fs_motion``; each run of truly still samples is cut into
@@ -259,6 +267,8 @@ def session_windows(scenario: str = "daily_living", *, seed: int = 0, duration: 
     ``noise_g`` [g] per axis (cov = the per-sample covariance, n samples). ``temp_c``: a function of time [s]
     replacing the scenario's temperature [°C]. ``remount_at`` [s]: from then on the sensor is rotated on the
     body by ``remount_rotvec`` (f_board -> R^T f_board). ``temperature=False``: windows without aux.
+``motion``: the scenario already rendered (``session_motion`` with the same arguments), so sessions that
+differ only in sensor, re-mount or temperature share its rendering (the costly part); it is not modified.
 
     Returns (WindowSet, info) with info["truth"](temp_c, t) -> Calibration and info["f"] the true specific
     forces [g] of the windows (board frame).
@@ -266,11 +276,11 @@ def session_windows(scenario: str = "daily_living", *, seed: int = 0, duration: 
     from scipy.spatial.transform import Rotation  # noqa: PLC0415
 
     from ..model.defaults import default_model, triad_truth  # noqa: PLC0415
-    from ..scenarios import make_motion  # noqa: PLC0415
     from ..windows import WindowSet  # noqa: PLC0415
 
     rng = np.random.default_rng([seed, 7])
-    motion = make_motion(scenario, duration=duration, fs=fs_motion, rng=seed, **scenario_kw)
+    if motion is None:
+        motion = session_motion(scenario, seed=seed, duration=duration, fs_motion=fs_motion, **scenario_kw)
     model = default_model(seed) if model is None else model
     still = motion.still
     edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(np.int8), [0]])))
@@ -316,4 +326,4 @@ def session_windows(scenario: str = "daily_living", *, seed: int = 0, duration: 
                 "model": model, "motion_fs": fs_motion}
 
 
-__all__ = ["RemountDetector", "RemountEvent", "session_windows"]
+__all__ = ["RemountDetector", "RemountEvent", "session_motion", "session_windows"]

@@ -19,7 +19,7 @@ import math
 import numpy as np
 import pytest
 
-from gravcal.core.estimators.remount import RemountDetector, session_windows
+from gravcal.core.estimators.remount import RemountDetector, session_motion, session_windows
 from gravcal.core.model.defaults import default_model
 from gravcal.core.windows import Window
 from seed_pool import pmap
@@ -187,20 +187,40 @@ def remount_rotvec(seed, angle_deg):
     return ax / np.linalg.norm(ax) * math.radians(angle_deg)
 
 
-def remount_session(seed, angle_deg, days=2.0):
+def remount_session(seed, angle_deg, days=2.0, motion=None):
     rv = remount_rotvec(seed, angle_deg) if angle_deg else None
     return session_windows("daily_living", seed=seed, duration=days * 86400, remount_at=REMOUNT_AT if rv is not None
-                           else None, remount_rotvec=rv)
+                           else None, remount_rotvec=rv, motion=motion)
 
 
-def remount_events(seed: int, angle: float) -> list[tuple[float, float, list[float]]]:
-    """The detector's events (time, angle, old direction) on one remount session (plain values: computed in a
-    worker process)."""
-    ws, info = remount_session(seed, angle)
-    d = RemountDetector()
-    for i in range(len(ws)):
-        d.update(ws.t[i], info["f"][i], ws.n[i] / 200.0)
-    return [(float(e.t), float(e.angle_deg), list(map(float, e.old_direction))) for e in d.events]
+def remount_events(seed: int, angles: tuple[float, ...]) -> list[list[tuple[float, float, list[float]]]]:
+    """Per angle, the detector's events (time, angle, old direction) on one remount session (plain values:
+    computed in a worker process); the sessions of one seed share the rendered motion."""
+    motion = session_motion("daily_living", seed=seed, duration=2.0 * 86400)
+    out = []
+    for angle in angles:
+        ws, info = remount_session(seed, angle, motion=motion)
+        d = RemountDetector()
+        for i in range(len(ws)):
+            d.update(ws.t[i], info["f"][i], ws.n[i] / 200.0)
+        out.append([(float(e.t), float(e.angle_deg), list(map(float, e.old_direction))) for e in d.events])
+    return out
+
+
+def test_a_shared_motion_gives_the_session_built_afresh():
+    """session_windows on a motion rendered once equals the session that renders its own, bit for bit, and
+    leaves the motion as it was (the re-mount and control sessions of a seed share one)."""
+    motion = session_motion("daily_living", seed=1, duration=0.25 * 86400)
+    before = motion.specific_force.copy()
+    for angle in (40.0, 0.0):
+        rv = remount_rotvec(1, angle) if angle else None
+        kw = dict(seed=1, duration=0.25 * 86400, remount_at=3 * 3600.0 if angle else None, remount_rotvec=rv)
+        (a, ia), (b, ib) = session_windows(motion=motion, **kw), session_windows(**kw)
+        for x, y in [(a.mean, b.mean), (a.cov, b.cov), (a.n, b.n), (a.t, b.t), (a.aux, b.aux), (ia["f"], ib["f"])]:
+            assert x.shape == y.shape and np.array_equal(x, y)
+    assert np.array_equal(motion.specific_force, before)
+    other = session_windows(seed=1, duration=0.25 * 86400, motion=session_motion(seed=2, duration=0.25 * 86400))[0]
+    assert not (len(other) == len(a) and np.array_equal(other.mean, a.mean))
 
 
 def test_remount_is_detected_with_its_angle_and_controls_are_not_flagged():
@@ -211,18 +231,20 @@ def test_remount_is_detected_with_its_angle_and_controls_are_not_flagged():
     seeds x 3 days (python bench/bench_soak.py --remount-seeds 10): see docs/daemon.md."""
     from scipy.spatial.transform import Rotation
 
-    runs = [(seed, angle) for seed in range(4) for angle in (40.0, 0.0)]
-    for (seed, angle), ev in zip(runs, pmap(remount_events, runs)):
-        if angle:
-            assert ev, f"seed {seed}: re-mount not detected"
-            t, angle_deg, old_direction = ev[0]
-            assert REMOUNT_AT <= t <= REMOUNT_AT + 2.5 * 3600, (seed, ev[0])
-            R = Rotation.from_rotvec(remount_rotvec(seed, angle)).as_matrix()
-            old = np.array(old_direction)
-            turned = math.degrees(math.acos(np.clip(old @ (R.T @ old), -1, 1)))
-            assert abs(angle_deg - turned) < 10.0, (seed, ev[0], turned)
-        else:
-            assert not ev, f"seed {seed}: false re-mount {ev}"
+    angles = (40.0, 0.0)
+    per_seed = pmap(remount_events, [(seed, angles) for seed in range(4)])
+    for seed, events in enumerate(per_seed):
+        for angle, ev in zip(angles, events):
+            if angle:
+                assert ev, f"seed {seed}: re-mount not detected"
+                t, angle_deg, old_direction = ev[0]
+                assert REMOUNT_AT <= t <= REMOUNT_AT + 2.5 * 3600, (seed, ev[0])
+                R = Rotation.from_rotvec(remount_rotvec(seed, angle)).as_matrix()
+                old = np.array(old_direction)
+                turned = math.degrees(math.acos(np.clip(old @ (R.T @ old), -1, 1)))
+                assert abs(angle_deg - turned) < 10.0, (seed, ev[0], turned)
+            else:
+                assert not ev, f"seed {seed}: false re-mount {ev}"
 
 
 def test_remount_leaves_the_calibration_valid_and_the_daemon_reports_it(caplog):
