@@ -299,21 +299,6 @@ def extended_metadata(par: Parameterization, p: np.ndarray, std: np.ndarray | No
 
 
 # -- batch fit with fixed weights ------------------------------------------------------------------
-def _raise_svd(err, flag):
-    raise np.linalg.LinAlgError("SVD did not converge in Linear Least Squares")
-
-
-def lstsq_solution(a: np.ndarray, b: np.ndarray, rcond: float) -> np.ndarray:
-    """``np.linalg.lstsq(a, b, rcond)[0]`` for a float (n, n) system and a vector b: the same LAPACK call
-    (numpy's gufunc, dgelsd), without the wrapper's checks and conversions, which cost more than the
-    solve on the fit's systems of at most 30 parameters. numpy's own wrapper where its gufunc is absent."""
-    gufunc = getattr(getattr(np.linalg, "_umath_linalg", None), "lstsq", None)
-    if gufunc is None:
-        return np.linalg.lstsq(a, b, rcond=rcond)[0]
-    with np.errstate(call=_raise_svd, invalid="call", over="ignore", divide="ignore", under="ignore"):
-        return gufunc(a, b[:, None], rcond, signature="ddd->ddid")[0][:, 0]
-
-
 @dataclass
 class ExtendedFit:
     """Result of :func:`fit_extended`: parameter vector p and covariance (raw units), residuals 1 - |a| [g]."""
@@ -369,7 +354,7 @@ def fit_extended(par: Parameterization, ws: WindowSet, p0: np.ndarray, var_g2: n
         scale = np.sqrt(np.maximum(np.diag(F), 1e-300))
         Fn = F / np.outer(scale, scale)
         step = np.zeros(len(p))
-        step[free] = lstsq_solution(Fn, (Bw @ xi) / scale, 1e-12) / scale
+        step[free] = np.linalg.lstsq(Fn, (Bw @ xi) / scale, rcond=1e-12)[0] / scale
         lam = 1.0
         while lam > 1e-6:
             try:

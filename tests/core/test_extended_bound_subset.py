@@ -80,28 +80,3 @@ def test_fits_and_residuals_on_a_subset_equal_the_plain_ones():
             assert np.array_equal(r, extended_residuals_g(par, g.p, wte)) and np.all(np.abs(r) < 0.05)
     # a binding to other windows is not taken as bound: the windows are bound anew
     assert np.array_equal(extended_residuals_g(whole, f.p, wte), extended_residuals_g(par, f.p, wte))
-
-
-# -- fit_extended's Gauss-Newton step: numpy's LAPACK least squares without its wrapper ---------------------
-@pytest.mark.parametrize("seed", range(6))
-def test_lstsq_solution_equals_numpys_lstsq_bit_for_bit(seed):
-    """Normalised normal matrices as the fit builds them: well conditioned, rank deficient (a void
-    direction, cut by rcond), nearly singular; 3 to 30 parameters."""
-    from gravcal.core.estimators.extended import lstsq_solution
-
-    rng = np.random.default_rng(seed)
-    for n in (3, 9, 17, 30):
-        for rank in (n, n - 1, max(n // 2, 1)):
-            B = rng.normal(size=(4 * n, rank)) @ rng.normal(size=(rank, n)) * np.logspace(0, 6 * (seed % 3), n)
-            F = B.T @ B
-            d = np.sqrt(np.diag(F))
-            Fn, b = F / np.outer(d, d), (B.T @ rng.normal(size=4 * n)) / d
-            x = lstsq_solution(Fn, b, 1e-12)
-            assert x.shape == (n,) and np.array_equal(x, np.linalg.lstsq(Fn, b, rcond=1e-12)[0]), (n, rank)
-        Q = np.linalg.qr(rng.normal(size=(n, n)))[0]  # a direction just above / below the cut
-        for s_min in (3e-12, 0.5e-12):
-            A, b = (Q * np.r_[np.linspace(1.0, 0.1, n - 1), s_min]) @ Q.T, rng.normal(size=n)
-            assert np.array_equal(lstsq_solution(A, b, 1e-12), np.linalg.lstsq(A, b, rcond=1e-12)[0]), (n, s_min)
-    bad = np.full((4, 4), np.nan)  # a fit gone to NaN: LinAlgError, as numpy's lstsq raises
-    with pytest.raises(np.linalg.LinAlgError, match="SVD did not converge"):
-        lstsq_solution(bad, np.ones(4), 1e-12)
