@@ -28,6 +28,15 @@
 static const int I6[6] = {0, 1, 2, 0, 0, 1};
 static const int J6[6] = {0, 1, 2, 1, 2, 2};
 
+/* Per-axis within-block scatter in g² from the six second moments W_q (fastdetect._axis_var_g): Σ_q c_iq W_q,
+ * c_iq = K⁻¹_iI K⁻¹_iJ, twice off the diagonal. */
+static void axis_scatter_coefficients(const double *K, double cv[3][6])
+{
+    for (int i = 0; i < 3; i++)
+        for (int p = 0; p < 6; p++)
+            cv[i][p] = K[3 * i + I6[p]] * K[3 * i + J6[p]] * (I6[p] == J6[p] ? 1.0 : 2.0);
+}
+
 /* One chunk of m blocks of B samples: the three channels x (strides sx), the times t (stride st,
  * t[-1] readable unless `first`: the recording's first sample has no predecessor), outputs in
  * blocks [col, col + m) of rows nb apart. */
@@ -433,9 +442,7 @@ __attribute__((target("avx2"))) static void chain_run_lanes4(const Chain *a)
     const Py_ssize_t nb = a->nb;
     const double *K = a->K;
     double cv[3][6];
-    for (int i = 0; i < 3; i++)
-        for (int p = 0; p < 6; p++)
-            cv[i][p] = K[3 * i + I6[p]] * K[3 * i + J6[p]] * (I6[p] == J6[p] ? 1.0 : 2.0);
+    axis_scatter_coefficients(K, cv);
     const double *h = a->sos_hp, *l = a->sos_lp;
     const __m256d h0 = _mm256_set1_pd(h[0]), h1 = _mm256_set1_pd(h[1]), h2 = _mm256_set1_pd(h[2]),
                   h4 = _mm256_set1_pd(h[4]), h5 = _mm256_set1_pd(h[5]);
@@ -495,12 +502,8 @@ static inline __attribute__((always_inline)) void chain_run(const Chain *a, int 
 {
     const Py_ssize_t nb = a->nb;
     const double *K = a->K;
-    /* per-axis within-block scatter in g² (fastdetect._axis_var_g): Σ_q c_iq W_q, c_iq = K⁻¹_iI K⁻¹_iJ (x2 off
-     * the diagonal) */
     double cv[3][6];
-    for (int i = 0; i < 3; i++)
-        for (int p = 0; p < 6; p++)
-            cv[i][p] = K[3 * i + I6[p]] * K[3 * i + J6[p]] * (I6[p] == J6[p] ? 1.0 : 2.0);
+    axis_scatter_coefficients(K, cv);
     double zh[4][2 * MAX_SECTIONS] = {{0}}, zl[4][2 * MAX_SECTIONS] = {{0}}, last[3] = {0, 0, 0};
     double u[4][CHAIN_CHUNK];
     for (Py_ssize_t b_lo = a->b0; b_lo < nb; b_lo += CHAIN_CHUNK) {
@@ -656,9 +659,7 @@ static PyObject *variance_chain(PyObject *self, PyObject *args)
     }
     Py_BEGIN_ALLOW_THREADS
     double cv[3][6]; /* as in chain_run: zero coefficients' products add nothing to a finite sum */
-    for (int i = 0; i < 3; i++)
-        for (int p = 0; p < 6; p++)
-            cv[i][p] = K[3 * i + I6[p]] * K[3 * i + J6[p]] * (I6[p] == J6[p] ? 1.0 : 2.0);
+    axis_scatter_coefficients(K, cv);
     const Py_ssize_t R = wb + 1;
     const double n1 = (double)(wb * B - 1), Bd = (double)B, wbd = (double)wb;
     double c[9] = {0}; /* running sums of a (3), a a (3), w (3) */

@@ -50,6 +50,19 @@ def _args(bs: fastdetect.BlockStats, order: int, to_g: Calibration):
 TO_G = Calibration("start", np.array([0.51, 0.48, 0.505]), np.diag([0.04, 0.041, 0.039]) + 0.001)
 
 
+def spy_on_chain(monkeypatch) -> list:
+    """Records each lotters_chain call's (order,) or (order, first channel, gate)."""
+    calls: list = []
+    real = fastdetect.lotters_chain
+
+    def spy(*args):
+        calls.append(args[8:9] + args[14:])
+        return real(*args)
+
+    monkeypatch.setattr(fastdetect, "lotters_chain", spy)
+    return calls
+
+
 @pytest.mark.parametrize("order", [2, 4])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_two_halves_are_the_one_call_bit_for_bit(order, seed):
@@ -103,14 +116,7 @@ def test_lotters_still_runs_one_call_in_the_vector_lanes(monkeypatch):
     monkeypatch.setattr(fastdetect, "CHAIN_LANES_MIN_BLOCKS", 1000)
     monkeypatch.setattr(fastdetect, "CHAIN_VECTOR", False)
     halves = fastdetect.lotters_still(bs, TO_G)
-    calls = []
-    real = fastdetect.lotters_chain
-
-    def spy(*args):
-        calls.append(args[8:9] + args[14:])
-        return real(*args)
-
-    monkeypatch.setattr(fastdetect, "lotters_chain", spy)
+    calls = spy_on_chain(monkeypatch)
     monkeypatch.setattr(fastdetect, "CHAIN_VECTOR", True)
     np.testing.assert_array_equal(fastdetect.lotters_still(bs, TO_G), halves)
     assert calls == [(4,)]
@@ -124,14 +130,7 @@ def test_lotters_still_on_two_threads_equals_one(monkeypatch):
     monkeypatch.setattr(fastdetect, "CHAIN_VECTOR", False)  # the halves also where the CPU has the vector lanes
     monkeypatch.setattr(fastdetect, "CHAIN_LANES_MIN_BLOCKS", 1 << 62)
     single = fastdetect.lotters_still(bs, TO_G)
-    calls = []
-    real = fastdetect.lotters_chain
-
-    def spy(*args):
-        calls.append(args[8:9] + args[14:])
-        return real(*args)
-
-    monkeypatch.setattr(fastdetect, "lotters_chain", spy)
+    calls = spy_on_chain(monkeypatch)
     monkeypatch.setattr(fastdetect, "CHAIN_LANES_MIN_BLOCKS", 1000)
     lanes = fastdetect.lotters_still(bs, TO_G)
     assert sorted(calls) == [(2, 0, False), (4, 2, True)]  # the two halves ran
