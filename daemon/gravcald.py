@@ -12,7 +12,6 @@ import argparse
 import logging
 import math
 import os
-import signal
 import sys
 from typing import Any, Sequence
 
@@ -160,9 +159,7 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
             return 2
     daemon = Gravcald(cfg, driver=driver, environ=env, config_path=config_path, overrides=overrides,
                       emulator=emulator, window_sink=recorder, identity=identity)
-    signal.signal(signal.SIGTERM, daemon.request_stop)
-    signal.signal(signal.SIGINT, daemon.request_stop)
-    signal.signal(signal.SIGHUP, daemon.request_reload)
+    daemon.install_signal_handlers()
     try:
         daemon.start()
     except (ConfigError, ValueError, SocketPathError) as exc:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import threading
 import time
 from typing import Any
@@ -38,6 +39,7 @@ from .persistence import CalibrationState, RateLimitedSaver, StateStore, load_la
 from .processing import Processor, nominal_calibration
 from .protocol import calib_message
 from .sdnotify import Notifier, WatchdogPolicy, watchdog_interval
+from .wakeup import SelfPipeWake
 from .server import ServerConfig, SocketServer
 from .socket_activation import activated_socket
 
@@ -85,8 +87,10 @@ class Gravcald:
         self.processor: Processor | None = None
         self.notes: list[str] = []
         self._stop = threading.Event()
-        self._reload = threading.Event()
-        self._main_wake = threading.Event()  # the main loop's: a stop or reload request, at once
+        # stop and reload requests: flags and a self-pipe only, since signal handlers set them (wakeup.py)
+        self._stop_requested = False
+        self._reload_requested = False
+        self._main_wake = SelfPipeWake()
         self._data = threading.Event()
         self._acq_stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -339,12 +343,19 @@ class Gravcald:
 
     # -- main loop -------------------------------------------------------------------------
     def request_stop(self, *_: Any) -> None:
-        self._stop.set()
-        self._main_wake.set()
+        self._stop_requested = True
+        self._main_wake.poke()
 
     def request_reload(self, *_: Any) -> None:
-        self._reload.set()
-        self._main_wake.set()
+        self._reload_requested = True
+        self._main_wake.poke()
+
+    def install_signal_handlers(self) -> None:
+        """SIGTERM/SIGINT stop, SIGHUP reloads; a signal delivered to any thread wakes the main loop at once."""
+        signal.signal(signal.SIGTERM, self.request_stop)
+        signal.signal(signal.SIGINT, self.request_stop)
+        signal.signal(signal.SIGHUP, self.request_reload)
+        self._main_wake.install_for_signals()
 
     def run(self) -> int:
         """Main-thread loop until stop; returns the exit code."""
@@ -354,8 +365,7 @@ class Gravcald:
         next_status = 0.0
         while not self._stop.is_set():
             self._main_wake.wait(period)
-            self._main_wake.clear()
-            if self._stop.is_set():
+            if self._stop_requested:
                 break
             self.watchdog.tick()
             now = time.monotonic()
@@ -366,8 +376,8 @@ class Gravcald:
             if now >= next_status:
                 self.notifier.status(self._status_text())
                 next_status = now + self.cfg.daemon.status_interval_s
-            if self._reload.is_set():
-                self._reload.clear()
+            if self._reload_requested:
+                self._reload_requested = False
                 self.reload()
             dead = [t.name for t in self._threads if not t.is_alive()]
             if dead or not self.server.alive:
@@ -431,5 +441,6 @@ class Gravcald:
                 self.exit_code = self.exit_code or 1
         if self.server is not None:
             self.server.stop()
+        self._main_wake.close()
         log.info("gravcald stopped")
 

@@ -106,3 +106,60 @@ def test_the_main_loop_sleeps_its_period_and_wakes_at_once_for_reload_and_stop(t
     finally:
         d.request_stop()
         loop.join(10.0)
+
+
+def test_a_signal_delivered_to_another_thread_wakes_the_main_loop_at_once(tmp_path, monkeypatch):
+    """SIGHUP and SIGTERM sent to a worker thread (the kernel may pick any thread for a process signal): the
+    handlers run in the main thread only, which must wake at once through the wakeup fd, not at its tick."""
+    import signal
+    import threading
+
+    from gravcal.daemon import service
+    from gravcal.daemon.config import Config
+    from support.silent_driver import SilentDriver
+
+    monkeypatch.setattr(service, "MAIN_PERIOD_S", 30.0)
+    cfg = Config()
+    cfg.socket.path = str(tmp_path / "g.sock")
+    cfg.state.directory = str(tmp_path / "state")
+    d = service.Gravcald(cfg, driver=SilentDriver(), environ={})
+    saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
+    old_fd = signal.set_wakeup_fd(-1)
+    signal.set_wakeup_fd(old_fd)
+    reloaded_at: list[float] = []
+    worker_busy = threading.Event()
+    worker_done = threading.Event()
+
+    def worker():  # blocks no signal: a thread the kernel may deliver to
+        worker_busy.set()
+        worker_done.wait(60.0)
+
+    def sender():
+        worker_busy.wait(10.0)
+        time.sleep(0.3)
+        t = time.monotonic()
+        signal.pthread_kill(w.ident, signal.SIGHUP)
+        if wait_until(lambda: d.reloads == 1, 10.0):
+            reloaded_at.append(time.monotonic() - t)
+        signal.pthread_kill(w.ident, signal.SIGTERM)
+
+    w = threading.Thread(target=worker)
+    s = threading.Thread(target=sender)
+    try:
+        d.start()
+        d.install_signal_handlers()
+        w.start()
+        s.start()
+        t0 = time.monotonic()
+        d.run()  # the main thread, as in gravcald
+        ran = time.monotonic() - t0
+    finally:
+        worker_done.set()
+        for t in (w, s):
+            if t.ident is not None:
+                t.join(10.0)
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+        signal.set_wakeup_fd(old_fd)
+    assert reloaded_at and reloaded_at[0] < 5.0, reloaded_at  # the 30 s tick would be too late
+    assert ran < 15.0
