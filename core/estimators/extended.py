@@ -353,8 +353,11 @@ def fit_extended(par: Parameterization, ws: WindowSet, p0: np.ndarray, var_g2: n
         F = Bw @ B
         scale = np.sqrt(np.maximum(np.diag(F), 1e-300))
         Fn = F / np.outer(scale, scale)
+        rhs = (Bw @ xi) / scale
+        if not (np.isfinite(Fn).all() and np.isfinite(rhs).all()):
+            break  # LAPACK's dgelsd (np.linalg.lstsq) can loop forever on a NaN: the fit ends unconverged
         step = np.zeros(len(p))
-        step[free] = np.linalg.lstsq(Fn, (Bw @ xi) / scale, rcond=1e-12)[0] / scale
+        step[free] = np.linalg.lstsq(Fn, rhs, rcond=1e-12)[0] / scale
         lam = 1.0
         while lam > 1e-6:
             try:
@@ -374,6 +377,9 @@ def fit_extended(par: Parameterization, ws: WindowSet, p0: np.ndarray, var_g2: n
             break
     cov = np.zeros((len(p), len(p)))
     F = (B.T * w) @ B
+    if not np.isfinite(F).all():  # a non-finite window or covariate: no covariance either (eigh refuses NaN)
+        cov[np.ix_(free, free)] = np.nan
+        return ExtendedFit(bound, p, cov, xi, cost, False, it)
     d = np.sqrt(np.maximum(np.diag(F), 1e-300))
     lam, V = np.linalg.eigh(F / np.outer(d, d))
     lam = np.maximum(lam, 1e-12 * max(float(lam[-1]), 1e-300))  # a void direction gets a huge, finite variance

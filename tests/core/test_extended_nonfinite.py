@@ -1,0 +1,44 @@
+"""fit_extended on a window set holding a non-finite value ends, unconverged, instead of handing LAPACK's
+least-squares solver a NaN (dgelsd, behind np.linalg.lstsq, raises on some such systems and loops forever on
+others, e.g. a 4 x 4 identity with one NaN off the diagonal). Run in a child process, so a hang fails by timeout."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+CHILD = textwrap.dedent("""
+    import sys
+    import numpy as np
+    from gravcal.core.diagnosis.synthetic import PLANT, window_session
+    from gravcal.core.estimators.extended import fit_extended, model_name, parameterization
+    from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
+
+    supply = next(t for t in CALIBRATION_TERMS if calibration_view(t).covariate == "vsupply")
+    s = window_session(3, {supply: PLANT[supply]})
+    par = parameterization(model_name("6", (supply,)), s.start.sensitivity, s.start.offset)
+    p0 = par.pack(s.start.sensitivity, s.start.offset)
+    var = np.full(len(s.ws), 1e-6)
+    clean = fit_extended(par, s.ws, p0, var)
+    where = sys.argv[1]
+    if where == "mean":
+        s.ws.mean[len(s.ws) // 2, 1] = np.nan
+    else:  # the supply voltage, a covariate of the term
+        s.ws.aux[len(s.ws) // 3, :] = np.nan
+    f = fit_extended(par, s.ws, p0, var)
+    print(int(clean.converged), int(f.converged), f.iterations)
+""")
+
+
+@pytest.mark.parametrize("where", ["mean", "covariate"])
+def test_a_nan_window_ends_the_fit_unconverged_instead_of_hanging(where):
+    try:
+        out = subprocess.run([sys.executable, "-c", CHILD, where], capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("fit_extended did not return within 60 s on a NaN window (the least-squares solver looped)")
+    assert out.returncode == 0, out.stderr[-2000:]
+    clean_converged, converged, iterations = map(int, out.stdout.split())
+    assert clean_converged == 1  # the same windows without the NaN fit
+    assert converged == 0 and iterations == 1
