@@ -203,11 +203,12 @@ def session_numbers(seed: int) -> tuple:
             [(t.effect, t.delta_bic, t.heldout_before_mg, t.heldout_after_mg) for t in d.tests])
 
 
-def test_pool_workers_run_one_blas_thread_and_give_this_process_numbers():
-    from seed_pool import pmap, workers
+def test_pool_workers_run_one_blas_thread_and_give_this_process_numbers(monkeypatch):
+    from seed_pool import pmap
 
-    if workers() < 2:
-        pytest.skip("the seed pool runs in this process (one worker)")
+    # two workers on any machine (and under pytest-xdist), so the pool's own processes are what is checked
+    monkeypatch.delenv("PYTEST_XDIST_WORKER", raising=False)
+    monkeypatch.setenv("GRAVCAL_TEST_WORKERS", "2")
     in_workers = pmap(blas_threads, [(0,), (1,)])
     assert len(in_workers) == 2 and all(t and t == [1] * len(t) for t in in_workers), in_workers
     assert pmap(session_numbers, [(5,)]) == [session_numbers(5)]

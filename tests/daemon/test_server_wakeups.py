@@ -78,9 +78,8 @@ def test_checks_that_are_due_still_wake_it(sockpath):
         srv.stop()
 
 
-def test_the_main_loop_sleeps_its_period_and_wakes_at_once_for_reload_and_stop(tmp_path, monkeypatch):
-    import threading
-
+def _daemon_with_a_long_tick(tmp_path, monkeypatch):
+    """A gravcald on a silent driver whose main loop ticks every 30 s: any earlier wake-up is a request's."""
     from gravcal.daemon import service
     from gravcal.daemon.config import Config
     from support.silent_driver import SilentDriver
@@ -89,7 +88,13 @@ def test_the_main_loop_sleeps_its_period_and_wakes_at_once_for_reload_and_stop(t
     cfg = Config()
     cfg.socket.path = str(tmp_path / "g.sock")
     cfg.state.directory = str(tmp_path / "state")
-    d = service.Gravcald(cfg, driver=SilentDriver(), environ={})
+    return service.Gravcald(cfg, driver=SilentDriver(), environ={})
+
+
+def test_the_main_loop_sleeps_its_period_and_wakes_at_once_for_reload_and_stop(tmp_path, monkeypatch):
+    import threading
+
+    d = _daemon_with_a_long_tick(tmp_path, monkeypatch)
     d.start()
     loop = threading.Thread(target=d.run)
     try:
@@ -114,15 +119,7 @@ def test_a_signal_delivered_to_another_thread_wakes_the_main_loop_at_once(tmp_pa
     import signal
     import threading
 
-    from gravcal.daemon import service
-    from gravcal.daemon.config import Config
-    from support.silent_driver import SilentDriver
-
-    monkeypatch.setattr(service, "MAIN_PERIOD_S", 30.0)
-    cfg = Config()
-    cfg.socket.path = str(tmp_path / "g.sock")
-    cfg.state.directory = str(tmp_path / "state")
-    d = service.Gravcald(cfg, driver=SilentDriver(), environ={})
+    d = _daemon_with_a_long_tick(tmp_path, monkeypatch)
     saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
     old_fd = signal.set_wakeup_fd(-1)
     signal.set_wakeup_fd(old_fd)
