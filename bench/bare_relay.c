@@ -3,7 +3,11 @@
  * to each of N clients on a Unix socket. No decoding, correction, formatting or bookkeeping: what remains is the
  * wake-up, the read and the send() calls (each waking a client process), which no daemon design avoids.
  *
- *     bare_relay TTY SOCKET NCLIENTS LINE_BYTES FRAME_BYTES [OPEN_COMMAND]
+ *     bare_relay [--uring] TTY SOCKET NCLIENTS LINE_BYTES FRAME_BYTES [OPEN_COMMAND]
+ *
+ * --uring: the clients' sends go as one batch through io_uring (one io_uring_enter per wake-up instead of one
+ * send() per client), to tell the system calls' own cost from the kernel's work per send (the socket buffer and
+ * the client's wake-up), which batching does not remove.
  *
  * TTY is put in raw mode with VMIN = FRAME_BYTES, as gravcald's drivers do, so epoll wakes once a whole frame
  * (serial) or CAN sample (slcan) is there; OPEN_COMMAND (e.g. "O" for slcan) is written first, followed by CR.
@@ -19,9 +23,12 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <linux/io_uring.h>
 #include <sys/epoll.h>
 #include <sys/ioctl.h>
+#include <sys/mman.h>
 #include <sys/socket.h>
+#include <sys/syscall.h>
 #include <sys/un.h>
 #include <termios.h>
 #include <unistd.h>
@@ -46,6 +53,69 @@ static void put_seq(char *out, int seq)
         out[--i] = '-';
 }
 
+/* A submission ring of io_uring, set up with the raw system calls (no liburing): the sends of one wake-up are
+   queued as one batch with IOSQE_CQE_SKIP_SUCCESS, so only a failed send posts a completion. */
+struct send_ring {
+    int fd;
+    unsigned *sq_tail, *sq_mask, *sq_array, *cq_head, *cq_tail, *cq_mask;
+    struct io_uring_sqe *sqes;
+    struct io_uring_cqe *cqes;
+};
+
+static int send_ring_open(struct send_ring *ring, unsigned entries)
+{
+    struct io_uring_params p;
+    memset(&p, 0, sizeof p);
+    ring->fd = (int)syscall(__NR_io_uring_setup, entries, &p);
+    if (ring->fd < 0)
+        return -1;
+    char *sq = mmap(NULL, p.sq_off.array + p.sq_entries * sizeof(unsigned), PROT_READ | PROT_WRITE,
+                    MAP_SHARED | MAP_POPULATE, ring->fd, IORING_OFF_SQ_RING);
+    char *cq = mmap(NULL, p.cq_off.cqes + p.cq_entries * sizeof(struct io_uring_cqe), PROT_READ | PROT_WRITE,
+                    MAP_SHARED | MAP_POPULATE, ring->fd, IORING_OFF_CQ_RING);
+    ring->sqes = mmap(NULL, p.sq_entries * sizeof(struct io_uring_sqe), PROT_READ | PROT_WRITE,
+                      MAP_SHARED | MAP_POPULATE, ring->fd, IORING_OFF_SQES);
+    if (sq == MAP_FAILED || cq == MAP_FAILED || ring->sqes == MAP_FAILED)
+        return -1;
+    ring->sq_tail = (unsigned *)(sq + p.sq_off.tail);
+    ring->sq_mask = (unsigned *)(sq + p.sq_off.ring_mask);
+    ring->sq_array = (unsigned *)(sq + p.sq_off.array);
+    ring->cq_head = (unsigned *)(cq + p.cq_off.head);
+    ring->cq_tail = (unsigned *)(cq + p.cq_off.tail);
+    ring->cq_mask = (unsigned *)(cq + p.cq_off.ring_mask);
+    ring->cqes = (struct io_uring_cqe *)(cq + p.cq_off.cqes);
+    return 0;
+}
+
+/* the same sends as the send() loop below, in the same order, as one io_uring_enter; returns the bytes sent */
+static long long send_ring_batch(struct send_ring *ring, const int *fds, int nclients, const char *data, size_t len)
+{
+    unsigned tail = *ring->sq_tail;
+    for (int i = nclients - 1; i >= 0; i--) {
+        unsigned idx = tail++ & *ring->sq_mask;
+        struct io_uring_sqe *sqe = &ring->sqes[idx];
+        memset(sqe, 0, sizeof *sqe);
+        sqe->opcode = IORING_OP_SEND;
+        sqe->fd = fds[i];
+        sqe->addr = (unsigned long)data;
+        sqe->len = (unsigned)len;
+        sqe->msg_flags = MSG_DONTWAIT | MSG_NOSIGNAL;
+        sqe->flags = IOSQE_CQE_SKIP_SUCCESS;
+        ring->sq_array[idx] = idx;
+    }
+    __atomic_store_n(ring->sq_tail, tail, __ATOMIC_RELEASE);
+    if (syscall(__NR_io_uring_enter, ring->fd, (unsigned)nclients, 0, 0, NULL, 0) < 0)
+        return 0;
+    long long failed = 0;
+    unsigned head = *ring->cq_head, end = __atomic_load_n(ring->cq_tail, __ATOMIC_ACQUIRE);
+    for (; head != end; head++) { /* only the failed or short sends post a completion */
+        int res = ring->cqes[head & *ring->cq_mask].res;
+        failed += (long long)len - (res > 0 ? res : 0);
+    }
+    __atomic_store_n(ring->cq_head, head, __ATOMIC_RELEASE);
+    return (long long)nclients * (long long)len - failed;
+}
+
 static void on_term(int sig)
 {
     (void)sig;
@@ -54,8 +124,11 @@ static void on_term(int sig)
 
 int main(int argc, char **argv)
 {
+    int uring = argc > 1 && strcmp(argv[1], "--uring") == 0;
+    argc -= uring;
+    argv += uring;
     if (argc < 6) {
-        fprintf(stderr, "usage: bare_relay TTY SOCKET NCLIENTS LINE_BYTES FRAME_BYTES [OPEN_COMMAND]\n");
+        fprintf(stderr, "usage: bare_relay [--uring] TTY SOCKET NCLIENTS LINE_BYTES FRAME_BYTES [OPEN_COMMAND]\n");
         return 2;
     }
     int nclients = atoi(argv[3]), line_bytes = atoi(argv[4]), frame_bytes = atoi(argv[5]);
@@ -95,6 +168,11 @@ int main(int argc, char **argv)
             perror("bare_relay: accept");
             return 1;
         }
+    struct send_ring ring = {.fd = -1};
+    if (uring && send_ring_open(&ring, (unsigned)nclients) < 0) {
+        perror("bare_relay: io_uring");
+        return 1;
+    }
     signal(SIGTERM, on_term);
     if (argc > 6) { /* e.g. slcan's "O": open the channel, or the adapter sends nothing */
         char cmd[64];
@@ -159,11 +237,14 @@ int main(int argc, char **argv)
                     frame_bytes == 29 && carry_before == 0 ? (int)((unsigned char)buf[i * 29 + 3] |
                                                                    (unsigned char)buf[i * 29 + 4] << 8)
                                                            : -1);
-        for (int i = nclients - 1; i >= 0; i--) { /* the first client (bench_latency's timed one) last: the worst */
-            ssize_t s = send(fds[i], lines, need, MSG_DONTWAIT | MSG_NOSIGNAL);
-            if (s > 0)
-                sent_bytes += s;
-        }
+        if (uring)
+            sent_bytes += send_ring_batch(&ring, fds, nclients, lines, need);
+        else
+            for (int i = nclients - 1; i >= 0; i--) { /* the first client (bench_latency's timed one) last: the worst */
+                ssize_t s = send(fds[i], lines, need, MSG_DONTWAIT | MSG_NOSIGNAL);
+                if (s > 0)
+                    sent_bytes += s;
+            }
         sent_lines += (long long)k * nclients;
     }
     printf("wakeups %lld lines %lld bytes %lld\n", wakeups, sent_lines, sent_bytes);

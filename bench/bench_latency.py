@@ -27,10 +27,11 @@ first on PYTHONPATH) and report the ratios, measured in the same session on the 
 The floor (serial, can; after each run unless ``--no-floor``): bench/bare_relay.c, built with the system
 compiler ``cc`` into a temporary directory, relays the same emulator's tty (or slcan pty) to the same
 number of client processes: one poll(), the reads, and one send() per client of one line per frame, of the
-length gravcald's lines had in the run just before. On serial its lines carry the frame's number, so its
-latency is timed as gravcald's (the floor for latency too; slcan's lines are not numbered). Its CPU is what the wake-ups and the send() calls (each
-waking a client process) cost on this machine with no daemon work at all. I2C has no floor here (no kernel
-bus: the fake device runs in gravcald's process).
+length gravcald's lines had in the run just before. On serial its lines carry the frame's number, so its latency
+is timed as gravcald's (the floor for latency too; slcan's lines are not numbered). Its CPU is what the wake-ups
+and the send() calls (each waking a client process) cost on this machine with no daemon work at all. I2C has no
+floor here (no kernel bus: the fake device runs in gravcald's process). ``--floor-uring`` runs the relay a second
+time with each wake-up's sends submitted as one io_uring batch: what batching the system calls would save.
 """
 from __future__ import annotations
 
@@ -290,9 +291,10 @@ def build_relay(tmp: str) -> str | None:
     return exe
 
 
-def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int) -> dict:
+def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int, uring: bool = False) -> dict:
     """CPU of the bare C relay for the same traffic as gravcald's run: the emulator's stream, ``clients``
-    processes each taking one line of ``line_bytes`` per sample."""
+    processes each taking one line of ``line_bytes`` per sample; ``uring``: the sends of a wake-up as one
+    io_uring batch."""
     import multiprocessing as mp
 
     frame_bytes, open_cmd = RELAY_BUS[bus]
@@ -309,7 +311,8 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int) -
         if not spec:
             raise SystemExit(f"the {bus} emulator did not start")
         tty = spec.split("://", 1)[1].split("?", 1)[0].removeprefix("slcan")
-        relay_proc = subprocess.Popen([relay, tty, path, str(clients), str(line_bytes), str(frame_bytes),
+        relay_proc = subprocess.Popen([relay, *(["--uring"] if uring else []), tty, path, str(clients),
+                                       str(line_bytes), str(frame_bytes),
                                        *([open_cmd] if open_cmd else [])], stdout=subprocess.PIPE, text=True)
         if relay_proc.stdout.readline().strip() != "listening":
             raise SystemExit("the bare relay did not start")
@@ -350,7 +353,8 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int) -
         delay = a[:, 0] - seq / FS
         spread = (delay - delay.min()) * 1e3
         pct = {f"p{q:g}": float(np.percentile(spread, q)) for q in (50, 99, 99.9)}
-    return {"bus": bus, "clients": clients, "cpu_percent": cpu / wall * 100, "line_bytes": line_bytes,
+    return {"bus": bus, "clients": clients, "sends": "io_uring batch" if uring else "send() per client",
+            "cpu_percent": cpu / wall * 100, "line_bytes": line_bytes,
             "latency_ms": pct,
             "lines_per_s_per_client": stats.get("lines", 0) / clients / lifetime if stats else None,
             "wakeups_per_s": stats.get("wakeups", 0) / lifetime if stats else None,
@@ -396,6 +400,8 @@ def main(argv=None) -> int:
     ap.add_argument("--latency-budget", type=float, metavar="S",
                     help="[device] latency_budget_s for both trees (default: the configured default)")
     ap.add_argument("--no-floor", action="store_true", help="skip the bare C relay (the floor) after each run")
+    ap.add_argument("--floor-uring", action="store_true",
+                    help="also run the bare relay with each wake-up's sends as one io_uring batch")
     args = ap.parse_args(argv)
     relay = None if args.no_floor else build_relay(tempfile.mkdtemp(prefix="bench-relay-"))
     buses = [b for b in args.buses.split(",") if b]
@@ -418,9 +424,11 @@ def main(argv=None) -> int:
                 print(f"{'ratio':8s} {bus:6s} {n:3d} client(s)  p50 x{ratio['p50']:.3f}  p99 x{ratio['p99']:.3f}  "
                       f"CPU x{ratio['cpu']:.2f}  RSS x{ratio['rss']:.2f}", flush=True)
             t = pair["this"]
-            if relay is not None and bus in RELAY_BUS and t["line_bytes"]:
-                pair["floor"] = f = floor(relay, bus, n, args.seconds, round(t["line_bytes"]))
-                print(f"{'floor':8s} {bus:6s} {n:3d} client(s)  a bare C relay of the same traffic "
+            floors = [False, True] if args.floor_uring else [False]
+            for uring in floors if relay is not None and bus in RELAY_BUS and t["line_bytes"] else []:
+                pair["floor_uring" if uring else "floor"] = f = floor(relay, bus, n, args.seconds,
+                                                                      round(t["line_bytes"]), uring)
+                print(f"{'floor':8s} {bus:6s} {n:3d} client(s)  a bare C relay of the same traffic, {f['sends']} "
                       f"({f['line_bytes']} bytes per line, "
                       f"{f['bytes_per_s_per_client'] / f['line_bytes']:.1f} lines/s sent per client, "
                       f"{f['wakeups_per_s']:.1f} wake-ups/s, context switches "
