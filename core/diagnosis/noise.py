@@ -141,12 +141,18 @@ def lsb_of(x: np.ndarray) -> float:
     u = np.unique(np.asarray(x, dtype=float))
     if u.size < 2:
         return 0.0
-    d = np.diff(u)
-    step = float(np.min(d))
+    step = float(np.min(np.diff(u)))
     if step <= 0:
         return 0.0
-    k = d / step
-    if np.max(np.abs(k - np.round(k))) < 1e-6 * max(1.0, float(np.max(k))):  # every gap a multiple: a grid
+    # Every value a whole number of steps from the lowest, to within the values' rounding (a few units in the
+    # last place of the largest): a grid. The step is refined over the whole span, so its own rounding does not
+    # grow with the number of steps; a tolerance growing with that number would pass any continuous data once
+    # the smallest of many gaps makes the steps many.
+    n_steps = round(float(u[-1] - u[0]) / step)
+    fine = float(u[-1] - u[0]) / n_steps
+    k = (u - u[0]) / fine
+    rounding = 8.0 * (float(np.spacing(max(abs(u[0]), abs(u[-1])))) / fine + np.finfo(float).eps * n_steps)
+    if rounding < 0.01 and np.all(np.abs(k - np.round(k)) <= rounding):
         return step
     return 0.0
 
