@@ -83,8 +83,13 @@ def validate_windows(ws: WindowSet, n_params: int | None = None) -> None:
     if badc.any():
         idx = np.flatnonzero(badc)
         raise ValueError(f"{idx.size} window covariance(s) are NaN/inf (windows {idx[:5].tolist()})")
-    if np.any(ws.n <= 0):
-        raise ValueError("window sample counts must be positive")
+    badn = ~(ws.n > 0) | ~np.isfinite(ws.n)
+    if badn.any():
+        raise ValueError(f"{int(badn.sum())} window sample count(s) are not positive finite numbers "
+                         f"(windows {np.flatnonzero(badn)[:5].tolist()})")
+    badt = ~np.isfinite(ws.t)
+    if badt.any():
+        raise ValueError(f"{int(badt.sum())} window time(s) are NaN/inf (windows {np.flatnonzero(badt)[:5].tolist()})")
     if n_params is not None:
         require_windows(m, n_params)
 
