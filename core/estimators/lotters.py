@@ -231,7 +231,10 @@ class LottersBatch:
         converged = False
         it = 0
         for it in range(1, self.max_iter + 1):
-            step, std = _mvu_solve(B, var, xi, w_prior, p - anchor)  # eq. 11a (+ weak prior)
+            try:
+                step, std = _mvu_solve(B, var, xi, w_prior, p - anchor)  # eq. 11a (+ weak prior)
+            except np.linalg.LinAlgError:  # an information that underflowed to singular: ends unconverged
+                break
             if not np.all(np.isfinite(step)):
                 break
             # converged when the step is negligible in absolute terms or against the parameter's own std
@@ -264,6 +267,7 @@ class LottersBatch:
                 converged = True
                 break
         cov, eig = _mvu_covariance(B, var, scale)  # eq. 11b (data only: no prior in the reported C_e)
+        converged = converged and bool(np.all(np.isfinite(eig)))
         return _Solve(p, cov, float(np.sum(xi**2 / var)), xi, var, it, converged, eig, B, var_h)
 
     # -- public ------------------------------------------------------------------------
@@ -376,6 +380,9 @@ class LottersBatch:
                          sol.converged and sol2.converged, sol2.fisher_eig, sol2.B)
             notes.append(f"reduced chi² {chi2_red_stat:.3g} from window noise alone: added a quasi-static floor "
                          f"of {floor_used * 1e3:.3g} mg to C_mu")
+        if not np.all(np.isfinite(sol.fisher_eig)):
+            raise ValueError(f"the {par.model} fit overflowed to non-finite values from the start "
+                             f"({start_source}): the start is far off these windows' scale (units?)")
         rms_g = float(np.sqrt(np.mean(sol.resid_g**2)))
         if rms_g > MAX_PLAUSIBLE_RMS_G:
             sol.converged = False
@@ -527,6 +534,8 @@ def _mvu_covariance(B: np.ndarray, var: np.ndarray, scale: float) -> tuple[np.nd
     a huge, finite variance, so an unobservable parameter never looks confident."""
     W = 1.0 / var
     F = (B.T * W) @ B * (scale * scale)
+    if not np.all(np.isfinite(F)):  # an iterate that overflowed (a start far off the windows' scale): eigh (LAPACK)
+        return np.full(F.shape, np.nan), np.full(F.shape[0], np.nan)  # may loop forever on a NaN; no C_e then
     lam, V = np.linalg.eigh(F)
     lam_c = np.maximum(lam, _RCOND * max(float(lam[-1]), 1e-300))
     cov = (V / lam_c) @ V.T * (scale * scale)
