@@ -241,6 +241,7 @@ class OnlineCalibrator:
     def update(self, window: Window | WindowSet) -> Calibration:
         """Add one Window (or every row of a WindowSet, in time order) and return the calibration."""
         if isinstance(window, Window):
+            validate_windows(WindowSet.from_windows([window]))  # the store holds only windows a batch fit accepts
             self._one(np.asarray(window.mean, dtype=float), np.asarray(window.cov, dtype=float), float(max(window.n, 1)),
                       float(window.t_mid), window.aux_mean)
         elif isinstance(window, WindowSet):
@@ -293,8 +294,6 @@ class OnlineCalibrator:
         return self.recursive.calibration
 
     def _one(self, mean: np.ndarray, cov: np.ndarray, n: float, t: float, aux: np.ndarray) -> None:
-        if mean.shape != (3,) or not np.all(np.isfinite(mean)) or not np.all(np.isfinite(cov)):
-            raise ValueError(f"window mean/cov must be finite (mean {mean!r})")
         K, o = self._current()
         a = np.linalg.solve(K, mean - o)
         self.store.add(mean, cov, n, t, aux, a / max(float(np.linalg.norm(a)), 1e-12))

@@ -77,3 +77,30 @@ def test_nonfinite_windows_change_nothing_the_policy_publishes(where):
     assert r["screened"] == r["screened_clean"] + r["n_bad"] and r["n_bad"] > 0
     assert r["seeded"] == [True, True]  # the seed fit ran on the pooled windows
     assert r["after_screened"] == [True] * 3 and r["after_published"] == [False] * 3 and r["applied_same"]
+
+
+@pytest.mark.parametrize("field", ["mean", "cov", "time"])
+def test_the_calibrator_refuses_a_nonfinite_window_before_storing_it(field):
+    """``OnlineCalibrator.update`` (the recursion alone, without the policy's screen) keeps its store to the
+    windows a batch fit accepts: one with a NaN time in it would make every later re-seed refuse the store."""
+    import numpy as np
+
+    from gravcal.core.diagnosis.synthetic import window_session
+    from gravcal.core.estimators.online import OnlineCalibrator
+    from gravcal.core.windows import Window
+
+    s = window_session(1, {}, n_windows=20)
+    oc = OnlineCalibrator(s.start)
+    for i in range(10):
+        oc.update(Window(int(s.ws.start[i]), int(s.ws.end[i]), float(s.ws.t[i]), float(s.ws.t[i]), s.ws.mean[i],
+                         s.ws.cov[i], s.ws.aux[i]))
+    mean, cov, t = s.ws.mean[10].copy(), s.ws.cov[10].copy(), float(s.ws.t[10])
+    if field == "mean":
+        mean[0] = np.nan
+    elif field == "cov":
+        cov[1, 1] = np.inf
+    else:
+        t = np.nan
+    with pytest.raises(ValueError, match={"mean": "mean", "cov": "covariance", "time": "time"}[field]):
+        oc.update(Window(int(s.ws.start[10]), int(s.ws.end[10]), t, t, mean, cov, s.ws.aux[10]))
+    assert len(oc.store) == oc.n_windows == 10
