@@ -29,8 +29,7 @@ from ..calibration import Calibration
 from ..crlb import BRAGGE_NAMES, bragge_H
 from ..detectors import detect
 from ..pipeline import CalibrationReport
-from ..windows import WindowSet
-from .lotters import validate_windows
+from ..windows import WindowSet, validate_windows
 from .start import bootstrap
 
 FACES = ("+x", "-x", "+y", "-y", "+z", "-z")

@@ -47,11 +47,11 @@ from ..calibration import Calibration
 from ..crlb import sphere_directions
 from ..model.effect import needed_covariates, references
 from ..model.terms import COVARIATES
-from ..windows import Window, WindowSet
+from ..windows import Window, WindowSet, validate_windows
 from .inuse12 import with_frame
 from .consider import datasheet_held_uncertainty
 from .extended import extended_class, parameterization
-from .lotters import LottersBatch, validate_windows
+from .lotters import LottersBatch
 from .observability import N_PARAMS, ORDERS, POSTURE_CELLS, SIGMA_FLOOR_G, SYSTEMATIC_G, TOL_G, OrderDecision, held_note
 from .online_policy import OnlinePolicy, OnlineStep, PolicySettings, online_candidates
 from .order import (compare_extended, extended_base, extended_terms, fit_extended_floor, is_observable_extended,

@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 
 from ..calibration import Calibration
-from ..windows import MAX_WINDOW_STD_G, Window, WindowSet, window_std_g
-from .lotters import LottersBatch, resolve_parameterization, validate_windows
+from ..windows import MAX_WINDOW_STD_G, Window, WindowSet, validate_windows, window_std_g
+from .lotters import LottersBatch, resolve_parameterization
 from .observability import ORDER_LADDER
 from .remount import RemountDetector
 
