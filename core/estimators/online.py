@@ -149,6 +149,8 @@ class OnlineCalibrator:
                  systematic_g: float = SYSTEMATIC_G, terms: tuple[str, ...] = ()):
         if not isinstance(start, Calibration):
             raise ValueError("OnlineCalibrator needs a start Calibration (datasheet nominal, saved state, or a fit)")
+        if not (np.all(np.isfinite(start.offset)) and np.all(np.isfinite(start.sensitivity))):
+            raise ValueError("OnlineCalibrator's start calibration has a NaN/inf offset or sensitivity")
         self.lab = lab
         self.start = with_frame(start, lab) if lab is not None and start.model != "12" else start
         self.store = WindowStore(capacity)

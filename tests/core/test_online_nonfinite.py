@@ -104,3 +104,18 @@ def test_the_calibrator_refuses_a_nonfinite_window_before_storing_it(field):
     with pytest.raises(ValueError, match={"mean": "mean", "cov": "covariance", "time": "time"}[field]):
         oc.update(Window(int(s.ws.start[10]), int(s.ws.end[10]), t, t, mean, cov, s.ws.aux[10]))
     assert len(oc.store) == oc.n_windows == 10
+
+
+def test_a_start_with_a_nonfinite_value_is_refused_when_the_calibrator_is_built():
+    """Every window would otherwise be judged under a NaN calibration (eigh on a NaN information)."""
+    import numpy as np
+
+    from gravcal.core.calibration import Calibration
+    from gravcal.core.diagnosis.synthetic import window_session
+    from gravcal.core.estimators.online import OnlineCalibrator
+
+    s = window_session(0, {}, n_windows=12)
+    OnlineCalibrator.for_service(s.start, model="6")  # the finite start is taken
+    bad = Calibration("6", s.start.offset + np.array([0.0, np.nan, 0.0]), s.start.sensitivity)
+    with pytest.raises(ValueError, match="start calibration has a NaN/inf offset or sensitivity"):
+        OnlineCalibrator.for_service(bad, model="6", resumed=True)
