@@ -169,7 +169,10 @@ class _Bound(Parameterization):
     def unusable_windows(self) -> str:
         """A covariate a term needs that some windows lack (NaN/inf: a channel that read no value): a fit would
         hand LAPACK a NaN Jacobian (it raises on some systems and loops forever on others)."""
-        bad = [f"{int(m.sum())} of {self.n_rows} windows carry no {COVARIATES[c].label if c in COVARIATES else c} value"
+        label = {c: v.label for c, v in COVARIATES.items()}
+        label.update({v.deviation_key: f"lagged {COVARIATES[v.covariate].label}"
+                      for v in map(calibration_view, self.parent.terms) if v.acts_on == "lagged_offset"})
+        bad = [f"{int(m.sum())} of {self.n_rows} windows carry no {label.get(c, c)} value"
                for c, m in self._missing.items() if m.any()]
         return f"model {self.model} cannot be fitted: {'; '.join(bad)}" if bad else ""
 
