@@ -102,6 +102,16 @@ def validate_windows(ws: WindowSet, n_params: int | None = None) -> None:
     m = len(ws)
     if m == 0:
         raise ValueError("no quasi-static windows: nothing to calibrate from (is the recording all motion, or too short?)")
+    finite = (np.isfinite(ws.mean).all() and np.isfinite(ws.cov).all() and np.isfinite(ws.t).all()
+              and np.isfinite(ws.n).all() and (ws.n > 0).all())
+    if not finite:  # per-row masks only to name the culprits (the order rules call this on every check)
+        _name_nonfinite(ws, m)
+    if n_params is not None:
+        require_windows(m, n_params)
+
+
+def _name_nonfinite(ws: WindowSet, m: int) -> None:
+    """Raise ValueError naming the first kind of non-finite (or non-positive count) window and which ones."""
     bad = ~np.all(np.isfinite(ws.mean), axis=1)
     if bad.any():
         idx = np.flatnonzero(bad)
@@ -117,8 +127,6 @@ def validate_windows(ws: WindowSet, n_params: int | None = None) -> None:
     badt = ~np.isfinite(ws.t)
     if badt.any():
         raise ValueError(f"{int(badt.sum())} window time(s) are NaN/inf (windows {np.flatnonzero(badt)[:5].tolist()})")
-    if n_params is not None:
-        require_windows(m, n_params)
 
 
 def require_windows(m: int, n_params: int) -> None:

@@ -290,8 +290,9 @@ class LottersBatch:
         if abs(np.linalg.det(start.sensitivity)) < 1e-300:
             raise ValueError("start calibration has a singular sensitivity matrix")
         par = resolve_parameterization(self.model, start).at_windows(ws)  # per-window covariates, if any
-        if par.unusable_windows():
-            raise ValueError(par.unusable_windows())
+        unusable = par.unusable_windows()
+        if unusable:
+            raise ValueError(unusable)
         require_windows(len(ws), par.n_params)  # the rest validate_windows checked above
 
         mean = ws.mean
