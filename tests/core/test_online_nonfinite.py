@@ -119,3 +119,50 @@ def test_a_start_with_a_nonfinite_value_is_refused_when_the_calibrator_is_built(
     bad = Calibration("6", s.start.offset + np.array([0.0, np.nan, 0.0]), s.start.sensitivity)
     with pytest.raises(ValueError, match="start calibration has a NaN/inf offset or sensitivity"):
         OnlineCalibrator.for_service(bad, model="6", resumed=True)
+
+
+AUX_CHILD = textwrap.dedent("""
+    import json
+    import numpy as np
+    from gravcal.core.diagnosis.synthetic import PLANT, window_session
+    from gravcal.core.estimators.online import OnlineCalibrator
+    from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
+    from gravcal.core.windows import Window
+
+    temp = next(t for t in CALIBRATION_TERMS if calibration_view(t).covariate == "temp")
+    s = window_session(1, {temp: PLANT[temp]}, n_windows=300)
+    ws = s.ws
+
+    def run(nan_from):
+        oc = OnlineCalibrator.for_service(s.start, model="6", extended_terms=temp, min_windows=6, fs=100.0)
+        models, finite = [], True
+        for i in range(len(ws)):
+            aux = ws.aux[i].copy()
+            if i >= nan_from and i % 7 == 3:
+                aux[0] = np.nan  # the temperature channel read no value
+            st = oc.feed(Window(int(ws.start[i]), int(ws.end[i]), float(ws.t[i]) - 1, float(ws.t[i]) + 1,
+                                ws.mean[i], ws.cov[i], aux))
+            if st.accepted:
+                models.append(st.calibration.model)
+                finite &= bool(np.isfinite(st.calibration.offset).all() and np.isfinite(st.calibration.covariance).all())
+        return oc, models, finite
+
+    _, clean_models, _ = run(len(ws))
+    oc, models, finite = run(200)
+    print(json.dumps({"temp": temp, "clean_last": clean_models[-1], "last": models[-1], "finite": finite,
+                      "status": oc.extended_status["6+" + temp]}))
+""")
+
+
+def test_windows_without_a_temperature_leave_the_temperature_term_untestable_online():
+    """The extended candidate on windows some of which carry no temperature: untestable (with the count), the
+    base order stays accepted with finite values; no NaN covariate reaches the extended rule's eigh."""
+    try:
+        out = subprocess.run([sys.executable, "-c", AUX_CHILD], capture_output=True, text=True, timeout=300)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the online calibrator did not return within 300 s on windows without a temperature")
+    assert out.returncode == 0, out.stderr[-2000:]
+    r = json.loads(out.stdout)
+    assert r["clean_last"] == "6+" + r["temp"]  # with every temperature the planted term is chosen
+    assert r["last"] == "6" and r["finite"]
+    assert r["status"]["status"] == "untestable" and "windows carry no temperature" in r["status"]["reason"]
