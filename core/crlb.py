@@ -26,7 +26,7 @@ import numpy as np
 
 from .calibration import Calibration
 from .estimators.parameterization import PARAMETERIZATIONS, Parameterization, h_variance  # noqa: F401 (re-exported: crlb.h_variance)
-from .windows import WindowSet
+from .windows import WindowSet, validate_windows
 
 # Relative eigenvalue below which a direction of parameter space counts as not determined.
 RANK_RTOL = 1e-9
@@ -54,6 +54,8 @@ def make_parameterization(model: str | Parameterization, cal: Calibration) -> Pa
 
 def on_ellipsoid(ws: WindowSet, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
     """(directions a_i (M, 3) unit [g], noise-free means r_i* = K a_i + o (M, 3) raw)."""
+    if len(ws):
+        validate_windows(ws)  # every information built from them goes to LAPACK (eigh may loop forever on a NaN)
     a = cal.apply_reference(ws.mean)
     a = a / np.linalg.norm(a, axis=1, keepdims=True)
     return a, a @ cal.sensitivity.T + cal.offset

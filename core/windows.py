@@ -95,6 +95,49 @@ class WindowSet:
                    np.arange(m, dtype=np.int64), np.arange(m, dtype=np.int64) + 1)
 
 
+def validate_windows(ws: WindowSet, n_params: int | None = None) -> None:
+    """Raise ValueError naming the problem if ``ws`` cannot be used for a fit."""
+    if not isinstance(ws, WindowSet):
+        raise ValueError(f"expected a WindowSet, got {type(ws).__name__}")
+    m = len(ws)
+    if m == 0:
+        raise ValueError("no quasi-static windows: nothing to calibrate from (is the recording all motion, or too short?)")
+    finite = (np.isfinite(ws.mean).all() and np.isfinite(ws.cov).all() and np.isfinite(ws.t).all()
+              and np.isfinite(ws.n).all() and (ws.n > 0).all())
+    if not finite:  # per-row masks only to name the culprits (the order rules call this on every check)
+        _name_nonfinite(ws, m)
+    if n_params is not None:
+        require_windows(m, n_params)
+
+
+def _name_nonfinite(ws: WindowSet, m: int) -> None:
+    """Raise ValueError naming the first kind of non-finite (or non-positive count) window and which ones."""
+    bad = ~np.all(np.isfinite(ws.mean), axis=1)
+    if bad.any():
+        idx = np.flatnonzero(bad)
+        raise ValueError(f"{idx.size} window mean(s) are NaN/inf (windows {idx[:5].tolist()}{'...' if idx.size > 5 else ''})")
+    badc = ~np.all(np.isfinite(ws.cov.reshape(m, 9)), axis=1)
+    if badc.any():
+        idx = np.flatnonzero(badc)
+        raise ValueError(f"{idx.size} window covariance(s) are NaN/inf (windows {idx[:5].tolist()})")
+    badn = ~(ws.n > 0) | ~np.isfinite(ws.n)
+    if badn.any():
+        raise ValueError(f"{int(badn.sum())} window sample count(s) are not positive finite numbers "
+                         f"(windows {np.flatnonzero(badn)[:5].tolist()})")
+    badt = ~np.isfinite(ws.t)
+    if badt.any():
+        raise ValueError(f"{int(badt.sum())} window time(s) are NaN/inf (windows {np.flatnonzero(badt)[:5].tolist()})")
+
+
+def require_windows(m: int, n_params: int) -> None:
+    """Raise ValueError unless ``m`` windows can determine ``n_params`` parameters."""
+    if m < n_params:
+        raise ValueError(
+            f"{m} quasi-static window(s) for {n_params} parameters: need at least {n_params} "
+            f"(more, spread over orientations, for a useful estimate)"
+        )
+
+
 def window_std_g(ws: WindowSet, cal: Calibration) -> np.ndarray:
     """Largest per-axis std [g] of the samples inside each window, under ``cal``: above MAX_WINDOW_STD_G a
     window averages postures (a slow turn at constant |a|), its mean lies inside the ellipsoid."""

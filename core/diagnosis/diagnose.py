@@ -173,6 +173,11 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
     if HELD_KEY in start.metadata:
         start = given_held(start)
         notes.append(GIVEN_HELD_NOTE)
+    no_temp = int(np.sum(~np.isfinite(ws.aux[:, 0]))) if has_temp and ws.aux.ndim == 2 and ws.aux.shape[1] else 0
+    if no_temp:  # a NaN temperature would reach the covariate regressions' least squares (LAPACK)
+        has_temp = False
+        notes.append(f"{no_temp} of {len(ws)} windows carry no temperature (the temp channel read no value): "
+                     f"temperature terms untestable")
     if len(ws) < MIN_WINDOWS:
         raise ValueError(f"only {len(ws)} quasi-static window(s): need at least {MIN_WINDOWS} to fit a baseline and "
                          f"test any term (record longer, with still moments)")
@@ -375,7 +380,7 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
         notes.append(GIVEN_HELD_NOTE)
     rep = calibrate_recording(t, raw, temp=temp, vsupply=vsupply, model="offsets", fs=fs, start=start0)
     ws = rep.windows
-    has_temp = temp is not None and np.ptp(temp) > 0
+    has_temp = temp is not None and bool(np.any(np.isfinite(temp))) and np.ptp(temp[np.isfinite(temp)]) > 0
     d = diagnose_windows(ws, rep.start or rep.calibration, has_temp=has_temp, candidates=candidates,
                          replicas=replicas, folds=folds, seed=seed, simulate=simulate,
                          held_uncertainty=held_start.metadata.get(HELD_KEY))

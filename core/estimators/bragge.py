@@ -29,7 +29,7 @@ from ..calibration import Calibration
 from ..crlb import BRAGGE_NAMES, bragge_H
 from ..detectors import detect
 from ..pipeline import CalibrationReport
-from ..windows import WindowSet
+from ..windows import WindowSet, validate_windows
 from .start import bootstrap
 
 FACES = ("+x", "-x", "+y", "-y", "+z", "-z")
@@ -157,6 +157,10 @@ def bragge_fit(directions: np.ndarray, means: np.ndarray, cov_of_mean: np.ndarra
     n = a.shape[0]
     if z.shape[0] != n:
         raise ValueError(f"{n} directions but {z.shape[0]} window means")
+    bad = [name for name, v in (("directions", a), ("window means", z), ("covariances", cov_of_mean))
+           if v is not None and not np.all(np.isfinite(v))]
+    if bad:  # the SVD below (LAPACK) may loop forever on a NaN
+        raise ValueError(f"the {' and '.join(bad)} hold NaN/inf values: Bragge's fit needs finite ones")
     if n < 4:
         raise ValueError(f"Bragge's lab calibration has 12 parameters and needs N >= 4 windows with known, "
                          f"non-coplanar directions; got {n}")
@@ -235,6 +239,7 @@ def _vector_errors_mg(cal: Calibration, holds: list[FaceHold]) -> np.ndarray:
 def calibrate_faces(ws: WindowSet, *, to_g: Calibration | None = None, placement_deg: float = PLACEMENT_DEG,
                     **face_kw) -> LabReport:
     """Bragge fit of a WindowSet from a six-position session (faces found automatically)."""
+    validate_windows(ws)  # a NaN/inf window: clustering and eigvalsh (LAPACK) must not see it
     holds, others, notes = find_faces(ws, to_g=to_g, **face_kw)
     dirs = np.array([h.direction for h in holds])
     means = np.array([h.mean for h in holds])

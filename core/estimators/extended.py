@@ -156,13 +156,25 @@ class _Bound(Parameterization):
         self._ws = ws
         self._rows: tuple[np.ndarray, np.ndarray] | None = None
         # for the kernel: the constant rows (dK_q | do_q) and the entries term_rows fills per window, with values
-        entries = list(term_entries(par.terms, par.base.n_params, par.window_covariates(ws)))
+        covs = par.window_covariates(ws)
+        entries = list(term_entries(par.terms, par.base.n_params, covs))
+        self._missing = {c: ~np.isfinite(z).all(axis=1) for c, z in covs.items()}  # per covariate: rows without it
         self.const_rows = np.ascontiguousarray(np.concatenate([par.dK.reshape(-1, 9), par.do], axis=1))
         self.entries = np.array([(q, 9 + i if on_offset else 4 * i) for q, on_offset, i, _ in entries],
                                 dtype=float).reshape(-1, 2)
         self.values = np.ascontiguousarray(np.column_stack([z for *_, z in entries]) if entries
                                            else np.zeros((len(ws), 0)), dtype=float)
         self.dK, self.do = (self.dK_rows[0], self.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
+
+    def unusable_windows(self) -> str:
+        """A covariate a term needs that some windows lack (NaN/inf: a channel that read no value): a fit would
+        hand LAPACK a NaN Jacobian (it raises on some systems and loops forever on others)."""
+        label = {c: v.label for c, v in COVARIATES.items()}
+        label.update({v.deviation_key: f"lagged {COVARIATES[v.covariate].label}"
+                      for v in map(calibration_view, self.parent.terms) if v.acts_on == "lagged_offset"})
+        bad = [f"{int(m.sum())} of {self.n_rows} windows carry no {label.get(c, c)} value"
+               for c, m in self._missing.items() if m.any()]
+        return f"model {self.model} cannot be fitted: {'; '.join(bad)}" if bad else ""
 
     def subset(self, idx: np.ndarray, ws: WindowSet | None = None) -> "_Bound":
         """This binding restricted to the windows ``idx`` (``ws``: this binding's windows' ``subset(idx)`` when the
@@ -180,6 +192,7 @@ class _Bound(Parameterization):
         out.__dict__.update(self.__dict__)
         out.n_rows, out._ws, out._rows = len(ws), ws, None
         out.values = np.ascontiguousarray(self.values[idx])
+        out._missing = {c: m[idx] for c, m in self._missing.items()}
         out.dK, out.do = (out.dK_rows[0], out.do_rows[0]) if len(ws) == 1 else (par.dK, par.do)
         return out
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..calibration import Calibration
-from ..windows import WindowSet
+from ..windows import WindowSet, require_windows, validate_windows
 from .consider import (CONSIDER_KEY, HELD_KEY, consider_gain, consider_metadata, held_jacobian, held_std_note,
                        held_uncertainty)
 from .extended import extended_class, extended_metadata
@@ -66,36 +66,6 @@ def resolve_parameterization(model: str | type[Parameterization] | Parameterizat
             raise ValueError(f"unknown model {model!r}; known: {', '.join(sorted(PARAMETERIZATIONS))}") from None
         return cls(start.sensitivity, start.offset)
     raise ValueError(f"model must be a name, a Parameterization class or instance, not {type(model).__name__}")
-
-
-def validate_windows(ws: WindowSet, n_params: int | None = None) -> None:
-    """Raise ValueError naming the problem if ``ws`` cannot be used for a fit."""
-    if not isinstance(ws, WindowSet):
-        raise ValueError(f"expected a WindowSet, got {type(ws).__name__}")
-    m = len(ws)
-    if m == 0:
-        raise ValueError("no quasi-static windows: nothing to calibrate from (is the recording all motion, or too short?)")
-    bad = ~np.all(np.isfinite(ws.mean), axis=1)
-    if bad.any():
-        idx = np.flatnonzero(bad)
-        raise ValueError(f"{idx.size} window mean(s) are NaN/inf (windows {idx[:5].tolist()}{'...' if idx.size > 5 else ''})")
-    badc = ~np.all(np.isfinite(ws.cov.reshape(m, 9)), axis=1)
-    if badc.any():
-        idx = np.flatnonzero(badc)
-        raise ValueError(f"{idx.size} window covariance(s) are NaN/inf (windows {idx[:5].tolist()})")
-    if np.any(ws.n <= 0):
-        raise ValueError("window sample counts must be positive")
-    if n_params is not None:
-        require_windows(m, n_params)
-
-
-def require_windows(m: int, n_params: int) -> None:
-    """Raise ValueError unless ``m`` windows can determine ``n_params`` parameters."""
-    if m < n_params:
-        raise ValueError(
-            f"{m} quasi-static window(s) for {n_params} parameters: need at least {n_params} "
-            f"(more, spread over orientations, for a useful estimate)"
-        )
 
 
 def window_directions_spread_deg(mean: np.ndarray, cal: Calibration) -> float:
@@ -226,7 +196,10 @@ class LottersBatch:
         converged = False
         it = 0
         for it in range(1, self.max_iter + 1):
-            step, std = _mvu_solve(B, var, xi, w_prior, p - anchor)  # eq. 11a (+ weak prior)
+            try:
+                step, std = _mvu_solve(B, var, xi, w_prior, p - anchor)  # eq. 11a (+ weak prior)
+            except np.linalg.LinAlgError:  # an information that underflowed to singular: ends unconverged
+                break
             if not np.all(np.isfinite(step)):
                 break
             # converged when the step is negligible in absolute terms or against the parameter's own std
@@ -259,6 +232,7 @@ class LottersBatch:
                 converged = True
                 break
         cov, eig = _mvu_covariance(B, var, scale)  # eq. 11b (data only: no prior in the reported C_e)
+        converged = converged and bool(np.all(np.isfinite(eig)))
         return _Solve(p, cov, float(np.sum(xi**2 / var)), xi, var, it, converged, eig, B, var_h)
 
     # -- public ------------------------------------------------------------------------
@@ -316,6 +290,9 @@ class LottersBatch:
         if abs(np.linalg.det(start.sensitivity)) < 1e-300:
             raise ValueError("start calibration has a singular sensitivity matrix")
         par = resolve_parameterization(self.model, start).at_windows(ws)  # per-window covariates, if any
+        unusable = par.unusable_windows()
+        if unusable:
+            raise ValueError(unusable)
         require_windows(len(ws), par.n_params)  # the rest validate_windows checked above
 
         mean = ws.mean
@@ -369,6 +346,9 @@ class LottersBatch:
                          sol.converged and sol2.converged, sol2.fisher_eig, sol2.B)
             notes.append(f"reduced chi² {chi2_red_stat:.3g} from window noise alone: added a quasi-static floor "
                          f"of {floor_used * 1e3:.3g} mg to C_mu")
+        if not np.all(np.isfinite(sol.fisher_eig)):
+            raise ValueError(f"the {par.model} fit overflowed to non-finite values from the start "
+                             f"({start_source}): the start is far off these windows' scale (units?)")
         rms_g = float(np.sqrt(np.mean(sol.resid_g**2)))
         if rms_g > MAX_PLAUSIBLE_RMS_G:
             sol.converged = False
@@ -520,6 +500,8 @@ def _mvu_covariance(B: np.ndarray, var: np.ndarray, scale: float) -> tuple[np.nd
     a huge, finite variance, so an unobservable parameter never looks confident."""
     W = 1.0 / var
     F = (B.T * W) @ B * (scale * scale)
+    if not np.all(np.isfinite(F)):  # an iterate that overflowed (a start far off the windows' scale): eigh (LAPACK)
+        return np.full(F.shape, np.nan), np.full(F.shape[0], np.nan)  # may loop forever on a NaN; no C_e then
     lam, V = np.linalg.eigh(F)
     lam_c = np.maximum(lam, _RCOND * max(float(lam[-1]), 1e-300))
     cov = (V / lam_c) @ V.T * (scale * scale)

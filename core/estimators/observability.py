@@ -42,7 +42,7 @@ from ..crlb import (
     sphere_directions,
     sphere_metric,
 )
-from ..windows import WindowSet
+from ..windows import WindowSet, validate_windows
 from .consider import consider_gain, held_jacobian, held_uncertainty
 
 ORDERS = ("offsets", "6", "9", "12")
@@ -78,6 +78,8 @@ def coverage(ws: WindowSet, cal: Calibration) -> dict[str, Any]:
     spread_deg: largest angle from the mean direction (Lötters' theta); scatter_eig: eigenvalues of
     mean(u u^T) (1/3 each for the full sphere, (1, 0, 0) for one posture); distinct_postures:
     occupied cells of a ~10° grid on the sphere."""
+    if len(ws):
+        validate_windows(ws)  # the scatter's eigvalsh (LAPACK) may loop forever on a NaN
     a = cal.apply_reference(ws.mean)
     u = a / np.linalg.norm(a, axis=1, keepdims=True)
     c = u.sum(axis=0)

@@ -47,11 +47,11 @@ from ..calibration import Calibration
 from ..crlb import sphere_directions
 from ..model.effect import needed_covariates, references
 from ..model.terms import COVARIATES
-from ..windows import Window, WindowSet
+from ..windows import Window, WindowSet, validate_windows
 from .inuse12 import with_frame
 from .consider import datasheet_held_uncertainty
 from .extended import extended_class, parameterization
-from .lotters import LottersBatch, validate_windows
+from .lotters import LottersBatch
 from .observability import N_PARAMS, ORDERS, POSTURE_CELLS, SIGMA_FLOOR_G, SYSTEMATIC_G, TOL_G, OrderDecision, held_note
 from .online_policy import OnlinePolicy, OnlineStep, PolicySettings, online_candidates
 from .order import (compare_extended, extended_base, extended_terms, fit_extended_floor, is_observable_extended,
@@ -149,6 +149,8 @@ class OnlineCalibrator:
                  systematic_g: float = SYSTEMATIC_G, terms: tuple[str, ...] = ()):
         if not isinstance(start, Calibration):
             raise ValueError("OnlineCalibrator needs a start Calibration (datasheet nominal, saved state, or a fit)")
+        if not (np.all(np.isfinite(start.offset)) and np.all(np.isfinite(start.sensitivity))):
+            raise ValueError("OnlineCalibrator's start calibration has a NaN/inf offset or sensitivity")
         self.lab = lab
         self.start = with_frame(start, lab) if lab is not None and start.model != "12" else start
         self.store = WindowStore(capacity)
@@ -241,6 +243,7 @@ class OnlineCalibrator:
     def update(self, window: Window | WindowSet) -> Calibration:
         """Add one Window (or every row of a WindowSet, in time order) and return the calibration."""
         if isinstance(window, Window):
+            validate_windows(WindowSet.from_windows([window]))  # the store holds only windows a batch fit accepts
             self._one(np.asarray(window.mean, dtype=float), np.asarray(window.cov, dtype=float), float(max(window.n, 1)),
                       float(window.t_mid), window.aux_mean)
         elif isinstance(window, WindowSet):
@@ -293,8 +296,6 @@ class OnlineCalibrator:
         return self.recursive.calibration
 
     def _one(self, mean: np.ndarray, cov: np.ndarray, n: float, t: float, aux: np.ndarray) -> None:
-        if mean.shape != (3,) or not np.all(np.isfinite(mean)) or not np.all(np.isfinite(cov)):
-            raise ValueError(f"window mean/cov must be finite (mean {mean!r})")
         K, o = self._current()
         a = np.linalg.solve(K, mean - o)
         self.store.add(mean, cov, n, t, aux, a / max(float(np.linalg.norm(a)), 1e-12))

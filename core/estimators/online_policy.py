@@ -6,8 +6,11 @@ feed windows and publish what comes back, so they make the same decisions on the
 
 Per window, in this order:
 
-1. **Screen.** A window whose samples move more than ``MAX_WINDOW_STD_G`` on an axis averages
-   postures (a slow turn at constant |a|) and is not quasi-static: counted, not used.
+1. **Screen.** A window with a NaN/inf mean, covariance, sample count or time (``validate_windows``)
+   reaches neither the seed pool, the re-mount detector nor the recursion: one such window in the pool
+   would make every seed fit refuse the pool. A NaN covariate (aux) mean is not screened: it leaves the
+   terms that need that covariate untestable. A window whose samples move more than ``MAX_WINDOW_STD_G``
+   on an axis averages postures (a slow turn at constant |a|) and is not quasi-static. Both: counted, not used.
 2. **Re-mount.** The gravity direction under the accepted calibration feeds the re-mount detector
    (core/estimators/remount.py); an event is reported, the calibration stays valid.
 3. **Update** the recursion (``OnlineCalibrator.update``: order by observability, extended terms by
@@ -34,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from ..calibration import Calibration
-from ..windows import MAX_WINDOW_STD_G, Window, WindowSet, window_std_g
+from ..windows import MAX_WINDOW_STD_G, Window, WindowSet, validate_windows, window_std_g
 from .lotters import LottersBatch, resolve_parameterization
 from .observability import ORDER_LADDER
 from .remount import RemountDetector
@@ -153,7 +156,14 @@ class OnlinePolicy:
     # -- per window ------------------------------------------------------------------------
     def feed(self, w: Window) -> OnlineStep:
         self.windows_seen += 1
-        if float(window_std_g(WindowSet.from_windows([w]), self.applied)[0]) > MAX_WINDOW_STD_G:
+        try:
+            one = WindowSet.from_windows([w])
+            validate_windows(one)
+        except ValueError as exc:
+            self.windows_screened += 1
+            log.warning("window at sample %d screened out: %s", w.start, exc)
+            return OnlineStep(screened=True)
+        if float(window_std_g(one, self.applied)[0]) > MAX_WINDOW_STD_G:
             self.windows_screened += 1
             return OnlineStep(screened=True)
         self.pool.add(w)

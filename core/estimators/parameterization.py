@@ -52,6 +52,10 @@ class Parameterization(ABC):
         as the means it will be given); itself when it has no covariates."""
         return self
 
+    def unusable_windows(self) -> str:
+        """Why the windows this parameterization is bound to cannot be fitted ("" when they can)."""
+        return ""
+
     def unpack(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(K, o) for parameter vector p."""
         p = np.asarray(p, dtype=float)

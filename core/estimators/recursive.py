@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from ..calibration import Calibration
-from ..windows import Window, WindowSet
+from ..windows import Window, WindowSet, validate_windows
 from .consider import (
     CONSIDER_KEY,
     HELD_KEY,
@@ -20,7 +20,7 @@ from .consider import (
     held_uncertainty,
 )
 from .extended import extended_metadata
-from .lotters import START_TOLERANCE, resolve_parameterization, validate_windows
+from .lotters import START_TOLERANCE, resolve_parameterization
 from .observability import SIGMA_FLOOR_G
 from .parameterization import Parameterization
 

@@ -28,6 +28,16 @@ SWAY_BANDWIDTH_HZ = 0.5  # posture sway band (standing/sitting: 0.1-0.6 Hz)
 BIAS_FLOOR_RAD_S = 1e-3  # 0.06 °/s: undetectable slow rotation in a "still" window (simulated turn ends: up to 0.05 °/s)
 
 
+def require_finite(y: np.ndarray, what: str) -> np.ndarray:
+    """``y`` as floats; ValueError naming how many of its gyro samples are NaN/inf: neither a window's bias fit
+    (LAPACK's least squares) nor a pose change's integration can use one."""
+    y = np.asarray(y, dtype=float)
+    bad = int(y.size - np.count_nonzero(np.isfinite(y)))
+    if bad:
+        raise ValueError(f"{bad} of the {y.size} gyro values {what} are NaN/inf")
+    return y
+
+
 @dataclass
 class WindowBias:
     bias: np.ndarray  # (k,) [counts]
@@ -43,7 +53,7 @@ def window_bias(y: np.ndarray, fs: float, hp_hz: float | None = None, floor: flo
     a minimum-jerk pose change, a drifting posture) looks exactly like a bias offset and no
     noise analysis can see it; ``calibrate_gyro`` uses BIAS_FLOOR_RAD_S times the rate scale.
     """
-    y = np.asarray(y, dtype=float)
+    y = require_finite(y, "of a quasi-static window")
     y2 = y.reshape(y.shape[0], -1)
     n, k = y2.shape
     if n < 4:

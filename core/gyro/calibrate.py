@@ -26,7 +26,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..windows import Window, WindowSet
-from .bias import BIAS_FLOOR_RAD_S, GyroBiasEstimator, GyroStillnessGate, window_bias
+from .bias import BIAS_FLOOR_RAD_S, GyroBiasEstimator, GyroStillnessGate, require_finite, window_bias
 from .conditioning import detrend_from_rest, reconstruct
 from .pose import NO_ROTATION, TOO_LONG, Pair, PoseToPose
 
@@ -144,7 +144,7 @@ def make_pair(gyro: np.ndarray, ws: WindowSet, i: int, j: int, acc: Calibration,
     b0, b1 = int(ws.start[j]) - offset, int(ws.end[j]) - offset
     if not (0 <= a0 < a1 <= b0 < b1 <= gyro.shape[0]):
         raise ValueError(f"windows {i}, {j} are not increasing sample ranges inside the gyro samples")
-    seg = gyro[a0:b1]
+    seg = require_finite(gyro[a0:b1], f"of samples {a0 + offset}-{b1 + offset - 1} (a pose change)")
     ni, nj = a1 - a0, b1 - b0
     y = (seg - bias).reshape(seg.shape[0], -1)
     x = reconstruct(y, hp_hz, fs)  # high-pass undone from the start of window i

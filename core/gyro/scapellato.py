@@ -124,6 +124,9 @@ def step_height_search(places: list[Placement], step_height_m: float | None, *, 
         raise ValueError(f"need at least 2 foot placements between stances, got {len(places)}")
     if not (start > 0 and np.isfinite(start)):
         raise ValueError(f"start sensitivity must be positive, got {start}")
+    bad = [k for k, p in enumerate(places) if not (np.all(np.isfinite(p.u)) and np.all(np.isfinite(p.f)))]
+    if bad:  # a NaN height makes the search's cost NaN: it would end anywhere, with no error
+        raise ValueError(f"foot placement(s) {bad} hold NaN/inf gyro or accelerometer samples: no height from them")
 
     def heights(s: float) -> np.ndarray:
         return np.array([displacement(p, s)[1] for p in places])

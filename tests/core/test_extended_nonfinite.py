@@ -42,3 +42,41 @@ def test_a_nan_window_ends_the_fit_unconverged_instead_of_hanging(where):
     clean_converged, converged, iterations = map(int, out.stdout.split())
     assert clean_converged == 1  # the same windows without the NaN fit
     assert converged == 0 and iterations == 1
+
+
+BATCH_CHILD = textwrap.dedent("""
+    import sys
+    import numpy as np
+    from gravcal.core.diagnosis.synthetic import PLANT, window_session
+    from gravcal.core.estimators.lotters import LottersBatch
+    from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
+
+    covariate = sys.argv[1]
+    term = next(t for t in CALIBRATION_TERMS if calibration_view(t).covariate == covariate)
+    s = window_session(4, {term: PLANT[term]})
+    col = ["temp", "vsupply"].index(covariate)
+    clean = LottersBatch(f"6+{term}").fit(s.ws, s.start)
+    bad = np.arange(5, len(s.ws), 17)
+    s.ws.aux[bad, col] = np.nan
+    try:
+        LottersBatch(f"6+{term}").fit(s.ws, s.start)
+        print(int(clean.converged), len(bad), "no error")
+    except ValueError as exc:
+        print(int(clean.converged), len(bad), exc)
+""")
+
+
+@pytest.mark.parametrize("covariate", ["temp", "vsupply"])
+def test_the_batch_fit_of_an_extended_model_names_windows_without_its_covariate(covariate):
+    """LottersBatch on windows some of which carry no value of the covariate its model needs: a ValueError
+    that says how many, not LAPACK's "Eigenvalues did not converge" (or a hang) on a NaN Jacobian."""
+    try:
+        out = subprocess.run([sys.executable, "-c", BATCH_CHILD, covariate], capture_output=True, text=True,
+                             timeout=120)
+    except subprocess.TimeoutExpired:
+        pytest.fail("LottersBatch did not return within 120 s on windows with a NaN covariate")
+    assert out.returncode == 0, out.stderr[-2000:]
+    converged, n_bad, message = out.stdout.strip().split(" ", 2)
+    assert converged == "1"  # the same windows with every covariate value fit
+    label = {"temp": "temperature", "vsupply": "supply voltage"}[covariate]
+    assert f"{n_bad} of 200 windows carry no {label} value" in message, message
