@@ -93,6 +93,7 @@ class SeqUnwrapper:
         if s.shape[0] == 0:
             return np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0, bool)
         t = None if ticks is None else np.asarray(ticks).astype(np.int64)
+        last_before, tick_before = self.last, self._tick_last
         hint, self._expected = self._expected, None
         after, self._after_outage = self._after_outage, False
         restarted = after and t is not None and self._restarted(int(s[0]), int(t[0]), hint)
@@ -103,6 +104,8 @@ class SeqUnwrapper:
             gap[0] = True
         if t is not None:
             self._learn_ticks(s, t, keep)
+            if s.shape[0] == 1 and keep[0] and not restarted and last_before is not None and self.last == last_before + 1:
+                self._learn_step(tick_before, int(t[0]), 1)
         return keep, seq, gap
 
     def continue_one(self, raw: int, tick: int | None) -> tuple[int, bool] | None:
@@ -122,6 +125,8 @@ class SeqUnwrapper:
             self._fallback, self._jumped = None, []
         self._head = self.last = self._head + step
         if tick is not None:
+            if step == 1:
+                self._learn_step(self._tick_last, tick, 1)
             self._tick_last = tick
         return self._head + self.offset, step > 1
 
@@ -140,9 +145,11 @@ class SeqUnwrapper:
             return
         self._fallback, self._jumped = None, []
         self._head = self.last = self._head + n
-        self._tick_last = tick
         if tick_period is not None:
             self._tick_period = tick_period
+        else:
+            self._learn_step(self._tick_last, tick, n)
+        self._tick_last = tick
 
     # -------------------------------------------------------- device restarts (sequence and tick from 0)
     def _learn_ticks(self, s: np.ndarray, t: np.ndarray, keep: np.ndarray) -> None:
@@ -151,6 +158,13 @@ class SeqUnwrapper:
         kept = np.flatnonzero(keep)
         if kept.shape[0]:
             self._tick_last = int(t[kept[-1]])
+
+    def _learn_step(self, tick_before: int | None, tick: int, n: int) -> None:
+        """A stream read one frame at a time never holds two frames in one read: its tick period comes from
+        ``n`` frames that continued the previous one by one, learnt once (a read of several refines it), so
+        a device restart behind an outage can be told from a 16-bit wrap on every bus."""
+        if self._tick_period is None and tick_before is not None:
+            self._tick_period = ((tick - tick_before) & 0xFFFFFFFF) / n or None
 
     def _restarted(self, raw: int, tick: int, hint: float | None) -> bool:
         """The first frame after an outage is a restarted device's: its seq and tick both count from a
