@@ -76,5 +76,10 @@ def test_root_with_a_user_drops_to_it_after_opening_device_and_socket(tmp_path):
             assert any(c.read_message()["class"] == "IMU" for _ in range(20))
         assert "dropped privileges to nobody" in d.log()
         assert os.stat(d.state).st_uid == nobody.pw_uid
+        emulator_pid = int(d.log().split("emulator pid ")[1].split(":")[0])
     finally:
-        d.stop()
+        code = d.stop()
+    # the emulator child, started as root, cannot be signalled after the drop: it still stops, and so does gravcald
+    assert code == 0, d.log()[-2000:]
+    assert "Traceback" not in d.log()
+    assert not os.path.exists(f"/proc/{emulator_pid}") or "zombie" in open(f"/proc/{emulator_pid}/status").read()
