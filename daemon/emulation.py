@@ -163,6 +163,17 @@ def emulation_defaults(args: argparse.Namespace, overrides: dict[str, Any]) -> l
     return [base]
 
 
+def discard_if_empty(dirs: list[str]) -> None:
+    """Remove the temporary directories of :func:`emulation_defaults` that hold nothing (a failed start, or a
+    run that saved no state): a start that fails creates nothing. Anything with a file in it stays."""
+    for base in dirs:
+        for root, _subdirs, _files in os.walk(base, topdown=False):  # the state directory before its parent
+            try:
+                os.rmdir(root)
+            except OSError:  # not empty (a saved state, a socket of a running daemon), or gone
+                pass
+
+
 def announce_emulation(daemon: Any, emulator: EmulatedBus, dirs: list[str]) -> None:
     """What ``gravcald --emulate`` prints at start: the emulated device, socket, state, start and truth."""
     sock = daemon.server.address if isinstance(daemon.server.address, str) else daemon.cfg.socket.path

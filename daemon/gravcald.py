@@ -22,7 +22,7 @@ from . import privileges
 from .closed_pipe import write_or_stop
 from .config import ConfigError
 from .errors import InputError
-from .emulation import EmulatedBus, announce_emulation, emulation_defaults
+from .emulation import EmulatedBus, announce_emulation, discard_if_empty, emulation_defaults
 from .socket_activation import SocketPathError
 from .service import Gravcald
 
@@ -113,8 +113,16 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
         print(f"gravcald: error: --duration must be a positive number of seconds, got {args.duration}", file=sys.stderr)
         return 2
     overrides = overrides_from_args(args)
-    config_path = args.config
     emulate_dirs = emulation_defaults(args, overrides) if args.emulate and not args.print_config else []
+    try:
+        return _configure_and_run(args, env, overrides, emulate_dirs, driver)
+    finally:
+        discard_if_empty(emulate_dirs)
+
+
+def _configure_and_run(args: argparse.Namespace, env: Any, overrides: dict[str, Any], emulate_dirs: list[str],
+                       driver: Any) -> int:
+    config_path = args.config
     try:
         if args.emulate:  # the emulator is self-contained: read a config file only when asked to
             cfg = config_mod.load_config(config_path, overrides)

@@ -1,0 +1,26 @@
+"""`gravcald --emulate` without --socket/--state-dir makes a temporary directory for both: a start that fails
+leaves none behind, and one holding a saved state is kept (it resumes with --state-dir)."""
+import pytest
+
+from gravcal.daemon import gravcald
+from gravcal.daemon.emulation import discard_if_empty
+
+
+@pytest.mark.parametrize("argv", [["--fs", "-5"], ["--config", "/nonexistent/gravcald.toml"],
+                                  ["--bus", "serial", "--driver-options", "baudrate=fast"]],
+                         ids=["bad-rate", "missing-config", "bad-driver-option"])
+def test_a_failed_emulated_start_creates_nothing(tmp_path, monkeypatch, capsys, argv):
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    code = gravcald.main(["--emulate", "--allow-root", *argv])
+    err = capsys.readouterr().err
+    assert code != 0 and "gravcald: error:" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_only_empty_directories_are_discarded(tmp_path):
+    empty, kept = tmp_path / "gravcald-emulate-a", tmp_path / "gravcald-emulate-b"
+    (empty / "state").mkdir(parents=True)
+    (kept / "state").mkdir(parents=True)
+    (kept / "state" / "state.json").write_text("{}")
+    discard_if_empty([str(empty), str(kept), str(tmp_path / "gone")])
+    assert not empty.exists() and (kept / "state" / "state.json").exists()
