@@ -119,6 +119,29 @@ def test_device_vanishes_and_comes_back():
     assert st["disconnects"] == 1 and st["reconnects"] == 1
 
 
+def test_an_overflow_while_the_host_reconnects_is_flagged_after_the_fifo_content():
+    # the device comes back and fills its FIFO (16) before the host reopens it: the FIFO's frames follow the
+    # outage's gap (reconnect), the overflow's gap comes after them, and each flag lands on its own gap
+    clock, dev, drv = rig(faults=Faults(disconnects=[(1.0, 0.5)]), depth=16)
+    drv.backoff.initial_s = 0.0
+    with drv:
+        a = pump(clock, drv, 20, 0.05)  # to 1.0 s
+        clock.advance(0.5)  # the outage
+        held = drv.read(max_samples=4096, timeout=0)  # what the FIFO held, then the NACK
+        clock.advance(0.3)  # back for 0.3 s before the reopen: 60 samples, the FIFO keeps 16
+        b = pump(clock, drv, 10, 0.05)
+        st = drv.stats()
+    got = np.concatenate([a, held, b])
+    seq, status = check(got, dev.fates())
+    full = np.flatnonzero(status == FIFO_FULL)
+    assert (status == OFFLINE).sum() == 100 and full.shape[0] >= 40
+    rec = np.flatnonzero(got["flags"] & FLAG_RECONNECT)
+    ovf = np.flatnonzero(got["flags"] & FLAG_FIFO_OVERFLOW)
+    assert rec.shape == (1,) and seq[rec[0]] == 300 and got["flags"][rec[0]] & FLAG_GAP_BEFORE
+    assert ovf.shape == (1,) and seq[ovf[0]] == full[-1] + 1 and seq[ovf[0] - 1] == full[0] - 1 == 315
+    assert st["fifo_overflows"] == 1 and st["gaps"] == 2 and st["missing"] == 100 + full.shape[0]
+
+
 def test_open_errors_are_named():
     with pytest.raises(DriverError, match=r"I2C bus /dev/i2c-99 does not exist"):
         open_driver("i2c://99/0x42")
