@@ -209,7 +209,7 @@ class I2CDriver(FramedStreamDriver):
         self._smbus = sm
 
     def _held_at_reconnect(self) -> int:
-        return self._fifo_at_connect
+        return self._fifo_at_connect + sum(len(b) for b in self._unread) // FRAME_LEN
 
     def _disconnect(self) -> None:
         sm, self._smbus = self._smbus, None
@@ -314,7 +314,11 @@ class I2CDriver(FramedStreamDriver):
                 return []
         while count > 0:
             n = min(count, self.burst_frames)
-            bursts.append(self._burst(n))
+            try:
+                bursts.append(self._burst(n))
+            except self.transient_errors:  # what earlier bursts took out of the FIFO comes first after the reconnect
+                self._unread = self._unread + bursts
+                raise
             count -= n
         return bursts
 

@@ -142,6 +142,43 @@ def test_an_overflow_while_the_host_reconnects_is_flagged_after_the_fifo_content
     assert st["fifo_overflows"] == 1 and st["gaps"] == 2 and st["missing"] == 100 + full.shape[0]
 
 
+@pytest.mark.parametrize("lost_on_the_wire", [False, True], ids=["burst-refused", "burst-lost"])
+def test_frames_read_before_the_bus_fails_mid_read_are_kept(lost_on_the_wire):
+    # a read of 41 frames (99..139) takes three bursts (16, 16, 9); the bus fails on the last: the 32 frames the
+    # first two took out of the FIFO are decoded after the reconnect, before anything newer. A refused burst leaves
+    # its frames in the FIFO (nothing lost); a burst lost on the wire loses its 9, the reconnect's gap
+    clock, dev, _ = rig(depth=64)
+    bursts = {"n": 0, "fail_at": None}
+
+    class FlakyBus(FakeSMBus):
+        def i2c_rdwr(self, *msgs):
+            failing = len(msgs) == 2 and msgs[1].len > 2 and bursts["n"] + 1 == bursts["fail_at"]
+            bursts["n"] += len(msgs) == 2 and msgs[1].len > 2  # a FIFO burst (STATUS reads 2 bytes)
+            if failing and not lost_on_the_wire:
+                raise OSError(errno.EREMOTEIO, "Remote I/O error (no ACK)")
+            super().i2c_rdwr(*msgs)
+            if failing:
+                raise OSError(errno.EREMOTEIO, "Remote I/O error (no ACK)")
+
+    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: FlakyBus(dev, bus))
+    drv.backoff.initial_s = 0.0
+    with drv:
+        a = pump(clock, drv, 10, 0.05)
+        bursts["fail_at"] = bursts["n"] + 3
+        b = pump(clock, drv, 10, 0.2)
+        st = drv.stats()
+    got = np.concatenate([a, b])
+    seq = got["seq"]
+    sent = np.flatnonzero(dev.fates()["status"] == SENT)
+    lost = np.setdiff1d(sent, seq)
+    np.testing.assert_array_equal(lost, np.arange(131, 140) if lost_on_the_wire else [])
+    np.testing.assert_array_equal((got["flags"] & FLAG_GAP_BEFORE) != 0, np.r_[False, np.diff(seq) > 1])
+    assert st["disconnects"] == 1 and st["reconnects"] == 1 and st["restarts"] == 0
+    assert st["missing"] == lost.shape[0] and st["gaps"] == int(lost.shape[0] > 0)
+    k = np.flatnonzero(got["flags"] & FLAG_RECONNECT)
+    assert k.shape == (1,) and seq[k[0]] == 140  # the first sample produced after the outage
+
+
 def test_open_errors_are_named():
     with pytest.raises(DriverError, match=r"I2C bus /dev/i2c-99 does not exist"):
         open_driver("i2c://99/0x42")
