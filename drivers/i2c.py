@@ -251,9 +251,10 @@ class I2CDriver(FramedStreamDriver):
         return samples
 
     def _flag_overflow(self, samples: np.ndarray, frames: int) -> None:
-        """FLAG_FIFO_OVERFLOW on the first gap after the frames the FIFO held when it reported the overflow (a
-        full FIFO drops the newest): not on an earlier gap among them, such as a reconnect's. ``frames``: the
-        frames read, of which ``samples`` is what the decoder kept (a frame it dropped shifts the gap back)."""
+        """FLAG_FIFO_OVERFLOW on the first gap from ``_overflow_after`` frames on (a full FIFO drops the newest:
+        at its first report after a reconnect the gap follows the frames it holds, not the reconnect's gap among
+        them). ``frames``: the frames read, of which ``samples`` is what the decoder kept (a frame it dropped
+        shifts the gap back)."""
         after = max(0, self._overflow_after - max(0, frames - samples.shape[0]))
         gaps = np.flatnonzero(samples["flags"] & FLAG_GAP_BEFORE)
         gaps = gaps[gaps >= after]
@@ -299,8 +300,9 @@ class I2CDriver(FramedStreamDriver):
                 status, count = self._status()
             if status & STATUS_FIFO_OVERFLOW:
                 self.counters["fifo_overflows"] += 1
-                if not self._overflow_pending:
-                    self._overflow_pending, self._overflow_after = True, count
+                if not self._overflow_pending:  # its gap: after the frames held now if none was read since the
+                    # (re)connect, else somewhere among them (frames read since made room): the first gap
+                    self._overflow_pending, self._overflow_after = True, count if self._flag_reconnect else 0
             if first:
                 bursts.append(first)
                 count -= len(first) // FRAME_LEN

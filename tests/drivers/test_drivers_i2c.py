@@ -142,6 +142,34 @@ def test_an_overflow_while_the_host_reconnects_is_flagged_after_the_fifo_content
     assert st["fifo_overflows"] == 1 and st["gaps"] == 2 and st["missing"] == 100 + full.shape[0]
 
 
+def test_an_overflow_during_a_slow_read_is_flagged_on_its_gap():
+    # the host is held up 0.2 s inside a read (a slow bus): the FIFO (16) fills behind the frames it is reading
+    # and drops the newest; the next read finds the frames from before the drop, then the gap, then newer ones
+    clock, dev, _ = rig(depth=16)
+    slow = {"at": None, "n": 0}
+
+    class SlowBus(FakeSMBus):
+        def i2c_rdwr(self, *msgs):
+            if len(msgs) == 2 and msgs[1].len > 2:  # a FIFO burst
+                slow["n"] += 1
+                if slow["n"] == slow["at"]:
+                    clock.advance(0.2)
+            super().i2c_rdwr(*msgs)
+
+    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: SlowBus(dev, bus))
+    with drv:
+        a = pump(clock, drv, 10, 0.05)
+        slow["at"] = slow["n"] + 1
+        b = pump(clock, drv, 10, 0.05)
+        st = drv.stats()
+    got = np.concatenate([a, b])
+    seq, status = check(got, dev.fates())
+    lost = np.flatnonzero(status == FIFO_FULL)
+    k = np.flatnonzero(got["flags"] & FLAG_FIFO_OVERFLOW)
+    assert lost.shape[0] > 0 and st["fifo_overflows"] == 1 and st["gaps"] == 1
+    assert k.shape == (1,) and seq[k[0]] == lost[-1] + 1 and seq[k[0] - 1] == lost[0] - 1
+
+
 @pytest.mark.parametrize("lost_on_the_wire", [False, True], ids=["burst-refused", "burst-lost"])
 def test_frames_read_before_the_bus_fails_mid_read_are_kept(lost_on_the_wire):
     # a read of 41 frames (99..139) takes three bursts (16, 16, 9); the bus fails on the last: the 32 frames the
