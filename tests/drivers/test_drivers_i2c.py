@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import errno
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -277,3 +279,24 @@ def test_realtime_device_wakes_the_driver_by_drdy_and_loses_only_the_outage():
     assert k.shape == (1,) and got["seq"][k[0]] == offline[-1] + 1 and got["flags"][k[0]] & FLAG_GAP_BEFORE
     # woken by the line: about one STATUS read per sample (a 1 ms poll would take ~1600)
     assert st["polls"] < 1.5 * got.shape[0] + 50, (st["polls"], got.shape[0])
+
+
+def test_reading_the_fake_device_imports_nothing_new():
+    # a daemon that dropped privileges may not be able to load a module from then on (an installation its user
+    # cannot read): the emulated device's reads import nothing (np.unique of no bit errors loaded numpy.ma)
+    code = ("import sys\n"
+            "from gravcal.drivers.rigs.fake_i2c import FakeI2CDevice, FakeSMBus, ManualClock\n"
+            "from gravcal.drivers.rigs.sources import pattern_blocks\n"
+            "from gravcal.drivers.i2c import I2CDriver\n"
+            "clock = ManualClock()\n"
+            "dev = FakeI2CDevice(pattern_blocks(seed=1, fs=200.0, duration=2.0), 200.0, clock=clock)\n"
+            "drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: FakeSMBus(dev, bus)).open()\n"
+            "drv.read(max_samples=64, timeout=0)\n"
+            "before = set(sys.modules)\n"
+            "for _ in range(20):\n"
+            "    clock.advance(0.05)\n"
+            "    drv.read(max_samples=64, timeout=0)\n"
+            "print(sorted(set(sys.modules) - before))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
