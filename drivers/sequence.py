@@ -111,7 +111,8 @@ class SeqUnwrapper:
             gap[0] = True
         if t is not None:
             self._learn_ticks(s, t, keep)
-            if s.shape[0] == 1 and keep[0] and not restarted and last_before is not None and self.last == last_before + 1:
+            one_step = last_before is not None and self.last == last_before + 1
+            if s.shape[0] == 1 and keep[0] and not restarted and one_step:
                 self._learn_step(tick_before, int(t[0]), 1)
         return keep, seq, gap
 

@@ -88,7 +88,8 @@ def test_findings_are_a_table_of_numbers(tmp_path):
     page = report.write_report(d, tmp_path, source="session").read_text()
     mag = d.findings[0]["magnitude"]
     for k, v in mag["value"].items():
-        assert f"| {effect} | {k} | {report.num(v)} ± {report.num(mag['std'][k])} | {report.unit_text(mag['unit'])} |" in page
+        unit = report.unit_text(mag["unit"])
+        assert f"| {effect} | {k} | {report.num(v)} ± {report.num(mag['std'][k])} | {unit} |" in page
     assert "_per_" not in page and "_from_" not in page  # units as a reader writes them, not the JSON's names
     assert f"convention: {mag['convention']}" in page
     assert not re.search(r"\{'|': |np\.float64", page)
