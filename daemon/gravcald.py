@@ -56,7 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="time-lapse factor of the emulated logger (1 = real time, default; 'max' = no pacing)")
     e.add_argument("--seed", type=int, default=0, help="seed of the emulated sensor and wearer (default 0)")
     e.add_argument("--scenario", default="daily_living",
-                   help="emulated motion: daily_living (default), loetters, six_position, static, or pattern")
+                   help="emulated motion: daily_living (default), loetters, sagittal_postures, six_position, static, "
+                        "or pattern")
     e.add_argument("--duration", type=float, default=86400.0, metavar="S",
                    help="emulated stream length [s of sensor time] (default 86400, a day; the motion is planned "
                         "ahead, so longer takes longer to start); then the bus goes silent")

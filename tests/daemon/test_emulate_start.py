@@ -24,3 +24,11 @@ def test_only_empty_directories_are_discarded(tmp_path):
     (kept / "state" / "state.json").write_text("{}")
     discard_if_empty([str(empty), str(kept), str(tmp_path / "gone")])
     assert not empty.exists() and (kept / "state" / "state.json").exists()
+
+
+def test_the_scenario_help_names_every_scenario_the_emulator_takes():
+    from gravcal.core.scenarios import SCENARIOS
+    from gravcal.drivers.rigs.sources import PATTERN
+
+    help_text = next(a.help for a in gravcald.build_parser()._actions if "--scenario" in a.option_strings)
+    assert all(name in help_text for name in [*SCENARIOS, PATTERN]), help_text
