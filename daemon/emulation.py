@@ -53,6 +53,9 @@ class EmulatedBus:
             raise ValueError(f"--bus must be serial, can or i2c, got {bus!r}")
         if not speed > 0:
             raise ValueError(f"--speed must be > 0, got {speed}")
+        if bus == "i2c" and driver_options.strip("&?"):
+            raise ValueError("--driver-options applies to the serial and can buses (i2c: [device] latency_budget_s "
+                             "in a --config file sets its FIFO watermark)")
         self.bus, self.scenario, self.seed, self.speed, self.fs = bus, scenario, int(seed), float(speed), float(fs)
         self.duration, self.disconnects = float(duration), tuple(disconnects)
         self.driver_options = driver_options.strip("&?")

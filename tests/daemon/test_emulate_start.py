@@ -1,5 +1,9 @@
 """`gravcald --emulate` without --socket/--state-dir makes a temporary directory for both: a start that fails
 leaves none behind, and one holding a saved state is kept (it resumes with --state-dir)."""
+import os
+import subprocess
+import sys
+
 import pytest
 
 from gravcal.daemon import gravcald
@@ -32,3 +36,12 @@ def test_the_scenario_help_names_every_scenario_the_emulator_takes():
 
     help_text = next(a.help for a in gravcald.build_parser()._actions if "--scenario" in a.option_strings)
     assert all(name in help_text for name in [*SCENARIOS, PATTERN]), help_text
+
+
+def test_driver_options_for_the_in_process_i2c_device_are_refused(tmp_path):
+    # a subprocess: were the option ignored, gravcald would start and serve (the timeout ends it, red)
+    p = subprocess.run([sys.executable, "-m", "gravcal.daemon.gravcald", "--emulate", "--allow-root", "--bus", "i2c",
+                        "--driver-options", "latency_budget_s=0.02"], capture_output=True, text=True, timeout=60,
+                       env={**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)})
+    assert p.returncode == 2 and "--driver-options applies to the serial and can buses" in p.stderr, p.stderr
+    assert list(tmp_path.iterdir()) == []
