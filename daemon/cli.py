@@ -20,6 +20,7 @@ import traceback
 from pathlib import Path
 from typing import Sequence
 
+from .closed_pipe import write_or_stop
 from .errors import GravcalError, InputError
 
 EXIT_OK = 0
@@ -63,7 +64,7 @@ class _VersionAction(argparse.Action):
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help="show the version and exit")
 
     def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
-        print(f"gravcal {_version()}")
+        write_or_stop(f"gravcal {_version()}")
         parser.exit()
 
 

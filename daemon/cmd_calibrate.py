@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
+from .report import unit_text
 
 log = logging.getLogger(__name__)
 
@@ -202,13 +203,6 @@ def _fmt(v: Any, spec: str = ".6g") -> str:
     return format(float(v), spec)
 
 
-def _unit(name: str) -> str:
-    """An extended term's unit name (core/estimators/extended.py magnitudes) as printed: mg_per_C -> mg/°C."""
-    num, _, den = name.partition("_per_")
-    num = {"pct": "%", "c2": "c2"}.get(num, num)
-    return f"{num}/{'°C' if den == 'C' else den}" if den else num
-
-
 def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     """A readable account of the result (the --json object holds the same numbers)."""
     inp = out["input"]
@@ -243,7 +237,7 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
         sd = mag.get("std") or {}
         vals = ", ".join(f"{k} {_fmt(v, '.3g')}" + (f" ± {_fmt(sd[k], '.2g')}" if sd.get(k) is not None else "")
                          for k, v in mag["value"].items())
-        lines.append(f"{term:<11} {vals} [{_unit(mag['unit'])}] "
+        lines.append(f"{term:<11} {vals} [{unit_text(mag['unit'])}] "
                      f"(offset and sensitivity above hold at {_fmt(ext.get('t_ref_c'), '.3g')} °C)")
     for term, verdict in (out.get("extended_terms") or {}).items():  # model auto: why a term is (not) in
         if isinstance(verdict, dict) and verdict.get("status") != "chosen":

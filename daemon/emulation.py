@@ -53,6 +53,9 @@ class EmulatedBus:
             raise ValueError(f"--bus must be serial, can or i2c, got {bus!r}")
         if not speed > 0:
             raise ValueError(f"--speed must be > 0, got {speed}")
+        if bus == "i2c" and driver_options.strip("&?"):
+            raise ValueError("--driver-options applies to the serial and can buses (i2c: [device] latency_budget_s "
+                             "in a --config file sets its FIFO watermark)")
         self.bus, self.scenario, self.seed, self.speed, self.fs = bus, scenario, int(seed), float(speed), float(fs)
         self.duration, self.disconnects = float(duration), tuple(disconnects)
         self.driver_options = driver_options.strip("&?")
@@ -161,6 +164,17 @@ def emulation_defaults(args: argparse.Namespace, overrides: dict[str, Any]) -> l
     if not args.state_dir:
         overrides["state.directory"] = os.path.join(base, "state")
     return [base]
+
+
+def discard_if_empty(dirs: list[str]) -> None:
+    """Remove the temporary directories of :func:`emulation_defaults` that hold nothing (a failed start, or a
+    run that saved no state): a start that fails creates nothing. Anything with a file in it stays."""
+    for base in dirs:
+        for root, _subdirs, _files in os.walk(base, topdown=False):  # the state directory before its parent
+            try:
+                os.rmdir(root)
+            except OSError:  # not empty (a saved state, a socket of a running daemon), or gone
+                pass
 
 
 def announce_emulation(daemon: Any, emulator: EmulatedBus, dirs: list[str]) -> None:

@@ -22,7 +22,7 @@ from . import privileges
 from .closed_pipe import write_or_stop
 from .config import ConfigError
 from .errors import InputError
-from .emulation import EmulatedBus, announce_emulation, emulation_defaults
+from .emulation import EmulatedBus, announce_emulation, discard_if_empty, emulation_defaults
 from .socket_activation import SocketPathError
 from .service import Gravcald
 
@@ -56,7 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="time-lapse factor of the emulated logger (1 = real time, default; 'max' = no pacing)")
     e.add_argument("--seed", type=int, default=0, help="seed of the emulated sensor and wearer (default 0)")
     e.add_argument("--scenario", default="daily_living",
-                   help="emulated motion: daily_living (default), loetters, six_position, static, or pattern")
+                   help="emulated motion: daily_living (default), loetters, sagittal_postures, six_position, static, "
+                        "or pattern")
     e.add_argument("--duration", type=float, default=86400.0, metavar="S",
                    help="emulated stream length [s of sensor time] (default 86400, a day; the motion is planned "
                         "ahead, so longer takes longer to start); then the bus goes silent")
@@ -113,8 +114,16 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
         print(f"gravcald: error: --duration must be a positive number of seconds, got {args.duration}", file=sys.stderr)
         return 2
     overrides = overrides_from_args(args)
-    config_path = args.config
     emulate_dirs = emulation_defaults(args, overrides) if args.emulate and not args.print_config else []
+    try:
+        return _configure_and_run(args, env, overrides, emulate_dirs, driver)
+    finally:
+        discard_if_empty(emulate_dirs)
+
+
+def _configure_and_run(args: argparse.Namespace, env: Any, overrides: dict[str, Any], emulate_dirs: list[str],
+                       driver: Any) -> int:
+    config_path = args.config
     try:
         if args.emulate:  # the emulator is self-contained: read a config file only when asked to
             cfg = config_mod.load_config(config_path, overrides)

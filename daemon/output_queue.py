@@ -10,8 +10,9 @@ class OutputQueue:
     Entries are runs of encoded lines ``[lines, start, joined, nbytes]``: a block's IMU lines are
     encoded once and the same list (and, for full-rate clients, the same pre-joined bytes) is
     queued for every client, so queueing and sending cost one C-level join per block and
-    client, never a Python step per line. Dropping a part of a run advances ``start``. The byte
-    count is what this queue would hold on its own (shared lines are counted for every client), so
+    client, never a Python step per line. Dropping a part of a run advances ``start`` (and lets its
+    joined copy go). The byte count is what this queue would hold on its own: the lines, plus the
+    joined copy while it is kept (shared lines are counted for every client), so
     ``max_clients * max_bytes`` bounds the daemon's queued memory.
     """
 
@@ -38,7 +39,7 @@ class OutputQueue:
         n = len(lines)
         if n == 0:
             return 0
-        size = len(joined) if joined is not None else sum(map(len, lines))
+        size = 2 * len(joined) if joined is not None else sum(map(len, lines))  # the lines and their joined copy
         self.entries.append([lines, 0, joined, size])
         self.size += n
         self.nbytes += size
@@ -50,13 +51,15 @@ class OutputQueue:
             if avail <= excess_msgs or e[3] <= excess_bytes:
                 self.entries.popleft()
                 drop, drop_bytes = avail, e[3]
-            else:  # part of the oldest run: enough of its first lines to cover both excesses
+            else:  # part of the oldest run: its joined copy, and enough of its first lines to cover both excesses
+                freed = len(e[2]) if e[2] is not None else 0
                 drop, drop_bytes = excess_msgs, sum(map(len, e[0][e[1]:e[1] + excess_msgs]))
-                while drop_bytes < excess_bytes:
+                while drop_bytes + freed < excess_bytes:
                     drop_bytes += len(e[0][e[1] + drop])
                     drop += 1
                 e[1] += drop
                 e[2] = None
+                drop_bytes += freed
                 e[3] -= drop_bytes
             self.size -= drop
             self.nbytes -= drop_bytes
@@ -67,14 +70,15 @@ class OutputQueue:
     def take(self, max_bytes: int) -> tuple[list[bytes], int]:
         """Whole runs, oldest first, until about ``max_bytes``: (byte strings, messages)."""
         out: list[bytes] = []
-        n = size = 0
+        n = size = held = 0
         entries = self.entries
         while entries and size < max_bytes:
-            lines, start, joined, _ = entries.popleft()
+            lines, start, joined, nbytes = entries.popleft()
             data = joined if joined is not None else b"".join(lines[start:] if start else lines)
             out.append(data)
             n += len(lines) - start
             size += len(data)
+            held += nbytes
         self.size -= n
-        self.nbytes -= size
+        self.nbytes -= held
         return out, n

@@ -77,3 +77,16 @@ def drop(identity: Identity, hand_over: Iterable[str] = ()) -> None:
     else:  # pragma: no cover - a kernel that let us back would make the drop meaningless
         raise RuntimeError("privileges could not be dropped: setuid(0) succeeded afterwards")
     log.info("dropped privileges to %s, groups %s", identity.describe(), ",".join(map(str, identity.groups)))
+    for path in unreadable_code():
+        log.warning("%s cannot read %s: modules imported later (on first use) will fail; install gravcal where "
+                    "that user can read it (docs/daemon.md, a virtualenv in /opt/gravcal)", identity.user, path)
+
+
+def unreadable_code() -> list[str]:
+    """The directories of the Python installation (the standard library, numpy, gravcal) this process
+    cannot read: a module first imported after a privilege drop would fail to load from there."""
+    import numpy
+
+    dirs = {os.path.dirname(os.__file__), os.path.dirname(numpy.__file__),
+            os.path.dirname(os.path.dirname(os.path.abspath(__file__)))}
+    return sorted(d for d in dirs if not os.access(d, os.R_OK | os.X_OK))

@@ -20,6 +20,14 @@ AXIS_COLORS = {"x": "tab:red", "y": "tab:green", "z": "tab:purple"}
 NORM_LABEL = "1 g − |a| [mg]"
 
 
+def unit_text(name: str) -> str:
+    """A term's unit name (core/estimators/extended.py magnitudes, the JSON's) as a reader writes it:
+    mg_per_C -> mg/°C, pct_per_h -> %/h, deg_from_orthogonal -> ° from orthogonal."""
+    num, _, den = name.partition("_per_")
+    num = {"pct": "%", "deg_from_orthogonal": "° from orthogonal"}.get(num, num)
+    return f"{num}/{'°C' if den == 'C' else den}" if den else num
+
+
 def _have_matplotlib() -> bool:
     try:
         import matplotlib  # noqa: F401
@@ -121,7 +129,7 @@ def _finding_rows(x: dict[str, Any]) -> list[str]:
             rows.append(f"| {x['effect']} | {k} | undetermined: {und.get(k, 'not estimated')} | | |")
             continue
         raw_s = "" if raw is None else f"{num(raw)} ± {num(raw_sd)} {mag.get('raw_unit', '')}"
-        rows.append(f"| {x['effect']} | {k} | {num(v)} ± {num(sd)} | {mag.get('unit', '')} | {raw_s} |")
+        rows.append(f"| {x['effect']} | {k} | {num(v)} ± {num(sd)} | {unit_text(mag.get('unit', ''))} | {raw_s} |")
     return rows
 
 

@@ -298,7 +298,8 @@ class Driver(ABC):
             rate = self._rate.rate_hz
             if unwrapper is not None:  # what the host clock says went by (None: unknown yet)
                 known = rate and self._lost_at is not None
-                unwrapper.expect_advance((time.monotonic() - self._lost_at) * rate if known else None)
+                unwrapper.expect_advance((time.monotonic() - self._lost_at) * rate if known else None,
+                                         held=self._held_left)
             log.info("%s %s reconnected", self.bus, self.description)
             return True
         return False

@@ -129,6 +129,7 @@ class I2CDriver(FramedStreamDriver):
         self.decoder = FrameDecoder()
         self._smbus = None
         self._overflow_pending = False
+        self._overflow_after = 0  # frames the FIFO held when it reported the overflow: its gap comes after them
         self._fifo_at_connect = 0
         self._poll = 0.02
         self.counters.update(fifo_overflows=0, polls=0, bursts=0)
@@ -208,7 +209,7 @@ class I2CDriver(FramedStreamDriver):
         self._smbus = sm
 
     def _held_at_reconnect(self) -> int:
-        return self._fifo_at_connect
+        return self._fifo_at_connect + sum(len(b) for b in self._unread) // FRAME_LEN
 
     def _disconnect(self) -> None:
         sm, self._smbus = self._smbus, None
@@ -246,11 +247,22 @@ class I2CDriver(FramedStreamDriver):
         blocks = [self.decoder.feed(b) for b in bursts]
         samples = np.concatenate(blocks) if len(blocks) > 1 else blocks[0]
         if self._overflow_pending and samples.shape[0]:
-            gaps = np.flatnonzero(samples["flags"] & FLAG_GAP_BEFORE)
-            if gaps.shape[0]:
-                samples["flags"][gaps[0]] |= FLAG_FIFO_OVERFLOW
-                self._overflow_pending = False
+            self._flag_overflow(samples, sum(len(b) for b in bursts) // FRAME_LEN)
         return samples
+
+    def _flag_overflow(self, samples: np.ndarray, frames: int) -> None:
+        """FLAG_FIFO_OVERFLOW on the first gap from ``_overflow_after`` frames on (a full FIFO drops the newest:
+        at its first report after a reconnect the gap follows the frames it holds, not the reconnect's gap among
+        them). ``frames``: the frames read, of which ``samples`` is what the decoder kept (a frame it dropped
+        shifts the gap back)."""
+        after = max(0, self._overflow_after - max(0, frames - samples.shape[0]))
+        gaps = np.flatnonzero(samples["flags"] & FLAG_GAP_BEFORE)
+        gaps = gaps[gaps >= after]
+        if gaps.shape[0]:
+            samples["flags"][gaps[0]] |= FLAG_FIFO_OVERFLOW
+            self._overflow_pending = False
+        else:
+            self._overflow_after = max(0, self._overflow_after - frames)
 
     def _status_and_first(self, frames: int) -> tuple[int, int, bytes]:
         """STATUS, FIFO_COUNT and the FIFO's first ``frames`` frames in one combined transaction; the bytes are
@@ -288,7 +300,9 @@ class I2CDriver(FramedStreamDriver):
                 status, count = self._status()
             if status & STATUS_FIFO_OVERFLOW:
                 self.counters["fifo_overflows"] += 1
-                self._overflow_pending = True
+                if not self._overflow_pending:  # its gap: after the frames held now if none was read since the
+                    # (re)connect, else somewhere among them (frames read since made room): the first gap
+                    self._overflow_pending, self._overflow_after = True, count if self._flag_reconnect else 0
             if first:
                 bursts.append(first)
                 count -= len(first) // FRAME_LEN
@@ -302,7 +316,11 @@ class I2CDriver(FramedStreamDriver):
                 return []
         while count > 0:
             n = min(count, self.burst_frames)
-            bursts.append(self._burst(n))
+            try:
+                bursts.append(self._burst(n))
+            except self.transient_errors:  # what earlier bursts took out of the FIFO comes first after the reconnect
+                self._unread = self._unread + bursts
+                raise
             count -= n
         return bursts
 
@@ -312,21 +330,25 @@ class I2CDriver(FramedStreamDriver):
         (daemon/_fastpath.c ``take``), which takes only whole intact frames each continuing the stream by one
         (``raw seq`` the next) and hands anything else back (:meth:`unread`); None: they go through
         :meth:`read` (an outage or a reconnect in hand, a partial frame or samples waiting, a sequence
-        question open)."""
+        question open, a FIFO overflow to flag)."""
         if (not self._connected or self._closing.is_set() or self._pending.shape[0] or self._flag_reconnect
-                or self.decoder.tail or self._unread):
+                or self._overflow_pending or self.decoder.tail or self._unread):
             return None
         nxt = self.decoder.unwrapper.next_frame()
         return None if nxt is None else (nxt[0], nxt[1], self._last_t)
 
     def fast_read(self, deadline: float) -> list[bytes] | None:
-        """The FIFO's bursts as :meth:`read` reads them ([]: none by ``deadline``); None: the bus failed
-        (handled as :meth:`read` does: the next read reconnects)."""
+        """The FIFO's bursts as :meth:`read` reads them ([]: none by ``deadline``); None: they go through
+        :meth:`read` (the bus failed: it reconnects; a FIFO overflow: it flags the gap)."""
         try:
-            return self._read_fifo(deadline)
+            bursts = self._read_fifo(deadline)
         except self.transient_errors as exc:
             self._lost(exc)
             return None
+        if self._overflow_pending:  # its gap is flagged by read(), which decodes these first
+            self.unread(bursts)
+            return None
+        return bursts
 
     def unread(self, bursts: list[bytes]) -> None:
         """Bursts the C step did not take: the next :meth:`read` decodes them first, as if just read."""

@@ -74,13 +74,16 @@ class SeqUnwrapper:
         self.restarts = 0  # the device's counter started again from 0 (its missed samples are in `missing`)
         self.offset = 0  # output seq - internal value: restarts keep the output continuous
         self._after_outage = False
+        self._held = 0  # frames the device held through the outage, still to come
         self._tick_period: float | None = None  # device ticks per sample
         self._tick_last: int | None = None
 
-    def expect_advance(self, samples: float | None) -> None:
-        """After an outage: about ``samples`` samples went by (None: unknown)."""
+    def expect_advance(self, samples: float | None, held: int = 0) -> None:
+        """After an outage: about ``samples`` samples went by (None: unknown); the device may still hold
+        ``held`` frames from before it (a FIFO's count at reconnect), which come first."""
         self._expected = None if samples is None else float(samples)
         self._after_outage = True
+        self._held = max(0, int(held))
 
     def unwrap(self, seq_raw: np.ndarray, ticks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(keep mask, unwrapped seq of kept frames, gap-before flag of kept frames); ``ticks`` (the
@@ -93,8 +96,13 @@ class SeqUnwrapper:
         if s.shape[0] == 0:
             return np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0, bool)
         t = None if ticks is None else np.asarray(ticks).astype(np.int64)
+        last_before, tick_before = self.last, self._tick_last
+        if self._after_outage and self._held:
+            m = self._held_through(s, t)
+            if m:
+                return self._unwrap_held(s, t, m)
         hint, self._expected = self._expected, None
-        after, self._after_outage = self._after_outage, False
+        after, self._after_outage, self._held = self._after_outage, False, 0
         restarted = after and t is not None and self._restarted(int(s[0]), int(t[0]), hint)
         if restarted:
             self._rebase(int(s[0]))
@@ -103,6 +111,9 @@ class SeqUnwrapper:
             gap[0] = True
         if t is not None:
             self._learn_ticks(s, t, keep)
+            one_step = last_before is not None and self.last == last_before + 1
+            if s.shape[0] == 1 and keep[0] and not restarted and one_step:
+                self._learn_step(tick_before, int(t[0]), 1)
         return keep, seq, gap
 
     def continue_one(self, raw: int, tick: int | None) -> tuple[int, bool] | None:
@@ -122,6 +133,8 @@ class SeqUnwrapper:
             self._fallback, self._jumped = None, []
         self._head = self.last = self._head + step
         if tick is not None:
+            if step == 1:
+                self._learn_step(self._tick_last, tick, 1)
             self._tick_last = tick
         return self._head + self.offset, step > 1
 
@@ -140,9 +153,11 @@ class SeqUnwrapper:
             return
         self._fallback, self._jumped = None, []
         self._head = self.last = self._head + n
-        self._tick_last = tick
         if tick_period is not None:
             self._tick_period = tick_period
+        else:
+            self._learn_step(self._tick_last, tick, n)
+        self._tick_last = tick
 
     # -------------------------------------------------------- device restarts (sequence and tick from 0)
     def _learn_ticks(self, s: np.ndarray, t: np.ndarray, keep: np.ndarray) -> None:
@@ -151,6 +166,45 @@ class SeqUnwrapper:
         kept = np.flatnonzero(keep)
         if kept.shape[0]:
             self._tick_last = int(t[kept[-1]])
+
+    def _learn_step(self, tick_before: int | None, tick: int, n: int) -> None:
+        """A stream read one frame at a time never holds two frames in one read: its tick period comes from
+        ``n`` frames that continued the previous one by one, learnt once (a read of several refines it), so
+        a device restart behind an outage can be told from a 16-bit wrap on every bus."""
+        if self._tick_period is None and tick_before is not None:
+            self._tick_period = ((tick - tick_before) & 0xFFFFFFFF) / n or None
+
+    def _held_through(self, s: np.ndarray, t: np.ndarray | None) -> int:
+        """How many leading frames of a read after an outage the device held through it (at most the held
+        count): they continue the stream, one by one, and so do their ticks (0: none, or not known)."""
+        if self.last is None:
+            return 0
+        step = (int(s[0]) - self.last) & MAX_U16
+        if not 1 <= step <= self.STRAY_JUMP_MIN:
+            return 0
+        tp, last_tick = self._tick_period, self._tick_last
+        if t is not None and tp and last_tick is not None:
+            advance = ((int(t[0]) - last_tick) & 0xFFFFFFFF) / tp
+            if abs(advance - step) > 2:
+                return 0
+        m = 1
+        while m < min(self._held, s.shape[0]) and (int(s[m]) - int(s[m - 1])) & MAX_U16 == 1:
+            m += 1
+        return m
+
+    def _unwrap_held(self, s: np.ndarray, t: np.ndarray | None, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Frames the device held through an outage continue the stream as if there had been none; the
+        outage's judgement (its expected advance, a restart) waits for the first frame after them, in this
+        read or a later one."""
+        hint, held = self._expected, self._held
+        self._expected, self._after_outage, self._held = None, False, 0
+        first = self.unwrap(s[:m], None if t is None else t[:m])
+        self._expected, self._after_outage, self._held = hint, True, held - m
+        if m == s.shape[0]:
+            return first
+        self._held = 0
+        rest = self.unwrap(s[m:], None if t is None else t[m:])
+        return tuple(np.concatenate([a, b]) for a, b in zip(first, rest))
 
     def _restarted(self, raw: int, tick: int, hint: float | None) -> bool:
         """The first frame after an outage is a restarted device's: its seq and tick both count from a

@@ -54,6 +54,8 @@ def configure_parser(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--record", metavar="FILE.npz", help="write every sample sent and its fate")
     p.add_argument("--linger", type=float, default=0.0, metavar="S",
                    help="keep the device open S seconds after the stream ends (-1: until interrupted)")
+    p.add_argument("--stop-at-stdin-eof", action="store_true",
+                   help="also stop when stdin is closed (a parent that may lose the right to signal this process)")
     return p
 
 
@@ -74,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
     sent_log = SentLog() if args.record else None
     stop = threading.Event()
     _install_stop(stop)
+    if args.stop_at_stdin_eof:
+        threading.Thread(target=_stop_at_eof, args=(stop,), daemon=True).start()
     if args.bus == "i2c":
         return _run_i2c(args, source, faults, sent_log, stop)
     link = STREAM_LINKS[args.bus](args.link)
@@ -122,6 +126,12 @@ def _run_i2c(args, source, faults, sent_log, stop) -> int:
     _say(f"done: received={received} gaps={st['gaps']} missing={st['missing']} crc_errors={st['crc_errors']} "
          f"fifo_overflows={st['fifo_overflows']} reconnects={st['reconnects']}")
     return 0
+
+
+def _stop_at_eof(stop: threading.Event) -> None:
+    while sys.stdin.buffer.read(4096):
+        pass
+    stop.set()
 
 
 def _install_stop(stop: threading.Event) -> None:

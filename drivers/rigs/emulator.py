@@ -295,6 +295,7 @@ class Emulator:
                     i = self.sent_index
                     if math.isinf(rate):
                         n_due = block.shape[0] - j
+                        self.link.service(0.0)  # answer the host: an slcan adapter opens on its "O"
                     else:
                         now = self.clock()
                         n_due = int((now - t0) * rate) + 1 - i

@@ -341,9 +341,10 @@ class FakeI2CDevice:
         self._update_line()
         data += bytes(n - len(data))  # past the content: zeros
         hit = self.faults.flip_bits(data)
-        for frame in np.unique(hit // FRAME_LEN).tolist():
-            if frame < k:
-                self.corrupted.append(taken[frame])
+        if hit.size:  # (np.unique of nothing would still import numpy.ma, once per read)
+            for frame in np.unique(hit // FRAME_LEN).tolist():
+                if frame < k:
+                    self.corrupted.append(taken[frame])
         return bytes(data)
 
     def fates(self) -> dict[str, np.ndarray]:

@@ -27,7 +27,7 @@ EMULATOR_MODULE = f"{__package__}.emulate"  # the entry point beside this module
 class EmulatorProcess:
     def __init__(self, args: Sequence[str], *, linger: float = 120.0, start_timeout: float = 30.0,
                  new_session: bool = False):
-        self.args = [sys.executable, "-m", EMULATOR_MODULE, *args, "--linger", str(linger)]
+        self.args = [sys.executable, "-m", EMULATOR_MODULE, *args, "--linger", str(linger), "--stop-at-stdin-eof"]
         self.start_timeout = start_timeout
         self.new_session = new_session
         self.proc: subprocess.Popen | None = None
@@ -39,7 +39,8 @@ class EmulatorProcess:
         self.stderr_path: Path | None = None
 
     def __enter__(self) -> "EmulatorProcess":
-        self.proc = subprocess.Popen(self.args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        self.proc = subprocess.Popen(self.args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                     text=True,
                                      env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=self.new_session)
         threading.Thread(target=self._pump, daemon=True).start()
         try:
@@ -74,12 +75,18 @@ class EmulatorProcess:
         if self.proc is None:
             return ""
         if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.send_signal(signal.SIGTERM)
+            except PermissionError:  # a parent that dropped root's privileges: closing stdin stops the child
+                pass
+            self.proc.stdin.close()
             try:
                 self.proc.wait(timeout=10)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
+        if not self.proc.stdin.closed:
+            self.proc.stdin.close()
         return self.proc.stderr.read() if self.proc.stderr else ""
 
     def __exit__(self, *exc) -> None:

@@ -88,6 +88,13 @@ def test_findings_are_a_table_of_numbers(tmp_path):
     page = report.write_report(d, tmp_path, source="session").read_text()
     mag = d.findings[0]["magnitude"]
     for k, v in mag["value"].items():
-        assert f"| {effect} | {k} | {report.num(v)} ± {report.num(mag['std'][k])} | {mag['unit']} |" in page
+        unit = report.unit_text(mag["unit"])
+        assert f"| {effect} | {k} | {report.num(v)} ± {report.num(mag['std'][k])} | {unit} |" in page
+    assert "_per_" not in page and "_from_" not in page  # units as a reader writes them, not the JSON's names
     assert f"convention: {mag['convention']}" in page
     assert not re.search(r"\{'|': |np\.float64", page)
+
+
+def test_units_read_as_units():
+    assert [report.unit_text(u) for u in ("mg_per_C", "pct_per_h", "mg_per_V", "c2_per_g", "deg_from_orthogonal")] == [
+        "mg/°C", "%/h", "mg/V", "c2/g", "° from orthogonal"]

@@ -3,6 +3,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 
 def run_into_closed_pipe(argv):
     r, w = os.pipe()
@@ -16,6 +18,18 @@ def run_into_closed_pipe(argv):
 
 def test_print_config_into_a_closed_pipe_ends_quietly():
     p = run_into_closed_pipe(["--print-config"])
+    assert p.stderr == "" and p.returncode == 0, p.stderr
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["watch", "--help"], ["reproduce", "loetters", "--help"]])
+def test_gravcal_into_a_closed_pipe_ends_quietly(argv):
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        p = subprocess.run([os.path.join(os.path.dirname(sys.executable), "gravcal"), *argv], stdout=w,
+                           stderr=subprocess.PIPE, text=True, timeout=60)
+    finally:
+        os.close(w)
     assert p.stderr == "" and p.returncode == 0, p.stderr
 
 

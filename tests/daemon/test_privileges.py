@@ -76,5 +76,30 @@ def test_root_with_a_user_drops_to_it_after_opening_device_and_socket(tmp_path):
             assert any(c.read_message()["class"] == "IMU" for _ in range(20))
         assert "dropped privileges to nobody" in d.log()
         assert os.stat(d.state).st_uid == nobody.pw_uid
+        # an installation nobody cannot read (a Python under /root) is named: modules loaded later would fail
+        assert ("nobody cannot read" in d.log()) == any(not _others_can_read(p) for p in _code_dirs()), d.log()
+        emulator_pid = int(d.log().split("emulator pid ")[1].split(":")[0])
     finally:
-        d.stop()
+        code = d.stop()
+    # the emulator child, started as root, cannot be signalled after the drop: it still stops, and so does gravcald
+    assert code == 0, d.log()[-2000:]
+    assert "Traceback" not in d.log()
+    assert not os.path.exists(f"/proc/{emulator_pid}") or "zombie" in open(f"/proc/{emulator_pid}/status").read()
+
+
+def _code_dirs():
+    import numpy
+
+    import gravcal
+
+    return [os.path.dirname(os.__file__), os.path.dirname(numpy.__file__), os.path.dirname(gravcal.__file__)]
+
+
+def _others_can_read(path):
+    """What os.access would say for a user that is neither owner nor in the group of any component."""
+    parts = os.path.abspath(path).split(os.sep)
+    for k in range(1, len(parts) + 1):
+        mode = os.stat(os.sep + os.path.join(*parts[1:k]) if k > 1 else os.sep).st_mode
+        if mode & 0o001 == 0 or (k == len(parts) and mode & 0o004 == 0):
+            return False
+    return True

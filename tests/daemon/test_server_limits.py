@@ -208,3 +208,18 @@ def test_decimation_holds_its_rate_when_time_jitters_backwards(seed):
     # a restart (time back to 0) is followed, not silenced
     mask, _ = decimation_mask(np.arange(0, 3, 1 / fs), rate, last)
     assert mask.sum() == 3
+
+
+def test_output_queue_bound_holds_for_runs_queued_with_their_joined_copy():
+    # a run queued with its pre-joined bytes keeps both: the bound counts what is held, not the payload once
+    q = OutputQueue(limit=10**6, max_bytes=2000)
+    lines = [b"%04d" % i + b"x" * 95 + b"\n" for i in range(100)]
+    lost = 0
+    for k in range(0, 100, 7):
+        run = lines[k:k + 7]
+        lost += q.put(run, b"".join(run))
+        held = sum(sum(map(len, e[0][e[1]:])) + (len(e[2]) if e[2] is not None else 0) for e in q.entries)
+        assert held == q.nbytes <= 2000
+    data = b"".join(q.take(1 << 20)[0])
+    assert data == b"".join(lines[100 - len(data) // 100:]) and lost + len(data) // 100 == 100
+    assert q.nbytes == 0 and len(q) == 0

@@ -235,3 +235,15 @@ def test_garbled_interface_lines_are_counted_and_skipped():
     got, st, arrays = run_virtual(seed=8, duration=1.0, patch_driver=make_flaky)
     assert got.shape[0] == arrays["status"].shape[0] and injected[0] > 10
     assert st["garbled_lines"] == injected[0] and st["reconnects"] == 0
+
+
+def test_slcan_emulator_without_pacing_opens_its_channel():
+    # --speed max sends as fast as the pty takes frames; it must still answer python-can's "O" (open channel),
+    # or every frame is dropped as sent to a closed channel and the host receives nothing
+    args = ["--bus", "can", "--scenario", "pattern", "--fs", "200", "--duration", "3600", "--speed", "max"]
+    with EmulatorProcess(args) as emu:
+        with open_driver(emu.spec) as drv:
+            got, deadline = 0, time.monotonic() + 20
+            while got < 2000 and time.monotonic() < deadline:
+                got += drv.read(max_samples=4096, timeout=0.2).shape[0]
+    assert got >= 2000

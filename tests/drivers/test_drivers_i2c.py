@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import errno
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -119,6 +121,94 @@ def test_device_vanishes_and_comes_back():
     assert st["disconnects"] == 1 and st["reconnects"] == 1
 
 
+def test_an_overflow_while_the_host_reconnects_is_flagged_after_the_fifo_content():
+    # the device comes back and fills its FIFO (16) before the host reopens it: the FIFO's frames follow the
+    # outage's gap (reconnect), the overflow's gap comes after them, and each flag lands on its own gap
+    clock, dev, drv = rig(faults=Faults(disconnects=[(1.0, 0.5)]), depth=16)
+    drv.backoff.initial_s = 0.0
+    with drv:
+        a = pump(clock, drv, 20, 0.05)  # to 1.0 s
+        clock.advance(0.5)  # the outage
+        held = drv.read(max_samples=4096, timeout=0)  # what the FIFO held, then the NACK
+        clock.advance(0.3)  # back for 0.3 s before the reopen: 60 samples, the FIFO keeps 16
+        b = pump(clock, drv, 10, 0.05)
+        st = drv.stats()
+    got = np.concatenate([a, held, b])
+    seq, status = check(got, dev.fates())
+    full = np.flatnonzero(status == FIFO_FULL)
+    assert (status == OFFLINE).sum() == 100 and full.shape[0] >= 40
+    rec = np.flatnonzero(got["flags"] & FLAG_RECONNECT)
+    ovf = np.flatnonzero(got["flags"] & FLAG_FIFO_OVERFLOW)
+    assert rec.shape == (1,) and seq[rec[0]] == 300 and got["flags"][rec[0]] & FLAG_GAP_BEFORE
+    assert ovf.shape == (1,) and seq[ovf[0]] == full[-1] + 1 and seq[ovf[0] - 1] == full[0] - 1 == 315
+    assert st["fifo_overflows"] == 1 and st["gaps"] == 2 and st["missing"] == 100 + full.shape[0]
+
+
+def test_an_overflow_during_a_slow_read_is_flagged_on_its_gap():
+    # the host is held up 0.2 s inside a read (a slow bus): the FIFO (16) fills behind the frames it is reading
+    # and drops the newest; the next read finds the frames from before the drop, then the gap, then newer ones
+    clock, dev, _ = rig(depth=16)
+    slow = {"at": None, "n": 0}
+
+    class SlowBus(FakeSMBus):
+        def i2c_rdwr(self, *msgs):
+            if len(msgs) == 2 and msgs[1].len > 2:  # a FIFO burst
+                slow["n"] += 1
+                if slow["n"] == slow["at"]:
+                    clock.advance(0.2)
+            super().i2c_rdwr(*msgs)
+
+    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: SlowBus(dev, bus))
+    with drv:
+        a = pump(clock, drv, 10, 0.05)
+        slow["at"] = slow["n"] + 1
+        b = pump(clock, drv, 10, 0.05)
+        st = drv.stats()
+    got = np.concatenate([a, b])
+    seq, status = check(got, dev.fates())
+    lost = np.flatnonzero(status == FIFO_FULL)
+    k = np.flatnonzero(got["flags"] & FLAG_FIFO_OVERFLOW)
+    assert lost.shape[0] > 0 and st["fifo_overflows"] == 1 and st["gaps"] == 1
+    assert k.shape == (1,) and seq[k[0]] == lost[-1] + 1 and seq[k[0] - 1] == lost[0] - 1
+
+
+@pytest.mark.parametrize("lost_on_the_wire", [False, True], ids=["burst-refused", "burst-lost"])
+def test_frames_read_before_the_bus_fails_mid_read_are_kept(lost_on_the_wire):
+    # a read of 41 frames (99..139) takes three bursts (16, 16, 9); the bus fails on the last: the 32 frames the
+    # first two took out of the FIFO are decoded after the reconnect, before anything newer. A refused burst leaves
+    # its frames in the FIFO (nothing lost); a burst lost on the wire loses its 9, the reconnect's gap
+    clock, dev, _ = rig(depth=64)
+    bursts = {"n": 0, "fail_at": None}
+
+    class FlakyBus(FakeSMBus):
+        def i2c_rdwr(self, *msgs):
+            failing = len(msgs) == 2 and msgs[1].len > 2 and bursts["n"] + 1 == bursts["fail_at"]
+            bursts["n"] += len(msgs) == 2 and msgs[1].len > 2  # a FIFO burst (STATUS reads 2 bytes)
+            if failing and not lost_on_the_wire:
+                raise OSError(errno.EREMOTEIO, "Remote I/O error (no ACK)")
+            super().i2c_rdwr(*msgs)
+            if failing:
+                raise OSError(errno.EREMOTEIO, "Remote I/O error (no ACK)")
+
+    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: FlakyBus(dev, bus))
+    drv.backoff.initial_s = 0.0
+    with drv:
+        a = pump(clock, drv, 10, 0.05)
+        bursts["fail_at"] = bursts["n"] + 3
+        b = pump(clock, drv, 10, 0.2)
+        st = drv.stats()
+    got = np.concatenate([a, b])
+    seq = got["seq"]
+    sent = np.flatnonzero(dev.fates()["status"] == SENT)
+    lost = np.setdiff1d(sent, seq)
+    np.testing.assert_array_equal(lost, np.arange(131, 140) if lost_on_the_wire else [])
+    np.testing.assert_array_equal((got["flags"] & FLAG_GAP_BEFORE) != 0, np.r_[False, np.diff(seq) > 1])
+    assert st["disconnects"] == 1 and st["reconnects"] == 1 and st["restarts"] == 0
+    assert st["missing"] == lost.shape[0] and st["gaps"] == int(lost.shape[0] > 0)
+    k = np.flatnonzero(got["flags"] & FLAG_RECONNECT)
+    assert k.shape == (1,) and seq[k[0]] == 140  # the first sample produced after the outage
+
+
 def test_open_errors_are_named():
     with pytest.raises(DriverError, match=r"I2C bus /dev/i2c-99 does not exist"):
         open_driver("i2c://99/0x42")
@@ -189,3 +279,24 @@ def test_realtime_device_wakes_the_driver_by_drdy_and_loses_only_the_outage():
     assert k.shape == (1,) and got["seq"][k[0]] == offline[-1] + 1 and got["flags"][k[0]] & FLAG_GAP_BEFORE
     # woken by the line: about one STATUS read per sample (a 1 ms poll would take ~1600)
     assert st["polls"] < 1.5 * got.shape[0] + 50, (st["polls"], got.shape[0])
+
+
+def test_reading_the_fake_device_imports_nothing_new():
+    # a daemon that dropped privileges may not be able to load a module from then on (an installation its user
+    # cannot read): the emulated device's reads import nothing (np.unique of no bit errors loaded numpy.ma)
+    code = ("import sys\n"
+            "from gravcal.drivers.rigs.fake_i2c import FakeI2CDevice, FakeSMBus, ManualClock\n"
+            "from gravcal.drivers.rigs.sources import pattern_blocks\n"
+            "from gravcal.drivers.i2c import I2CDriver\n"
+            "clock = ManualClock()\n"
+            "dev = FakeI2CDevice(pattern_blocks(seed=1, fs=200.0, duration=2.0), 200.0, clock=clock)\n"
+            "drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: FakeSMBus(dev, bus)).open()\n"
+            "drv.read(max_samples=64, timeout=0)\n"
+            "before = set(sys.modules)\n"
+            "for _ in range(20):\n"
+            "    clock.advance(0.05)\n"
+            "    drv.read(max_samples=64, timeout=0)\n"
+            "print(sorted(set(sys.modules) - before))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"

@@ -106,3 +106,45 @@ def test_a_young_session_continuing_after_an_outage_is_not_a_restart(hint):
     keep, seq, gap = _session(u, 3000 + 350 + np.arange(5))
     np.testing.assert_array_equal(seq, 3350 + np.arange(5))
     assert u.restarts == 0 and u.missing == 350 and gap[0]
+
+
+@pytest.mark.parametrize("path", ["one-frame", "block", "c-step"])
+def test_a_stream_read_one_frame_at_a_time_still_tells_a_restart_from_a_wrap(path):
+    # an event-driven reader gets one frame per read (the CAN and serial latency paths): the tick period is
+    # never seen inside one read, yet a device that restarts behind an outage must not count as a 16-bit wrap
+    u = SeqUnwrapper()
+    if path == "block":
+        u.continue_one = lambda raw, tick: None
+    _session(u, [29999])
+    _session(u, [30000])
+    if path == "c-step":  # then daemon/_fastpath.c takes the frames that continue the stream; 50 per return
+        for k in range(1, 8):
+            u.continued(50, int(_ticks(30000 + 50 * k)), None)
+    else:
+        for raw in range(30001, 30351):
+            _session(u, [raw])
+    u.expect_advance(2000.0)
+    keep, seq, gap = _session(u, np.arange(40, 50))  # restarted: 40 samples since its boot were missed
+    np.testing.assert_array_equal(seq, 30351 + 40 + np.arange(10))
+    assert gap[0] and u.restarts == 1 and u.missing == 40
+
+
+@pytest.mark.parametrize("outage", [400, 70000], ids=["2s", "6min"])
+@pytest.mark.parametrize("together", [False, True], ids=["held-read-alone", "held-read-with-the-rest"])
+def test_frames_a_fifo_held_through_an_outage_continue_the_stream(outage, together):
+    # a young session (seq and tick still count from boot), an outage the host saw for ~outage samples, and an
+    # I2C FIFO that still held the last 3 frames produced before the device stopped answering: they come first
+    # and continue the stream; the first frame produced after the outage carries the gap, no restart
+    u = SeqUnwrapper()
+    _session(u, np.arange(0, 597))
+    u.expect_advance(outage * 1.13 + 50, held=3)
+    after = 600 + outage + np.arange(5)
+    if together:
+        keep, seq, gap = _session(u, np.r_[597:600, after])
+    else:
+        parts = [_session(u, np.arange(597, 599)), _session(u, [599]), _session(u, after)]
+        keep, seq, gap = (np.concatenate(x) for x in zip(*parts))
+    assert keep.all()
+    np.testing.assert_array_equal(seq, np.r_[597:600, after])
+    np.testing.assert_array_equal(gap, np.r_[False, False, False, True, False, False, False, False])
+    assert u.restarts == 0 and u.gaps == 1 and u.missing == outage
