@@ -3,11 +3,11 @@ handing the face clustering, eigvalsh or the SVD (LAPACK: raises on some systems
 others) a NaN. Run in a child process, so a hang fails by timeout."""
 from __future__ import annotations
 
-import subprocess
-import sys
 import textwrap
 
 import pytest
+
+from tests.support.child import run_child
 
 CHILD = textwrap.dedent("""
     import sys
@@ -43,11 +43,7 @@ CHILD = textwrap.dedent("""
                                           ("cov", "1 window covariance(s) are NaN/inf (windows [2])"),
                                           ("direction", "the directions hold NaN/inf values")])
 def test_a_nonfinite_lab_input_is_refused_naming_it(where, named):
-    try:
-        out = subprocess.run([sys.executable, "-c", CHILD, where], capture_output=True, text=True, timeout=120)
-    except subprocess.TimeoutExpired:
-        pytest.fail(f"the lab calibration did not return within 120 s on a non-finite {where}")
-    assert out.returncode == 0, out.stderr[-2000:]
-    clean, message = out.stdout.strip().split("\n")
+    stdout = run_child(CHILD, where, timeout=120, what=f"the lab calibration on a non-finite {where}")
+    clean, message = stdout.strip().split("\n")
     assert clean == "clean True"  # the same input without the NaN/inf calibrates
     assert named in message, message

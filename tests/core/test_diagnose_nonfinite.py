@@ -6,11 +6,9 @@ so a hang fails by timeout."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import textwrap
 
-import pytest
+from tests.support.child import run_child
 
 CHILD = textwrap.dedent("""
     import json
@@ -33,12 +31,8 @@ CHILD = textwrap.dedent("""
 
 
 def test_windows_without_a_temperature_make_the_temperature_terms_untestable_and_change_nothing_else():
-    try:
-        out = subprocess.run([sys.executable, "-c", CHILD], capture_output=True, text=True, timeout=300)
-    except subprocess.TimeoutExpired:
-        pytest.fail("diagnose_windows did not return within 300 s on windows with a NaN temperature")
-    assert out.returncode == 0, out.stderr[-2000:]
-    r = json.loads(out.stdout)
+    stdout = run_child(CHILD, timeout=300, what="diagnose_windows on windows with a NaN temperature")
+    r = json.loads(stdout)
     note = f"{r['n_bad']} of {r['n']} windows carry no temperature"
     assert any(note in n for n in r["notes"]), r["notes"]
     assert r["got"] == r["want"]

@@ -3,11 +3,11 @@ least-squares solver a NaN (dgelsd, behind np.linalg.lstsq, raises on some such 
 others, e.g. a 4 x 4 identity with one NaN off the diagonal). Run in a child process, so a hang fails by timeout."""
 from __future__ import annotations
 
-import subprocess
-import sys
 import textwrap
 
 import pytest
+
+from tests.support.child import run_child
 
 CHILD = textwrap.dedent("""
     import sys
@@ -34,12 +34,8 @@ CHILD = textwrap.dedent("""
 
 @pytest.mark.parametrize("where", ["mean", "covariate"])
 def test_a_nan_window_ends_the_fit_unconverged_instead_of_hanging(where):
-    try:
-        out = subprocess.run([sys.executable, "-c", CHILD, where], capture_output=True, text=True, timeout=60)
-    except subprocess.TimeoutExpired:
-        pytest.fail("fit_extended did not return within 60 s on a NaN window (the least-squares solver looped)")
-    assert out.returncode == 0, out.stderr[-2000:]
-    clean_converged, converged, iterations = map(int, out.stdout.split())
+    stdout = run_child(CHILD, where, timeout=60, what="fit_extended on a NaN window (the least-squares solver looped)")
+    clean_converged, converged, iterations = map(int, stdout.split())
     assert clean_converged == 1  # the same windows without the NaN fit
     assert converged == 0 and iterations == 1
 
@@ -70,13 +66,8 @@ BATCH_CHILD = textwrap.dedent("""
 def test_the_batch_fit_of_an_extended_model_names_windows_without_its_covariate(covariate):
     """LottersBatch on windows some of which carry no value of the covariate its model needs: a ValueError
     that says how many, not LAPACK's "Eigenvalues did not converge" (or a hang) on a NaN Jacobian."""
-    try:
-        out = subprocess.run([sys.executable, "-c", BATCH_CHILD, covariate], capture_output=True, text=True,
-                             timeout=120)
-    except subprocess.TimeoutExpired:
-        pytest.fail("LottersBatch did not return within 120 s on windows with a NaN covariate")
-    assert out.returncode == 0, out.stderr[-2000:]
-    converged, n_bad, message = out.stdout.strip().split(" ", 2)
+    stdout = run_child(BATCH_CHILD, covariate, timeout=120, what="LottersBatch on windows with a NaN covariate")
+    converged, n_bad, message = stdout.strip().split(" ", 2)
     assert converged == "1"  # the same windows with every covariate value fit
     label = {"temp": "temperature", "vsupply": "supply voltage"}[covariate]
     assert f"{n_bad} of 200 windows carry no {label} value" in message, message

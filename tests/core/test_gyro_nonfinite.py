@@ -6,11 +6,11 @@ step-height search (bounded, it cannot hang) refuses a placement holding a NaN s
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import textwrap
 
 import pytest
+
+from tests.support.child import run_child
 
 CHILD = textwrap.dedent("""
     import json, sys
@@ -58,12 +58,8 @@ CHILD = textwrap.dedent("""
 
 @pytest.mark.parametrize("where", ["window", "pose_change"])
 def test_nan_gyro_samples_stop_the_offline_fit_with_a_message_and_are_skipped_online(where):
-    try:
-        out = subprocess.run([sys.executable, "-c", CHILD, where], capture_output=True, text=True, timeout=240)
-    except subprocess.TimeoutExpired:
-        pytest.fail("the gyro calibration did not return within 240 s on NaN samples")
-    assert out.returncode == 0, out.stderr[-2000:]
-    r = json.loads(out.stdout)
+    stdout = run_child(CHILD, where, timeout=240, what="the gyro calibration on NaN samples")
+    r = json.loads(stdout)
     assert r["offline_clean"].startswith("ok ") and int(r["offline_clean"].split()[1]) > 0
     assert "gyro values" in r["offline"] and "are NaN/inf" in r["offline"], r["offline"]
     assert r["offline"].startswith("1 of the "), r["offline"]  # one NaN per window / pose change

@@ -6,11 +6,11 @@ child process, so a hang fails by timeout."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import textwrap
 
 import pytest
+
+from tests.support.child import run_child
 
 CHILD = textwrap.dedent("""
     import json, sys
@@ -38,11 +38,7 @@ CHILD = textwrap.dedent("""
 
 @pytest.mark.parametrize("model", ["6", "9", "6+temperature_offset"])
 def test_a_start_that_overflows_the_fit_ends_it_unconverged_and_the_retry_fits(model):
-    try:
-        out = subprocess.run([sys.executable, "-c", CHILD, model], capture_output=True, text=True, timeout=120)
-    except subprocess.TimeoutExpired:
-        pytest.fail(f"LottersBatch({model!r}) did not return within 120 s from an overflowing start")
-    assert out.returncode == 0, out.stderr[-2000:]
-    r = json.loads(out.stdout)
+    stdout = run_child(CHILD, model, timeout=120, what=f"LottersBatch({model!r}) from an overflowing start")
+    r = json.loads(stdout)
     assert r["converged"] and r["ref_converged"] and r["same"]  # the retry's fit, bit for bit
     assert r["refused"] == "unconverged" or "overflowed to non-finite values" in r["refused"], r["refused"]

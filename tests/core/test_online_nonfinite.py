@@ -6,11 +6,11 @@ linear-algebra call fails by timeout instead of hanging the suite."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import textwrap
 
 import pytest
+
+from tests.support.child import run_child
 
 CHILD = textwrap.dedent("""
     import json, sys
@@ -66,12 +66,8 @@ CHILD = textwrap.dedent("""
 
 @pytest.mark.parametrize("where", ["mean", "inf", "cov", "time"])
 def test_nonfinite_windows_change_nothing_the_policy_publishes(where):
-    try:
-        out = subprocess.run([sys.executable, "-c", CHILD, where, "0"], capture_output=True, text=True, timeout=240)
-    except subprocess.TimeoutExpired:
-        pytest.fail(f"the online policy did not return within 240 s on windows with a non-finite {where}")
-    assert out.returncode == 0, out.stderr[-2000:]
-    r = json.loads(out.stdout)
+    stdout = run_child(CHILD, where, "0", timeout=240, what=f"the online policy on windows with a non-finite {where}")
+    r = json.loads(stdout)
     assert r["want"] and any(acc for acc, *_ in r["want"]), "the clean stream reaches an accepted calibration"
     assert r["got"] == r["want"]  # same revisions, verdicts and parameters, bit for bit
     assert r["screened"] == r["screened_clean"] + r["n_bad"] and r["n_bad"] > 0
@@ -157,12 +153,8 @@ AUX_CHILD = textwrap.dedent("""
 def test_windows_without_a_temperature_leave_the_temperature_term_untestable_online():
     """The extended candidate on windows some of which carry no temperature: untestable (with the count), the
     base order stays accepted with finite values; no NaN covariate reaches the extended rule's eigh."""
-    try:
-        out = subprocess.run([sys.executable, "-c", AUX_CHILD], capture_output=True, text=True, timeout=300)
-    except subprocess.TimeoutExpired:
-        pytest.fail("the online calibrator did not return within 300 s on windows without a temperature")
-    assert out.returncode == 0, out.stderr[-2000:]
-    r = json.loads(out.stdout)
+    stdout = run_child(AUX_CHILD, timeout=300, what="the online calibrator on windows without a temperature")
+    r = json.loads(stdout)
     assert r["clean_last"] == "6+" + r["temp"]  # with every temperature the planted term is chosen
     assert r["last"] == "6" and r["finite"]
     assert r["status"]["status"] == "untestable" and "windows carry no temperature" in r["status"]["reason"]

@@ -6,11 +6,11 @@ are the API entries. Run in a child process, so a hang fails by timeout."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import textwrap
 
 import pytest
+
+from tests.support.child import run_child
 
 CHILD = textwrap.dedent("""
     import json, sys
@@ -43,12 +43,8 @@ CHILD = textwrap.dedent("""
 
 @pytest.mark.parametrize("value", ["nan", "inf"])
 def test_the_order_rules_refuse_nonfinite_windows_naming_them(value):
-    try:
-        out = subprocess.run([sys.executable, "-c", CHILD, value], capture_output=True, text=True, timeout=180)
-    except subprocess.TimeoutExpired:
-        pytest.fail(f"an order/observability rule did not return within 180 s on a window mean holding {value}")
-    assert out.returncode == 0, out.stderr[-2000:]
-    r = json.loads(out.stdout)
+    stdout = run_child(CHILD, value, timeout=180, what=f"an order/observability rule on a window mean holding {value}")
+    r = json.loads(stdout)
     assert len(r["bad"]) == 6 and all(v for v in r["clean"].values())
     for name, message in r["bad"].items():
         assert message == "1 window mean(s) are NaN/inf (windows [5])", (name, message)

@@ -6,11 +6,9 @@ uncertainty both state."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 import textwrap
 
-import pytest
+from tests.support.child import run_child
 
 CHILD = textwrap.dedent("""
     import json
@@ -49,12 +47,8 @@ CHILD = textwrap.dedent("""
 
 
 def test_missing_samples_leave_the_processing_running_and_the_calibration_within_its_uncertainty():
-    try:
-        out = subprocess.run([sys.executable, "-c", CHILD], capture_output=True, text=True, timeout=300)
-    except subprocess.TimeoutExpired:
-        pytest.fail("the processing did not get through 15 minutes of samples with missing values within 300 s")
-    assert out.returncode == 0, out.stderr[-2000:]
-    r = json.loads(out.stdout)
+    stdout = run_child(CHILD, timeout=300, what="the processing of 15 minutes of samples with missing values")
+    r = json.loads(stdout)
     clean, missing = r["clean"], r["missing"]
     assert r["n_bad"] > 0 and clean["accepted"] and missing["accepted"]
     assert clean["finite"] and missing["finite"]

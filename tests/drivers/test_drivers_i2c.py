@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import errno
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -18,6 +16,7 @@ from gravcal.drivers.i2c import (
     I2CDriver,
 )
 from gravcal.drivers.rigs.sources import pattern_blocks
+from tests.support.child import run_child
 
 PAYLOAD = ("tick", "t1", "t2", "gyro", "temp", "vsupply")
 
@@ -297,6 +296,4 @@ def test_reading_the_fake_device_imports_nothing_new():
             "    clock.advance(0.05)\n"
             "    drv.read(max_samples=64, timeout=0)\n"
             "print(sorted(set(sys.modules) - before))\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]"
+    assert run_child(code, timeout=120, what="the I2C driver reading from the fake device").strip() == "[]"

@@ -11,6 +11,7 @@ import pytest
 import gravcal.drivers as drivers_pkg
 from gravcal.drivers import DriverError, open_driver, register_scheme
 from gravcal.drivers.base import DRIVER_SCHEMES, Driver, driver_class
+from tests.support.child import run_child
 
 DRIVERS_DIR = Path(drivers_pkg.__file__).resolve().parent
 RIGS = "gravcal.drivers.rigs"
@@ -71,9 +72,7 @@ def test_opening_real_drivers_loads_no_rig():
             "import gravcal.drivers.serial, gravcal.drivers.can, gravcal.drivers.i2c, gravcal.drivers.codec\n"
             "d = open_driver('serial:loop://', open=True); d.close()\n"
             "print(sorted(m for m in sys.modules if m.startswith('gravcal.drivers.rigs')))\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]"
+    assert run_child(code, timeout=120, what="opening the real drivers").strip() == "[]"
 
 
 def test_fake_i2c_scheme_imports_its_rig_on_first_use():

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import pty
-import shutil
 import signal
 import socket
 import subprocess
@@ -15,17 +14,14 @@ from pathlib import Path
 
 import pytest
 
-RELAY_SOURCE = Path(__file__).resolve().parents[2] / "bench" / "bare_relay.c"
+from tests.support.bench_c import build_bench_program
+
 FRAME_BYTES, LINE_BYTES, CLIENTS = 29, 96, 3
 
 
 @pytest.fixture(scope="module")
 def relay(tmp_path_factory) -> str:
-    if shutil.which("cc") is None:
-        pytest.skip("no C compiler (cc): bench_latency skips the floor too")
-    exe = str(tmp_path_factory.mktemp("relay") / "bare_relay")
-    subprocess.run(["cc", "-O2", "-Wall", "-Werror", "-o", exe, str(RELAY_SOURCE)], check=True)
-    return exe
+    return build_bench_program("bare_relay", tmp_path_factory.mktemp("relay"))
 
 
 def _frame(seq: int) -> bytes:

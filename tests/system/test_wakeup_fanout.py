@@ -2,22 +2,15 @@
 per sample, or the floor would understate what waking N clients costs."""
 from __future__ import annotations
 
-import shutil
 import subprocess
-from pathlib import Path
 
 import pytest
 
-SOURCE = Path(__file__).resolve().parents[2] / "bench" / "wakeup_fanout.c"
-
+from tests.support.bench_c import build_bench_program
 
 @pytest.fixture(scope="module")
 def fanout(tmp_path_factory) -> str:
-    if shutil.which("cc") is None:
-        pytest.skip("no C compiler (cc): bench_fanout_floor cannot run either")
-    exe = str(tmp_path_factory.mktemp("fanout") / "wakeup_fanout")
-    subprocess.run(["cc", "-O2", "-Wall", "-Werror", "-o", exe, str(SOURCE)], check=True)
-    return exe
+    return build_bench_program("wakeup_fanout", tmp_path_factory.mktemp("fanout"))
 
 
 @pytest.mark.parametrize("mode", ["send", "futex"])
