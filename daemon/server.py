@@ -470,8 +470,8 @@ class SocketServer:
             self._reply(c, self._calib if self._calib is not None else
                         {"class": "CALIB", "revision": 0, "accepted": False, "model": None,
                          "message": "no calibration yet"})
-        elif req.command == "STATUS":
-            self._enqueue(c, [self._status_line()])
+        elif req.command in ("STATUS", "DEVICES"):  # both from the cached status
+            self._enqueue(c, [protocol.status_reply(req.command, self._status_line())])
             self._flush(c)
         elif req.command == "VERSION":
             self._reply(c, protocol.version_message())

@@ -153,7 +153,7 @@ def test_bad_requests_get_error_and_connection_survives(server, sockpath):
     assert r.line()["class"] == "VERSION"
     for bad, expect in [(b"?WATCH={\"enable\":true,\"colour\":1};\n", "unknown field 'colour'"),
                         (b"hello\n", "requests start with '?'"),
-                        (b"?DEVICES;\n", "unknown command"),
+                        (b"?SKY;\n", "unknown command"),
                         (b"?WATCH={\"rate\":-5};\n", "'rate' must be a number"),
                         (b"?WATCH={bad json};\n", "not valid JSON")]:
         r.send(bad)
