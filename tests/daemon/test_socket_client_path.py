@@ -32,3 +32,59 @@ def test_devices_names_the_device_from_status(served):
     for key in ("bus", "device", "connected", "rate_hz", "samples", "reconnects"):
         assert entry[key] == status["device"][key], key
     assert "crc_errors" not in entry
+
+
+def _one_shot_server(path, greeting: bytes):
+    """A listener that greets one client with ``greeting`` and holds the connection until closed."""
+    import socket
+    import threading
+
+    lsock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    lsock.bind(path)
+    lsock.listen(1)
+
+    def serve():
+        conn, _ = lsock.accept()
+        conn.sendall(greeting)
+        conn.recv(1)  # until the client closes
+        conn.close()
+
+    threading.Thread(target=serve, daemon=True).start()
+    return lsock
+
+
+def test_client_refuses_another_protocol_major_with_a_clear_message(tmp_path):
+    from gravcal.daemon.client import Client, ClientError
+
+    path = str(tmp_path / "g.sock")
+    lsock = _one_shot_server(path, b'{"class":"VERSION","release":"9.0","proto_major":2,"proto_minor":1}\n')
+    try:
+        with pytest.raises(ClientError, match=r"speaks protocol 2\.1; this client speaks 1\.0"):
+            Client(path, timeout=5)
+    finally:
+        lsock.close()
+
+
+def test_client_accepts_a_newer_minor(tmp_path):
+    from gravcal.daemon.client import Client
+
+    path = str(tmp_path / "g.sock")
+    lsock = _one_shot_server(path, b'{"class":"VERSION","release":"0.2","proto_major":1,"proto_minor":7}\n')
+    try:
+        with Client(path, timeout=5) as c:
+            assert c.version["proto_minor"] == 7
+    finally:
+        lsock.close()
+
+
+def test_permission_denied_names_the_group_rule(tmp_path, monkeypatch):
+    import socket
+
+    from gravcal.daemon.client import Client, ClientError
+
+    def refuse(self, address):  # what a non-member gets from a 0660 socket (root, running the tests, never does)
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(socket.socket, "connect", refuse)
+    with pytest.raises(ClientError, match="permission denied .*group"):
+        Client(str(tmp_path / "g.sock"))
