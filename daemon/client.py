@@ -32,6 +32,10 @@ class ClientError(OSError):
     """Cannot talk to gravcald (connect failed, connection closed, timeout)."""
 
 
+class ProtocolMismatchError(ClientError):
+    """gravcald speaks another major protocol version: connecting again will not help."""
+
+
 class ServerError(ValueError):
     """gravcald answered a request with an ERROR message."""
 
@@ -61,7 +65,7 @@ class Client:
         self.version = self._expect("VERSION")
         if self.version.get("proto_major") != PROTOCOL_MAJOR:  # a major change breaks what this client expects
             self._sock.close()
-            raise ClientError(f"{self.path}: gravcald speaks protocol {self.version.get('proto_major')}."
+            raise ProtocolMismatchError(f"{self.path}: gravcald speaks protocol {self.version.get('proto_major')}."
                               f"{self.version.get('proto_minor')}; this client speaks {PROTOCOL_MAJOR}.{PROTOCOL_MINOR} "
                               "(use the gravcal of the same release as the daemon)")
 

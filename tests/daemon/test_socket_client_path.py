@@ -88,3 +88,48 @@ def test_permission_denied_names_the_group_rule(tmp_path, monkeypatch):
     monkeypatch.setattr(socket.socket, "connect", refuse)
     with pytest.raises(ClientError, match="permission denied .*group"):
         Client(str(tmp_path / "g.sock"))
+
+
+def test_gravcal_watch_reconnect_follows_a_daemon_restart(tmp_path):
+    import subprocess
+    import sys
+    import time
+
+    from test_server import publish, wait_until
+
+    path = str(tmp_path / "g.sock")
+    first = SocketServer(path, config=ServerConfig())
+    first.start()
+    p = subprocess.Popen([sys.executable, "-m", "gravcal.daemon.cli", "watch", "--socket", path, "--json",
+                          "--rate", "0", "--reconnect", "--timeout", "5", "--count", "200"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    second = None
+    try:
+        assert wait_until(lambda: first._watchers, timeout=30)
+        publish(first, 100, seq0=0)
+        time.sleep(0.5)
+        first.stop()  # the daemon stops: the socket goes away
+        time.sleep(1.5)  # the watch finds nothing there for a while
+        second = SocketServer(path, config=ServerConfig())
+        second.start()
+        assert wait_until(lambda: second._watchers, timeout=30)
+        publish(second, 100, seq0=0)  # a restarted daemon's stream starts again
+        out, err = p.communicate(timeout=30)
+    finally:
+        if p.poll() is None:
+            p.kill()
+        if second is not None:
+            second.stop()
+    seqs = [m["seq"] for m in map(json.loads, out.splitlines()) if m["class"] == "IMU"]
+    assert p.returncode == 0, err
+    assert seqs == list(range(100)) * 2, seqs[:5]
+    assert "connecting again" in err and "connected again" in err and "Traceback" not in err, err
+
+
+def test_gravcal_watch_without_reconnect_ends_with_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    p = subprocess.run([sys.executable, "-m", "gravcal.daemon.cli", "watch", "--socket", str(tmp_path / "none.sock")],
+                       capture_output=True, text=True, timeout=60)
+    assert p.returncode == 1 and p.stderr.count("\n") == 1 and "no such socket" in p.stderr, p.stderr
