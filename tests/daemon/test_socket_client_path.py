@@ -133,3 +133,45 @@ def test_gravcal_watch_without_reconnect_ends_with_one_line(tmp_path):
     p = subprocess.run([sys.executable, "-m", "gravcal.daemon.cli", "watch", "--socket", str(tmp_path / "none.sock")],
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 1 and p.stderr.count("\n") == 1 and "no such socket" in p.stderr, p.stderr
+
+
+def _documented_fields(after: str, tables: int) -> list[str]:
+    """Field names of the first ``tables`` tables after the heading ``after`` in docs/socket-protocol.md."""
+    import re
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "socket-protocol.md").read_text()
+    rest, names, seen = doc[doc.index(after):].splitlines(), [], 0
+    in_table = False
+    for line in rest[1:]:
+        row = re.match(r"\| `(\w+)` \|", line)
+        if row:
+            names.append(row.group(1))
+        if line.startswith("|") != in_table:
+            in_table = not in_table
+            seen += not in_table
+            if seen == tables:
+                break
+    return names
+
+
+def test_imu_lines_carry_exactly_the_documented_fields_and_types():
+    import numpy as np
+
+    from gravcal.core.samples import empty
+    from gravcal.daemon.protocol import encode_imu
+
+    s = empty(2)
+    s["seq"], s["t1"], s["t2"], s["temp"], s["vsupply"] = [5, 6], 10000, 20000, 24.5, 3.3
+    acc, gyro, static = np.full((2, 3), 1.5), np.array([0.1, np.nan]), np.array([True, False])
+    plain = [json.loads(x) for x in encode_imu(s, acc, gyro, static)]
+    raw = [json.loads(x) for x in encode_imu(s, acc, gyro, static, raw=True)]
+    documented = _documented_fields("### IMU", 2)
+    assert len(documented) == 13, documented
+    assert set(raw[0]) - {"class"} == set(documented)
+    assert set(plain[0]) - {"class"} == set(documented[:7])
+    m = raw[0]
+    assert isinstance(m["seq"], int) and isinstance(m["t"], float) and isinstance(m["static"], bool)
+    assert len(m["acc"]) == 3 and len(m["duty"]) == 4 and len(m["t1"]) == 4 and len(m["t2"]) == 2
+    assert all(isinstance(m[k], int) for k in ("gyro_counts", "tick", "flags"))
+    assert m["gyro"] == 0.1 and raw[1]["gyro"] is None  # rad/s, null while uncalibrated
