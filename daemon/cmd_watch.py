@@ -110,6 +110,8 @@ def _print_stream(client: Client, args: argparse.Namespace, out: TextIO, seen: l
             text = format_calib(msg)
         elif cls == "DROPPED":
             text = f"DROPPED {msg.get('count')} messages (too slow; {msg.get('total')} in total)"
+        elif cls == "DEVICE":
+            text = f"DEVICE {msg.get('path')} " + ("connected" if msg.get("connected") else "gone (no samples until back)")
         if text is not None and not write_or_stop(text, out):
             return 0  # the reader closed the pipe (| head): done
         if cls == "ERROR" and not args.json:

@@ -94,6 +94,7 @@ class Gravcald:
         self._data = threading.Event()
         self._acq_stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._device_connected = True  # as last told to watchers (DEVICE)
         self.samples_in = 0
         self.read_errors = 0
         self.exit_code = 0
@@ -230,7 +231,10 @@ class Gravcald:
             n = block.shape[0]
             if not n:  # the bus went quiet (a stop, an unplug): the analysis gets what is staged now
                 self._stage_for_analysis(staged)
+                self._device_notice(self._driver_connected())
                 continue
+            if not self._device_connected:
+                self._device_notice(True)
             self.samples_in += n
             self.watchdog.samples_arrived(n)
             try:
@@ -245,6 +249,19 @@ class Gravcald:
                 self._stage_for_analysis(staged)
         self._stage_for_analysis(staged)
         self._take_calibration()
+
+    def _driver_connected(self) -> bool:
+        try:
+            return bool(self.driver.stats().get("connected", True))
+        except Exception:  # a driver's counters must not stop acquisition
+            return True
+
+    def _device_notice(self, connected: bool) -> None:
+        """Tell watchers when the device goes away and when it is back, before its next sample (gpsd's DEVICE
+        push): meanwhile no IMU arrive, and a client can tell a lost bus from a hung daemon."""
+        if connected != self._device_connected:
+            self._device_connected = connected
+            self.server.notify({"class": "DEVICE", "path": self.cfg.device.spec, "connected": connected})
 
     def _take_calibration(self) -> None:
         """Push a CALIB the analysis staged, then switch to the corrections it announces; in the acquisition

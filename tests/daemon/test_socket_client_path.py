@@ -175,3 +175,21 @@ def test_imu_lines_carry_exactly_the_documented_fields_and_types():
     assert len(m["acc"]) == 3 and len(m["duty"]) == 4 and len(m["t1"]) == 4 and len(m["t2"]) == 2
     assert all(isinstance(m[k], int) for k in ("gyro_counts", "tick", "flags"))
     assert m["gyro"] == 0.1 and raw[1]["gyro"] is None  # rad/s, null while uncalibrated
+
+
+def test_gravcal_watch_prints_device_notices():
+    from gravcal.daemon.cmd_watch import _print_stream
+
+    class Stream:
+        def watch(self, rate, raw):
+            yield {"class": "DEVICE", "path": "serial:///dev/ttyUSB0", "connected": False}
+            yield {"class": "DEVICE", "path": "serial:///dev/ttyUSB0", "connected": True}
+
+    import argparse
+    import io
+
+    out = io.StringIO()
+    args = argparse.Namespace(rate=0, raw=False, json=False, count=0)
+    assert _print_stream(Stream(), args, out, [0]) == 0
+    assert out.getvalue().splitlines() == ["DEVICE serial:///dev/ttyUSB0 gone (no samples until back)",
+                                           "DEVICE serial:///dev/ttyUSB0 connected"]
