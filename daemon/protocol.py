@@ -23,7 +23,7 @@ from ..core.samples import duty_ratios
 from ._linekernel import imu_line
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 0
+PROTOCOL_MINOR = 1  # additions only; docs/socket-protocol.md lists what each minor version brings
 
 STANDARD_GRAVITY = 9.80665  # m/s² per g (CGPM 1901)
 

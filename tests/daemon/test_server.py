@@ -84,7 +84,7 @@ def server(sockpath):
 def test_greeting_and_every_command(server, sockpath):
     with Client(sockpath) as c:
         assert c.version["class"] == "VERSION"
-        assert (c.version["proto_major"], c.version["proto_minor"]) == (1, 0)
+        assert (c.version["proto_major"], c.version["proto_minor"]) == (1, 1)
         assert c.version["release"]
         assert c.poll()["imu"] == []  # nothing published yet
         calib = c.calib()

@@ -59,7 +59,7 @@ def test_client_refuses_another_protocol_major_with_a_clear_message(tmp_path):
     path = str(tmp_path / "g.sock")
     lsock = _one_shot_server(path, b'{"class":"VERSION","release":"9.0","proto_major":2,"proto_minor":1}\n')
     try:
-        with pytest.raises(ClientError, match=r"speaks protocol 2\.1; this client speaks 1\.0"):
+        with pytest.raises(ClientError, match=r"speaks protocol 2\.1; this client speaks 1\.1"):
             Client(path, timeout=5)
     finally:
         lsock.close()
