@@ -18,6 +18,8 @@ import socket
 import time
 from typing import Any, Iterator
 
+from .protocol import PROTOCOL_MAJOR, PROTOCOL_MINOR
+
 DEFAULT_SOCKET = "/run/gravcal.sock"
 
 
@@ -28,6 +30,10 @@ def default_socket_path() -> str:
 
 class ClientError(OSError):
     """Cannot talk to gravcald (connect failed, connection closed, timeout)."""
+
+
+class ProtocolMismatchError(ClientError):
+    """gravcald speaks another major protocol version: connecting again will not help."""
 
 
 class ServerError(ValueError):
@@ -47,12 +53,21 @@ class Client:
         except FileNotFoundError as exc:
             self._sock.close()
             raise ClientError(f"cannot connect to {self.path}: no such socket (is gravcald running? use --socket PATH)") from exc
+        except PermissionError as exc:
+            self._sock.close()
+            raise ClientError(f"cannot connect to {self.path}: permission denied (the socket's group may connect, "
+                              "see docs/daemon.md 'Least privilege')") from exc
         except OSError as exc:
             self._sock.close()
             raise ClientError(f"cannot connect to {self.path}: {exc.strerror or exc}") from exc
         self._buf = bytearray()
         self._pending: collections.deque[dict[str, Any]] = collections.deque()
         self.version = self._expect("VERSION")
+        if self.version.get("proto_major") != PROTOCOL_MAJOR:  # a major change breaks what this client expects
+            self._sock.close()
+            raise ProtocolMismatchError(f"{self.path}: gravcald speaks protocol {self.version.get('proto_major')}."
+                              f"{self.version.get('proto_minor')}; this client speaks {PROTOCOL_MAJOR}.{PROTOCOL_MINOR} "
+                              "(use the gravcal of the same release as the daemon)")
 
     # -- plumbing --------------------------------------------------------------------
     def close(self) -> None:

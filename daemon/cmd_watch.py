@@ -5,13 +5,15 @@ import argparse
 import json
 import math
 import sys
+import time
 from typing import Any, TextIO
 
-from .client import Client, default_socket_path
+from .client import Client, ClientError, ProtocolMismatchError, default_socket_path
 from .closed_pipe import write_or_stop
 from .errors import InputError
 from .protocol import STANDARD_GRAVITY
 
+RECONNECT_S = 1.0  # between attempts to reach gravcald again (--reconnect)
 STATIC_WORDS = {True: "static", False: "moving"}  # null: the detector had no decision recent enough
 
 
@@ -30,6 +32,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the server's JSON messages as they are")
     p.add_argument("--timeout", metavar="S", type=float, default=10.0,
                    help="give up when nothing arrives for S seconds (default 10)")
+    p.add_argument("--reconnect", action="store_true",
+                   help="when gravcald is not there, stops or goes silent for --timeout, say so on stderr and "
+                        "connect again (until Ctrl-C), instead of ending with an error")
     p.set_defaults(func=run)
     return p
 
@@ -67,25 +72,52 @@ def run(args: argparse.Namespace, out: TextIO | None = None) -> int:
         raise InputError(f"--rate must be a number of Hz >= 0, got {args.rate}")
     if args.count < 0:
         raise InputError(f"--count must be >= 0, got {args.count}")
-    seen = 0
-    with Client(args.socket, timeout=args.timeout) as client:
-        for msg in client.watch(rate=args.rate, raw=args.raw):
-            cls = msg.get("class")
-            text = None
-            if args.json:
-                text = json.dumps(msg, separators=(",", ":"))
-            elif cls == "IMU":
-                text = format_imu(msg, args.raw)
-            elif cls == "CALIB":
-                text = format_calib(msg)
-            elif cls == "DROPPED":
-                text = f"DROPPED {msg.get('count')} messages (too slow; {msg.get('total')} in total)"
-            if text is not None and not write_or_stop(text, out):
-                return 0  # the reader closed the pipe (| head): done
-            if cls == "ERROR" and not args.json:
-                print(f"ERROR {msg.get('message')}", file=sys.stderr, flush=True)
-            if cls == "IMU":
-                seen += 1
-                if args.count and seen >= args.count:
-                    return 0
+    seen = [0]
+    if not args.reconnect:
+        with Client(args.socket, timeout=args.timeout) as client:
+            return _print_stream(client, args, out, seen)
+    lost = None
+    while True:
+        try:
+            with Client(args.socket, timeout=args.timeout) as client:
+                if lost is not None:
+                    _note(f"gravcal watch: connected again to {client.path}")
+                    lost = None
+                return _print_stream(client, args, out, seen)
+        except ProtocolMismatchError:
+            raise
+        except ClientError as exc:
+            if lost != str(exc):  # once per cause, not once per attempt
+                _note(f"gravcal watch: {exc}; connecting again every {RECONNECT_S:g} s (Ctrl-C stops)")
+                lost = str(exc)
+        time.sleep(RECONNECT_S)
+
+
+def _note(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def _print_stream(client: Client, args: argparse.Namespace, out: TextIO, seen: list[int]) -> int:
+    """Print the watch until --count samples (``seen`` counts them across reconnections) or a closed pipe."""
+    for msg in client.watch(rate=args.rate, raw=args.raw):
+        cls = msg.get("class")
+        text = None
+        if args.json:
+            text = json.dumps(msg, separators=(",", ":"))
+        elif cls == "IMU":
+            text = format_imu(msg, args.raw)
+        elif cls == "CALIB":
+            text = format_calib(msg)
+        elif cls == "DROPPED":
+            text = f"DROPPED {msg.get('count')} messages (too slow; {msg.get('total')} in total)"
+        elif cls == "DEVICE":
+            text = f"DEVICE {msg.get('path')} " + ("connected" if msg.get("connected") else "gone (no samples until back)")
+        if text is not None and not write_or_stop(text, out):
+            return 0  # the reader closed the pipe (| head): done
+        if cls == "ERROR" and not args.json:
+            print(f"ERROR {msg.get('message')}", file=sys.stderr, flush=True)
+        if cls == "IMU":
+            seen[0] += 1
+            if args.count and seen[0] >= args.count:
+                return 0
     return 0

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import threading
 import time
 from typing import Any, Callable
 
@@ -86,7 +87,14 @@ class Processor:
         self.analysed: tuple[int | None, bool] = (None, False)
         self.corrected_seq: int | None = None  # seq of the last sample corrected (the analysis lag is from it)
         self.static_unknown = 0  # corrected samples whose `static` was unknown (the detector too far behind)
+        # Corrections the analysis changed, held until the acquisition thread takes them with the CALIB that
+        # announces them (take_pending), so a client sees every sample after a CALIB corrected with it and none
+        # before. Off: they apply at once (one thread, as in tests and offline use).
+        self.defer_corrections = False
+        self._pending: dict[str, Any] = {}
+        self._pending_lock = threading.Lock()
         self.applied = start.calibration  # what corrects the published samples until an update is accepted
+        self.applied_revision: int | None = start.revision if start.accepted else None
         saved_remount = start.extra.get("remount") if resumed else None
         e = cfg.estimator
         self.online = OnlineCalibrator.for_service(
@@ -131,15 +139,15 @@ class Processor:
             self.cfg.device.fs_hz, k=1, axis=GYRO_AXIS, hp_hz=GYRO_HP_HZ,
             start_sensitivity=sens if math.isfinite(sens) and sens != 0 else GYRO_NOMINAL_COUNTS_PER_RAD_S,
             range_rad_s=GYRO_RANGE_RAD_S, rails=GYRO_RAILS)
-        self.gyro_json: dict[str, Any] = self._gyro_json(self.gyro_cal.calibration)
+        self.gyro_json: dict[str, Any] = self._gyro_json(self.gyro_cal.calibration, self.gyro_start)
         # (bias [counts], sensitivity [counts per rad/s]) used by correct() and the C step (daemon/fastpath.py):
         # one tuple, swapped atomically
         self.gyro_correction = self.gyro_start
 
-    def _gyro_json(self, cal: Any) -> dict[str, Any]:
+    def _gyro_json(self, cal: Any, applied: tuple[float, float]) -> dict[str, Any]:
         """The ``gyro`` object of CALIB: the estimator's result plus what the published rate uses."""
         out = cal.to_json_dict()
-        b, s = getattr(self, "gyro_correction", self.gyro_start)
+        b, s = applied
         out["applied"] = {"bias": b if math.isfinite(b) else None, "sensitivity": s if math.isfinite(s) else None}
         return out
 
@@ -152,8 +160,43 @@ class Processor:
         return True
 
     def _gyro_apply(self) -> None:
-        self.gyro_correction = self.gyro_cal.correction(self.gyro_start)
-        self.gyro_json = self._gyro_json(self.gyro_cal.calibration)
+        corr = self.gyro_cal.correction(self.gyro_start)
+        self.gyro_json = self._gyro_json(self.gyro_cal.calibration, corr)
+        self._swap("gyro_correction", corr)
+
+    def _swap(self, name: str, value: Any) -> None:
+        """Set a correction the published samples use (``correction`` or ``gyro_correction``): at once, or held
+        for take_pending when ``defer_corrections``."""
+        if not self.defer_corrections:
+            setattr(self, name, value)
+            return
+        with self._pending_lock:
+            self._pending[name] = value
+
+    def stage_message(self, message: dict[str, Any]) -> None:
+        """The CALIB that announces the held corrections (the latest replaces an untaken one)."""
+        with self._pending_lock:
+            self._pending["message"] = message
+
+    @property
+    def has_pending(self) -> bool:
+        """A CALIB is staged: its corrections are taken with it, not before (an analysis block may accept a
+        calibration long before it ends and the CALIB is made)."""
+        return "message" in self._pending
+
+    @property
+    def corrections_pending(self) -> bool:
+        return bool(self._pending) and not self.has_pending
+
+    def take_pending(self) -> dict[str, Any] | None:
+        """The held CALIB message (or None), after applying the held corrections. The caller pushes the message
+        before it corrects another sample: the acquisition thread, so the stream orders them exactly."""
+        with self._pending_lock:
+            pending, self._pending = self._pending, {}
+        for name in ("correction", "gyro_correction"):
+            if name in pending:
+                setattr(self, name, pending[name])
+        return pending.get("message")
 
     def reconfigure(self, cfg: Config) -> None:
         """Live changes (SIGHUP): detector settings rebuild the detector."""
@@ -209,7 +252,7 @@ class Processor:
         # sample's covariates (Calibration.apply). One tuple, swapped atomically: correct() and the C step
         # (daemon/fastpath.py) read it in the acquisition thread.
         plain = PlainCorrection(cal.offset, cal.sensitivity, STANDARD_GRAVITY)
-        self.correction = (plain, cal if cal.extended_terms else None)
+        self._swap("correction", (plain, cal if cal.extended_terms else None))
 
     @property
     def static_now(self) -> bool:
@@ -316,6 +359,7 @@ class Processor:
         self.state = CalibrationState(step.calibration, self.state.revision + 1, time.time(), step.accepted, extra)
         if step.accepted:
             self.applied = step.calibration
+            self.applied_revision = self.state.revision
             self.detector.to_g = step.calibration
         self.changed = True
 

@@ -4,7 +4,7 @@ Every message the server sends is one JSON object on one line with a ``class``. 
 send gpsd-style commands, one or more per line::
 
     ?WATCH={"enable":true,"raw":false,"rate":50};
-    ?POLL;  ?CALIB;  ?STATUS;  ?VERSION;
+    ?POLL;  ?CALIB;  ?STATUS;  ?DEVICES;  ?VERSION;
 
 This module is pure (no sockets): it parses requests into :class:`Request` objects and
 encodes messages to bytes. docs/socket-protocol.md documents every class and field.
@@ -23,14 +23,14 @@ from ..core.samples import duty_ratios
 from ._linekernel import imu_line
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 0
+PROTOCOL_MINOR = 1  # additions only; docs/socket-protocol.md lists what each minor version brings
 
 STANDARD_GRAVITY = 9.80665  # m/s² per g (CGPM 1901)
 
 MAX_REQUEST_BYTES = 1024
 """Default bound on one request line (bytes, without the newline)."""
 
-COMMANDS = ("WATCH", "POLL", "CALIB", "STATUS", "VERSION")
+COMMANDS = ("WATCH", "POLL", "CALIB", "STATUS", "DEVICES", "VERSION")
 WATCH_FIELDS = ("enable", "raw", "rate", "json")
 
 
@@ -190,6 +190,20 @@ def version_message() -> dict[str, Any]:
         "proto_major": PROTOCOL_MAJOR,
         "proto_minor": PROTOCOL_MINOR,
     }
+
+
+DEVICE_FIELDS = ("bus", "device", "connected", "rate_hz", "samples", "reconnects")
+"""The STATUS ``device`` fields a DEVICE entry repeats (beside ``path``, the driver spec)."""
+
+
+def status_reply(command: str, status_line: bytes) -> bytes:
+    """The reply to ?STATUS (the encoded STATUS itself) or ?DEVICES (gpsd's request, for clients that ask it:
+    the one device gravcald reads, from that STATUS)."""
+    if command == "STATUS":
+        return status_line
+    dev = json.loads(status_line).get("device") or {}
+    entry = {"class": "DEVICE", "path": dev.get("spec"), **{k: dev[k] for k in DEVICE_FIELDS if k in dev}}
+    return encode({"class": "DEVICES", "devices": [entry]})
 
 
 def error_message(message: str, request: str | None = None) -> dict[str, Any]:

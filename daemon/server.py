@@ -189,16 +189,16 @@ class SocketServer:
         self._last_block = latest
 
     def set_calibration(self, message: dict[str, Any]) -> None:
-        """Set the current CALIB message (see protocol.calib_message); pushed to watchers at once,
-        in order with the samples published by the same thread."""
-        msg = dict(message)
-        msg["class"] = "CALIB"
+        """Set the current CALIB message (see protocol.calib_message) and push it (:meth:`notify`)."""
+        self.notify({**message, "class": "CALIB"}, current_calib=True)
+
+    def notify(self, msg: dict[str, Any], current_calib: bool = False) -> None:
+        """Push a message to every watcher now, in order with this thread's samples (CALIB: kept for new ones)."""
         line = protocol.encode(msg)
         with self._calib_lock:
-            self._calib = msg
+            self._calib = msg if current_calib else self._calib
             wake, dropped = deliver_line(self._watchers, line, time.monotonic())
-        if dropped:
-            self._dropped_direct += dropped
+        self._dropped_direct += dropped
         if wake:
             self._wake_once()
 
@@ -470,8 +470,8 @@ class SocketServer:
             self._reply(c, self._calib if self._calib is not None else
                         {"class": "CALIB", "revision": 0, "accepted": False, "model": None,
                          "message": "no calibration yet"})
-        elif req.command == "STATUS":
-            self._enqueue(c, [self._status_line()])
+        elif req.command in ("STATUS", "DEVICES"):  # both from the cached status
+            self._enqueue(c, [protocol.status_reply(req.command, self._status_line())])
             self._flush(c)
         elif req.command == "VERSION":
             self._reply(c, protocol.version_message())

@@ -94,6 +94,7 @@ class Gravcald:
         self._data = threading.Event()
         self._acq_stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._device_connected = True  # as last told to watchers (DEVICE)
         self.samples_in = 0
         self.read_errors = 0
         self.exit_code = 0
@@ -169,6 +170,7 @@ class Gravcald:
         if self.identity is not None:  # root until here: the device and socket are open
             self.store.ensure_directory()
             privileges.drop(self.identity, hand_over=[self.store.directory])
+        self.processor.defer_corrections = True  # the acquisition thread takes them with their CALIB
         for name, target in (("gravcal-acquisition", self._acquire), ("gravcal-processing", self._process)):
             t = threading.Thread(target=target, name=name, daemon=True)
             t.start()
@@ -180,7 +182,7 @@ class Gravcald:
     def _calib_message(self) -> dict[str, Any]:
         st = self.processor.state
         return calib_message(st.calibration, revision=st.revision, updated=st.updated, accepted=st.accepted,
-                             extra={"applied_revision": st.revision if st.accepted else None,
+                             extra={"applied_revision": self.processor.applied_revision,
                                     "gyro": self.processor.gyro_json, **self.processor.calib_extra()})
 
     # -- threads -------------------------------------------------------------------------
@@ -199,6 +201,8 @@ class Gravcald:
         fast = self._fast = FastPath.for_driver(self.driver, p, self.server, max_frames=d.read_block, stage_bytes=stage_bytes,
                                    fs_hz=d.fs_hz) if self.fast_path else None
         while not self._acq_stop.is_set():
+            if p.has_pending:
+                self._take_calibration()
             if fast is not None:  # the common case in C, until a case it does not take (daemon/fastpath.py)
                 try:
                     n, read_next = fast.run(staged)
@@ -227,7 +231,10 @@ class Gravcald:
             n = block.shape[0]
             if not n:  # the bus went quiet (a stop, an unplug): the analysis gets what is staged now
                 self._stage_for_analysis(staged)
+                self._device_notice(self._driver_connected())
                 continue
+            if not self._device_connected:
+                self._device_notice(True)
             self.samples_in += n
             self.watchdog.samples_arrived(n)
             try:
@@ -241,6 +248,27 @@ class Gravcald:
             if len(staged) >= stage_bytes:
                 self._stage_for_analysis(staged)
         self._stage_for_analysis(staged)
+        self._take_calibration()
+
+    def _driver_connected(self) -> bool:
+        try:
+            return bool(self.driver.stats().get("connected", True))
+        except Exception:  # a driver's counters must not stop acquisition
+            return True
+
+    def _device_notice(self, connected: bool) -> None:
+        """Tell watchers when the device goes away and when it is back, before its next sample (gpsd's DEVICE
+        push): meanwhile no IMU arrive, and a client can tell a lost bus from a hung daemon."""
+        if connected != self._device_connected:
+            self._device_connected = connected
+            self.server.notify({"class": "DEVICE", "path": self.cfg.device.spec, "connected": connected})
+
+    def _take_calibration(self) -> None:
+        """Push a CALIB the analysis staged, then switch to the corrections it announces; in the acquisition
+        thread while it runs, so every IMU line after a CALIB is corrected with it and none before."""
+        message = self.processor.take_pending()
+        if message is not None:
+            self.server.set_calibration(message)
 
     def _stage_for_analysis(self, staged: bytearray) -> None:
         if staged:
@@ -271,6 +299,7 @@ class Gravcald:
             if block.shape[0]:
                 self._analyse(block)
             elif self._stop.is_set() and not any(t.is_alive() for t in self._threads[:1]):
+                self._take_calibration()  # one staged as the acquisition thread ended
                 return
 
     def _analyse(self, block: np.ndarray) -> None:
@@ -282,7 +311,9 @@ class Gravcald:
             log.exception("analysing a block of %d samples failed", block.shape[0])
             return
         if p.changed:
-            self.server.set_calibration(self._calib_message())
+            p.stage_message(self._calib_message())
+            if not self._threads or not self._threads[0].is_alive():  # no acquisition thread left to take it
+                self._take_calibration()
             if p.state.accepted:
                 self.saver.offer(p.state)
 
@@ -410,6 +441,8 @@ class Gravcald:
         s = new.socket
         self.server.reconfigure(s)
         self.processor.reconfigure(new)  # the processing thread reads it at the next block
+        if self.processor.corrections_pending:  # new gyro start values: published with their CALIB
+            self.processor.stage_message(self._calib_message())
         self.cfg = new
         self.reloads += 1
         self.reload_error = None

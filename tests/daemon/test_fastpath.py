@@ -170,8 +170,12 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
         seq += 40
         settle(d, a)
         cal = Calibration.nominal(np.array([0.49, 0.51, 0.5]), 0.041, model="6")
-        d.processor.applied = cal  # a calibration accepted by the processing thread, and its CALIB
-        d.server.set_calibration({"revision": 7, "model": "6", "accepted": True, "offset": cal.offset.tolist()})
+        # a calibration accepted by the processing thread and its CALIB: the acquisition thread takes both
+        d.processor.applied = cal
+        d.processor.stage_message({"revision": 7, "model": "6", "accepted": True, "offset": cal.offset.tolist()})
+        deadline = time.monotonic() + 10
+        while d.processor.has_pending and time.monotonic() < deadline:  # taken before the next frames, on both paths
+            time.sleep(0.01)
         write(frames(range(seq, seq + 40)))
         seq += 40
         settle(d, a)

@@ -84,7 +84,7 @@ def server(sockpath):
 def test_greeting_and_every_command(server, sockpath):
     with Client(sockpath) as c:
         assert c.version["class"] == "VERSION"
-        assert (c.version["proto_major"], c.version["proto_minor"]) == (1, 0)
+        assert (c.version["proto_major"], c.version["proto_minor"]) == (1, 1)
         assert c.version["release"]
         assert c.poll()["imu"] == []  # nothing published yet
         calib = c.calib()
@@ -153,7 +153,7 @@ def test_bad_requests_get_error_and_connection_survives(server, sockpath):
     assert r.line()["class"] == "VERSION"
     for bad, expect in [(b"?WATCH={\"enable\":true,\"colour\":1};\n", "unknown field 'colour'"),
                         (b"hello\n", "requests start with '?'"),
-                        (b"?DEVICES;\n", "unknown command"),
+                        (b"?SKY;\n", "unknown command"),
                         (b"?WATCH={\"rate\":-5};\n", "'rate' must be a number"),
                         (b"?WATCH={bad json};\n", "not valid JSON")]:
         r.send(bad)
