@@ -94,12 +94,21 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _commands_dir() -> Path:
+    return Path(__file__).resolve().parent
+
+
 def _command_names(argv: Sequence[str] | None = None) -> list[str]:
-    here = Path(__file__).resolve().parent
+    here = _commands_dir()
     words = [a for a in (argv or ()) if not a.startswith("-")]
     if words and (here / f"cmd_{words[0]}.py").is_file() and not {"-h", "--help"} & set(argv or ()):
         return [words[0]]  # listing the package (pkgutil, inspect: ~15 ms) only for help or a typo
     found = sorted(m.name[4:] for m in pkgutil.iter_modules([str(here)]) if m.name.startswith("cmd_"))
+    if not found:  # argparse would say "invalid choice (choose from )": say what is wrong instead
+        unreadable = not os.access(here, os.R_OK | os.X_OK)
+        raise GravcalError(f"no gravcal commands found in {here}" + (
+            f": the directory is not readable by this user (uid {os.getuid()}); install gravcal where it can read it"
+            if unreadable else ""))
     names = [c for c in COMMANDS if c in found] + [c for c in found if c not in COMMANDS]
     words = [a for a in (argv or ()) if not a.startswith("-")]
     if words and words[0] in names and not {"-h", "--help"} & set(argv or ()):
@@ -130,7 +139,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point (``gravcal``). Returns the exit status instead of raising SystemExit
     for the program's own outcomes; argparse usage errors still exit with status 2."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(argv)
+    try:
+        parser = build_parser(argv)
+    except GravcalError as exc:
+        _error(exc)
+        return EXIT_INTERNAL
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
     for name, why in _UNAVAILABLE.items():

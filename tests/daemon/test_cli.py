@@ -263,3 +263,18 @@ def test_internal_error_is_one_line_and_debug_shows_the_traceback(capsys, monkey
     assert_one_error_line(err, "internal error: RuntimeError: kaboom", "--debug")
     code, out, err = run_cli(capsys, "--debug", "calibrate", six)
     assert code == 1 and "Traceback" in err and "kaboom" in err
+
+
+@pytest.mark.parametrize("readable", [True, False])
+def test_a_package_whose_commands_cannot_be_listed_gets_one_line_naming_the_directory(tmp_path, monkeypatch,
+                                                                                       capsys, readable):
+    from gravcal.daemon import cli
+
+    monkeypatch.setattr(cli, "_commands_dir", lambda: tmp_path)  # e.g. an install this user cannot read
+    if not readable:
+        monkeypatch.setattr(cli.os, "access", lambda path, mode: False)
+    assert cli.main(["watch"]) == cli.EXIT_INTERNAL
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"gravcal: error: no gravcal commands found in {tmp_path}") and "\n" not in err
+    assert ("not readable by this user" in err) is (not readable)
+    assert "invalid choice" not in err
