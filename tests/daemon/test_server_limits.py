@@ -1,5 +1,6 @@
 """Per-client limits of the socket server: request budget, cached STATUS, byte-bounded queues,
 idle and hung-up clients, decimation under jittering time."""
+import collections
 import logging
 import math
 import socket
@@ -221,6 +222,27 @@ def test_output_queue_bound_holds_for_runs_and_by_messages():
         assert q.nbytes == len(q.buf) <= 2000 and len(q) <= 15 and q.buf.count(b"\n") == len(q)
     data = b"".join(q.take(1 << 20)[0])
     assert data == b"".join(lines[lost:]) and lost == 85 and q.nbytes == 0 and len(q) == 0
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_output_queue_keeps_the_newest_lines_within_both_bounds(seed):
+    # against a reference: a deque of lines, the oldest dropped while either bound is exceeded
+    rng = np.random.default_rng(seed)
+    limit, max_bytes = int(rng.integers(5, 60)), int(rng.integers(200, 3000))
+    q, ref, lost = OutputQueue(limit=limit, max_bytes=max_bytes), collections.deque(), 0
+    for k in range(300):
+        run = [b"%d" % k + b"z" * int(rng.integers(0, 120)) + b"\n" for _ in range(int(rng.integers(1, 9)))]
+        lost += q.put(run, b"".join(run) if k % 2 else None)
+        ref.extend(run)
+        while len(ref) > limit or sum(map(len, ref)) > max_bytes:
+            ref.popleft()
+        assert bytes(q.buf) == b"".join(ref) and len(q) == len(ref) and q.nbytes == sum(map(len, ref))
+        if k % 50 == 49:  # a reader takes some
+            taken, n = q.take(int(rng.integers(50, 500)))
+            for line in b"".join(taken).splitlines(keepends=True):
+                assert ref.popleft() == line
+            assert n == len(b"".join(taken).splitlines())
+    assert lost > 0
 
 
 def test_output_queue_take_cuts_at_whole_lines():
