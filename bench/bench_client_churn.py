@@ -33,7 +33,8 @@ def main() -> int:
     p.add_argument("--flooders", type=int, default=8)
     p.add_argument("--slow-readers", type=int, default=20)
     p.add_argument("--probe", action="store_true")
-    p.add_argument("--env", action="append", default=[], metavar="NAME=VALUE", help="for gravcald (e.g. MALLOC_ARENA_MAX=1)")
+    p.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
+                   help="for gravcald, e.g. MALLOC_ARENA_MAX=2, PYTHONPATH=DIR (another source tree)")
     args = p.parse_args()
     env = dict(e.split("=", 1) for e in args.env)
     with tempfile.TemporaryDirectory(prefix="bench-churn-") as tmp:

@@ -13,10 +13,9 @@ from .gravcald_process import GravcaldProcess
 from .smaps import resident_by_kind
 
 
-def _queued(d: GravcaldProcess, n: int) -> tuple[int, list[int]]:
-    """(clients connected, queued bytes of the ``n`` fullest queues)."""
-    server = d.status()["server"]
-    return server["clients"], sorted((c["queued_bytes"] for c in server["per_client"]), reverse=True)[:n]
+def _queued(d: GravcaldProcess, n: int) -> list[int]:
+    """Queued bytes of the ``n`` fullest client queues."""
+    return sorted((c["queued_bytes"] for c in d.status()["server"]["per_client"]), reverse=True)[:n]
 
 
 def _settle(d: GravcaldProcess, clients: int, timeout: float = 30.0) -> None:
@@ -44,10 +43,10 @@ def _probe(directory: Path | None) -> str | None:
 def run_churn(*, rounds: int = 3, queue_bytes: int = 1 << 20, flooders: int = 8, slow_readers: int = 20,
               warmup_s: float = 5.0, settle_s: float = 2.0, fill_timeout_s: float = 60.0, fs: float = 200.0,
               probe_dir: Path | None = None, env: dict | None = None) -> dict:
-    """Figures: ``baseline`` (after warm-up with the good client), per round ``full`` (slow readers' queues at
-    the byte bound, flooders flooding) and ``after`` (they left, ``settle_s`` later): resident kB by kind
-    (smaps.resident_by_kind), the queued bytes at ``full``, and with ``probe_dir`` (gravcald's
-    memory_probe) its reports."""
+    """Figures: ``baseline`` (after warm-up with the good client), per round ``full`` (the slow readers' queues
+    at the byte bound; the flooders were disconnected for flooding after the server's flood_timeout_s) and
+    ``after`` (all of them left, ``settle_s`` later): resident kB by kind (smaps.resident_by_kind), the queued
+    bytes at ``full``, and with ``probe_dir`` (gravcald's memory_probe) its reports."""
     env = dict(env or {})
     if probe_dir is not None:
         env["GRAVCALD_MEMORY_PROBE"] = str(probe_dir)
@@ -76,11 +75,12 @@ def run_churn(*, rounds: int = 3, queue_bytes: int = 1 << 20, flooders: int = 8,
                 deadline = time.monotonic() + fill_timeout_s
                 while True:
                     _drain(good)
-                    clients, fullest = _queued(d, slow_readers)
+                    fullest = _queued(d, slow_readers)
                     if len(fullest) == slow_readers and min(fullest) >= 0.9 * queue_bytes:
                         break
                     if time.monotonic() > deadline:
-                        raise AssertionError(f"queues not at the byte bound within {fill_timeout_s} s: {fullest}\n{d.log()[-3000:]}")
+                        raise AssertionError(f"queues not at the byte bound within {fill_timeout_s} s: "
+                                             f"{fullest}\n{d.log()[-3000:]}")
                     time.sleep(0.5)
                 full = resident_by_kind(d.proc.pid)
                 probe_full = _probe(probe_dir)
