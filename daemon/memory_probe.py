@@ -8,6 +8,7 @@ allocations by line, largest first, and what grew since the first report) and re
 """
 from __future__ import annotations
 
+import logging
 import os
 import sys
 import tempfile
@@ -16,6 +17,8 @@ import time
 
 ENV = "GRAVCALD_MEMORY_PROBE"
 TOP_LINES = 25
+
+log = logging.getLogger("gravcal.memory_probe")
 
 
 def install_from_env(env) -> None:
@@ -36,10 +39,14 @@ def _serve(directory: str) -> None:
         if os.path.exists(request):
             count += 1
             path = os.path.join(directory, f"report-{count}.txt")
-            with open(path + ".tmp", "w") as fh:
-                fh.write(report())
-            os.replace(path + ".tmp", path)
-            os.unlink(request)
+            try:
+                with open(path + ".tmp", "w") as fh:
+                    fh.write(report())
+                os.replace(path + ".tmp", path)
+                os.unlink(request)
+            except OSError as exc:
+                log.warning("memory probe stops: cannot write its report in %s: %s", directory, exc.strerror or exc)
+                return
         time.sleep(0.05)
 
 
