@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import os
 import sys
-import tempfile
 import threading
 import time
 
@@ -75,6 +74,8 @@ def report() -> str:
 
 def _pymalloc_summary() -> str:
     """The arena lines of sys._debugmallocstats (it writes to the C stderr: captured through a file)."""
+    import tempfile  # only when asked: not among the daemon's start-up imports
+
     with tempfile.TemporaryFile() as tmp:
         sys.stderr.flush()
         saved = os.dup(2)
