@@ -36,7 +36,7 @@ def deliver(watchers: Iterable[ClientState], block: ImuBlock, now: float) -> tup
                     if not lines:
                         continue
             if lines is not None:
-                w, lost = _send(c, lines, b"".join(lines), len(lines), now)
+                w, lost = _send(c, b"".join(lines), len(lines), now)
             else:
                 data = block.joined(watch.raw)
                 sent = _send_now(c, data)
@@ -45,7 +45,7 @@ def deliver(watchers: Iterable[ClientState], block: ImuBlock, now: float) -> tup
                     c.sent_bytes += sent
                     c.last_progress = now
                     continue
-                w, lost = _sent(c, None, data, n, sent, now)
+                w, lost = _sent(c, data, n, sent, now)
             wake, dropped = wake or (w and not c.want_write), dropped + lost
     return wake, dropped
 
@@ -57,7 +57,7 @@ def deliver_line(watchers: Iterable[ClientState], line: bytes, now: float) -> tu
         with c.lock:
             if c.closed or not c.watch.enable:
                 continue
-            w, lost = _send(c, [line], line, 1, now)
+            w, lost = _send(c, line, 1, now)
             wake, dropped = wake or (w and not c.want_write), dropped + lost
     return wake, dropped
 
@@ -81,7 +81,7 @@ def finish_delivery(block: ImuBlock, snapshot: tuple[tuple[Any, ...], ...], inde
     try:
         wake, dropped, rest = False, 0, snapshot[index:]
         if sent >= 0:
-            wake, dropped = _sent(c, None, block.joined(raw), block.samples.shape[0], sent, now)
+            wake, dropped = _sent(c, block.joined(raw), block.samples.shape[0], sent, now)
             wake, rest = wake and not c.want_write, snapshot[index + 1:]
     finally:
         c.lock.release()  # recomputes its gate: what _sent queued goes first
@@ -100,16 +100,16 @@ def _send_now(c: ClientState, data: bytes) -> int:
         return 0
 
 
-def _send(c: ClientState, lines: list[bytes] | None, data: bytes, n: int, now: float) -> tuple[bool, int]:
-    """(the server thread must send the rest, messages dropped from the queue). ``lines``: the
-    messages in ``data`` (None: split it if needed). Called with ``c.lock`` held."""
-    return _sent(c, lines, data, n, _send_now(c, data), now)
+def _send(c: ClientState, data: bytes, n: int, now: float) -> tuple[bool, int]:
+    """(the server thread must send the rest, messages dropped from the queue) for ``data``, ``n`` whole
+    messages. Called with ``c.lock`` held."""
+    return _sent(c, data, n, _send_now(c, data), now)
 
 
-def _sent(c: ClientState, lines: list[bytes] | None, data: bytes, n: int, sent: int, now: float) -> tuple[bool, int]:
+def _sent(c: ClientState, data: bytes, n: int, sent: int, now: float) -> tuple[bool, int]:
     """The bookkeeping after ``sent`` bytes of ``data`` went out: the rest is the server thread's."""
     if sent == 0:
-        return True, _queue(c, data.splitlines(keepends=True) if lines is None else lines, data)
+        return True, _queue(c, data, n)
     c.sent_messages += n
     c.sent_bytes += sent
     c.last_progress = now
@@ -119,8 +119,8 @@ def _sent(c: ClientState, lines: list[bytes] | None, data: bytes, n: int, sent: 
     return False, 0
 
 
-def _queue(c: ClientState, lines: list[bytes], data: bytes) -> int:
-    lost = c.queue.put(lines, data)
+def _queue(c: ClientState, data: bytes, n: int) -> int:
+    lost = c.queue.put_joined(data, n)
     if lost:
         c.dropped_total += lost
         c.dropped_unreported += lost

@@ -18,7 +18,7 @@ from typing import Any, Sequence
 from ..core.estimators.observability import ORDER_LADDER
 from ..drivers.rigs.options import disconnect_arg, speed_arg
 from . import config as config_mod
-from . import privileges
+from . import memory_probe, privileges
 from .closed_pipe import write_or_stop
 from .config import ConfigError
 from .errors import InputError
@@ -97,6 +97,7 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
     """``gravcald`` entry point. Exit status: 0 clean stop, 1 runtime failure, 2 bad
     configuration or arguments (one line on stderr)."""
     env = os.environ if environ is None else environ
+    memory_probe.install_from_env(env)
     parser = build_parser()
     args = parser.parse_args(argv)
     if not args.emulate:

@@ -47,7 +47,7 @@ from .socket_activation import bind_unix_socket
 log = logging.getLogger("gravcal.server")
 
 ROOM_IDLE_S = 5.0  # a full table closes the longest-idle non-watcher idle at least this long
-TRIM_AFTER_BYTES = 1 << 20  # a client leaving with this much queued hands the memory back
+TRIM_AFTER_BYTES = 1 << 20  # clients leaving with this much queued in all hand the memory back
 _COUNTERS = ("clients_total", "clients_rejected", "clients_stalled", "clients_idle", "clients_hung_up",
              "clients_flooding", "requests_refused", "published_samples", "inbox_overruns")  # in STATUS's server
 
@@ -110,7 +110,7 @@ class SocketServer:
         self.requests_refused = 0  # requests over a client's budget, discarded
         self.dropped_total = 0
         self._status_cache: tuple[float, bytes] | None = None
-        self._trim_due = False
+        self._trim_due, self._freed = False, 0  # queued bytes of departed clients since the last trim
         self._next_check = 0.0
 
     # -- lifecycle -------------------------------------------------------------------
@@ -327,9 +327,9 @@ class SocketServer:
         with c.lock:  # a send from publish() is not in progress, and none follows
             c.closed = True
             c.sock.close()
-            if c.queue.nbytes + (len(c.out) if c.out else 0) >= TRIM_AFTER_BYTES:
-                self._trim_due = True
-            c.queue.entries.clear()
+            self._freed += c.queue.nbytes + (len(c.out) if c.out else 0)
+            self._trim_due = self._freed >= TRIM_AFTER_BYTES
+            c.queue.clear()
             c.out = None
 
     def _make_room(self) -> None:
@@ -596,5 +596,5 @@ class SocketServer:
             self.clients_hung_up += 1
             self._close(c, "hung up")
         if self._trim_due:
-            self._trim_due = False
+            self._trim_due, self._freed = False, 0
             return_memory_to_os()

@@ -1,5 +1,6 @@
 """Per-client limits of the socket server: request budget, cached STATUS, byte-bounded queues,
 idle and hung-up clients, decimation under jittering time."""
+import collections
 import logging
 import math
 import socket
@@ -210,16 +211,49 @@ def test_decimation_holds_its_rate_when_time_jitters_backwards(seed):
     assert mask.sum() == 3
 
 
-def test_output_queue_bound_holds_for_runs_queued_with_their_joined_copy():
-    # a run queued with its pre-joined bytes keeps both: the bound counts what is held, not the payload once
-    q = OutputQueue(limit=10**6, max_bytes=2000)
-    lines = [b"%04d" % i + b"x" * 95 + b"\n" for i in range(100)]
+def test_output_queue_bound_holds_for_runs_and_by_messages():
+    # runs queued with their joined bytes: whole messages, oldest first, within both bounds (messages bind here)
+    q = OutputQueue(limit=15, max_bytes=2000)
+    lines = [b"%04d" % i + b"x" * (i % 13) + b"\n" for i in range(100)]
     lost = 0
     for k in range(0, 100, 7):
         run = lines[k:k + 7]
         lost += q.put(run, b"".join(run))
-        held = sum(sum(map(len, e[0][e[1]:])) + (len(e[2]) if e[2] is not None else 0) for e in q.entries)
-        assert held == q.nbytes <= 2000
+        assert q.nbytes == len(q.buf) <= 2000 and len(q) <= 15 and q.buf.count(b"\n") == len(q)
     data = b"".join(q.take(1 << 20)[0])
-    assert data == b"".join(lines[100 - len(data) // 100:]) and lost + len(data) // 100 == 100
-    assert q.nbytes == 0 and len(q) == 0
+    assert data == b"".join(lines[lost:]) and lost == 85 and q.nbytes == 0 and len(q) == 0
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_output_queue_keeps_the_newest_lines_within_both_bounds(seed):
+    # against a reference: a deque of lines, the oldest dropped while either bound is exceeded
+    rng = np.random.default_rng(seed)
+    limit, max_bytes = int(rng.integers(5, 60)), int(rng.integers(200, 3000))
+    q, ref, lost = OutputQueue(limit=limit, max_bytes=max_bytes), collections.deque(), 0
+    for k in range(300):
+        run = [b"%d" % k + b"z" * int(rng.integers(0, 120)) + b"\n" for _ in range(int(rng.integers(1, 9)))]
+        lost += q.put(run, b"".join(run) if k % 2 else None)
+        ref.extend(run)
+        while len(ref) > limit or sum(map(len, ref)) > max_bytes:
+            ref.popleft()
+        assert bytes(q.buf) == b"".join(ref) and len(q) == len(ref) and q.nbytes == sum(map(len, ref))
+        if k % 50 == 49:  # a reader takes some
+            taken, n = q.take(int(rng.integers(50, 500)))
+            for line in b"".join(taken).splitlines(keepends=True):
+                assert ref.popleft() == line
+            assert n == len(b"".join(taken).splitlines())
+    assert lost > 0
+
+
+def test_output_queue_take_cuts_at_whole_lines():
+    q = OutputQueue(limit=10**6, max_bytes=10**6)
+    lines = [b"%04d" % i + b"y" * (i % 17) + b"\n" for i in range(200)]
+    q.put(lines)
+    got, n = [], 0
+    while len(q):
+        chunk, k = q.take(100)
+        assert len(chunk) == 1 and chunk[0].endswith(b"\n") and chunk[0].count(b"\n") == k
+        assert len(chunk[0]) <= 100 or k == 1
+        got.append(chunk[0])
+        n += k
+    assert b"".join(got) == b"".join(lines) and n == 200 and q.nbytes == 0
