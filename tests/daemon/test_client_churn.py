@@ -6,12 +6,12 @@ client, on a live 200 Hz gravcald (emulated serial). The same figures by kind of
 from support.client_churn import run_churn
 
 QUEUE_BYTES = 1 << 20
-ROUNDS = 3
-SPEED = 4  # the emulator at 800 samples/s fills the queues in ~5 s a round instead of ~20
+ROUNDS = 2  # a leak shows in the first round's residue already; the second shows whether rounds add up
 
 
 def test_memory_of_departed_clients_goes_back_and_churn_does_not_grow_it():
-    fig = run_churn(rounds=ROUNDS, queue_bytes=QUEUE_BYTES, flooders=8, slow_readers=20, speed=SPEED, warmup_s=3.0)
+    # at the real rate: with the emulator at 4x the daemon's own state grew up to 2 MB a round on its own
+    fig = run_churn(rounds=ROUNDS, queue_bytes=QUEUE_BYTES, flooders=8, slow_readers=20, warmup_s=3.0)
     assert fig["exit_code"] == 0, fig
     base = fig["baseline"]["total"]
     rounds = fig["rounds"]
@@ -22,5 +22,6 @@ def test_memory_of_departed_clients_goes_back_and_churn_does_not_grow_it():
     # a quarter of one round's queues at most stays resident: 1-2 MB measured (the daemon's own growth over the
     # run and the allocator's); queues held as Python objects per line leave 10-11 MB in part-used pymalloc arenas
     assert after[-1] - base < 0.25 * queued_kb, (after, base, queued_kb)
-    # and rounds do not add up: less than a tenth of a round's queues per round (a kept queue is all of it)
-    assert (after[-1] - after[0]) / (ROUNDS - 1) < 0.1 * queued_kb, (after, base, queued_kb)
+    # and rounds do not add up: less than a quarter of a round's queues per round (a kept round of queues is all
+    # of it, ~18 MB; the residue moves by -1.3 to +2 MB between rounds when nothing is kept)
+    assert (after[-1] - after[0]) / (ROUNDS - 1) < 0.25 * queued_kb, (after, base, queued_kb)
