@@ -4,7 +4,6 @@ warm-up, with each round's queues full, and after each round's clients left."""
 from __future__ import annotations
 
 import multiprocessing as mp
-import os
 import time
 from pathlib import Path
 
@@ -42,19 +41,18 @@ def _probe(directory: Path | None) -> str | None:
 
 def run_churn(*, bus: str = "serial", rounds: int = 3, queue_bytes: int = 1 << 20, flooders: int = 8,
               slow_readers: int = 20, warmup_s: float = 5.0, settle_s: float = 2.0, fill_timeout_s: float = 60.0,
-              fs: float = 200.0, speed: float = 1.0, probe_dir: Path | None = None, env: dict | None = None) -> dict:
+              fs: float = 200.0, probe_dir: Path | None = None, env: dict | None = None) -> dict:
     """Figures: ``baseline`` (after warm-up with the good client), per round ``full`` (the slow readers' queues
     at the byte bound; the flooders were disconnected for flooding after the server's flood_timeout_s) and
     ``after`` (all of them left, ``settle_s`` later): resident kB by kind (smaps.resident_by_kind), the queued
-    bytes at ``full``, and with ``probe_dir`` (gravcald's memory_probe) its reports. ``speed``: the emulator's
-    time factor (the queues fill ``speed`` times sooner)."""
+    bytes at ``full``, and with ``probe_dir`` (gravcald's memory_probe) its reports."""
     env = dict(env or {})
     if probe_dir is not None:
         env["GRAVCALD_MEMORY_PROBE"] = str(probe_dir)
     # slow readers (1 KiB/s) would be disconnected as stalled before their queues fill: a Unix socket polls
     # writable again only once its reader has taken 3/4 of what it holds
     config = f"[socket]\nqueue_bytes = {int(queue_bytes)}\nqueue_messages = 1000000\nstall_timeout_s = 600\n"
-    d = GravcaldProcess(None, "--bus", bus, "--scenario", "static", "--speed", f"{speed:g}", "--duration", "100000",
+    d = GravcaldProcess(None, "--bus", bus, "--scenario", "static", "--speed", "1", "--duration", "100000",
                         fs=fs, config=config, env=env)
     ctx = mp.get_context("spawn")
     fig: dict = {"queue_bytes": queue_bytes, "rounds": []}
