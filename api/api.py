@@ -11,8 +11,8 @@ from typing import Any
 
 from gravcal.core.calibration import Calibration as _CoreCalibration
 from gravcal.core.calibration import jsonable
-from gravcal.daemon import offline
-from gravcal.daemon.recordings import Recording, read_recording, recording_from_arrays
+from gravcal.io import offline
+from gravcal.io.recordings import Recording, read_recording, recording_from_arrays
 
 __all__ = ["read", "calibrate", "Calibration", "Recording"]
 

@@ -24,7 +24,7 @@ units through its datasheet scale). A method that declines a fold (too few still
 populated, too little data, an order the windows cannot determine) is counted as declined with its reason,
 and scored "as used" with the data it hands back unchanged (nominal g) — both are reported.
 
-Recordings. The measured ones in $GRAVCAL_DATA (gravcal.daemon.datasets) and simulated wrist-worn daily
+Recordings. The measured ones in $GRAVCAL_DATA (gravcal.io.datasets) and simulated wrist-worn daily
 living with known truth (core.simulate), given to everybody in two forms: the ADXL210's duty cycles through
 the datasheet scale (50 %, 4 %/g: zero-g offsets up to ±1 g in nominal g), and a "factory-g" output (the
 same sensor after an imperfect factory calibration: ±30 mg offsets, ±2 % sensitivities, what the peers are
@@ -86,7 +86,7 @@ class Rec:
 
 # -- recordings -------------------------------------------------------------------------------------
 def measured(name: str) -> Rec:
-    from gravcal.daemon.datasets import load
+    from gravcal.io.datasets import load
 
     r = load(name)
     per_g = float(r.meta["acc_per_g"])

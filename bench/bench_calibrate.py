@@ -99,7 +99,7 @@ def generate_week(path: Path, days: int = 7) -> None:
     from gravcal.core.model.defaults import triad_truth
     from gravcal.core.samples import raw_triad
     from gravcal.core.simulate import simulate_blocks
-    from gravcal.daemon.cmd_simulate import build_model
+    from gravcal.cli.cmd_simulate import build_model
 
     n = int(round(days * 86400 * FS))
     model = build_model(SEED)
@@ -151,7 +151,7 @@ REFERENCE = Path(__file__).resolve().parent / "numpy_reference.py"
 def run_calibrate(path: Path, reference: bool = False) -> dict:
     """One `gravcal calibrate --json` child (or the numpy reference's): wall time, its own peak RSS, its JSON."""
     cmd = ([sys.executable, str(REFERENCE), str(path)] if reference
-           else [sys.executable, "-m", "gravcal.daemon.cli", "calibrate", str(path), "--json"])
+           else [sys.executable, "-m", "gravcal.cli.main", "calibrate", str(path), "--json"])
     with tempfile.TemporaryFile(mode="w+") as out, tempfile.TemporaryFile(mode="w+") as err:
         t0 = time.perf_counter()
         p = subprocess.Popen(cmd, stdout=out, stderr=err)

@@ -70,7 +70,7 @@ def latency(args) -> dict:
            "--state-dir", os.path.join(tmp, "state"), "--log-level", "warning", *opts]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        from gravcal.daemon.client import Client
+        from gravcal.clients.client import Client
 
         deadline = time.monotonic() + 60
         while not os.path.exists(sock):

@@ -43,7 +43,7 @@ def generate(folder: Path, n_files: int, hours: float, fs: float) -> list[Path]:
     """n_files consecutive pieces of `hours` each of one simulation (cached)."""
     from gravcal.core.samples import raw_triad
     from gravcal.core.simulate import simulate_blocks
-    from gravcal.daemon.cmd_simulate import build_model
+    from gravcal.cli.cmd_simulate import build_model
 
     paths = [folder / f"day{i:02d}.npy" for i in range(n_files)]
     if all(p.exists() for p in paths):
@@ -96,8 +96,8 @@ def sequential_api(paths: list[Path]) -> dict:
 
 
 def dask_study(paths: list[Path], workers: int) -> dict:
-    from gravcal.daemon.offline import Options
-    from gravcal.daemon.study import run_study
+    from gravcal.io.offline import Options
+    from gravcal.io.study import run_study
 
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "results.csv"

@@ -26,7 +26,7 @@ def main() -> int:
     ap.add_argument("file")
     args = ap.parse_args()
     from gravcal.core import pipeline  # noqa: PLC0415
-    from gravcal.daemon import recordings  # noqa: PLC0415
+    from gravcal.io import recordings  # noqa: PLC0415
 
     spent = {"imports": time.process_time() - C0}
     wall = {"imports": time.perf_counter() - W0}

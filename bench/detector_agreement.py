@@ -21,7 +21,7 @@ from gravcal.core import detectors, fastdetect
 from gravcal.core.calibration import Calibration
 from gravcal.core.samples import raw_triad
 from gravcal.core.simulate import simulate
-from gravcal.daemon import datasets
+from gravcal.io import datasets
 
 MEASURED = ("imu_tk_xsens", "actigraph_cpw_thermal_chamber", "imucal_ferraris", "mpu6050_tomisuarez/calibration")
 SIMULATED = (("six_position", 600.0), ("loetters", 600.0), ("daily_living", 7200.0))

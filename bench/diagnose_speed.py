@@ -43,7 +43,7 @@ def main() -> None:
                                  nested=nested)
         print(f"diagnose_windows, nested={nested!s:5}: {cpu(run, args.repeat) / len(sessions):.3f} s CPU per session")
     try:
-        from gravcal.daemon import datasets
+        from gravcal.io import datasets
 
         r = datasets.load(args.recording)
     except (OSError, ValueError, KeyError) as e:

@@ -25,7 +25,7 @@ def cache_inputs(path: str, cache: str) -> None:
     import numpy as np  # noqa: PLC0415
 
     from gravcal.core import pipeline  # noqa: PLC0415
-    from gravcal.daemon import recordings  # noqa: PLC0415
+    from gravcal.io import recordings  # noqa: PLC0415
 
     got: dict = {}
     real = {name: getattr(pipeline, name) for name in ("bootstrap", "_fit_order", "heldout_error")}

@@ -4,12 +4,12 @@
 
 Each part alone, minimum of the repeats (CPU seconds, user + system; one thread, so wall ~ CPU on a
 free core): "pass" core.datapass.scan_columns as calibrate runs it (repeated runs, block
-statistics) into block memory already faulted in (as daemon/prestart.py prepares it); "file
+statistics) into block memory already faulted in (as io/prestart.py prepares it); "file
 pages" only faulting in the mapped file's pages (one read a page) and releasing them chunk by chunk
 (MADV_DONTNEED, as the pass does); "scan kernel" and "block kernel" the two compiled loops over the
 chunks with the pages already mapped (warm, nothing released); "python" the pass less those three.
 "zeroing" is the first touch of fresh memory the size of the block statistics (the prestart's
-private mapping with huge pages, daemon/_pages.c populate): it varies several-fold on this VM from
+private mapping with huge pages, io/_pages.c populate): it varies several-fold on this VM from
 run to run. Prints one JSON object; the record layout of the file must be the plain one (t float64,
 ax ay az float32).
 """
@@ -26,8 +26,8 @@ import numpy as np
 from gravcal.core import datapass, fastdetect
 from gravcal.core._blockkernels import block_pass
 from gravcal.core._scankernel import scan_chunk
-from gravcal.daemon._pages import populate
-from gravcal.daemon.recordings import SCAN_CHUNK
+from gravcal.io._pages import populate
+from gravcal.io.recordings import SCAN_CHUNK
 
 
 def _cpu() -> float:

@@ -1,6 +1,6 @@
 """One pass over a recording's columns: what reading validates and, optionally, the block statistics.
 
-Reading a recording (daemon/recordings.py) needs, over every row, each channel's extremes and how
+Reading a recording (io/recordings.py) needs, over every row, each channel's extremes and how
 many samples sit exactly on them (saturation), the smallest time step, whether every value is
 finite and the exactly repeated rows (filler). The block detector (core.fastdetect) needs the
 0.1 s block statistics of the same rows. :func:`scan_columns` reads each chunk once for both,

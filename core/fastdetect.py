@@ -146,7 +146,7 @@ class BlockPass:
                  aux: np.ndarray | None = None, block_n: int | None = None,
                  allocate: Callable[[tuple[int, ...], Any], np.ndarray] | None = None):
         """``allocate(shape, dtype)``: where the statistics go (default np.empty; e.g. memory already
-        faulted in, daemon/prestart.py); every element is written by the chunks, none read first."""
+        faulted in, io/prestart.py); every element is written by the chunks, none read first."""
         if not (fs > 0 and math.isfinite(fs)):
             raise ValueError(f"sample rate fs must be a positive number of Hz, got {fs!r}")
         self.t, self.channel, self.fs = t, channel, float(fs)

@@ -294,7 +294,7 @@ class _Steps:
 
 def blas_started_single_threaded() -> bool:
     """numpy's OpenBLAS was started with one thread: OPENBLAS_NUM_THREADS=1 in the environment, which
-    ``gravcal calibrate`` sets before numpy loads (daemon/cli.py ``console``). Then nothing needs
+    ``gravcal calibrate`` sets before numpy loads (cli/main.py ``console``). Then nothing needs
     limiting, and threadpoolctl's import and library scan (~14 ms) are skipped."""
     if os.environ.get("OPENBLAS_NUM_THREADS", "").strip() != "1":
         return False

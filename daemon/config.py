@@ -22,7 +22,7 @@ from typing import Any, get_type_hints
 from gravcal.core.estimators.observability import ORDER_LADDER
 from gravcal.core.model.terms import AUX_COLUMNS, CALIBRATION_TERMS, calibration_view
 
-from .errors import InputError
+from ..errors import InputError
 
 ONLINE_TERMS = tuple(t for t in CALIBRATION_TERMS
                      if calibration_view(t).acts_on != "cross" and calibration_view(t).per_window)

@@ -19,9 +19,9 @@ from ..core.estimators.observability import ORDER_LADDER
 from ..drivers.rigs.options import disconnect_arg, speed_arg
 from . import config as config_mod
 from . import memory_probe, privileges
-from .closed_pipe import write_or_stop
+from ..closed_pipe import write_or_stop
 from .config import ConfigError
-from .errors import InputError
+from ..errors import InputError
 from .emulation import EmulatedBus, announce_emulation, discard_if_empty, emulation_defaults
 from .socket_activation import SocketPathError
 from .service import Gravcald

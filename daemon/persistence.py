@@ -27,7 +27,7 @@ import numpy as np
 
 from ..core.calibration import SCHEMA as CALIBRATION_SCHEMA
 from ..core.calibration import Calibration
-from .errors import InputError
+from ..errors import InputError
 
 log = logging.getLogger("gravcal.persistence")
 

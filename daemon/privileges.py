@@ -13,7 +13,7 @@ import pwd
 from dataclasses import dataclass
 from typing import Iterable
 
-from .errors import InputError
+from ..errors import InputError
 
 log = logging.getLogger("gravcal.gravcald")
 

@@ -27,7 +27,7 @@ def pytest_sessionstart(session: pytest.Session) -> None:
 
 @pytest.fixture(scope="session")
 def measured_data_dir():
-    from gravcal.daemon.datasets import RECORDINGS, data_dir
+    from gravcal.io.datasets import RECORDINGS, data_dir
 
     root = data_dir()
     missing = [name for name in RECORDINGS if not (root / name / "SOURCE.txt").is_file()]

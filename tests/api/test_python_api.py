@@ -51,7 +51,7 @@ def test_unknown_attribute_is_an_attribute_error():
 
 @pytest.fixture(scope="module")
 def six(tmp_path_factory):
-    from gravcal.daemon.cli import main
+    from gravcal.cli.main import main
 
     d = tmp_path_factory.mktemp("api")
     assert main(["simulate", "--scenario", "six_position", "--seed", "7", "--duration", "600",
@@ -60,7 +60,7 @@ def six(tmp_path_factory):
 
 
 def test_api_and_command_line_give_the_same_calibration(six, capsys):
-    from gravcal.daemon.cli import main
+    from gravcal.cli.main import main
 
     cal = gravcal.calibrate(six)
     assert main(["calibrate", str(six), "--json"]) == 0
@@ -93,7 +93,7 @@ def test_bad_arrays_and_inputs_say_what_is_wrong():
 
 
 def test_json_round_trip_keeps_report_and_start_accepts_it(six, tmp_path, capsys):
-    from gravcal.daemon.cli import main
+    from gravcal.cli.main import main
 
     cal = gravcal.calibrate(six, model="6")
     back = gravcal.Calibration.from_json(cal.to_json())

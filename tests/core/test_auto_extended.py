@@ -36,7 +36,7 @@ def session(seed: int, planted: bool):
     if key not in _cache:
         from gravcal.core.scenarios import make_motion
         from gravcal.core.simulate import simulate
-        from gravcal.daemon.recordings import recording_columns
+        from gravcal.io.recordings import recording_columns
 
         motion = make_motion("loetters", duration=DURATION, fs=FS, rng=seed)
         motion = dataclasses.replace(motion, temp=22.0 + 12.0 * motion.t / DURATION)

@@ -104,7 +104,7 @@ def _simulated(seed: int, duration: float) -> np.ndarray:
 
 
 def test_read_recording_keeps_the_blocks_only_when_no_row_is_dropped(tmp_path):
-    from gravcal.daemon.recordings import read_recording, write_recording
+    from gravcal.io.recordings import read_recording, write_recording
 
     rec = _simulated(4, 300.0)
     r = read_recording(_write_npy(tmp_path / "ok.npy", rec), blocks=True, exclude_filler=True)
@@ -134,7 +134,7 @@ def test_read_recording_keeps_the_blocks_only_when_no_row_is_dropped(tmp_path):
 
 def test_calibrating_with_the_reading_pass_blocks_changes_nothing(tmp_path):
     from gravcal.core.pipeline import calibrate_recording
-    from gravcal.daemon.recordings import read_recording
+    from gravcal.io.recordings import read_recording
 
     rec = read_recording(_write_npy(tmp_path / "rec.npy", _simulated(7, 600.0)), blocks=True)
     assert rec.blocks is not None
@@ -164,7 +164,7 @@ def test_the_pass_does_not_keep_the_mapped_file_resident(tmp_path, threads):
 def test_reading_pass_blocks_for_any_stored_type(tmp_path, layout):
     """Big-endian floats, integer counts (converted per chunk) and float64 channels: the reading pass's
     blocks equal block_stats' of the recording read."""
-    from gravcal.daemon.recordings import read_recording
+    from gravcal.io.recordings import read_recording
 
     sim = simulate("loetters", seed=2, duration=120.0).samples
     end = ">" if layout[0] == ">" else "<"

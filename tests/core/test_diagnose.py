@@ -13,8 +13,8 @@ from gravcal.core.estimators.extended import apply_extended, extended_class, fit
 from gravcal.core.estimators.lotters import LottersBatch
 from gravcal.core.estimators.recursive import LottersRecursive
 from gravcal.core.simulate import simulate
-from gravcal.daemon import datasets as D
-from gravcal.daemon.cli import main
+from gravcal.io import datasets as D
+from gravcal.cli.main import main
 
 
 # -- measured recordings -------------------------------------------------------------------------
@@ -192,7 +192,7 @@ def test_batch_fit_and_apply_extended_agree():
 # -- the command line ------------------------------------------------------------------------------
 def test_cli_json_and_report(tmp_path, capsys):
     s = simulate("six_position", seed=2, duration=240.0)
-    from gravcal.daemon.recordings import write_recording
+    from gravcal.io.recordings import write_recording
 
     path = tmp_path / "rec.csv"
     write_recording(path, s.samples)

@@ -153,7 +153,7 @@ CLI_DURATION, CLI_FS, CLI_SEED = 1800.0, 50.0, 3
 def recording(tmp_path_factory):
     from gravcal.core.scenarios import make_motion
     from gravcal.core.simulate import simulate
-    from gravcal.daemon.recordings import write_recording
+    from gravcal.io.recordings import write_recording
 
     model = default_model(CLI_SEED, temperature_offset=True)
     motion = make_motion("loetters", duration=CLI_DURATION, fs=CLI_FS, rng=CLI_SEED)
@@ -165,7 +165,7 @@ def recording(tmp_path_factory):
 
 
 def calibrate_json(*argv) -> tuple[int, dict]:
-    from gravcal.daemon.cli import main
+    from gravcal.cli.main import main
 
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
@@ -204,7 +204,7 @@ def test_cli_reports_the_coefficient_and_a_heldout_error_that_uses_it(recording,
 
 
 def test_cli_summary_prints_the_term(recording, capsys):
-    from gravcal.daemon.cli import main
+    from gravcal.cli.main import main
 
     path, _, _ = recording
     assert main(["calibrate", str(path), "--model", EXT]) == 0

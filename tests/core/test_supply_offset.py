@@ -18,7 +18,7 @@ from gravcal.core.calibration import Calibration
 from gravcal.core.model.defaults import default_model
 from gravcal.core.model.terms import CALIBRATION_TERMS, REGISTRY
 from gravcal.core.pipeline import calibrate_recording
-from gravcal.daemon.cli import main as cli_main
+from gravcal.cli.main import main as cli_main
 from seed_pool import pmap
 
 DURATION, FS = 3600.0, 50.0
@@ -33,7 +33,7 @@ def session(seed: int, planted: bool):
     if key not in _cache:
         from gravcal.core.scenarios import make_motion
         from gravcal.core.simulate import simulate
-        from gravcal.daemon.recordings import recording_columns
+        from gravcal.io.recordings import recording_columns
 
         motion = make_motion("loetters", duration=DURATION, fs=FS, rng=seed)
         sag = 0.15 * (1.0 - np.cos(2 * np.pi * motion.t / 1500.0))  # 0 to 0.3 V
@@ -141,7 +141,7 @@ def test_a_vsupply_column_with_bad_values_is_handled_like_temp(tmp_path, capsys)
     few[[100, 200]] = [np.nan, 99.0]  # one NaN, one out of range: both dropped with a warning
     path = tmp_path / "few.csv"
     _write_csv(path, t[:n], raw[:n], few)
-    from gravcal.daemon.recordings import read_recording
+    from gravcal.io.recordings import read_recording
 
     rec = read_recording(path)
     assert rec.n_samples == n - 2 and rec.vsupply is not None and np.all(np.isfinite(rec.vsupply))

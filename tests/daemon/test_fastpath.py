@@ -18,7 +18,7 @@ import time
 import numpy as np
 
 from gravcal.core.calibration import Calibration
-from gravcal.daemon.client import Client
+from gravcal.clients.client import Client
 from gravcal.daemon.config import Config
 from gravcal.daemon.service import Gravcald
 from gravcal.drivers import open_driver

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from gravcal.core.calibration import Calibration
-from gravcal.daemon.errors import InputError
+from gravcal.errors import InputError
 from gravcal.daemon.persistence import (
     CalibrationState,
     RateLimitedSaver,

@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from gravcal.daemon import privileges
-from gravcal.daemon.errors import InputError
+from gravcal.errors import InputError
 from gravcal.daemon.socket_activation import SocketPathError, bind_unix_socket
 
 from support.gravcald_process import GravcaldProcess

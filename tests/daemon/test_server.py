@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from gravcal.core.samples import empty
-from gravcal.daemon.client import Client, ServerError
+from gravcal.clients.client import Client, ServerError
 from gravcal.daemon.server import ServerConfig, SocketServer
 from gravcal.daemon.socket_activation import SocketPathError, activated_socket, bind_unix_socket, listen_fds
 

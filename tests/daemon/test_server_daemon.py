@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from gravcal.core.samples import empty
-from gravcal.daemon.client import Client
+from gravcal.clients.client import Client
 
 TRUE_OFFSET = np.array([0.51, 0.49, 0.505])  # duty cycle
 TRUE_SENS = np.array([0.042, 0.038, 0.0415])  # duty cycle per g (datasheet start: 0.5 and 0.04)

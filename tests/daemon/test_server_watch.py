@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from gravcal.daemon import cmd_watch
-from gravcal.daemon.client import Client, ClientError
+from gravcal.cli import cmd_watch
+from gravcal.clients.client import Client, ClientError
 from gravcal.daemon.server import SocketServer
 from gravcal.core.samples import empty
 

@@ -54,7 +54,7 @@ def _one_shot_server(path, greeting: bytes):
 
 
 def test_client_refuses_another_protocol_major_with_a_clear_message(tmp_path):
-    from gravcal.daemon.client import Client, ClientError
+    from gravcal.clients.client import Client, ClientError
 
     path = str(tmp_path / "g.sock")
     lsock = _one_shot_server(path, b'{"class":"VERSION","release":"9.0","proto_major":2,"proto_minor":1}\n')
@@ -66,7 +66,7 @@ def test_client_refuses_another_protocol_major_with_a_clear_message(tmp_path):
 
 
 def test_client_accepts_a_newer_minor(tmp_path):
-    from gravcal.daemon.client import Client
+    from gravcal.clients.client import Client
 
     path = str(tmp_path / "g.sock")
     lsock = _one_shot_server(path, b'{"class":"VERSION","release":"0.2","proto_major":1,"proto_minor":7}\n')
@@ -80,7 +80,7 @@ def test_client_accepts_a_newer_minor(tmp_path):
 def test_permission_denied_names_the_group_rule(tmp_path, monkeypatch):
     import socket
 
-    from gravcal.daemon.client import Client, ClientError
+    from gravcal.clients.client import Client, ClientError
 
     def refuse(self, address):  # what a non-member gets from a 0660 socket (root, running the tests, never does)
         raise PermissionError(13, "Permission denied")
@@ -100,7 +100,7 @@ def test_gravcal_watch_reconnect_follows_a_daemon_restart(tmp_path):
     path = str(tmp_path / "g.sock")
     first = SocketServer(path, config=ServerConfig())
     first.start()
-    p = subprocess.Popen([sys.executable, "-m", "gravcal.daemon.cli", "watch", "--socket", path, "--json",
+    p = subprocess.Popen([sys.executable, "-m", "gravcal.cli.main", "watch", "--socket", path, "--json",
                           "--rate", "0", "--reconnect", "--timeout", "5", "--count", "200"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     second = None
@@ -130,7 +130,7 @@ def test_gravcal_watch_without_reconnect_ends_with_one_line(tmp_path):
     import subprocess
     import sys
 
-    p = subprocess.run([sys.executable, "-m", "gravcal.daemon.cli", "watch", "--socket", str(tmp_path / "none.sock")],
+    p = subprocess.run([sys.executable, "-m", "gravcal.cli.main", "watch", "--socket", str(tmp_path / "none.sock")],
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 1 and p.stderr.count("\n") == 1 and "no such socket" in p.stderr, p.stderr
 
@@ -178,7 +178,7 @@ def test_imu_lines_carry_exactly_the_documented_fields_and_types():
 
 
 def test_gravcal_watch_prints_device_notices():
-    from gravcal.daemon.cmd_watch import _print_stream
+    from gravcal.cli.cmd_watch import _print_stream
 
     class Stream:
         def watch(self, rate, raw):

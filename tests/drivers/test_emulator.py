@@ -138,7 +138,7 @@ def test_an_overrun_is_logged_and_reported_as_an_event(tmp_path):
     assert reported and sum(int(e.split(": ")[1].split()[0]) for e in reported) == lost, (reported[:3], lost)
 
 def test_replay_of_a_recording_written_by_gravcal_simulate(tmp_path):
-    from gravcal.daemon import recordings
+    from gravcal.io import recordings
     s = np.concatenate(list(pattern_blocks(seed=6, fs=100, duration=1.0)))
     path = tmp_path / "rec.csv"
     recordings.write_recording(path, s)

@@ -9,7 +9,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from gravcal.daemon.client import Client, ClientError
+from gravcal.clients.client import Client, ClientError
 
 # the environment of the test run must not make the child think systemd started it
 SYSTEMD_VARIABLES = ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID", "LISTEN_FDS", "LISTEN_PID")

@@ -37,7 +37,7 @@ from gravcal.core.scenarios import plan_motion
 from gravcal.core.simulate import (
     seed_streams,  # the emulator's seed -> (motion, model, sensor) streams
 )
-from gravcal.daemon.client import Client
+from gravcal.clients.client import Client
 from support.gravcald_process import GravcaldProcess, poll
 
 G = 9.80665

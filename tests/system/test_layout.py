@@ -16,7 +16,8 @@ import pytest
 from gravcal.core.model.terms import REGISTRY
 
 ROOT = Path(__file__).resolve().parents[2]
-LAYERS = {"core": "gravcal.core", "drivers": "gravcal.drivers", "daemon": "gravcal.daemon", "api": "gravcal"}
+LAYERS = {"core": "gravcal.core", "drivers": "gravcal.drivers", "daemon": "gravcal.daemon", "io": "gravcal.io",
+          "cli": "gravcal.cli", "clients": "gravcal.clients", "api": "gravcal"}
 MAX_LINES = 600
 
 
@@ -97,10 +98,13 @@ def test_no_import_cycles(graph):
 
 def test_layers_point_one_way(graph):
     """core imports neither drivers nor daemon; drivers never import daemon; the real drivers never
-    import their test rigs (drivers/rigs: emulator, fakes, HIL); nothing below the Python API (api/,
-    imported as gravcal) imports it."""
+    import their test rigs (drivers/rigs: emulator, fakes, HIL); daemon/ is gravcald alone: it imports
+    none of the offline packages (io, cli, clients); io imports no daemon or command line; nothing
+    below the Python API (api/, imported as gravcal) imports it, but for its shared errors and output
+    helpers (gravcal.errors, gravcal.closed_pipe)."""
+    shared = {"gravcal.errors", "gravcal.closed_pipe"}
     api = {"gravcal", *(m for m in graph if m.startswith("gravcal.") and not m.startswith(tuple(
-        f"{p}." for p in LAYERS.values() if p != "gravcal")) and m not in LAYERS.values())}
+        f"{p}." for p in LAYERS.values() if p != "gravcal")) and m not in LAYERS.values())} - shared
     bad = []
     for m, deps in graph.items():
         for d in deps:
@@ -109,6 +113,10 @@ def test_layers_point_one_way(graph):
             if m.startswith("gravcal.core") and not d.startswith("gravcal.core"):
                 bad.append((m, d))
             if m.startswith("gravcal.drivers") and d.startswith("gravcal.daemon"):
+                bad.append((m, d))
+            if m.startswith("gravcal.daemon") and d.startswith(("gravcal.io", "gravcal.cli", "gravcal.clients")):
+                bad.append((m, d))
+            if m.startswith("gravcal.io") and d.startswith(("gravcal.daemon", "gravcal.cli", "gravcal.clients")):
                 bad.append((m, d))
             if (m.startswith("gravcal.drivers") and not m.startswith("gravcal.drivers.rigs")
                     and d.startswith("gravcal.drivers.rigs")):

@@ -16,7 +16,7 @@ import pytest
 
 from gravcal.core.estimators.online import OnlineCalibrator
 from gravcal.core.windows import Window
-from gravcal.daemon.client import Client, ClientError
+from gravcal.clients.client import Client, ClientError
 from gravcal.daemon.config import load_config
 from gravcal.daemon.processing import nominal_calibration
 from gravcal.daemon.window_log import WindowRecorder, read_windows

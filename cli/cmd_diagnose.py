@@ -1,0 +1,106 @@
+"""``gravcal diagnose FILE [--json] [--report DIR]``: measured data against the simulation.
+
+Reads a recording in the ``calibrate`` format (daemon.recordings), runs
+gravcal.core.diagnosis.diagnose (baseline fit and held-out error; window-level re-simulation
+with the fitted baseline and the measured noise; catalogue terms tested by held-out error and
+BIC; extended model refit and held-out gain; re-simulation with it) and prints a summary, or
+with ``--json`` exactly one JSON object ``{"findings": [...], "baseline": {...}, "extended":
+{...}, "untestable": [...], ...}``. ``--report DIR`` writes DIR/report.md with PNG plots
+(matplotlib optional: without it the page says so and lists the numbers only).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "diagnose", help="what the baseline simulation gets wrong on a recording, the cause, the held-out gain",
+        description="Fit the baseline model, re-simulate the session with it, compare measured vs simulated "
+                    "statistics, test the catalogue of sensor-model terms (held-out error and BIC), extend "
+                    "the model with the terms found and measure the held-out gain.")
+    p.add_argument("file", type=Path, help="recording: FILE.csv or FILE.npy (calibrate format; temp column optional)")
+    p.add_argument("--json", action="store_true", help="print exactly one JSON object")
+    p.add_argument("--report", type=Path, metavar="DIR", help="write DIR/report.md with PNG plots")
+    p.add_argument("--replicas", type=int, default=40, help="simulated replicas of the session (default 40)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated replicas (default 0)")
+    p.add_argument("--no-saturation-check", dest="check_saturation", action="store_false",
+                   help="do not treat samples piled up at a channel's extreme value as saturated")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from gravcal.core.diagnosis import diagnose
+
+    from ..io.recordings import jsonable, read_recording
+
+    if args.replicas < 1:
+        raise InputError(f"--replicas must be >= 1, got {args.replicas}")
+    rec = read_recording(args.file, check_saturation=args.check_saturation)
+    try:
+        d = diagnose(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, fs=rec.fs, replicas=args.replicas, seed=args.seed)
+    except ValueError as exc:
+        raise InputError(f"{args.file}: {exc}") from None
+    out = d.to_json_dict()
+    out["notes"] = list(rec.warnings) + out["notes"]
+    if rec.temp is None:
+        out["notes"].append("no temp column: temperature terms untestable")
+    if args.report is not None:
+        from ..io.report import write_report
+
+        page = write_report(d, args.report, source=str(args.file))
+        out["report"] = str(page)
+    if args.json:
+        json.dump(jsonable(out), sys.stdout, indent=2)
+        sys.stdout.write("\n")
+        return 0
+    print(summary(out, str(args.file)))
+    return 0
+
+
+def summary(out: dict[str, Any], name: str) -> str:
+    b, e = out["baseline"], out["extended"]
+    fmt = lambda x: "n/a" if x is None else f"{x:.3f}"  # noqa: E731
+    lines = [f"{name}: {out['n_windows']} quasi-static windows; baseline {b['model']}: held-out {fmt(b['heldout_rms_mg'])} mg"]
+    sim = b.get("simulation")
+    if sim:
+        lines.append(f"  baseline simulation: measured RMS {sim['measured']['rms_mg']:.3f} mg vs simulated "
+                     f"{sim['simulated_mean']['rms_mg']:.3f} mg; disagrees on: {', '.join(sim['disagree']) or 'nothing'}")
+    if out["findings"]:
+        for f in out["findings"]:
+            lines.append(f"  FOUND {f['effect']}: {magnitude_text(f['magnitude'])} "
+                         f"(ΔBIC {f['evidence'].get('delta_bic')})")
+            for axis, why in f["magnitude"].get("undetermined", {}).items():
+                lines.append(f"    {axis} undetermined: {why}")
+            for note in f["magnitude"].get("notes", []):
+                lines.append(f"    note: {note}")
+    else:
+        lines.append("  no significant effect found")
+    lines.append(f"  extended {e['model']}: held-out {fmt(e['heldout_rms_mg'])} mg (gain {fmt(e['heldout_gain_mg'])} mg)")
+    for u in out["untestable"]:
+        lines.append(f"  untestable {u['effect']}: {u['why']}")
+    for n in out["notes"]:
+        lines.append(f"  note: {n}")
+    if out.get("report"):
+        lines.append(f"  report: {out['report']}")
+    return "\n".join(lines)
+
+
+def magnitude_text(mag: dict) -> str:
+    """Per axis value ± std in the report unit; an undetermined axis says so instead of printing a number."""
+    v, sd = mag.get("value", {}), mag.get("std", {}) or {}
+    if not isinstance(v, dict):
+        return str(v)
+    parts = []
+    for k, x in v.items():
+        if x is None:
+            parts.append(f"{k} undetermined")
+        else:
+            parts.append(f"{k} {x:.4g}" + (f" ± {sd[k]:.2g}" if sd.get(k) is not None else ""))
+    return ", ".join(parts) + f" [{mag.get('unit', '')}]"

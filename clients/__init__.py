@@ -1,0 +1,1 @@
+"""gravcal.clients: programs that read gravcald's socket (docs/socket-protocol.md)."""

@@ -1,0 +1,1 @@
+"""gravcal.io: recordings and their formats, the measured data sets, the offline reading pass and studies."""

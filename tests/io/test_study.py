@@ -1,0 +1,170 @@
+"""`gravcal calibrate DIR|FILES --out results.csv`: one row per file (a broken one is a row with its
+error), the same numbers as one-file calibrate, resume, Ctrl-C leaves a valid file, Dask or not."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from gravcal.cli.main import main
+from gravcal.io.study import FIELDS
+
+N_GOOD = 4
+N_LINKED = 12
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    d = tmp_path_factory.mktemp("study")
+    (d / "site2").mkdir()
+    for seed in range(N_GOOD):
+        where = d / "site2" if seed == 3 else d
+        assert main(["simulate", "--scenario", "six_position", "--seed", str(seed), "--duration", "240",
+                     "--out", str(where / f"s{seed}.npy")]) == 0
+    (d / "broken.csv").write_bytes(b"\x1b[2J" + os.urandom(2000))
+    (d / "notes.txt").write_text("not a recording")  # unknown suffix: not picked up from a directory
+    return d
+
+
+def rows_of(path):
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        assert tuple(reader.fieldnames) == FIELDS
+        return list(reader)
+
+
+def test_rows_match_single_file_calibration(study, tmp_path, capsys):
+    out = tmp_path / "results.csv"
+    assert main(["calibrate", str(study), "--out", str(out), "--workers", "0", "--quiet"]) == 0
+    rows = rows_of(out)
+    assert len(rows) == N_GOOD + 1
+    by_name = {os.path.basename(r["file"]): r for r in rows}
+    assert by_name["broken.csv"]["status"] == "error" and "binary data" in by_name["broken.csv"]["message"]
+    assert "\x1b" not in by_name["broken.csv"]["message"]
+    capsys.readouterr()
+    for seed in range(N_GOOD):
+        row = by_name[f"s{seed}.npy"]
+        assert row["status"] == "ok", row
+        assert main(["calibrate", row["file"], "--json"]) == 0
+        one = json.loads(capsys.readouterr().out)
+        assert row["model"] == one["model"] and int(row["n_windows"]) == one["n_windows"]
+        assert float(row["heldout_rms_mg"]) == pytest.approx(one["heldout_rms_mg"], rel=1e-9)
+        assert np.allclose([float(row[f"offset_{a}"]) for a in "xyz"], one["offset"], rtol=1e-12)
+        k = np.array([[float(row[f"sensitivity_{a}{b}"]) for b in "xyz"] for a in "xyz"])
+        assert np.allclose(k, one["sensitivity"], rtol=1e-12)
+
+
+def test_resume_skips_done_files_and_redoes_a_torn_row(study, tmp_path, capsys):
+    out = tmp_path / "results.csv"
+    files = [str(study / "s0.npy"), str(study / "s1.npy")]
+    assert main(["calibrate", *files, "--out", str(out), "--workers", "0"]) == 0
+    first = rows_of(out)
+    assert [r["file"] for r in first] == files
+    with open(out, "a") as f:
+        f.write(f"{study / 'broken.csv'},ok,6,1.0")  # a row cut short by a kill
+    assert main(["calibrate", str(study), "--out", str(out), "--workers", "0"]) == 0
+    err = capsys.readouterr().err
+    assert "2 of 5 files already done" in err
+    rows = rows_of(out)
+    assert len(rows) == N_GOOD + 1 and len({r["file"] for r in rows}) == N_GOOD + 1
+    assert rows[:2] == first
+    assert {os.path.basename(r["file"]): r["status"] for r in rows}["broken.csv"] == "error"
+
+
+def test_bad_study_requests_say_so(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    assert main(["calibrate", str(tmp_path / "empty"), "--out", str(tmp_path / "r.csv")]) == 2
+    assert "no recordings in this directory" in capsys.readouterr().err
+    assert main(["calibrate", str(tmp_path / "empty")]) == 2
+    assert "--out RESULTS.csv" in capsys.readouterr().err
+    other = tmp_path / "other.csv"
+    other.write_text("a,b\n1,2\n")
+    (tmp_path / "x.csv").write_text("t,ax,ay,az\n")
+    assert main(["calibrate", str(tmp_path / "x.csv"), "--out", str(other), "--workers", "0"]) == 2
+    assert "not a gravcal results file" in capsys.readouterr().err
+
+
+def test_ctrl_c_leaves_valid_results_and_resume_finishes(study, tmp_path):
+    # enough files that the run cannot finish between its first row and the signal, however fast
+    # a file is calibrated (hard links: the same recordings under other names)
+    many = tmp_path / "many"
+    many.mkdir()
+    for i in range(N_LINKED):
+        os.link(study / ("site2" if i % N_GOOD == 3 else "") / f"s{i % N_GOOD}.npy", many / f"r{i:02d}.npy")
+    out = tmp_path / "results.csv"
+    cmd = [sys.executable, "-m", "gravcal.cli.main", "calibrate", str(many), "--out", str(out), "--workers", "0",
+           "--quiet"]
+    # SIGINT at its default in the child, as in a terminal: a suite run as a background job (`cmd &` without
+    # job control) inherits it ignored, and Python then keeps it ignored
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if out.exists() and out.read_text().count("\n") >= 2:  # header and one row
+            break
+        time.sleep(0.02)
+    assert proc.poll() is None, "finished before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    partial = rows_of(out)
+    assert 1 <= len(partial) < N_LINKED
+    assert out.read_text().endswith("\n")
+    assert subprocess.run(cmd, capture_output=True, timeout=300).returncode == 0
+    rows = rows_of(out)
+    assert rows[: len(partial)] == partial
+    assert sorted(r["file"] for r in rows) == sorted({r["file"] for r in rows}) and len(rows) == N_LINKED
+
+
+def test_dask_workers_give_the_same_rows(study, tmp_path):
+    seq, par = tmp_path / "seq.csv", tmp_path / "par.csv"
+    assert main(["calibrate", str(study), "--out", str(seq), "--workers", "0", "--quiet"]) == 0
+    assert main(["calibrate", str(study), "--out", str(par), "--workers", "2", "--quiet"]) == 0
+    key = (lambda r: r["file"])
+    assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
+
+
+def test_the_daemon_never_imports_dask():
+    code = ("import sys, gravcal.daemon.gravcald, gravcal.daemon.service, gravcal.cli.main; "
+            "print([m for m in ('dask', 'distributed', 'tqdm') if m in sys.modules])")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == "[]", (r.stdout, r.stderr[-500:])
+
+
+def test_an_existing_scheduler_runs_the_study(study, tmp_path):
+    import dask.distributed as distributed  # the [study] extra, which [test] installs
+    seq, par = tmp_path / "seq.csv", tmp_path / "sched.csv"
+    files = [str(study / "s0.npy"), str(study / "broken.csv")]
+    assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 0
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        assert main(["calibrate", *files, "--out", str(par), "--scheduler", cluster.scheduler_address, "--quiet"]) == 0
+    key = (lambda r: r["file"])
+    assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
+
+
+def test_a_task_that_dies_is_an_error_row_not_the_end(study, tmp_path, monkeypatch):
+    import dask.distributed as distributed  # the [study] extra, which [test] installs
+    from gravcal.io import study as study_mod
+
+    real = study_mod.calibrate_file
+
+    def dies_on_s1(path, opts):
+        if path.endswith("s1.npy"):
+            raise MemoryError("worker ran out of memory")
+        return real(path, opts)
+
+    monkeypatch.setattr(study_mod, "calibrate_file", dies_on_s1)
+    out = tmp_path / "r.csv"
+    files = [str(study / f"s{i}.npy") for i in range(3)]
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
+        assert main(["calibrate", *files, "--out", str(out), "--scheduler", cluster.scheduler_address, "--quiet"]) == 0
+    status = {os.path.basename(r["file"]): (r["status"], r["message"]) for r in rows_of(out)}
+    assert status["s1.npy"] == ("error", "MemoryError: worker ran out of memory")
+    assert status["s0.npy"][0] == status["s2.npy"][0] == "ok"
