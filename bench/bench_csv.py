@@ -105,7 +105,7 @@ def main() -> int:
                 old = best.get((days, kind))
                 if old is None or res["wall"] < old["wall"]:
                     best[(days, kind)] = res
-    print(f"{'days':>4} {'format':<7} {'file MB':>9} {'wall s':>7} {'read s':>7} {'peak RSS MB':>12} {'RSS/file':>8} "
+    print(f"{'days':>4} {'format':<7} {'file MB':>9} {'wall s':>7} {'CPU s':>6} {'read s':>7} {'peak RSS MB':>12} {'RSS/file':>8} "
           f"{'wall / npy':>10} {'held-out mg':>11}")
     rows = []
     for (days, kind), res in sorted(best.items()):
@@ -113,7 +113,7 @@ def main() -> int:
         ratio = res["wall"] / npy["wall"] if npy else float("nan")
         res["wall_over_npy"] = ratio
         rows.append(res)
-        print(f"{days:>4} {kind:<7} {res['file_bytes'] / 1e6:>9.0f} {res['wall']:>7.2f} {res['timing_s']['read']:>7.2f} "
+        print(f"{days:>4} {kind:<7} {res['file_bytes'] / 1e6:>9.0f} {res['wall']:>7.2f} {res['cpu']:>6.2f} {res['timing_s']['read']:>7.2f} "
               f"{res['maxrss_bytes'] / 1e6:>12.0f} {res['rss_ratio']:>8.2f} {ratio:>10.2f} "
               f"{res['heldout_rms_mg'] or float('nan'):>11.3g}")
     week = best.get((7, "csv"))

@@ -109,14 +109,12 @@ def _floats(array) -> np.ndarray:
     return array.to_numpy(zero_copy_only=False)
 
 
-def _data_offset(head: bytes, header_line: int) -> int:
-    """The byte offset just past the first ``header_line`` lines of ``head`` (lines end in \\n, \\r\\n
-    or \\r, as the text reader that found the header counts them)."""
-    from .csvtext import MAX_HEADER_BYTES, MAX_LINE_CHARS
-
+def _data_offset(head: bytes, header_line: int, head_bytes: int) -> int:
+    """The byte offset just past the first ``header_line`` lines of ``head`` (at most ``head_bytes`` read;
+    lines end in \\n, \\r\\n or \\r, as the text reader that found the header counts them)."""
     lines = head.splitlines(keepends=True)
     cut = sum(len(x) for x in lines[:header_line])
-    if len(lines) < header_line or (len(head) >= MAX_HEADER_BYTES + MAX_LINE_CHARS and cut >= len(head) - 1):
+    if len(lines) < header_line or (len(head) >= head_bytes and cut >= len(head) - 1):
         raise Fallback("the header ends past the bytes read for it")  # multi-byte text in many comment lines
     return cut
 
@@ -197,22 +195,21 @@ def _split_points(path: Path, start: int, size: int, parts: int) -> list[int]:
 
 
 def read_columns(path: Path, *, gz: bool, delim: str, n_fields: int, usecols: list[int], wanted: list[str],
-                 header_line: int) -> dict[str, np.ndarray]:
-    """The wanted columns (by field index ``usecols``) of the data after line ``header_line``, as float64
-    (``_triad``: the (N, 3) ax, ay, az; ``ax``, ``ay``, ``az``: its column views). Raises Fallback."""
-    from .csvtext import MAX_HEADER_BYTES, MAX_LINE_CHARS
-
+                 header_line: int, head_bytes: int) -> dict[str, np.ndarray]:
+    """The wanted columns (by field index ``usecols``) of the data after line ``header_line`` (found in
+    the first ``head_bytes``), as float64 (``_triad``: the (N, 3) ax, ay, az; ``ax``, ``ay``, ``az``: its
+    column views). Raises Fallback."""
     parser = _Parser(delim, n_fields, usecols, wanted)
     size = path.stat().st_size
     try:
         if gz:
             with gzip.open(path, "rb") as raw:
-                head = raw.read(MAX_HEADER_BYTES + MAX_LINE_CHARS)
-                cut = _data_offset(head, header_line)
-                cols = parser.stream(raw.read, 4 * size, rest=head[cut:])  # ~4x: a gzip CSV's usual ratio
+                head = raw.read(head_bytes)
+                cut = _data_offset(head, header_line, head_bytes)
+                cols = parser.stream(raw.read, 8 * size, rest=head[cut:])  # numbers gzip ~4-8x; more grows
             return cols.finish()
         with open(path, "rb") as f:
-            start = _data_offset(f.read(MAX_HEADER_BYTES + MAX_LINE_CHARS), header_line)
+            start = _data_offset(f.read(head_bytes), header_line, head_bytes)
         threads = max(1, min(MAX_THREADS, os.cpu_count() or 1, (size - start) // SEGMENT_BYTES))
         points = _split_points(path, start, size, threads)
 

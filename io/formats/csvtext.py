@@ -169,7 +169,7 @@ def load_csv(path: Path, *, gz: bool = False, mapping: dict[str, str] | None = N
     if delim is not None and csvarrow.available():
         try:
             cols = csvarrow.read_columns(path, gz=gz, delim=delim, n_fields=len(names), usecols=usecols, wanted=wanted,
-                                         header_line=header_line)
+                                         header_line=header_line, head_bytes=4 * MAX_HEADER_BYTES + MAX_LINE_CHARS)
         except csvarrow.Fallback:
             pass  # not a plain file of numbers: the exact path below names what is wrong
         else:
