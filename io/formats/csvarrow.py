@@ -72,12 +72,11 @@ class _Columns:
         k = table.num_rows
         if self.n + k > self.capacity:
             self.resize(max(self.n + k, int(self.capacity * 1.5)))
-        s = slice(self.n, self.n + k)
-        self.t[s] = _floats(table.column(picked["t"]))
+        _put(self.t, self.n, table.column(picked["t"]))
         for j, c in enumerate(TRIAD):
-            self.triad[s, j] = _floats(table.column(picked[c]))
+            _put(self.triad[:, j], self.n, table.column(picked[c]))
         for c, v in self.other.items():
-            v[s] = _floats(table.column(picked[c]))
+            _put(v, self.n, table.column(picked[c]))
         self.n += k
 
     def append_moving(self, more: "_Columns") -> None:
@@ -104,9 +103,13 @@ class _Columns:
         return cols
 
 
-def _floats(array) -> np.ndarray:
-    """An Arrow float64 column as numpy; an empty field (null) is NaN, which the NaN policy handles."""
-    return array.to_numpy(zero_copy_only=False)
+def _put(into: np.ndarray, at: int, column) -> None:
+    """Copy an Arrow float64 column into ``into`` from row ``at``, chunk by chunk (each a view when it
+    has no nulls); an empty field (null) is NaN, which the NaN policy handles."""
+    for chunk in column.chunks:
+        k = len(chunk)
+        into[at:at + k] = chunk.to_numpy(zero_copy_only=False)
+        at += k
 
 
 def _data_offset(head: bytes, header_line: int, head_bytes: int) -> int:
@@ -154,16 +157,22 @@ class _Parser:
                 if rest:
                     cols = self.segment(rest, cols, expected_bytes)
                 return cols if cols is not None else _Columns(self.others)
-            data = rest + data if rest else data
             cut = data.rfind(b"\n")
             if cut < 0:
-                if len(data) > 4 * SEGMENT_BYTES:
+                if len(rest) + len(data) > 4 * SEGMENT_BYTES:
                     raise Fallback("no line end in a whole segment")  # e.g. lines ending in \r alone
-                rest = data
+                rest += data
                 continue
-            rest = data[cut + 1:]
-            cols = self.segment(data[:cut + 1], cols, expected_bytes)
-            del data
+            view = memoryview(data)  # the segment is parsed where it was read: no copy of it
+            if rest:  # the line cut at the last segment's end, completed: parsed on its own (short)
+                first = data.find(b"\n") + 1
+                cols = self.segment(rest + data[:first], cols, expected_bytes)
+                view = view[first:]
+                cut -= first
+            rest = data[cut + 1 + (len(data) - len(view)):]
+            if cut >= 0:
+                cols = self.segment(view[:cut + 1], cols, expected_bytes)
+            del view, data
 
 
 def _range_reader(path: Path, start: int, stop: int):
