@@ -58,12 +58,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "calibrate", help="calibrate a recording or a whole study from its quasi-static moments",
         description="Offline in-use calibration of recordings. CSV (or .csv.gz): header row; columns t [s], ax, ay, "
                     "az (raw units of any scale), optional gx, gy, gz, temp [°C], vsupply [V]; other columns ignored "
-                    "(or mapped with --columns). .npy: a structured array with the same field names. ActiGraph "
+                    "(or mapped with --columns). .npy: a structured array with the same field names; .parquet: the same "
+                    "column names. ActiGraph "
                     ".gt3x/.agdc, Axivity .cwa, GENEActiv .bin: through their readers (pip install 'gravcal[formats]'). "
                     "Exactly repeated filler (idle sleep) is excluded and reported.",
     )
     p.add_argument("files", type=Path, nargs="+", metavar="FILE|DIR",
-                   help="recording(s): .csv, .csv.gz, .npy, .gt3x, .agdc, .cwa, .bin (recognised by content), or a "
+                   help="recording(s): .csv, .csv.gz, .npy, .parquet, .gt3x, .agdc, .cwa, .bin (recognised by content), or a "
                         "directory of them; more than one, a directory, or --out: a study, one results row per file")
     p.add_argument("--columns", metavar="t=NAME,ax=NAME,...",
                    help="map the CSV's own column names, e.g. t=t_unix,ax=x_counts,ay=y_counts,az=z_counts")

@@ -21,7 +21,7 @@ from .offline import Options
 
 log = logging.getLogger(__name__)
 
-SUFFIXES = (".csv", ".csv.gz", ".gz", ".npy", ".gt3x", ".agdc", ".cwa", ".bin")
+SUFFIXES = (".csv", ".csv.gz", ".gz", ".npy", ".parquet", ".gt3x", ".agdc", ".cwa", ".bin")
 AXES = ("x", "y", "z")
 PARAMETERS = ([f"offset_{a}" for a in AXES] + [f"sensitivity_{a}{b}" for a in AXES for b in AXES])
 FIELDS = ("file", "status", "model", *PARAMETERS, "heldout_rms_mg", "n_windows", "n_excluded_filler", "units", "message",
@@ -35,7 +35,7 @@ def discover(paths: Iterable[Path]) -> list[Path]:
     for p in paths:
         if p.is_dir():
             inside = sorted(f for f in p.rglob("*") if f.is_file() and f.name.lower().endswith(SUFFIXES)
-                            and not f.name.lower().endswith(".truth.json"))
+                            and ".calibrated." not in f.name.lower())  # a study's own --write-dir output
             if not inside:
                 raise InputError(f"{p}: no recordings in this directory (looked for {', '.join(SUFFIXES)})")
             found += inside

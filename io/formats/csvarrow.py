@@ -4,10 +4,10 @@ the (N, 3) triad, any optional channel) that hold nothing twice.
 A plain file is cut at line ends into one byte range per core; each thread parses its range in
 segments of SEGMENT_BYTES (pyarrow works without the GIL) into its own columns, and the ranges are
 then joined in order. A gzip file is one stream, parsed by one thread. Memory stays near the
-output's size: each segment's bytes and Arrow arrays are dropped once copied; columns grow and
-shrink in place (``ndarray.resize``, a realloc: for arrays this large an mremap that copies no
-page, and untouched capacity costs no RSS); a range is moved into the first one from its end, a
-piece at a time, shrinking as it goes.
+output's size: each segment's bytes and Arrow arrays are dropped once copied; columns live in
+anonymous memory maps that grow and shrink in place (mremap: no page copied or written, and
+capacity not yet written costs no RSS); a range is moved into the first one from its end, a piece
+at a time, its map shrinking as it goes.
 
 Only clean files take this path. Anything pyarrow will not convert (text in a number, a line with
 too few or too many fields, a comment line with delimiters in it, quoting) raises :class:`Fallback`,
@@ -18,7 +18,9 @@ from __future__ import annotations
 
 import gzip
 import math
+import mmap
 import os
+import sys
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -51,32 +53,55 @@ def _skip_comment(row) -> str:
     return "skip" if row.text.lstrip().startswith("#") else "error"
 
 
+_NORESERVE = getattr(mmap, "MAP_NORESERVE", 0x4000 if sys.platform.startswith("linux") else 0)
+
+
+class _Growable:
+    """A float64 array of ``width`` columns in an anonymous memory map: it grows and shrinks with mremap,
+    which moves no page and writes none (``ndarray.resize`` would zero-fill the new rows, touching them),
+    and rows not yet written cost no RSS."""
+
+    def __init__(self, rows: int, width: int) -> None:
+        self.width = width
+        self.mm = mmap.mmap(-1, self._bytes(rows), flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _NORESERVE)
+
+    def _bytes(self, rows: int) -> int:
+        return max(rows, 1) * self.width * 8
+
+    def view(self) -> np.ndarray:
+        a = np.frombuffer(self.mm, dtype=np.float64)
+        return a.reshape(-1, self.width) if self.width > 1 else a
+
+    def resize(self, rows: int) -> None:
+        self.mm.resize(self._bytes(rows))  # no view of it may be alive
+
+
 class _Columns:
     """t, the (N, 3) triad and the other wanted channels, grown in place as segments arrive."""
 
     def __init__(self, others: list[str], capacity: int = 0) -> None:
         self.capacity = max(int(capacity), 1024)
         self.n = 0
-        self.t = np.empty(self.capacity)
-        self.triad = np.empty((self.capacity, 3))
-        self.other = {c: np.empty(self.capacity) for c in others}
+        self.store = {"t": _Growable(self.capacity, 1), "_triad": _Growable(self.capacity, 3),
+                      **{c: _Growable(self.capacity, 1) for c in others}}
 
     def resize(self, cap: int) -> None:
-        self.t.resize(cap, refcheck=False)  # no view of these arrays exists until finish()
-        self.triad.resize((cap, 3), refcheck=False)
-        for v in self.other.values():
-            v.resize(cap, refcheck=False)
+        for g in self.store.values():
+            g.resize(cap)
         self.capacity = cap
 
     def add(self, table, picked: dict[str, str]) -> None:
         k = table.num_rows
         if self.n + k > self.capacity:
             self.resize(max(self.n + k, int(self.capacity * 1.5)))
-        _put(self.t, self.n, table.column(picked["t"]))
-        for j, c in enumerate(TRIAD):
-            _put(self.triad[:, j], self.n, table.column(picked[c]))
-        for c, v in self.other.items():
-            _put(v, self.n, table.column(picked[c]))
+        for c, g in self.store.items():
+            into = g.view()
+            if c == "_triad":
+                for j, axis in enumerate(TRIAD):
+                    _put(into[:, j], self.n, table.column(picked[axis]))
+            else:
+                _put(into, self.n, table.column(picked[c]))
+            del into
         self.n += k
 
     def append_moving(self, more: "_Columns") -> None:
@@ -87,19 +112,19 @@ class _Columns:
         end = more.n
         while end > 0:
             start = max(0, end - MOVE_ROWS)
-            self.t[n0 + start:n0 + end] = more.t[start:end]
-            self.triad[n0 + start:n0 + end] = more.triad[start:end]
-            for c, v in self.other.items():
-                v[n0 + start:n0 + end] = more.other[c][start:end]
-            more.resize(max(start, 1))
+            for c, g in self.store.items():
+                into, src = g.view(), more.store[c].view()
+                into[n0 + start:n0 + end] = src[start:end]
+                del into, src
+            more.resize(start)
             end = start
         self.n = total
 
     def finish(self) -> dict[str, np.ndarray]:
         self.resize(self.n)
-        cols = {"t": self.t, "_triad": self.triad, **self.other}
+        cols = {c: g.view()[:self.n] for c, g in self.store.items()}
         for j, c in enumerate(TRIAD):
-            cols[c] = self.triad[:, j]
+            cols[c] = cols["_triad"][:, j]
         return cols
 
 
