@@ -5,8 +5,9 @@ gravcal.core.pipeline.calibrate_recording through daemon.offline (detector -> st
 (``--model auto``, the default: order.select_order) -> Lötters batch estimator -> held-out error over
 contiguous folds of windows), or with ``--lab`` bragge.calibrate_lab (six faces, all 12 parameters),
 and prints a summary, or with ``--json`` exactly one JSON object (its "order" says which parameters
-were fitted and why; model "none" from auto is an error, exit 2). Exit 3 (with the JSON still
-printed) when the calibration is not converged or not observable.
+were fitted and why). Every readable recording gets a verdict: "status" (ok, partial, not_improved, unreliable,
+refused; gravcal.core.verdict) and "reason", in the JSON and the summary; exit 0 for ok and partial,
+exit 3 (the JSON still printed) for the others.
 
 Several files, a directory, or ``--out``: a study (daemon.study), one results row per file, on a
 dask.distributed cluster (``--workers``, ``--scheduler``).
@@ -25,6 +26,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.report import unit_text
+
+TRUSTED = ("ok", "partial")  # statuses that exit 0 (gravcal.core.verdict.TRUSTED; not imported: --help stays light)
 
 log = logging.getLogger(__name__)
 
@@ -183,18 +186,20 @@ def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
     with offline.progress_bar("calibrating", show) as bar:
         report, out = offline.calibrate(rec, opts, (t_read, c_read), bar)
     cal = report.calibration
-    if args.save:
+    status, reason = out["status"], " ".join(str(out.get("reason") or "").split())
+    saved = None
+    if args.save and status != "refused":  # a refusal has no calibration to save: nothing was fitted
         args.save.write_text(cal.to_json(indent=2) + "\n", encoding="utf-8")
-    trustworthy = bool(cal.converged and cal.observable)
+        saved = args.save
     if args.json:
         print(json.dumps(jsonable(out)))
     else:
-        print(summary(out, cal, saved=args.save))
-    if not trustworthy:
-        why = cal.message or ("not converged" if not cal.converged else "not observable")
-        print(f"gravcal: calibration not trustworthy: {' '.join(why.split())}", file=sys.stderr)
+        print(summary(out, cal, saved=saved))
+    if status not in TRUSTED:
+        print(f"gravcal: calibration {status.replace('_', ' ')}: {reason}"
+              + (f" (--save {args.save} not written)" if args.save and saved is None else ""), file=sys.stderr)
     request_prompt_exit()  # the output is printed, --save written and closed: nothing left to tear down
-    return EXIT_OK if trustworthy else EXIT_NOT_TRUSTWORTHY
+    return EXIT_OK if status in TRUSTED else EXIT_NOT_TRUSTWORTHY
 
 
 def _fmt(v: Any, spec: str = ".6g") -> str:
@@ -208,6 +213,7 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     inp = out["input"]
     std = cal.std
     lines = [
+        f"verdict     {out.get('status', 'ok')}: {' '.join(str(out.get('reason') or '').split())}",
         f"recording   {inp['file']}: {inp['n_samples']} samples, {inp['duration_s']:.1f} s at {inp['fs_hz']:.6g} Hz"
         + (f" ({inp['format']}, {inp['units']})" if inp.get("format") else ""),
     ]
