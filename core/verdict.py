@@ -37,9 +37,6 @@ TRUSTED = ("ok", "partial")  # exit 0; every other status exits 3 with the JSON
 # that extrapolates to postures its folds never saw holds out at 10-20x.
 OVERFIT_RATIO = 3.0
 OVERFIT_MIN_MG = TOL_G * 1e3
-# a lower order replaces the chosen one when its held-out error is lower by more than this many standard
-# errors of the paired per-window difference (a tie within noise keeps the order the evidence chose)
-GUARD_Z = 2.0
 
 
 @dataclass
@@ -84,28 +81,13 @@ def _mg(x: float) -> str:
     return f"{x:.3g} mg" if np.isfinite(x) else "n/a"
 
 
-def held_out_better(lower: Candidate, higher: Candidate, z: float = GUARD_Z) -> bool:
-    """Does ``lower`` hold out better than ``higher`` beyond the held-out error's own sampling noise? The paired
-    per-window difference of squared held-out errors (the same windows, the same folds) has a mean above
-    ``z`` standard errors. Without per-window errors: the pooled RMS alone decides."""
-    a, b = higher.heldout.window_errors_mg, lower.heldout.window_errors_mg
-    if a is None or b is None or len(a) != len(b):
-        return lower.heldout_mg < higher.heldout_mg
-    ok = np.isfinite(a) & np.isfinite(b)
-    d = a[ok] ** 2 - b[ok] ** 2
-    if d.size < 2:
-        return False
-    se = float(np.std(d, ddof=1)) / np.sqrt(d.size)
-    return float(np.mean(d)) > z * se
-
-
 def choose(chosen: Candidate, lower: list[Candidate], *, auto: bool) -> tuple[Candidate, str]:
     """The candidate returned and the sentence saying why: auto falls back to the lower order with the lowest
-    held-out error when it holds out better beyond noise (held_out_better); an order the user asked for is
-    kept, and the sentence names the better one."""
+    held-out error when it holds out better than the chosen one (the rule select_order applies to the
+    cross-axis terms); an order the user asked for is kept, and the sentence names the better one."""
     if not np.isfinite(chosen.heldout_mg):
         return chosen, ""
-    better = [c for c in lower if np.isfinite(c.heldout_mg) and held_out_better(c, chosen)]
+    better = [c for c in lower if np.isfinite(c.heldout_mg) and c.heldout_mg < chosen.heldout_mg]
     if not better:
         return chosen, ""
     best = min(better, key=lambda c: c.heldout_mg)  # ``lower`` runs from the lowest order up: ties keep it
@@ -119,8 +101,7 @@ def choose(chosen: Candidate, lower: list[Candidate], *, auto: bool) -> tuple[Ca
 def judge(cand: Candidate, *, baseline: Candidate | None, baseline_name: str, guard_note: str, auto: bool) -> Verdict:
     """The verdict on ``cand`` (the calibration returned unless not_improved), given no calibration
     (``baseline``: the start scored on every window, uncalibrated(); None when the start came from these
-    data) and the guard's sentence. Not improved: no calibration holds out better beyond noise
-    (held_out_better), or the fit has no held-out error at all."""
+    data) and the guard's sentence. Not improved: no calibration is off by less than the fit holds out."""
     cal, ho = cand.calibration, cand.heldout
     held, ins = float(ho.heldout_rms_mg), float(ho.insample_rms_mg)
     ev: dict[str, Any] = {"heldout_rms_mg": held if np.isfinite(held) else None,
@@ -129,7 +110,7 @@ def judge(cand: Candidate, *, baseline: Candidate | None, baseline_name: str, gu
     if baseline_mg is not None:
         ev["uncalibrated_rms_mg"] = baseline_mg
     lead = f"{guard_note}; " if guard_note else ""
-    if baseline is not None and np.isfinite(held) and held_out_better(baseline, cand):
+    if baseline is not None and np.isfinite(held) and held >= baseline.heldout_mg:
         return Verdict("not_improved", f"{lead}no calibration ({baseline_name}) is off by {_mg(baseline_mg)}, "
                                        f"the {cand.model} fit holds out at {_mg(held)}: the start is returned unchanged", ev)
     if not cal.converged:
