@@ -213,16 +213,17 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     inp = out["input"]
     std = cal.std
     lines = [
-        f"verdict     {out.get('status', 'ok')}: {' '.join(str(out.get('reason') or '').split())}",
         f"recording   {inp['file']}: {inp['n_samples']} samples, {inp['duration_s']:.1f} s at {inp['fs_hz']:.6g} Hz"
         + (f" ({inp['format']}, {inp['units']})" if inp.get("format") else ""),
     ]
     for w in inp["warnings"]:
         lines.append(f"warning     {w}")
+    lines.append(f"verdict     {out.get('status', 'ok')}: {' '.join(str(out.get('reason') or '').split())}")
     state = ("converged" if cal.converged else "NOT CONVERGED") + ", " + ("observable" if cal.observable else "NOT OBSERVABLE")
     lines.append(f"model       {cal.model}: {out.get('n_windows', cal.n_windows)} quasi-static windows, {state}")
     order = out.get("order") or {}
-    if order.get("reason"):
+    said = " ".join(str(out.get("reason") or "").split())  # the verdict's reason: said once
+    if order.get("reason") and " ".join(order["reason"].split()) != said:
         lines.append(f"order       {order.get('model')}: {order['reason']}")
     if out.get("faces"):
         lines.append("faces       " + ", ".join(f"{f} ({v['windows']} window(s), tilt {v['tilt_deg']:.2g}°)"
@@ -256,10 +257,10 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
             f"|a| - 1 g   held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg "
             f"(contiguous folds of windows), in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg"
         )
-    if cal.message:
+    if cal.message and " ".join(cal.message.split()) not in said:
         lines.append(f"note        {cal.message}")
     for note in out.get("notes", []) or []:
-        if note and note not in (cal.message or ""):
+        if note and note not in (cal.message or "") and note not in said:
             lines.append(f"note        {note}")
     lines.append("convention  a [g] = sensitivity^-1 (raw - offset)")
     if saved:
