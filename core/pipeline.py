@@ -463,16 +463,20 @@ def calibrate_recording(
                     baseline_name=_baseline_name(baseline), guard_note=guard_note, auto=model == "auto")
     verdict.evidence["heldout_by_order"] = {c.model: c.heldout_mg for c in [*lower, chosen]}
     order = dict(fitted.order or {})
+    terms = fitted.extended_terms
     if pick is not chosen:
         cal, ho = pick.calibration, pick.heldout
         order["model"], order["reason"] = pick.model, f"{order.get('reason', '')}; {guard_note}"
+        terms = {k: ({**v, "status": "not warranted", "reason": f"{v.get('reason', '')}; dropped: the held-out "
+                                                               f"guard returned {pick.model}"}
+                     if v.get("status") == "chosen" else v) for k, v in (terms or {}).items()} or terms
     if verdict.status == "not_improved":
         cal = unchanged(baseline, verdict.reason)
     steps.stage()
     log.info("calibrated %d windows (order %s, %s): held-out %.3g mg, in-sample %.3g mg", len(ws), order.get("model"),
              verdict.status, ho.heldout_rms_mg, ho.insample_rms_mg)
     return CalibrationReport(cal, ws, ho.heldout_rms_mg, ho.insample_rms_mg, len(ws), notes, ho, start, order,
-                             fitted.extended_terms, verdict)
+                             terms, verdict)
 
 
 def refused_report(reason: str, start: Calibration | None) -> CalibrationReport:
