@@ -249,7 +249,10 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     for term, verdict in (out.get("extended_terms") or {}).items():  # model auto: why a term is (not) in
         if isinstance(verdict, dict) and verdict.get("status") != "chosen":
             lines.append(f"{term:<11} {verdict.get('status')}: {verdict.get('reason', '')}")
-    if out.get("heldout_scheme") == "leave-one-face-out":
+    if str(out.get("heldout_scheme") or "").startswith("none"):  # not improved: the start, nothing fitted
+        lines.append(f"|a| - 1 g   RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg over every window under the start "
+                     f"(nothing fitted: every window is held out)")
+    elif out.get("heldout_scheme") == "leave-one-face-out":
         lines.append(f"|a - known| held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg (leave one face out), "
                      f"in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg")
     else:

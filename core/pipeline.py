@@ -459,8 +459,9 @@ def calibrate_recording(
     chosen = Candidate(fitted.model, cal, ho, fitted)
     lower = _lower_candidates(ws, fitted.model, start, lab, sigma_floor_g, folds, from_data=baseline is None)
     pick, guard_note = choose(chosen, lower, auto=model == "auto")
-    verdict = judge(pick, baseline=None if baseline is None else uncalibrated(baseline, ws),
-                    baseline_name=_baseline_name(baseline), guard_note=guard_note, auto=model == "auto")
+    none = None if baseline is None else uncalibrated(baseline, ws)
+    verdict = judge(pick, baseline=none, baseline_name=_baseline_name(baseline), guard_note=guard_note,
+                    auto=model == "auto")
     verdict.evidence["heldout_by_order"] = {c.model: c.heldout_mg for c in [*lower, chosen]}
     order = dict(fitted.order or {})
     terms = fitted.extended_terms
@@ -470,8 +471,8 @@ def calibrate_recording(
         terms = {k: ({**v, "status": "not warranted", "reason": f"{v.get('reason', '')}; dropped: the held-out "
                                                                f"guard returned {pick.model}"}
                      if v.get("status") == "chosen" else v) for k, v in (terms or {}).items()} or terms
-    if verdict.status == "not_improved":
-        cal = unchanged(baseline, verdict.reason)
+    if verdict.status == "not_improved":  # the start is what the user gets: its error is the one reported
+        cal, ho = unchanged(baseline, verdict.reason), none.heldout
     steps.stage()
     log.info("calibrated %d windows (order %s, %s): held-out %.3g mg, in-sample %.3g mg", len(ws), order.get("model"),
              verdict.status, ho.heldout_rms_mg, ho.insample_rms_mg)

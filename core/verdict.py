@@ -95,7 +95,7 @@ def choose(chosen: Candidate, lower: list[Candidate], *, auto: bool) -> tuple[Ca
            f"{best.model} at {_mg(best.heldout_mg)}")
     if auto:
         return best, f"held-out guard: {cmp}: {best.model} returned"
-    return chosen, f"held-out guard: {cmp}: the lower order {best.model} generalises better than the requested one"
+    return chosen, f"held-out guard: {cmp}: the lower order {best.model} generalises better than the requested one (--model {best.model})"
 
 
 def judge(cand: Candidate, *, baseline: Candidate | None, baseline_name: str, guard_note: str, auto: bool) -> Verdict:

@@ -92,3 +92,15 @@ def test_summary_api_and_study_row_say_the_same(native, verdicts, capsys, tmp_pa
     for n in NAMES:
         assert rows[n]["status"] == verdicts[n][1]["status"], (n, rows[n])
         assert rows[n]["message"].startswith(verdicts[n][1]["reason"][:100])
+
+
+def test_an_order_asked_for_that_holds_out_worse_than_none_returns_the_start(native, capsys):
+    """neo.gt3x with --model 9: the fit holds out worse than the device's nominal scale (no calibration):
+    "not_improved", exit 3, the start returned unchanged and its own error reported as the held-out one."""
+    code = main(["calibrate", str(native / "neo.gt3x"), "--model", "9", "--json"])
+    d = json.loads(capsys.readouterr().out)
+    by_order, none = d["verdict"]["heldout_by_order"], d["verdict"]["uncalibrated_rms_mg"]
+    assert by_order["9"] > none and d["status"] == "not_improved" and code == 3
+    assert d["offset"] == [0.0, 0.0, 0.0] and d["sensitivity"] == [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]
+    assert d["heldout_rms_mg"] == pytest.approx(none) and d["heldout_scheme"].startswith("none")
+    assert "--model offsets" in d["reason"]
