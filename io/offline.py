@@ -84,6 +84,15 @@ def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0,
 
     t0, c0 = time.perf_counter(), time.process_time()
     start = opts.start if opts.start is not None or opts.lab is not None else device_start_of(rec)
+    if "+" in opts.model:  # a model whose terms need a column the recording lacks: the option is wrong (exit 2)
+        from gravcal.core.estimators.order import extended_terms
+        from gravcal.core.model.effect import needed_covariates
+
+        have = {"temp": rec.temp is not None, "vsupply": rec.vsupply is not None, "time": True}
+        missing = [c for c in needed_covariates(extended_terms(opts.model)) if not have[c]]
+        if missing:
+            raise InputError(f"--model {opts.model} has terms that need a {' and a '.join(missing)} column; "
+                             f"{rec.source} has none")
     if opts.lab_session:  # a six-face session missing a face is refused as bad input (exit 2)
         from gravcal.core.estimators.bragge import calibrate_lab
 

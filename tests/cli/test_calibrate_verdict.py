@@ -104,3 +104,11 @@ def test_an_order_asked_for_that_holds_out_worse_than_none_returns_the_start(nat
     assert d["offset"] == [0.0, 0.0, 0.0] and d["sensitivity"] == [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]]
     assert d["heldout_rms_mg"] == pytest.approx(none) and d["heldout_scheme"].startswith("none")
     assert "--model offsets" in d["reason"]
+
+
+def test_a_term_without_its_column_is_a_bad_option(native, capsys):
+    """Not a verdict: --model with a temperature term on a file without temperature is the option's fault (exit 2)."""
+    code = main(["calibrate", str(native / "neo.gt3x"), "--model", "6+temperature_offset", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == "" and "needs" not in err.split(":")[0]
+    assert "has terms that need a temp column" in err and "Traceback" not in err
