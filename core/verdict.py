@@ -120,7 +120,9 @@ def judge(cand: Candidate, *, baseline: Candidate | None, baseline_name: str, gu
     if np.isfinite(held) and held > OVERFIT_RATIO * ins and held > OVERFIT_MIN_MG:
         return Verdict("unreliable", f"{lead}held-out error {_mg(held)} is far above the in-sample {_mg(ins)} "
                                      f"(> {OVERFIT_RATIO:g}x and > {OVERFIT_MIN_MG:g} mg): the fit does not "
-                                     f"generalise to the postures it did not see", ev)
+                                     f"generalise to the postures it did not see (a contiguous fold holds postures "
+                                     f"the others lack: record each posture more than once, or calibrate a six-face "
+                                     f"session with --lab)", ev)
     if not np.isfinite(held):
         return Verdict("unreliable", f"{lead}no held-out error could be computed (every fold's fit failed)", ev)
     if guard_note and not auto:
