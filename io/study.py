@@ -88,10 +88,10 @@ def _calibrate_file(path: str, opts: Options, row: dict[str, Any]) -> dict[str, 
     except Exception as exc:  # noqa: BLE001
         return {**row, "status": "error", "message": _one_line(f"{type(exc).__name__}: {exc}")}
     cal = report.calibration
-    trustworthy = bool(cal.converged and cal.observable)
-    row.update(status="ok" if trustworthy else "refused", model=cal.model, n_windows=int(cal.n_windows),
+    # the verdict of `calibrate --json` (gravcal.core.verdict.STATUSES): ok, partial, not_improved, unreliable, refused
+    row.update(status=out["status"], model=cal.model, n_windows=int(cal.n_windows),
                heldout_rms_mg=out.get("heldout_rms_mg"),
-               message=_one_line("; ".join(filter(None, [cal.message, *rec.warnings]))))
+               message=_one_line("; ".join(filter(None, [out.get("reason"), *rec.warnings]))))
     for i, a in enumerate(AXES):
         row[f"offset_{a}"] = float(cal.offset[i])
         for j, b in enumerate(AXES):
