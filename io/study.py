@@ -76,7 +76,7 @@ def done_files(out: Path) -> set[str]:
 
 def calibrate_file(path: str, opts: Options, write_to: str | None = None) -> dict[str, Any]:
     """One results row; never raises (a broken file is a row with its error). ``write_to``: where its
-    calibrated samples go (io.calibrated; only for a trustworthy calibration)."""
+    calibrated samples go (io.calibrated; only for status ok or partial)."""
     row: dict[str, Any] = {"file": path}
     quiet = logging.getLogger("gravcal")
     level, quiet.level = quiet.level, logging.ERROR  # the row carries the warnings; no interleaved log lines
@@ -103,15 +103,17 @@ def _calibrate_file(path: str, opts: Options, row: dict[str, Any], write_to: str
     except Exception as exc:  # noqa: BLE001
         return {**row, "status": "error", "message": _one_line(f"{type(exc).__name__}: {exc}")}
     cal = report.calibration
-    trustworthy = bool(cal.converged and cal.observable)
-    row.update(status="ok" if trustworthy else "refused", model=cal.model, n_windows=int(cal.n_windows),
+    # the verdict of `calibrate --json` (gravcal.core.verdict.STATUSES): ok, partial, not_improved, unreliable, refused
+    row.update(status=out["status"], model=cal.model, n_windows=int(cal.n_windows),
                heldout_rms_mg=out.get("heldout_rms_mg"),
-               message=_one_line("; ".join(filter(None, [cal.message, *rec.warnings]))))
+               message=_one_line("; ".join(filter(None, [out.get("reason"), *rec.warnings]))))
     for i, a in enumerate(AXES):
         row[f"offset_{a}"] = float(cal.offset[i])
         for j, b in enumerate(AXES):
             row[f"sensitivity_{a}{b}"] = float(cal.sensitivity[i, j])
-    if write_to and trustworthy:
+    from gravcal.core.verdict import TRUSTED
+
+    if write_to and out["status"] in TRUSTED:
         from .calibrated import write_for
 
         try:
