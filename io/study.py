@@ -152,7 +152,7 @@ def _results(files: list[str], opts: Options, workers: int | None, scheduler: st
     else:
         import dask
 
-        n = workers or os.cpu_count() or 1
+        n = min(workers or os.cpu_count() or 1, len(files))  # no worker started for no file
         # Dask's default MALLOC_TRIM_THRESHOLD_ fixes glibc's mmap threshold, so each large numpy
         # temporary becomes a fresh mmap with its page faults: measured 2x the CPU per recording
         environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", default={}).items()
