@@ -173,45 +173,45 @@ class _Parser:
         into.add(table, self.picked)
         return into
 
-    def stream(self, read, expected_bytes: int, rest: bytes = b"") -> _Columns:
-        """Parse what ``read(n)`` gives, in segments ending at line ends."""
+    def stream(self, readinto, expected_bytes: int, rest: bytes = b"") -> _Columns:
+        """Parse what ``readinto(buffer)`` fills, in segments ending at line ends. One buffer is read into
+        again and again: a fresh one per segment would cost its pages' faults and zeroing every time."""
         cols = None
+        buf = bytearray(SEGMENT_BYTES)
+        whole = memoryview(buf)
         while True:
-            data = read(SEGMENT_BYTES)
-            if not data:
+            k = readinto(whole)
+            if not k:
                 if rest:
                     cols = self.segment(rest, cols, expected_bytes)
                 return cols if cols is not None else _Columns(self.others)
-            cut = data.rfind(b"\n")
+            cut = buf.rfind(b"\n", 0, k)
             if cut < 0:
-                if len(rest) + len(data) > 4 * SEGMENT_BYTES:
+                if len(rest) + k > 4 * SEGMENT_BYTES:
                     raise Fallback("no line end in a whole segment")  # e.g. lines ending in \r alone
-                rest += data
+                rest += whole[:k]
                 continue
-            view = memoryview(data)  # the segment is parsed where it was read: no copy of it
+            first = 0
             if rest:  # the line cut at the last segment's end, completed: parsed on its own (short)
-                first = data.find(b"\n") + 1
-                cols = self.segment(rest + data[:first], cols, expected_bytes)
-                view = view[first:]
-                cut -= first
-            rest = data[cut + 1 + (len(data) - len(view)):]
-            if cut >= 0:
-                cols = self.segment(view[:cut + 1], cols, expected_bytes)
-            del view, data
+                first = buf.find(b"\n", 0, k) + 1
+                cols = self.segment(rest + whole[:first], cols, expected_bytes)
+            if cut >= first:
+                cols = self.segment(whole[first:cut + 1], cols, expected_bytes)  # parsed where it was read
+            rest = bytes(whole[cut + 1:k])
 
 
 def _range_reader(path: Path, start: int, stop: int):
     fd = os.open(path, os.O_RDONLY)
     pos = [start]
 
-    def read(n: int) -> bytes:
-        k = min(n, stop - pos[0])
+    def readinto(view: memoryview) -> int:
+        k = min(len(view), stop - pos[0])
         if k <= 0:
-            return b""
-        data = os.pread(fd, k, pos[0])
-        pos[0] += len(data)
-        return data
-    return fd, read
+            return 0
+        got = os.preadv(fd, [view[:k]], pos[0])
+        pos[0] += got
+        return got
+    return fd, readinto
 
 
 def _split_points(path: Path, start: int, size: int, parts: int) -> list[int]:
@@ -240,7 +240,7 @@ def read_columns(path: Path, *, gz: bool, delim: str, n_fields: int, usecols: li
             with gzip.open(path, "rb") as raw:
                 head = raw.read(head_bytes)
                 cut = _data_offset(head, header_line, head_bytes)
-                cols = parser.stream(raw.read, 8 * size, rest=head[cut:])  # numbers gzip ~4-8x; more grows
+                cols = parser.stream(raw.readinto, 8 * size, rest=head[cut:])  # numbers gzip ~4-8x; more grows
             return cols.finish()
         with open(path, "rb") as f:
             start = _data_offset(f.read(head_bytes), header_line, head_bytes)
@@ -248,9 +248,9 @@ def read_columns(path: Path, *, gz: bool, delim: str, n_fields: int, usecols: li
         points = _split_points(path, start, size, threads)
 
         def one(k: int) -> _Columns:
-            fd, read = _range_reader(path, points[k], points[k + 1])
+            fd, readinto = _range_reader(path, points[k], points[k + 1])
             try:
-                return parser.stream(read, points[k + 1] - points[k])
+                return parser.stream(readinto, points[k + 1] - points[k])
             finally:
                 os.close(fd)
 
