@@ -74,8 +74,7 @@ def _flag_names() -> str:
 
 def _chunks(rec: Recording, cal: Any):
     """(t, a [g] (k, 3), flags) per chunk of rows."""
-    n = rec.n_samples
-    quality = rec.quality if rec.quality is not None else None
+    n, quality = rec.n_samples, rec.quality
     for i in range(0, n, CHUNK):
         s = slice(i, min(n, i + CHUNK))
         pick = (lambda v: None if v is None else np.asarray(v[s], dtype=np.float64))
