@@ -6,6 +6,7 @@ The Python API (docs/python-api.md)::
     rec = gravcal.read("subject01.gt3x")          # t, acc (N, 3 raw), temp, vsupply, fs, units, metadata
     cal = gravcal.calibrate(rec)                  # offset (3), sensitivity (3x3), held-out error, report
     g = cal.apply(rec.acc, temp=rec.temp)         # calibrated acceleration [g]
+    gravcal.study_report("results.csv", "qc/")    # a study's QC page: qc/index.html
 
 Attributes load on first use, so ``import gravcal`` (and the daemon, which imports
 gravcal.daemon) pays for none of the numerics.
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["__version__", "read", "calibrate", "Calibration", "Recording"]
+__all__ = ["__version__", "read", "calibrate", "Calibration", "Recording", "study_report"]
 _API = {"read", "calibrate", "Calibration", "Recording"}
 
 
@@ -30,6 +31,10 @@ def __getattr__(name: str) -> Any:
         from . import api
 
         return getattr(api, name)
+    if name == "study_report":
+        from .io.study_report import write_report
+
+        return write_report
     raise AttributeError(f"module 'gravcal' has no attribute {name!r}")
 
 

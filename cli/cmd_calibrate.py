@@ -77,6 +77,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--scheduler", metavar="ADDRESS", help="study: an existing dask.distributed scheduler, e.g. "
                                                           "tcp://head-node:8786, instead of a local cluster")
     p.add_argument("--quiet", action="store_true", help="no progress bar (one is shown only on a terminal)")
+    p.add_argument("--report", type=Path, metavar="DIR",
+                   help="study: also write DIR/index.html, the study's QC page (error before/after, model orders, "
+                        "statuses; one row per file, each linked to its page), drawn from the results file")
     # No argparse choices: listing them would import the numerics (a second of scipy) for every
     # `gravcal --help`; run() validates and names the known values.
     from gravcal.core.estimators.parameterization import PARAMETERIZATIONS  # numpy only: cheap
@@ -167,10 +170,19 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("--save and --json are for one file; a study writes its rows to --out RESULTS.csv")
         if not args.out:
             raise InputError("several files or a directory: name the results file with --out RESULTS.csv")
-        return run_study(args.files, args.out, opts, workers=args.workers, scheduler=args.scheduler,
+        code = run_study(args.files, args.out, opts, workers=args.workers, scheduler=args.scheduler,
                          quiet=args.quiet)
+        if args.report:
+            from ..io.study_report import write_report
+
+            page = write_report(args.out, args.report)
+            if not args.quiet:
+                print(f"gravcal: study report in {page}", file=sys.stderr)
+        return code
     if args.workers is not None or args.scheduler:
         raise InputError("--workers and --scheduler are for a study (several files or a directory with --out)")
+    if args.report:
+        raise InputError("--report draws a study's results: give several files or a directory with --out RESULTS.csv")
     return calibrate_one(args.files[0], opts, args)
 
 
