@@ -184,7 +184,7 @@ def _slug(i: int, file: str) -> str:
 
 def _existing(value: str, bases: list[Path]) -> Path | None:
     """The file a cell names, if it exists (relative names against the results' folder, then the cwd)."""
-    if not value or len(value) > 4096 or "\n" in value:
+    if not value or len(value) > 4096 or "\n" in value or number(value) is not None:
         return None
     p = Path(value)
     for q in ([p] if p.is_absolute() else [b / p for b in bases]):
