@@ -102,14 +102,14 @@ def error_figure(rows: list[dict[str, str]]) -> Any:
         edges = np.logspace(lo - 0.05, hi + 0.05, max(8, min(30, 2 * int(math.sqrt(len(both))) + 4)))
         if before:
             ax.hist(before, bins=edges, color=BEFORE_COLOR, alpha=0.6,
-                    label=f"before: the start, {len(before)} files")
+                    label=f"before: the start, {_files(len(before))}")
         if after:
             ax.hist(after, bins=edges, color=AFTER_COLOR, alpha=0.6,
-                    label=f"after: held-out, {len(after)} files")
+                    label=f"after: held-out, {_files(len(after))}")
         ax.set_xscale("log")
     n_without = len(rows) - len(before)
     if n_without:  # an entry without a patch: says why files are missing from "before"
-        ax.plot([], [], " ", label=f"no 'before' for {n_without} file(s):\nno start to score, or refused")
+        ax.plot([], [], " ", label=f"no 'before' for {_files(n_without)}:\nno start to score, or refused")
     ax.set_title("Calibration error per file, before and after")
     ax.set_xlabel(ERROR_LABEL + " (log scale)")
     ax.set_ylabel("files")
@@ -173,6 +173,10 @@ def figures(rows: list[dict[str, str]]) -> list[tuple[str, Any, str]]:
     return [(name, make(rows), caption) for name, make, caption in FIGURES]
 
 
+def _files(n: int) -> str:
+    return f"{n} file" + ("" if n == 1 else "s")
+
+
 def _fmt(x: float | None, spec: str = ".3g") -> str:
     return "n/a" if x is None else format(x, spec)
 
@@ -223,11 +227,11 @@ def _summary(rows: list[dict[str, str]]) -> str:
     counts = Counter(r["status"] for r in rows)
     parts = ", ".join(f"{counts[s]} {s.replace('_', ' ')}" for s in sorted(counts, key=lambda s: (
         STATUS_ORDER.index(s) if s in STATUS_ORDER else len(STATUS_ORDER), s)))
-    out = [f"<p>{len(rows)} file(s): {html.escape(parts) or 'none'}.</p>"]
-    for label, col in (("before (no calibration)", BEFORE), ("after (held-out)", AFTER)):
+    out = [f"<p>{_files(len(rows))}: {html.escape(parts) or 'none'}.</p>"]
+    for label, col in (("before (the start, nothing fitted)", BEFORE), ("after (held-out)", AFTER)):
         xs = [x for x in (number(r.get(col)) for r in rows) if x is not None]
         if xs:
-            out.append(f"<p>Median error {label}: {statistics.median(xs):.3g} mg over {len(xs)} file(s).</p>")
+            out.append(f"<p>Median error {label}: {statistics.median(xs):.3g} mg over {_files(len(xs))}.</p>")
     return "".join(out)
 
 
