@@ -31,7 +31,8 @@ NO_CALIBRATION = ("refused", "error")  # a refused row's model is the start it r
 BEFORE_COLOR, AFTER_COLOR = "tab:blue", "tab:orange"
 # Marks each image with whether it decoded, so a headless browser's DOM says what rendered.
 IMG_CHECK = ("<script>for (const im of document.images) { const mark = () => { im.dataset.loaded = "
-             "im.naturalWidth > 0 ? 'yes' : 'no'; im.dataset.naturalWidth = im.naturalWidth; }; "
+             "im.naturalWidth > 0 ? 'yes' : 'no'; im.dataset.naturalWidth = im.naturalWidth; "
+             "im.dataset.shownWidth = Math.round(im.getBoundingClientRect().width); }; "
              "if (im.complete) mark(); else { im.addEventListener('load', mark); im.addEventListener('error', mark); } }"
              "</script>")
 
@@ -83,8 +84,14 @@ def _figure(width_in: float, height_in: float) -> Any:
     return fig
 
 
-def _legend_outside(ax: Any) -> Any:
-    """The legend to the right of the axes: it never covers a bar or a point."""
+def _legend_outside(ax: Any, empty: str) -> Any:
+    """The legend to the right of the axes: it never covers a bar or a point. No data: ``empty`` says so."""
+    if not ax.patches:
+        ax.text(0.5, 0.5, empty, transform=ax.transAxes, ha="center", va="center")
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if not ax.get_legend_handles_labels()[0]:
+        return None
     return ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, frameon=False)
 
 
@@ -114,11 +121,11 @@ def error_figure(rows: list[dict[str, str]]) -> Any:
     ax.set_xlabel(ERROR_LABEL + " (log scale)")
     ax.set_ylabel("files")
     ax.yaxis.get_major_locator().set_params(integer=True)
-    _legend_outside(ax)
+    _legend_outside(ax, "no file has an error in mg: each was refused or unreadable")
     return fig
 
 
-def _status_bars(ax: Any, categories: list[str], rows_of: dict[str, list[dict[str, str]]]) -> None:
+def _status_bars(ax: Any, categories: list[str], rows_of: dict[str, list[dict[str, str]]], empty: str) -> None:
     """Bars per category, stacked by status, one colour per status."""
     bottom = [0] * len(categories)
     for status in [s for s in STATUS_ORDER if any(r["status"] == s for rs in rows_of.values() for r in rs)] + \
@@ -129,7 +136,7 @@ def _status_bars(ax: Any, categories: list[str], rows_of: dict[str, list[dict[st
         bottom = [b + h for b, h in zip(bottom, heights)]
     ax.set_ylabel("files")
     ax.yaxis.get_major_locator().set_params(integer=True)
-    _legend_outside(ax)
+    _legend_outside(ax, empty)
 
 
 def model_figure(rows: list[dict[str, str]]) -> Any:
@@ -138,7 +145,7 @@ def model_figure(rows: list[dict[str, str]]) -> Any:
     models = sorted({r["model"] for r in fitted}, key=_model_key)
     fig = _figure(8.0, 3.6)
     ax = fig.add_subplot()
-    _status_bars(ax, models, {m: [r for r in fitted if r["model"] == m] for m in models})
+    _status_bars(ax, models, {m: [r for r in fitted if r["model"] == m] for m in models}, "no file has a calibration")
     ax.set_title(f"Model order returned ({len(fitted)} of {len(rows)} files have a calibration)")
     ax.set_xlabel("model order (parameters estimated)")
     return fig
@@ -150,7 +157,7 @@ def status_figure(rows: list[dict[str, str]]) -> Any:
     statuses += sorted({r["status"] for r in rows} - set(statuses))
     fig = _figure(8.0, 3.6)
     ax = fig.add_subplot()
-    _status_bars(ax, statuses, {s: [r for r in rows if r["status"] == s] for s in statuses})
+    _status_bars(ax, statuses, {s: [r for r in rows if r["status"] == s] for s in statuses}, "no files")
     ax.set_title("Verdict per file: calibrated, refused, errors")
     ax.set_xlabel("status (exit 0: ok, partial; the others exit 3 for one file)")
     return fig

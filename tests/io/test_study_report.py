@@ -5,7 +5,7 @@ links; the plots themselves have titles, labelled axes with units, and legends c
 from __future__ import annotations
 
 import csv
-import os
+import warnings
 import shutil
 import subprocess
 import sys
@@ -121,6 +121,7 @@ def test_the_page_renders_in_chromium(study, tmp_path):
     assert [im["src"] for im in page.images] == names
     for im, caption in zip(page.images, page.captions):
         assert im.get("data-loaded") == "yes" and int(im["data-natural-width"]) > 300, im
+        assert int(im["data-shown-width"]) > 300, im  # laid out on the page, not hidden or squeezed
         assert im["alt"] and im["title"] == im["alt"] and len(caption) > 20
     # one row per file, with the results' own numbers, and each row's link opens that file's page
     by_file = {r["file"]: r for r in rows}
@@ -197,3 +198,23 @@ def test_a_retried_file_keeps_its_last_row_and_bad_input_is_named(study, tmp_pat
     with pytest.raises(ValueError, match="not a gravcal results file"):
         study_report.write_report(tmp_path / "other.csv", tmp_path / "r")
     assert main(["calibrate", str(rows[0]["file"]), "--report", str(tmp_path / "r")]) == 2
+
+
+def test_a_study_with_nothing_calibrated_says_so_on_each_plot(tmp_path):
+    pytest.importorskip("matplotlib")
+    from gravcal.io.study import FIELDS
+
+    results = tmp_path / "results.csv"
+    with open(results, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=FIELDS, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerow({"file": "a.csv", "status": "error", "message": "a.csv: missing columns t"})
+        writer.writerow({"file": "b.npy", "status": "refused", "model": "nominal", "message": "nothing determined"})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no empty legend, no matplotlib complaint
+        page = study_report.write_report(results, tmp_path / "qc")
+    assert page.read_text().count("<tr class='file'>") == 2 and len(list(page.parent.glob("*.png"))) == 3
+    rows = study_report.read_results(results)
+    model_ax = study_report.model_figure(rows).axes[0]
+    assert not model_ax.patches and "no file has a calibration" in [t.get_text() for t in model_ax.texts]
+    assert "0 of 2 files" in model_ax.get_title()
