@@ -265,16 +265,20 @@ def write_report(results_csv: Path, out_dir: Path) -> Path:
                     "the table below is complete.</p>")
     head = ("<tr><th>#</th><th>file</th><th>status</th><th>model</th><th>before [mg]</th><th>held-out [mg]</th>"
             "<th>windows</th><th>reason / message</th></tr>")
-    lines = []
+    lines, written = [], set()
     for i, r in enumerate(rows):
         page = _slug(i, r["file"])
         (out_dir / "files" / page).write_text(_file_page(r, bases), encoding="utf-8")
+        written.add(page)
         lines.append(f"<tr class='file'><td class='num'>{i + 1}</td><td><a href='files/{html.escape(page)}'>"
                      f"{html.escape(r['file'])}</a></td><td>{html.escape(r['status'])}</td>"
                      f"<td>{html.escape(r.get('model', ''))}</td><td class='num'>{_fmt(number(r.get(BEFORE)))}</td>"
                      f"<td class='num'>{_fmt(number(r.get(AFTER)))}</td><td class='num'>"
                      f"{html.escape(r.get('n_windows', ''))}</td><td>{html.escape(r.get('message', ''))}</td></tr>")
     body.append(f"<h2>Files</h2><table id='files'>{head}{''.join(lines)}</table>")
+    for stale in (out_dir / "files").glob("[0-9][0-9][0-9][0-9]-*.html"):  # a previous drawing's rows
+        if stale.name not in written:
+            stale.unlink()
     page = out_dir / "index.html"
     page.write_text(f"<!doctype html><html><head><meta charset='utf-8'><title>gravcal study report: "
                     f"{html.escape(results_csv.name)}</title>{STYLE}</head><body>{''.join(body)}{IMG_CHECK}"

@@ -140,6 +140,8 @@ def test_the_page_renders_in_chromium(study, tmp_path):
     ok_row = next(i for i, cells in enumerate(page.rows) if by_file[cells[1]]["status"] == "ok")
     detail = parsed(chromium_dom(report / file_links[ok_row], tmp_path))
     assert "../index.html" in detail.links
+    text = (report / file_links[ok_row]).read_text()
+    assert text.count("<tr>") == len(rows[0])  # every column of the row
     recording = Path(page.rows[ok_row][1]).resolve().as_uri()
     assert recording in detail.links  # the row's file is a link to the recording
 
@@ -214,6 +216,9 @@ def test_a_study_with_nothing_calibrated_says_so_on_each_plot(tmp_path):
         warnings.simplefilter("error")  # no empty legend, no matplotlib complaint
         page = study_report.write_report(results, tmp_path / "qc")
     assert page.read_text().count("<tr class='file'>") == 2 and len(list(page.parent.glob("*.png"))) == 3
+    (page.parent / "files" / "0099-old.npy.html").write_text("a row of an earlier drawing")
+    study_report.write_report(results, tmp_path / "qc")  # drawn again: only this drawing's rows have pages
+    assert sorted(p.name for p in (page.parent / "files").iterdir()) == ["0001-a.csv.html", "0002-b.npy.html"]
     rows = study_report.read_results(results)
     model_ax = study_report.model_figure(rows).axes[0]
     assert not model_ax.patches and "no file has a calibration" in [t.get_text() for t in model_ax.texts]
