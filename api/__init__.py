@@ -6,7 +6,6 @@ The Python API (docs/python-api.md)::
     rec = gravcal.read("subject01.gt3x")          # t, acc (N, 3 raw), temp, vsupply, fs, units, metadata
     cal = gravcal.calibrate(rec)                  # offset (3), sensitivity (3x3), held-out error, report
     g = cal.apply(rec.acc, temp=rec.temp)         # calibrated acceleration [g]
-    gravcal.study_report("results.csv", "qc/")    # a study's QC page: qc/index.html
 
 Attributes load on first use, so ``import gravcal`` (and the daemon, which imports
 gravcal.daemon) pays for none of the numerics.

@@ -159,6 +159,8 @@ def options(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.report:
+        return run_with_report(args)
     from ..io.formats.csvtext import parse_columns
 
     parse_columns(args.columns)  # a bad mapping is refused before anything is read
@@ -170,20 +172,24 @@ def run(args: argparse.Namespace) -> int:
             raise InputError("--save and --json are for one file; a study writes its rows to --out RESULTS.csv")
         if not args.out:
             raise InputError("several files or a directory: name the results file with --out RESULTS.csv")
-        code = run_study(args.files, args.out, opts, workers=args.workers, scheduler=args.scheduler,
+        return run_study(args.files, args.out, opts, workers=args.workers, scheduler=args.scheduler,
                          quiet=args.quiet)
-        if args.report:
-            from ..io.study_report import write_report
-
-            page = write_report(args.out, args.report)
-            if not args.quiet:
-                print(f"gravcal: study report in {page}", file=sys.stderr)
-        return code
     if args.workers is not None or args.scheduler:
         raise InputError("--workers and --scheduler are for a study (several files or a directory with --out)")
-    if args.report:
-        raise InputError("--report draws a study's results: give several files or a directory with --out RESULTS.csv")
     return calibrate_one(args.files[0], opts, args)
+
+
+def run_with_report(args: argparse.Namespace) -> int:
+    """The study, then its QC page drawn from the results (whatever the study's exit status)."""
+    if not (len(args.files) > 1 or args.out or args.files[0].is_dir()):
+        raise InputError("--report draws a study's results: give several files or a directory with --out RESULTS.csv")
+    code = run(argparse.Namespace(**{**vars(args), "report": None}))
+    from ..io.study_report import write_report
+
+    page = write_report(args.out, args.report)
+    if not args.quiet:
+        print(f"gravcal: study report in {page}", file=sys.stderr)
+    return code
 
 
 def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
