@@ -47,11 +47,13 @@ def read_results(path: Path) -> list[dict[str, str]]:
         raise InputError(f"{path}: no such results file (--report draws a study's results.csv)") from None
     except (UnicodeDecodeError, csv.Error) as exc:
         raise InputError(f"{path}: not a gravcal results file ({type(exc).__name__})") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the results ({exc.strerror})") from None
     if not reader.fieldnames or "file" not in reader.fieldnames or "status" not in reader.fieldnames:
         raise InputError(f"{path}: not a gravcal results file (no 'file' and 'status' columns)")
     last: dict[str, dict[str, str]] = {}
     for r in rows:
-        if r.get("file"):
+        if r.get("file") and r.get("status"):  # a row torn by a kill has no status yet: not a result
             last.pop(r["file"], None)  # a later row replaces the earlier one, in the later row's place
             last[r["file"]] = {k: (v or "") for k, v in r.items() if k is not None}
     return list(last.values())

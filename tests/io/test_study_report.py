@@ -194,6 +194,11 @@ def test_a_retried_file_keeps_its_last_row_and_bad_input_is_named(study, tmp_pat
     got = study_report.read_results(again)
     assert len(got) == len(rows) and got[-1]["file"] == error["file"]
     assert got[-1]["status"] == "refused" and got[-1]["message"] == "retried"
+    with open(again, "a") as f:
+        f.write(f"{tmp_path / 'torn.npy'}")  # a row cut short by a kill: no status, not a result
+    assert [r["file"] for r in study_report.read_results(again)] == [r["file"] for r in got]
+    with pytest.raises(ValueError, match="cannot read the results"):
+        study_report.write_report(tmp_path, tmp_path / "r")  # a folder, not a file
     with pytest.raises(ValueError, match="no such results file"):
         study_report.write_report(tmp_path / "missing.csv", tmp_path / "r")
     (tmp_path / "other.csv").write_text("a,b\n1,2\n")
