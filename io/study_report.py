@@ -2,7 +2,7 @@
 
 Read from the study's results.csv (io/study.py), so it can be (re)drawn at any time, also of an
 interrupted study: the calibration error per file before (no calibration: the start, where one
-exists) and after (held-out, contiguous folds), the model orders chosen, the statuses with the
+exists) and after (held-out, contiguous folds), as distributions and file by file, the model orders chosen, the statuses with the
 refusals, and a table with one row per file linked to a page of that file's row (every column; any
 value naming an existing file is a link to it). A file calibrated again (a retried error) keeps its
 last row. Plots are PNGs (matplotlib, optional: without it the page says so and keeps the tables);
@@ -86,9 +86,9 @@ def _figure(width_in: float, height_in: float) -> Any:
     return fig
 
 
-def _legend_outside(ax: Any, empty: str) -> Any:
+def _legend_outside(ax: Any, empty: str, has_data: bool | None = None) -> Any:
     """The legend to the right of the axes: it never covers a bar or a point. No data: ``empty`` says so."""
-    if not ax.patches:
+    if not (bool(ax.patches) if has_data is None else has_data):
         ax.text(0.5, 0.5, empty, transform=ax.transAxes, ha="center", va="center")
         ax.set_xticks([])
         ax.set_yticks([])
@@ -124,6 +124,32 @@ def error_figure(rows: list[dict[str, str]]) -> Any:
     ax.set_ylabel("files")
     ax.yaxis.get_major_locator().set_params(integer=True)
     _legend_outside(ax, "no file has an error in mg: each was refused or unreadable")
+    return fig
+
+
+def paired_figure(rows: list[dict[str, str]]) -> Any:
+    """Each file's error after against before: below the diagonal the calibration helped."""
+    fig = _figure(8.0, 4.4)
+    ax = fig.add_subplot()
+    pairs = [(number(r.get(BEFORE)), number(r.get(AFTER)), r["status"]) for r in rows]
+    pairs = [(b, a, s) for b, a, s in pairs if b is not None and a is not None and b > 0 and a > 0]
+    if pairs:
+        lo = min(min(b, a) for b, a, _ in pairs) / 1.5
+        hi = max(max(b, a) for b, a, _ in pairs) * 1.5
+        ax.plot([lo, hi], [lo, hi], color="black", linewidth=0.8, label="after = before (no gain)")
+        for status in [s for s in STATUS_ORDER if any(p[2] == s for p in pairs)] + \
+                sorted({p[2] for p in pairs} - set(STATUS_ORDER)):
+            mine = [p for p in pairs if p[2] == status]
+            ax.scatter([p[0] for p in mine], [p[1] for p in mine], color=STATUS_COLORS.get(status, "black"),
+                       label=f"{STATUS_MEANING.get(status, status)}: {_files(len(mine))}", zorder=3)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlim(lo, hi)
+        ax.set_ylim(lo, hi)
+    ax.set_title(f"Error per file, after against before ({_files(len(pairs))} with both)")
+    ax.set_xlabel("before: the start [mg] (log scale)")
+    ax.set_ylabel("after: held-out [mg] (log scale)")
+    _legend_outside(ax, "no file has both a 'before' and an 'after'", has_data=bool(pairs))
     return fig
 
 
@@ -173,6 +199,8 @@ def _model_key(model: str) -> tuple[int, str]:
 FIGURES = (("error.png", error_figure,
             "Calibration error per file: before (the start scored on every window) and after (held-out on "
             "contiguous folds the fit never saw)."),
+           ("paired.png", paired_figure,
+            "Each file's error after calibration against before: below the diagonal the calibration helped."),
            ("models.png", model_figure, "Model order each file's calibration uses, by status."),
            ("status.png", status_figure, "Status of every file: the verdict, refusals and unreadable files."))
 
