@@ -1,7 +1,9 @@
 """The architecture as the code has it: layers, no import cycles, small modules, one sensor model.
 
 Read from the source with ``ast`` (nothing is imported): every ``import`` of a gravcal module, at the top
-of a file or inside a function, is an edge of the module graph.
+of a file or inside a function, is an edge of the module graph, and so is each package above the imported
+module (importing ``a.b.c`` runs ``a.b``'s ``__init__`` first, with everything it imports), but for the
+importer's own packages, which are loaded before it.
 """
 from __future__ import annotations
 
@@ -55,7 +57,13 @@ def imports(name: str, path: Path, known: dict[str, Path]) -> set[str]:
         else:
             continue
         found |= {c for c in candidates if c in known and c != name}
-    return found
+    return found | {p for m in found for p in ancestors(m) if p in known and p not in ancestors(name)}
+
+
+def ancestors(name: str) -> list[str]:
+    """The packages Python imports (their ``__init__``, with everything it imports) before module ``name``."""
+    parts = name.split(".")
+    return [".".join(parts[:i]) for i in range(1, len(parts))]
 
 
 @pytest.fixture(scope="module")
