@@ -19,7 +19,8 @@ class SensorModel:
             raise ValueError(f"sensor model has duplicate terms: {sorted(dup)}")
         unknown = [t.name for t in terms if FORWARD_POSITION.get(t.name) is None]
         if unknown:
-            raise ValueError(f"sensor model has unregistered terms {unknown}; registered: {', '.join(FORWARD_POSITION)}")
+            raise ValueError(f"sensor model has unregistered terms {unknown}; registered: "
+                             f"{', '.join(FORWARD_POSITION)}")
         self.terms: list[Term] = sorted(terms, key=lambda t: FORWARD_POSITION[t.name])
 
     def __contains__(self, name: str) -> bool:

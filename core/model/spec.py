@@ -12,8 +12,8 @@ axis i a term with parameters p_i (one per axis) changes the reference K, o by
     acts_on "offset"       o_i  += p_i z_i
     acts_on "sensitivity"  K_ii += p_i z_i
     acts_on "cross"        K_ij = K_ji += p_ij   (constant: the symmetric cross-axis part)
-    LaggedView             o_i += p_i z_i, z the covariate through a first-order lag (time constant
-                           ``profiled``, chosen by diagnosis; needs the windows' history, so never online)
+    a LaggedView           o_i += p_i z_i, z the covariate through a first-order lag (time constant
+    (acts_on "lagged_offset") ``profiled``, chosen by diagnosis; needs the windows' history, so never online)
 
 and z is the deviation of the covariate from its reference: temperature [°C] from T_ref, supply
 [V] from V_ref, time [h] from t0, or the squared reference acceleration (diag K0 a0²) for a
@@ -60,10 +60,10 @@ AUX_COLUMNS: tuple[str, ...] = tuple(c.name for c in sorted((c for c in COVARIAT
 class CalibrationView:
     """A term's calibration-level view (module docstring).
 
-    prefix: parameter names are ``<prefix>_x`` ... (``m_xy`` ... for "cross"), unique in the registry (its
-    position among the parameters is the registry's, core/model/terms); unit / report_factor: magnitudes in report units, per axis,
-    from raw-unit parameters and the diagonal sensitivities s [raw/g]; min_span: the smallest spread
-    (5-95 %) of the covariate, in its unit, at which the windows can test the term (None: always);
+    prefix: parameter names are ``<prefix>_x`` ... (``m_xy`` ... for "cross"), unique in the registry
+    (the parameters' position is the registry's, core/model/terms); unit / report_factor: magnitudes in
+    report units, per axis, from raw-unit parameters and the diagonal sensitivities s [raw/g]; min_span: the
+    smallest spread (5-95 %) of the covariate, in its unit, at which the windows can test the term (None: always);
     convention: the definition of the reported value, copied into every finding's magnitude;
     profiled: the default of a nonlinear time constant [s] (a :class:`LaggedView`'s) that the fit profiles
     instead of estimating linearly (None: the term is linear in its parameters).

@@ -35,7 +35,8 @@ def test_a_term_registered_twice_is_refused():
 
 def test_a_shared_parameter_prefix_is_refused():
     prefix = REGISTRY["temperature_offset"].view.prefix
-    with pytest.raises(ValueError, match=f"'temperature_offset' and 'supply_offset' share the parameter prefix '{prefix}'"):
+    with pytest.raises(ValueError, match=f"'temperature_offset' and 'supply_offset' share the parameter prefix "
+                                         f"'{prefix}'"):
         checked_registry(with_view("supply_offset", prefix=prefix), CHAIN, CALIBRATION_TERMS)
 
 

@@ -90,7 +90,8 @@ def checked_registry(specs: tuple[TermSpec, ...], chain: dict[str, tuple[str, ..
         if spec.forward.stage not in STAGES:
             raise ValueError(f"term {spec.name!r}: unknown stage {spec.forward.stage!r}; stages: {', '.join(STAGES)}")
         if spec.forward in classes:
-            raise ValueError(f"terms {classes[spec.forward]!r} and {spec.name!r} share the class {spec.forward.__name__}")
+            raise ValueError(f"terms {classes[spec.forward]!r} and {spec.name!r} share the class "
+                             f"{spec.forward.__name__}")
         classes[spec.forward] = spec.name
         registry[spec.name] = spec
     names = [s.catalogue_name for s in specs] + [s.name for s in specs if s.catalogue]
