@@ -171,7 +171,7 @@ class _Bound(Parameterization):
         hand LAPACK a NaN Jacobian (it raises on some systems and loops forever on others)."""
         label = {c: v.label for c, v in COVARIATES.items()}
         label.update({v.deviation_key: f"lagged {COVARIATES[v.covariate].label}"
-                      for v in map(calibration_view, self.parent.terms) if v.acts_on == "lagged_offset"})
+                      for v in map(calibration_view, self.parent.terms) if v.lagged})
         bad = [f"{int(m.sum())} of {self.n_rows} windows carry no {label.get(c, c)} value"
                for c, m in self._missing.items() if m.any()]
         return f"model {self.model} cannot be fitted: {'; '.join(bad)}" if bad else ""
@@ -182,8 +182,7 @@ class _Bound(Parameterization):
         the recording's history), so the rows are sliced, equal bit for bit to binding the subset; a lag
         without a history and the reference acceleration (a matrix product) are bound anew."""
         par = self.parent
-        lag_restarts = par.lag_history is None and any(calibration_view(t).acts_on == "lagged_offset"
-                                                       for t in par.terms)
+        lag_restarts = par.lag_history is None and any(calibration_view(t).lagged for t in par.terms)
         idx = np.asarray(idx)
         ws = self._ws.subset(idx) if ws is None else ws
         if lag_restarts or any(calibration_view(t).covariate == "accel" for t in par.terms):

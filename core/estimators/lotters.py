@@ -253,7 +253,7 @@ class LottersBatch:
         window's std, scipy.optimize.least_squares from the least-squares solution) keeps two outliers from
         masking each other: least squares spreads them over the other windows, so its residuals would not
         single them out."""
-        from scipy.optimize import least_squares  # noqa: PLC0415
+        from scipy.optimize import least_squares  # noqa: PLC0415 (start-up cost: only this robust fit needs it)
 
         floor_g2 = floor2 if self.sigma_floor_g is not None else SIGMA_FLOOR_G**2
         sd = np.sqrt(np.maximum(sol.var_g2 - floor2 + floor_g2, _TINY_VAR_G2))
