@@ -367,7 +367,7 @@ class LottersBatch:
                                message="; ".join(["held-out fold: observability not judged", *notes]),
                                metadata={"estimator": "lotters_batch", "iterations": int(sol.iterations),
                                          "chi2": float(sol.chi2), "dof": int(dof), "sigma_floor_g": float(floor_used),
-                                         **extended_metadata(par, sol.p, np.sqrt(np.clip(np.diag(cov_noise), 0, None)))})
+                                         **extended_metadata(par, sol.p, cov=cov_noise)})
         scale = np.abs(np.diag(K))
         scale_ref = float(np.mean(scale))
         # consider term: the held parameters' uncertainty (consider.py)
@@ -417,7 +417,7 @@ class LottersBatch:
             "insample_rms_mg": float(np.sqrt(np.mean(sol.resid_g**2)) * 1e3),
             **held_meta,
             # params (+ extended terms): K, o above hold at T_ref / t0 only; apply_extended needs these
-            **extended_metadata(par, sol.p, std),
+            **extended_metadata(par, sol.p, cov=cov),
         }
         if consider_meta is not None:
             metadata[CONSIDER_KEY] = consider_meta
