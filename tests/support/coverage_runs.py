@@ -1,7 +1,7 @@
 """gravcal's batch fit on the independent sessions, scored against their truth: (estimate - truth) / std.
 
 One function per session (``session_z``) returns the z of every stated quantity by class (offsets,
-sensitivities, cross-axis terms, misalignment angles, term magnitudes); ``coverage_table`` pools them over
+sensitivities, cross-axis terms, misalignment angles, term magnitudes); ``pooled`` gathers them over
 seeds. tests/core/test_coverage.py asserts on them; bench/bench_coverage.py prints the table.
 """
 from __future__ import annotations
@@ -16,8 +16,11 @@ from gravcal.core.estimators.lotters import LottersBatch
 from .independent_sessions import KINDS, Session, session
 
 NOT_DETERMINED_STD_G = 0.03  # LottersBatch's max_std_g: a std above 3 % of 1 g is stated as "not determined"
-QUANTITIES = ("offset", "sensitivity", "cross_axis", "misalignment_deg", "temperature_offset_mg_per_c",
-              "temperature_sensitivity_pct_per_c")
+TERMS = ("temperature_offset", "temperature_sensitivity", "offset_drift", "sensitivity_drift", "supply_offset",
+         "nonlinearity")
+QUANTITIES = ("offset", "sensitivity", "cross_axis", "misalignment_deg", *TERMS)
+"""Scored classes: the parameters o, s (raw units) and the symmetric cross-axis terms m (raw), the misalignment
+angles [deg] and each term's magnitude in its report units (mg/°C, %/°C, mg/h, %/h, mg/V, 1/g)."""
 
 
 def fit(s: Session) -> Calibration:
@@ -35,44 +38,38 @@ def _magnitude_z(cal: Calibration, term: str, truth: dict[str, float]) -> list[f
 
 
 def session_z(kind: str, seed: int) -> dict[str, list[float]]:
-    """z = (estimate - truth) / stated std of every quantity the fit of one session states, by class."""
+    """z = (estimate - truth) / stated std of every quantity the fit of one session states, by class; a
+    session the fit refuses or states as not converged / not determined (a std above 3 % of 1 g) is
+    counted ({"refused": [1.0]} or {"flagged": [1.0]}), not scored. (A term's parameter above 3 % of 1 g per
+    covariate unit is scored: its unit is per °C, per h or per V, and its std is stated all the same.)"""
     s = session(kind, seed)
     try:
         cal = fit(s)
     except ValueError:  # refused (e.g. too little orientation coverage): nothing stated, nothing to score
         return {"refused": [1.0]}
-    if not cal.converged or max(cal.metadata["std_g"].values()) > NOT_DETERMINED_STD_G:
-        return {"flagged": [1.0]}  # stated as not converged or not determined: its numbers are no claim
+    base_std_g = [v for n, v in cal.metadata["std_g"].items() if n.split("_")[0] in ("s", "o", "m")]
+    if not cal.converged or max(base_std_g) > NOT_DETERMINED_STD_G:
+        return {"flagged": [1.0]}  # stated as not converged, or K, o not determined: its numbers are no claim
     std = cal.std
     est = {n: float(v) for n, v in cal.metadata["params"].items()}
     tr, S = s.truth, s.truth.S
-    truth: dict[str, float] = {f"o_{a}": tr.o[i] for i, a in enumerate("xyz")}
-    if kind != "offsets_held":
-        truth.update({f"s_{a}": S[i, i] for i, a in enumerate("xyz")})
-    if kind.startswith("misaligned"):
-        truth.update({f"m_{'xyz'[i]}{'xyz'[j]}": S[i, j] for i, j in ((0, 1), (0, 2), (1, 2))})
-    if kind == "temperature_offset":
-        truth.update({f"oT_{a}": tr.c_o[i] for i, a in enumerate("xyz")})
-    if kind == "temperature_sensitivity":
-        truth.update({f"sT_{a}": tr.c_s[i] * tr.K[i, i] for i, a in enumerate("xyz")})
-    out: dict[str, list[float]] = {q: [] for q in QUANTITIES}
-    classes = {"o": "offset", "s": "sensitivity", "m": "cross_axis", "oT": "temperature_offset_mg_per_c",
-               "sT": "temperature_sensitivity_pct_per_c"}
-    for name, v in truth.items():
+    out: dict[str, list[float]] = {}
+
+    def score(q: str, name: str, value: float) -> None:
         if name not in std:
             raise AssertionError(f"{kind} seed {seed}: the fit states no std for {name} (model {cal.model})")
-        prefix = name.rsplit("_", 1)[0]
-        if prefix in ("oT", "sT"):
-            continue  # judged in report units below
-        out[classes[prefix]].append((est[name] - v) / std[name])
+        out.setdefault(q, []).append((est[name] - value) / std[name])
+
+    for i, a in enumerate("xyz"):
+        score("offset", f"o_{a}", tr.o[i])
+        if kind != "offsets_held":
+            score("sensitivity", f"s_{a}", S[i, i])
     if kind.startswith("misaligned"):
+        for i, j in ((0, 1), (0, 2), (1, 2)):
+            score("cross_axis", f"m_{'xyz'[i]}{'xyz'[j]}", S[i, j])
         out["misalignment_deg"] = _magnitude_z(cal, "misalignment", tr.misalignment_deg())
-    if kind == "temperature_offset":
-        out["temperature_offset_mg_per_c"] = _magnitude_z(
-            cal, "temperature_offset", dict(zip("xyz", tr.temperature_offset_mg_per_c())))
-    if kind == "temperature_sensitivity":
-        out["temperature_sensitivity_pct_per_c"] = _magnitude_z(
-            cal, "temperature_sensitivity", dict(zip("xyz", tr.temperature_sensitivity_pct_per_c())))
+    if kind in TERMS:
+        out[kind] = _magnitude_z(cal, kind, dict(zip("xyz", tr.term_magnitudes()[kind])))
     return out
 
 
@@ -107,4 +104,4 @@ def rms_bounds(n: int, alpha: float = 1e-3) -> tuple[float, float]:
     return math.sqrt(chi2.ppf(alpha / 2, n) / n), math.sqrt(chi2.isf(alpha / 2, n) / n)
 
 
-__all__ = ["KINDS", "QUANTITIES", "fit", "session_z", "pooled", "rms", "beyond_2sigma_bounds", "rms_bounds"]
+__all__ = ["KINDS", "TERMS", "QUANTITIES", "fit", "session_z", "pooled", "rms", "beyond_2sigma_bounds", "rms_bounds"]

@@ -8,8 +8,9 @@ stated std against data gravcal did not shape. Only the container (``WindowSet``
 Physics (a in g, raw in counts):
 
     raw(t) = K(T) a(t) + o(T) + n(t)
-    K(T)   = diag(1 + c_s (T - T_ref)) diag(s) (I + L)     each axis' gain drifts with temperature
-    o(T)   = o + c_o (T - T_ref)                            each axis' zero-g level drifts with temperature
+    K      = diag(1 + c_s (T - T_ref) + d_s t) diag(s) (I + L)    gains move with temperature and time [h]
+    o      = o_ref + c_o (T - T_ref) + d_o t + c_v (V - V_ref)     zero-g levels: temperature, time, supply
+    a_i   -> a_i + c2_i a_i²                                        each channel's quadratic bow [1/g]
 
 ``L`` holds the axes' leans (off-diagonal, L_ij: axis i tilted toward j), so the sensitive axis of channel i
 is row i of ``diag(s) (I + L)``; the misalignment of axes i and j is 90° minus the angle between those rows.
@@ -17,10 +18,13 @@ A quasi-static moment of the wearer has |a| = 1 g along a posture's gravity dire
 lying on back, front or either side, and the tilts between), turned by the sensor's mounting on the body, plus
 the residual body motion a still window keeps (a small acceleration constant over the window, ``floor_g``
 per axis) and white sample noise (``noise_g`` per axis and sample). Windows are 2-8 s at 50 Hz; each carries
-its samples' mean, sample covariance, count, mid time and mean temperature (aux column 0), as a detector's.
+its samples' mean, sample covariance, count, mid time, mean temperature and supply voltage (aux columns 0, 1), as
+a detector's. The window statistics are drawn directly (the mean's noise and a Wishart sample covariance),
+not from samples: the same distribution for Gaussian noise, at a fraction of the cost.
 """
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,12 +34,20 @@ TAG = 0x1DE9  # this module's stream: no other generator in the project draws fr
 T_REF_C = 25.0  # reference temperature of K, o [°C] (gravcal's default T_ref; the truth is stated at it)
 FS_HZ = 50.0
 
-KINDS = ("six", "misaligned", "misaligned_lab", "temperature_offset", "temperature_sensitivity", "offsets_held")
+KINDS = ("six", "misaligned", "misaligned_lab", "temperature_offset", "temperature_sensitivity", "offset_drift",
+         "sensitivity_drift", "supply_offset", "nonlinearity", "offsets_held")
 """Session kinds: a plain sensor (fit: 6); leaned axes (6+misalignment), worn, or placed by hand in 40 poses
 over the sphere with a quiet lab-grade sensor (the angles known to ~0.01°, where a small-angle conversion
-is many std off); a temperature-driven offset
-(6+temperature_offset) or gain (6+temperature_sensitivity) over a warm-up; a short session fitted for the
-offsets only with the sensitivities held from a previous calibration of stated uncertainty (consider term)."""
+is many std off); a temperature-driven offset (6+temperature_offset) or gain (6+temperature_sensitivity) over
+a warm-up; an offset or a gain drifting in time (6+offset_drift, 6+sensitivity_drift); an offset following
+the supply voltage as the battery discharges (6+supply_offset); a quadratic bow of each channel
+(6+nonlinearity); a short session fitted for the offsets only with the sensitivities held from a previous
+calibration of stated uncertainty (consider term)."""
+
+MODEL = {"six": "6", "misaligned": "6+misalignment", "misaligned_lab": "6+misalignment", "offsets_held": "offsets",
+         **{k: f"6+{k}" for k in KINDS[3:9]}}
+"""The model each kind is made with, which the coverage fits."""
+V_NOMINAL = 3.3  # supply reference [V] (gravcal's default V_ref)
 
 # posture gravity directions in the body frame (x forward, y left, z up), before the per-window sway
 _POSTURES = {
@@ -59,6 +71,10 @@ class Truth:
     o: np.ndarray  # (3,) raw at T_ref
     c_o: np.ndarray = field(default_factory=lambda: np.zeros(3))  # raw per °C
     c_s: np.ndarray = field(default_factory=lambda: np.zeros(3))  # relative gain change per °C
+    d_o: np.ndarray = field(default_factory=lambda: np.zeros(3))  # raw per hour
+    d_s: np.ndarray = field(default_factory=lambda: np.zeros(3))  # relative gain change per hour
+    c_v: np.ndarray = field(default_factory=lambda: np.zeros(3))  # raw per V
+    c2: np.ndarray = field(default_factory=lambda: np.zeros(3))  # quadratic bow [1/g]
     t_ref_c: float = T_REF_C
 
     @property
@@ -78,12 +94,19 @@ class Truth:
         return {f"{'xyz'[i]}{'xyz'[j]}": 90.0 - float(np.degrees(np.arccos(np.clip(u[i] @ u[j], -1, 1))))
                 for i, j in ((0, 1), (0, 2), (1, 2))}
 
-    def temperature_offset_mg_per_c(self) -> np.ndarray:
-        """The offset's temperature slope in g along each axis [mg/°C] (the raw slope over the axis' gain)."""
-        return self.c_o / np.diag(self.K) * 1e3
+    def term_magnitudes(self) -> dict[str, np.ndarray]:
+        """Each term per axis in the units gravcal reports it: an offset slope over the axis' gain [mg per °C,
+        per h, per V], a gain slope in % [per °C, per h], the bow c2 [1/g]."""
+        s = np.diag(self.K)
+        return {"temperature_offset": self.c_o / s * 1e3, "temperature_sensitivity": self.c_s * 100.0,
+                "offset_drift": self.d_o / s * 1e3, "sensitivity_drift": self.d_s * 100.0,
+                "supply_offset": self.c_v / s * 1e3, "nonlinearity": self.c2.copy()}
 
-    def temperature_sensitivity_pct_per_c(self) -> np.ndarray:
-        return self.c_s * 100.0
+    def term_parameters(self, term: str) -> np.ndarray:
+        """The term's parameters as gravcal's extended model holds them [raw per covariate unit; c2 as is]."""
+        s = np.diag(self.K)
+        return {"temperature_offset": self.c_o, "temperature_sensitivity": self.c_s * s, "offset_drift": self.d_o,
+                "sensitivity_drift": self.d_s * s, "supply_offset": self.c_v, "nonlinearity": self.c2}[term]
 
 
 @dataclass
@@ -98,7 +121,7 @@ class Session:
 
 
 def rng_for(kind: str, seed: int) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence([TAG, KINDS.index(kind), int(seed)]))
+    return np.random.default_rng(np.random.SeedSequence([TAG, zlib.crc32(kind.encode()), int(seed)]))
 
 
 def _rotation(rng: np.random.Generator, max_deg: float) -> np.ndarray:
@@ -135,6 +158,26 @@ def _temperature(rng: np.random.Generator, t: np.ndarray, duration: float) -> np
     return t_body + (t_room - t_body) * np.exp(-t / tau) + wander
 
 
+def _sample_covariance(rng: np.random.Generator, L: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Sample covariances (ddof 1) of n[k] Gaussian samples of covariance L[k] L[k]^T, drawn directly (Bartlett:
+    (n - 1) S = L A A^T L^T, A lower triangular, A_ii² ~ chi²(n - 1 - i), A_ij ~ N(0, 1) below), independent of
+    the sample mean as for any Gaussian window."""
+    m = len(n)
+    A = np.zeros((m, 3, 3))
+    A[:, [0, 1, 2], [0, 1, 2]] = np.sqrt(rng.chisquare((n - 1)[:, None] - np.arange(3)[None]))
+    A[:, [1, 2, 2], [0, 0, 1]] = rng.normal(size=(m, 3))
+    LA = L @ A
+    return LA @ LA.transpose(0, 2, 1) / (n - 1)[:, None, None]
+
+
+def _supply(rng: np.random.Generator, t: np.ndarray, duration: float) -> np.ndarray:
+    """Supply voltage [V] of a discharging cell: a droop of 0.1-0.3 V over the session, steeper at the end,
+    with load ripple."""
+    droop = rng.uniform(0.1, 0.3)
+    x = t / duration
+    return V_NOMINAL + 0.15 - droop * (0.7 * x + 0.3 * x**4) + rng.normal(0, 0.003, t.size)
+
+
 def _postures(rng: np.random.Generator, m: int, lying_share: float) -> np.ndarray:
     """m gravity directions [body frame] of a wearer's day: bouts of postures, each with its own sway."""
     names = list(_POSTURES)
@@ -165,13 +208,20 @@ def session(kind: str, seed: int, *, m: int = 60, duration_s: float = 7200.0, no
         m, duration_s, noise_g, floor_g = 40, 1200.0, 0.0005, 0.00005
     K, o = _sensor(rng, leaned=kind.startswith("misaligned"), lean_deg=2.0 if lab else 1.0)
     truth = Truth(K, o)
-    model = {"six": "6", "misaligned": "6+misalignment", "misaligned_lab": "6+misalignment",
-             "temperature_offset": "6+temperature_offset",
-             "temperature_sensitivity": "6+temperature_sensitivity", "offsets_held": "offsets"}[kind]
-    if kind == "temperature_offset":  # 0.5-3 mg/°C per axis, either sign
-        truth.c_o = rng.uniform(0.5e-3, 3e-3, 3) * rng.choice([-1, 1], 3) * np.diag(K)
+    sign = rng.choice([-1, 1], 3)
+    s = np.diag(K)
+    if kind == "temperature_offset":  # 0.5-3 mg/°C per axis
+        truth.c_o = rng.uniform(0.5e-3, 3e-3, 3) * sign * s
     if kind == "temperature_sensitivity":  # 0.02-0.1 %/°C
-        truth.c_s = rng.uniform(2e-4, 1e-3, 3) * rng.choice([-1, 1], 3)
+        truth.c_s = rng.uniform(2e-4, 1e-3, 3) * sign
+    if kind == "offset_drift":  # 1-5 mg/h
+        truth.d_o = rng.uniform(1e-3, 5e-3, 3) * sign * s
+    if kind == "sensitivity_drift":  # 0.1-0.5 %/h
+        truth.d_s = rng.uniform(1e-3, 5e-3, 3) * sign
+    if kind == "supply_offset":  # 20-80 mg/V
+        truth.c_v = rng.uniform(0.02, 0.08, 3) * sign * s
+    if kind == "nonlinearity":  # 0.3-1 % of 1 g at 1 g
+        truth.c2 = rng.uniform(3e-3, 1e-2, 3) * sign
     if kind == "offsets_held":
         m, duration_s = 25, 900.0  # a short session: the offsets only
     if lab:  # poses by hand: directions uniform over the sphere
@@ -184,19 +234,20 @@ def session(kind: str, seed: int, *, m: int = 60, duration_s: float = 7200.0, no
     t_start = np.sort(rng.uniform(0, duration_s - 8.0, m))
     t_mid = t_start + 0.5 * (n - 1) / FS_HZ
     temp = _temperature(rng, t_mid, duration_s)
-    mean, cov = np.empty((m, 3)), np.empty((m, 3, 3))
-    for k in range(m):
-        dT = temp[k] - T_REF_C
-        K_t = np.diag(1.0 + truth.c_s * dT) @ K
-        o_t = o + truth.c_o * dT
-        a = dirs[k] + rng.normal(0, floor_g, 3)  # residual motion, constant over the still window
-        samples = a + rng.normal(0, noise_g, (int(n[k]), 3))
-        raw = samples @ K_t.T + o_t
-        mean[k] = raw.mean(axis=0)
-        cov[k] = np.cov(raw, rowvar=False)
+    volts = _supply(rng, t_mid, duration_s)
+    dT, h = temp - T_REF_C, t_mid / 3600.0
+    gain = 1.0 + truth.c_s * dT[:, None] + truth.d_s * h[:, None]  # (m, 3)
+    K_k = gain[:, :, None] * K[None]  # each window's K
+    o_k = o + truth.c_o * dT[:, None] + truth.d_o * h[:, None] + truth.c_v * (volts - V_NOMINAL)[:, None]
+    a = dirs + rng.normal(0, floor_g, (m, 3))  # residual motion, constant over the still window
+    a = a + truth.c2 * (a * a + noise_g**2)  # the bow, averaged over the window's noise
+    L = np.linalg.cholesky(K_k @ K_k.transpose(0, 2, 1)) * noise_g  # samples' noise in raw units: K noise_g² K^T
+    mean = np.einsum("mij,mj->mi", K_k, a) + o_k + np.einsum("mij,mj->mi", L, rng.normal(size=(m, 3))) / np.sqrt(n)[:, None]
+    cov = _sample_covariance(rng, L, n)
     start = np.round(t_start * FS_HZ).astype(np.int64)
-    ws = WindowSet(mean=mean, cov=cov, n=n.astype(float), t=t_mid, aux=temp[:, None], start=start, end=start + n)
-    out = Session(kind, seed, ws, truth, model)
+    ws = WindowSet(mean=mean, cov=cov, n=n.astype(float), t=t_mid, aux=np.column_stack([temp, volts]), start=start,
+                   end=start + n)
+    out = Session(kind, seed, ws, truth, MODEL[kind])
     if kind == "offsets_held":  # a previous calibration's sensitivities, off by its stated std
         out.held_rel_std = 0.01
         out.held_K = np.diag(np.diag(K) * (1 + rng.normal(0, out.held_rel_std, 3)))
