@@ -171,6 +171,19 @@ def axis_misalignment_deg(K: np.ndarray) -> np.ndarray:
     return np.degrees(np.arcsin(np.clip([u[i] @ u[j] for i, j in CROSS_PAIRS], -1.0, 1.0)))
 
 
+def axis_angles(par: Parameterization, p: np.ndarray, cov: np.ndarray) -> dict[str, Any]:
+    """The calibrated axes' misalignment (:func:`axis_misalignment_deg` of K at p) with its std from the
+    parameters' covariance ``cov``: {"unit", "value": {xy, xz, yz}, "std": {...}} [deg from orthogonal]."""
+    def f(q: np.ndarray) -> dict[str, np.ndarray]:
+        return {"angles": axis_misalignment_deg(par.unpack(q)[0])}
+
+    p = np.asarray(p, dtype=float)
+    keys = [f"{'xyz'[i]}{'xyz'[j]}" for i, j in CROSS_PAIRS]
+    std = _propagated_std(f, p, np.asarray(cov, dtype=float))
+    return {"unit": "deg_from_orthogonal", "value": dict(zip(keys, f(p)["angles"].tolist())),
+            "std": dict(zip(keys, std.tolist()))}
+
+
 def _propagated_std(f, p: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """sqrt(diag(J C J^T)) of the concatenated values of f (a dict of arrays) at p, J by central differences
     with steps of 1e-4 of each parameter's std (the conversions are smooth on that scale)."""
@@ -503,4 +516,5 @@ def apply_windows(cal: Calibration, ws: WindowSet) -> np.ndarray:
 
 __all__ = ["EXTRA_TERMS", "ExtendedParameterization", "ExtendedFit", "extended_class", "model_name", "parameterization",
            "fit_extended", "extended_residuals_g", "extended_metadata", "apply_extended", "apply_windows",
+           "axis_angles", "axis_misalignment_deg",
            "T_REF_C"]

@@ -33,7 +33,7 @@ from ..calibration import Calibration
 from ..windows import WindowSet, require_windows, validate_windows
 from .consider import (CONSIDER_KEY, HELD_KEY, consider_gain, consider_metadata, floor_beside_held, held_jacobian,
                        held_std_note, held_uncertainty)
-from .extended import extended_class, extended_metadata
+from .extended import axis_angles, extended_class, extended_metadata
 from .floor import quasi_static_floor
 from .observability import N_PARAMS, SIGMA_FLOOR_G, TOL_G, held_note, is_observable
 from .parameterization import PARAMETERIZATIONS, Parameterization
@@ -425,6 +425,9 @@ class LottersBatch:
         }
         if consider_meta is not None:
             metadata[CONSIDER_KEY] = consider_meta
+        if (par.model if par.model in N_PARAMS else getattr(par, "base_model", None)) in ("9", "12"):
+            # the symmetric cross-axis entries as the angles between the calibrated axes (K's rows), with std
+            metadata["misalignment_deg"] = axis_angles(par, sol.p, cov)
         return Calibration(
             model=par.model, offset=o, sensitivity=K, covariance=cov, param_names=list(par.names),
             n_windows=m, converged=converged, observable=observable, message="; ".join(notes), metadata=metadata,

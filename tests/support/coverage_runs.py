@@ -60,14 +60,16 @@ def session_z(kind: str, seed: int) -> dict[str, list[float]]:
             raise AssertionError(f"{kind} seed {seed}: the fit states no std for {name} (model {cal.model})")
         out.setdefault(q, []).append((est[name] - value) / std[name])
 
+    nine = s.model == "9"  # K = S: s_xx ... on the diagonal, s_xy ... off it
     for i, a in enumerate("xyz"):
         score("offset", f"o_{a}", tr.o[i])
         if kind != "offsets_held":
-            score("sensitivity", f"s_{a}", S[i, i])
+            score("sensitivity", f"s_{a + a if nine else a}", S[i, i])
     if kind.startswith("misaligned"):
         for i, j in ((0, 1), (0, 2), (1, 2)):
-            score("cross_axis", f"m_{'xyz'[i]}{'xyz'[j]}", S[i, j])
-        out["misalignment_deg"] = _magnitude_z(cal, "misalignment", tr.misalignment_deg())
+            score("cross_axis", f"{'s' if nine else 'm'}_{'xyz'[i]}{'xyz'[j]}", S[i, j])
+        angles = cal.metadata["misalignment_deg"] if nine else cal.metadata["extended"]["magnitudes"]["misalignment"]
+        out["misalignment_deg"] = [(angles["value"][k] - v) / angles["std"][k] for k, v in tr.misalignment_deg().items()]
     if kind in TERMS:
         out[kind] = _magnitude_z(cal, kind, dict(zip("xyz", tr.term_magnitudes()[kind])))
     return out

@@ -34,18 +34,18 @@ TAG = 0x1DE9  # this module's stream: no other generator in the project draws fr
 T_REF_C = 25.0  # reference temperature of K, o [°C] (gravcal's default T_ref; the truth is stated at it)
 FS_HZ = 50.0
 
-KINDS = ("six", "misaligned", "misaligned_lab", "temperature_offset", "temperature_sensitivity", "offset_drift",
+KINDS = ("six", "misaligned", "misaligned_lab", "misaligned_nine", "temperature_offset", "temperature_sensitivity", "offset_drift",
          "sensitivity_drift", "supply_offset", "nonlinearity", "offsets_held")
 """Session kinds: a plain sensor (fit: 6); leaned axes (6+misalignment), worn, or placed by hand in 40 poses
 over the sphere with a quiet lab-grade sensor (the angles known to ~0.01°, where a small-angle conversion
-is many std off); a temperature-driven offset (6+temperature_offset) or gain (6+temperature_sensitivity) over
+is many std off), or worn and fitted with the in-use 9 (K symmetric); a temperature-driven offset (6+temperature_offset) or gain (6+temperature_sensitivity) over
 a warm-up; an offset or a gain drifting in time (6+offset_drift, 6+sensitivity_drift); an offset following
 the supply voltage as the battery discharges (6+supply_offset); a quadratic bow of each channel
 (6+nonlinearity); a short session fitted for the offsets only with the sensitivities held from a previous
 calibration of stated uncertainty (consider term)."""
 
-MODEL = {"six": "6", "misaligned": "6+misalignment", "misaligned_lab": "6+misalignment", "offsets_held": "offsets",
-         **{k: f"6+{k}" for k in KINDS[3:9]}}
+MODEL = {"six": "6", "misaligned": "6+misalignment", "misaligned_lab": "6+misalignment", "misaligned_nine": "9",
+         "offsets_held": "offsets", **{k: f"6+{k}" for k in KINDS[4:10]}}
 """The model each kind is made with, which the coverage fits."""
 V_NOMINAL = 3.3  # supply reference [V] (gravcal's default V_ref)
 
