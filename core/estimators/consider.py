@@ -170,42 +170,6 @@ def consider_gain(cov_e: np.ndarray, B_e: np.ndarray, var: np.ndarray, B_h: np.n
     return cov_e @ ((B_e.T / var) @ B_h)
 
 
-def floor_beside_held(B: np.ndarray, B_h: np.ndarray, cov_h: np.ndarray, r2: np.ndarray, var: np.ndarray, dof: int,
-                      floor2: float, tiny: float = 1e-14, passes: int = 3) -> float:
-    """The quasi-static floor f² [g²] when held parameters are uncertain. Their error dtheta leaves
-    r = (I - H) B_h dtheta in the residuals (H the fit's weighted hat matrix), of expected square
-    e_k = [(I - H) B_h C_h B_h^T (I - H)^T]_kk, which the consider term already carries: a floor solved from
-    sum r_k² / (v_k + f²) = dof counts it twice (measured: a 1 % held sensitivity made the offsets' std ~15 %
-    too large). Solves sum (r_k² - e_k) / (v_k + f²) = dof instead (E r_k² = (1 - h_k)(v_k + f²) + e_k and
-    sum (1 - h_k) = dof), with H at the weights of the previous pass, from ``floor2`` (the plain solve)."""
-    for _ in range(passes):
-        d = np.maximum(var + floor2, tiny)
-        BW = B.T / d
-        M = B_h - B @ np.linalg.lstsq(BW @ B, BW @ B_h, rcond=None)[0]  # (I - H) B_h
-        e = np.einsum("mh,hk,mk->m", M, cov_h, M)
-        floor2 = _root_of_excess(np.asarray(r2, dtype=float) - e, np.asarray(var, dtype=float), dof, tiny)
-    return floor2
-
-
-def _root_of_excess(excess2: np.ndarray, var: np.ndarray, dof: int, tiny: float) -> float:
-    """f² >= 0 with sum excess2 / max(var + f², tiny) = dof by bisection (0 when the sum is at or below dof
-    at f² = 0; the bracket's top when it stays above)."""
-    def g(f2: float) -> float:
-        return float(np.sum(excess2 / np.maximum(var + f2, tiny))) - dof
-
-    if g(0.0) <= 0:
-        return 0.0
-    lo, hi = 0.0, max(float(np.max(excess2)), 1e-12) * 10
-    if g(hi) >= 0:
-        return hi
-    for _ in range(100):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if g(mid) > 0 else (lo, mid)
-        if hi - lo <= 1e-10 * hi:
-            break
-    return 0.5 * (lo + hi)
-
-
 def consider_metadata(held: HeldUncertainty, sens: np.ndarray, cov_noise: np.ndarray, names: list[str],
                        scale_ref: float) -> dict:
     """metadata[CONSIDER_KEY]: what the reported covariance is made of."""

@@ -31,8 +31,8 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..windows import WindowSet, require_windows, validate_windows
-from .consider import (CONSIDER_KEY, HELD_KEY, consider_gain, consider_metadata, floor_beside_held, held_jacobian,
-                       held_std_note, held_uncertainty)
+from .consider import (CONSIDER_KEY, HELD_KEY, consider_gain, consider_metadata, held_jacobian, held_std_note,
+                       held_uncertainty)
 from .extended import axis_angles, extended_class, extended_metadata
 from .floor import quasi_static_floor
 from .observability import N_PARAMS, SIGMA_FLOOR_G, TOL_G, held_note, is_observable
@@ -340,10 +340,6 @@ class LottersBatch:
             v0 = sol.var_g2 - floor2
             r2 = sol.resid_g**2
             floor2 = quasi_static_floor(r2, v0, dof, _TINY_VAR_G2)
-            held_here = held_uncertainty(start, par)
-            if held_here is not None:  # the held values' error shows in the residuals too: not residual motion
-                floor2 = floor_beside_held(sol.B, held_jacobian(par, sol.p, mean, held_here), held_here.cov,
-                                           r2, v0, dof, floor2)
             floor_used = math.sqrt(floor2)
             sol2 = self._solve(par, sol.p, anchor, mean, cov_mean, floor2, at_p0=sol)
             sol = _Solve(sol2.p, sol2.cov, sol2.chi2, sol2.resid_g, sol2.var_g2, sol.iterations + sol2.iterations,
