@@ -198,8 +198,9 @@ def _postures(rng: np.random.Generator, m: int, lying_share: float) -> np.ndarra
 
 
 def session(kind: str, seed: int, *, m: int = 60, duration_s: float = 7200.0, noise_g: float = 0.004,
-            floor_g: float = 0.002) -> Session:
-    """One session of ``kind`` (KINDS) with ``m`` quasi-static windows over ``duration_s``."""
+            floor_g: float = 0.002, effect_scale: float = 1.0) -> Session:
+    """One session of ``kind`` (KINDS) with ``m`` quasi-static windows over ``duration_s``; ``effect_scale``
+    multiplies the kind's planted term (the same session otherwise: the streams draw the same numbers)."""
     if kind not in KINDS:
         raise ValueError(f"unknown session kind {kind!r}; known: {KINDS}")
     rng = rng_for(kind, seed)
@@ -222,6 +223,8 @@ def session(kind: str, seed: int, *, m: int = 60, duration_s: float = 7200.0, no
         truth.c_v = rng.uniform(0.02, 0.08, 3) * sign * s
     if kind == "nonlinearity":  # 0.3-1 % of 1 g at 1 g
         truth.c2 = rng.uniform(3e-3, 1e-2, 3) * sign
+    for name in ("c_o", "c_s", "d_o", "d_s", "c_v", "c2"):
+        setattr(truth, name, getattr(truth, name) * effect_scale)
     if kind == "offsets_held":
         m, duration_s = 25, 900.0  # a short session: the offsets only
     if lab:  # poses by hand: directions uniform over the sphere
