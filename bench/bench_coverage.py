@@ -97,10 +97,11 @@ def _boundary(a) -> int:
     m = len(session(a.kind, a.first).windows)
     pred = {t: float(ncx2.sf(t + 3 * np.log(m), 3, a.boundary)) for t in (DELTA_BIC, DELTA_BIC / 2)}
     print(f"{a.kind}, noncentrality {a.boundary:g}, {a.seeds} sessions ({time.perf_counter() - t0:.0f} s); "
-          f"ΔBIC median {res['delta_bic_median']:.1f} (theory {ncx2.median(3, a.boundary) - 3 * np.log(m):.1f})")
+          f"ΔBIC median {res['delta_bic_median']:.1f} (theory {ncx2.median(3, a.boundary) - 3 * np.log(m):.1f}); "
+          f"largest ΔBIC of any of {res['term_tests']} term tests {res['delta_bic_max_any_term']:.1f}")
     for t in (DELTA_BIC, DELTA_BIC / 2):
-        print(f"  threshold {t:g}: named in {res['named'][t] * 100:.1f} % of {res['sessions'][t]} sessions; "
-              f"ΔBIC > {t:g} by theory {pred[t] * 100:.1f} %")
+        print(f"  threshold {t:g}: named in {res['named'][t] * 100:.1f} % of {res['sessions'][t]} sessions "
+              f"(another term in {res['other_named'][t] * 100:.1f} %); ΔBIC > {t:g} by theory {pred[t] * 100:.1f} %")
     if a.json:
         Path(a.json).write_text(json.dumps({"kind": a.kind, "lambda": a.boundary, **res, "theory": pred}, indent=1,
                                            default=str))

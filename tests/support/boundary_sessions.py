@@ -34,13 +34,15 @@ def boundary_session(kind: str, seed: int, lam: float):
 
 def named_share(kind: str, seeds: range, lam: float, thresholds: tuple[float, ...]) -> dict:
     """Share of the sessions in which diagnosis (windows only, no simulation, no nested folds) names the planted
-    term, at each ΔBIC threshold (set on the diagnosis module for the run and restored), with its ΔBIC."""
+    term (and any other term: a false positive), at each ΔBIC threshold (set on the diagnosis module for the run and restored), with its ΔBIC."""
     from gravcal.core.diagnosis import terms as T  # noqa: PLC0415
     from gravcal.core.diagnosis.diagnose import diagnose_windows  # noqa: PLC0415
     from gravcal.core.estimators.start import ellipsoid_fit  # noqa: PLC0415
 
     named = {t: [] for t in thresholds}
+    other = {t: [] for t in thresholds}  # sessions where some other term is named (a false positive)
     dbic: list[float] = []
+    dbic_any: list[float] = []  # every term test's ΔBIC (the planted term's and the others')
     saved = T.DELTA_BIC
     try:
         for seed in seeds:
@@ -51,10 +53,15 @@ def named_share(kind: str, seeds: range, lam: float, thresholds: tuple[float, ..
                     d = diagnose_windows(s.windows, ellipsoid_fit(s.windows), has_temp=True, simulate=False, nested=False)
                 except ValueError:
                     continue
-                named[thr].append(kind in [f["effect"] for f in d.findings])
+                found = [f["effect"] for f in d.findings]
+                named[thr].append(kind in found)
+                other[thr].append(any(e != kind for e in found))
                 if thr == thresholds[0]:
                     dbic += [t.delta_bic for t in d.tests if t.effect == kind and t.delta_bic is not None]
+                    dbic_any += [t.delta_bic for t in d.tests if t.delta_bic is not None]
     finally:
         T.DELTA_BIC = saved
     return {"named": {t: float(np.mean(v)) if v else float("nan") for t, v in named.items()},
-            "sessions": {t: len(v) for t, v in named.items()}, "delta_bic_median": float(np.median(dbic)) if dbic else None}
+            "other_named": {t: float(np.mean(v)) if v else float("nan") for t, v in other.items()},
+            "sessions": {t: len(v) for t, v in named.items()}, "delta_bic_median": float(np.median(dbic)) if dbic else None,
+            "delta_bic_max_any_term": float(np.max(dbic_any)) if dbic_any else None, "term_tests": len(dbic_any)}
