@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["__version__", "read", "calibrate", "write_calibrated", "Calibration", "Recording"]
+__all__ = ["__version__", "read", "calibrate", "write_calibrated", "Calibration", "Recording", "study_report"]
 _API = {"read", "calibrate", "write_calibrated", "Calibration", "Recording"}
 
 
@@ -31,6 +31,10 @@ def __getattr__(name: str) -> Any:
         from . import api
 
         return getattr(api, name)
+    if name == "study_report":
+        from .io.study_report import write_report
+
+        return write_report
     raise AttributeError(f"module 'gravcal' has no attribute {name!r}")
 
 

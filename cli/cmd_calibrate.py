@@ -78,6 +78,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--scheduler", metavar="ADDRESS", help="study: an existing dask.distributed scheduler, e.g. "
                                                           "tcp://head-node:8786, instead of a local cluster")
     p.add_argument("--quiet", action="store_true", help="no progress bar (one is shown only on a terminal)")
+    p.add_argument("--report", type=Path, metavar="DIR",
+                   help="study: also write DIR/index.html, the study's QC page (error before/after, model orders, "
+                        "statuses; one row per file, each linked to its page), drawn from the results file")
     # No argparse choices: listing them would import the numerics (a second of scipy) for every
     # `gravcal --help`; run() validates and names the known values.
     from gravcal.core.estimators.parameterization import PARAMETERIZATIONS  # numpy only: cheap
@@ -164,6 +167,8 @@ def options(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.report:
+        return run_with_report(args)
     from ..io.formats.csvtext import parse_columns
 
     parse_columns(args.columns)  # a bad mapping is refused before anything is read
@@ -184,6 +189,19 @@ def run(args: argparse.Namespace) -> int:
     if args.workers is not None or args.scheduler:
         raise InputError("--workers and --scheduler are for a study (several files or a directory with --out)")
     return calibrate_one(args.files[0], opts, args)
+
+
+def run_with_report(args: argparse.Namespace) -> int:
+    """The study, then its QC page drawn from the results (whatever the study's exit status)."""
+    if not (len(args.files) > 1 or args.out or args.files[0].is_dir()):
+        raise InputError("--report draws a study's results: give several files or a directory with --out RESULTS.csv")
+    code = run(argparse.Namespace(**{**vars(args), "report": None}))
+    from ..io.study_report import write_report
+
+    page = write_report(args.out, args.report)
+    if not args.quiet:
+        print(f"gravcal: study report in {page}", file=sys.stderr)
+    return code
 
 
 def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:

@@ -25,8 +25,10 @@ SUFFIXES = (".csv", ".csv.gz", ".gz", ".npy", ".parquet", ".gt3x", ".agdc", ".cw
 AXES = ("x", "y", "z")
 PARAMETERS = ([f"offset_{a}" for a in AXES] + [f"sensitivity_{a}{b}" for a in AXES for b in AXES])
 FIELDS = ("file", "status", "model", *PARAMETERS, "heldout_rms_mg", "n_windows", "n_excluded_filler", "units", "message",
-          "calibrated_file")
-"""Results columns: offset [raw], sensitivity [raw per g] (a [g] = sensitivity^-1 (raw - offset))."""
+          "uncalibrated_rms_mg", "calibrated_file")
+"""Results columns: offset [raw], sensitivity [raw per g] (a [g] = sensitivity^-1 (raw - offset)); errors
+[mg] of |a| - 1 g: held-out, and uncalibrated (the start scored on every window; empty when the start came
+from these data); calibrated_file: where --write-dir wrote the calibrated samples."""
 
 
 def discover(paths: Iterable[Path]) -> list[Path]:
@@ -61,8 +63,7 @@ def done_files(out: Path) -> set[str]:
     rows = list(csv.DictReader(lines))
     if lines and rows and "file" not in rows[0]:
         raise InputError(f"{out}: exists but is not a gravcal results file (no 'file' column); choose another --out")
-    errors = [i + 1 for i, r in enumerate(rows) if r.get("status") == "error"]
-    if errors:  # by line: a row may span lines only inside quotes, which csv.DictReader resolved
+    if any(r.get("status") == "error" for r in rows):
         kept = [r for r in rows if r.get("status") != "error"]
         tmp = out.with_name(out.name + ".partial")
         with open(tmp, "w", newline="", encoding="utf-8") as f:
@@ -107,6 +108,7 @@ def _calibrate_file(path: str, opts: Options, row: dict[str, Any], write_to: str
     row.update(status=out["status"], model=cal.model, n_windows=int(cal.n_windows),
                heldout_rms_mg=out.get("heldout_rms_mg"),
                message=_one_line("; ".join(filter(None, [out.get("reason"), *rec.warnings]))))
+    row["uncalibrated_rms_mg"] = (out.get("verdict") or {}).get("uncalibrated_rms_mg")
     for i, a in enumerate(AXES):
         row[f"offset_{a}"] = float(cal.offset[i])
         for j, b in enumerate(AXES):
