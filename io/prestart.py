@@ -38,9 +38,11 @@ HEADER_MAX = 1 << 16  # bytes of .npy header read at most
 # `gravcal calibrate`'s options as the prestart reads its command line (tests check them against the parser)
 GLOBAL_FLAGS = frozenset({"-v", "-vv", "-vvv", "--verbose", "--debug"})
 VALUE_OPTIONS = frozenset({"--columns", "--out", "--workers", "--scheduler", "--model", "--lab-calibration",
-                           "--detector", "--folds", "--start", "--save", "--write", "--write-dir", "--write-format"})
+                           "--detector", "--folds", "--start", "--save", "--write", "--write-dir", "--write-format",
+                           "--report"})
 FLAG_OPTIONS = frozenset({"--quiet", "--lab", "--json", "--no-saturation-check"})
-NOT_PREPARED = frozenset({"--columns", "--lab", "--out", "--workers", "--scheduler", "--write-dir"})  # no block statistics, or a study
+# no block statistics, or a study
+NOT_PREPARED = frozenset({"--columns", "--lab", "--out", "--workers", "--scheduler", "--write-dir", "--report"})
 
 _pending: list["Arena"] = []  # at most one: the arena ``start`` prepared, until ``claim`` takes it
 
