@@ -41,7 +41,8 @@ def format_of(path: str | Path) -> str:
                 except ImportError:
                     raise InputError(f"{path}: writing parquet needs pyarrow (pip install pyarrow)") from None
             return kind
-    raise InputError(f"{path}: name the calibrated output .npy, .csv, .csv.gz or .parquet (the ending chooses the format)")
+    raise InputError(f"{path}: name the calibrated output .npy, .csv, .csv.gz or .parquet "
+                     f"(the ending chooses the format)")
 
 
 def sidecar(path: str | Path) -> Path:
