@@ -159,8 +159,18 @@ def _results(files: list[str], opts: Options, workers: int | None, scheduler: st
         # temporary becomes a fresh mmap with its page faults: measured 2x the CPU per recording
         environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", default={}).items()
                    if k != "MALLOC_TRIM_THRESHOLD_"}
-        with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
-            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
+        # the nannies set these in this process's environment to pass them on, and leave them: a calibration
+        # here afterwards would read OPENBLAS_NUM_THREADS=1 as "BLAS started single-threaded" and not limit it
+        kept = {k: os.environ.get(k) for k in environ}
+        try:
+            with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+                cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
+        finally:
+            for k, v in kept.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
         client = Client(cluster)
     try:
         futures = (client.map(calibrate_file, files, targets, opts=opts, pure=False) if any(targets)
