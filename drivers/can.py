@@ -336,7 +336,8 @@ class CanDriver(Driver):
         budget, a sequence question open)."""
         bus, asm = self._bus, self.assembler
         if (not isinstance(bus, BufferedSlcanBus) or not self._connected or self._closing.is_set()
-                or self._pending.shape[0] or self._flag_reconnect or self._deferred is not None
+                or self._pending.shape[0] or self._holding or self._flag_reconnect
+                or self._deferred is not None
                 or self.latency_budget_s > 0 or asm._pending is not None or asm._ready):
             return None
         fd = bus.fast_fd()
