@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import gzip
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,7 +79,7 @@ def sniff(path: Path) -> Sniffed:
         try:
             with gzip.open(path, "rb") as g:
                 inner = g.read(4096)
-        except (OSError, EOFError, gzip.BadGzipFile):
+        except (OSError, EOFError, gzip.BadGzipFile, zlib.error):  # zlib.error: a damaged deflate stream
             return Sniffed("binary", "a damaged gzip file")
         if _looks_binary(inner):
             return Sniffed("binary", "a gzip file holding binary data, not a CSV")
