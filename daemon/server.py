@@ -12,9 +12,11 @@ Design (why it looks like this):
 - Every client has a queue of encoded lines bounded in messages and bytes (output_queue.py).
   What a slow client loses is counted and announced to it (``DROPPED``) before its next data. A
   client with output pending that makes no read progress for ``stall_timeout_s`` is disconnected.
-- Requests spend a per-client budget (client_limits.RequestBudget); the excess is discarded with
-  one ERROR and reading paused, so a flood costs bounded work; ``flood_timeout_s`` of it
-  disconnects. ?STATUS comes from a status cached for ``status_cache_s``.
+- Requests spend a per-client budget (client_limits.RequestBudget), one per command however many a
+  line carries (request_intake.py); the excess is discarded with one ERROR and reading paused, so a
+  flood costs bounded work; ``flood_timeout_s`` of it disconnects. Whatever one client's request
+  raises costs that client, never the server thread. ?STATUS comes from a status cached for
+  ``status_cache_s``.
 - Non-watchers idle for ``idle_timeout_s`` are disconnected (as gpsd does) and the longest-idle
   makes room in a full table; clients whose peer hung up are closed even while no data flows.
 - IMU lines are encoded once per block and encoding (plain / raw) and shared by all clients.
