@@ -31,6 +31,11 @@ from gravcal.drivers.codec import FRAME_LEN, FrameDecoder, decode_frames, scan
 from gravcal.drivers.sequence import SeqUnwrapper
 from gravcal.drivers.slcan import BufferedSlcanBus
 from gravcal.errors import InputError
+from gravcal.io.formats.sniff import sniff
+from gravcal.io.recordings import read_recording
+
+import gravcal  # noqa: E402 - the API's Calibration, imported with the rest so that atheris instruments it
+from gravcal.api import Calibration as _ApiCalibration  # noqa: F401
 
 _TMP = Path(tempfile.mkdtemp(prefix="gravcal-fuzz-"))
 
@@ -174,8 +179,6 @@ def state_file(data: bytes) -> None:
 
 def calibration_json(data: bytes) -> None:
     """A lab or --start calibration: a Calibration or one InputError line (the daemon's and the API's loaders)."""
-    import gravcal
-
     p = _file("cal.json", data)
     for load in (load_lab_calibration, lambda q: gravcal.Calibration.from_json(Path(q).read_bytes())):
         try:
@@ -190,9 +193,6 @@ SUFFIXES = (".csv", ".csv.gz", ".npy", ".gt3x", ".agdc", ".cwa", ".bin")
 
 def recording(data: bytes) -> None:
     """Any bytes under each recording suffix: sniffed by content, read or refused with one InputError line."""
-    from gravcal.io.formats.sniff import sniff
-    from gravcal.io.recordings import read_recording
-
     suffix = SUFFIXES[data[0] % len(SUFFIXES)] if data else ".csv"
     p = _file("rec" + suffix, data[1:])
     sniff(p)
