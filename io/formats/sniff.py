@@ -43,8 +43,8 @@ def _zip_kind(path: Path) -> Sniffed:
     try:
         with zipfile.ZipFile(path) as z:
             names = z.namelist()[:1000]
-    except (zipfile.BadZipFile, OSError, ValueError):
-        return Sniffed("binary", "a damaged zip archive")
+    except Exception:  # noqa: BLE001 - zipfile's directory parser: BadZipFile, NotImplementedError (a version
+        return Sniffed("binary", "a damaged zip archive")  # or method it lacks), OSError, ValueError, ...
     if "info.txt" in names and ("log.bin" in names or "activity.bin" in names):
         if path.suffix.lower() == ".agdc":
             return Sniffed("agdc", "an ActiGraph .agdc file")
