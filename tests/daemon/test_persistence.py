@@ -280,3 +280,14 @@ def test_the_first_save_makes_the_new_directories_durable(tmp_path, monkeypatch)
     synced.clear()
     store.save(CalibrationState(make_cal(), 2, 2.0, True, {}))  # the directory exists: only the rename
     assert synced == [str(tmp_path / "a" / "b")]
+
+
+@pytest.mark.parametrize("line", ["[" * 100_000, "[1, 2]", '{"class": "WINDOW", "start": ' + "1" * 5000 + "}"],
+                         ids=["100k [", "a list", "5000 digits"])
+def test_a_hostile_window_log_line_is_named_not_raised(tmp_path, line):
+    from gravcal.daemon.window_log import read_windows
+
+    p = tmp_path / "w.jsonl"
+    p.write_text(line + "\n")
+    with pytest.raises(ValueError, match="line 1 is not a window record"):
+        read_windows(p)
