@@ -45,10 +45,12 @@ class ScanStats:
 
 
 def fs_from(dt_medians: Sequence[float]) -> float:
-    """The sample rate [Hz] of the sampled median steps (nan when they give none)."""
+    """The sample rate [Hz] of the sampled median steps (nan when they give none: no steps, or a median step
+    that is not positive, as in a file whose times repeat)."""
     if not len(dt_medians):
         return math.nan
-    return 1.0 / float(np.median(dt_medians))
+    step = float(np.median(dt_medians))
+    return 1.0 / step if step > 0 else math.nan
 
 
 def step_medians(t: np.ndarray, chunk: int) -> list[float]:
