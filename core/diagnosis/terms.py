@@ -479,11 +479,7 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
         if calibration_view(term).profiled is not None:
             profile_lag(sel, term)
     # one floor for every model: from the largest model (base + all testable terms, determined axes)
-    # an offset term's axes the base holds (one posture: the offsets across gravity) are held with them: a change
-    # of an undetermined offset is undetermined too (fitted, it would be read through the held direction's tilt)
-    across = [j for j in sel.held_base if sel.base == "offsets"]
-    held_all: dict[str, list[int]] = {t: (list(across) if calibration_view(t).acts_on in ("offset", "lagged_offset")
-                                          else []) for t in testable}
+    held_all: dict[str, list[int]] = {t: [] for t in testable}
     provisional = sel.var
     for term in testable:  # each term on its own with the base: hold its worst-determined axis until the rest are
         # its std judged with the floor of the model that contains it: the baseline's floor carries the very misfit

@@ -25,7 +25,10 @@ from gravcal.core.model.terms import calibration_view
 from .noise import DELTA_BIC
 from .structure import describe
 
-REMAINDER_FRACTION = 0.2  # structure gaining less than this share of the named terms' gain is a remainder
+# structure is a remainder of an explained residual when its held-out gain is below both shares: of what the named
+# terms gain, and of the residual's RMS
+REMAINDER_FRACTION = 0.2
+RESIDUAL_FRACTION = 0.15
 WORSE_FRACTION = 0.05  # a nested held-out error this far above the baseline's: the selection misleads
 
 
@@ -108,10 +111,12 @@ def unexplained(structures: list[dict[str, Any]], resid_mg: float, reference_mg:
                 outer: Any, had_findings: bool, gain_mg: float | None) -> dict[str, Any]:
     """The verdict (rule 3): {"status": "explained" | "unexplained" | "nothing found", "text", "structure",
     "ratio", "reference"}. ``gain_mg``: the delivered model's held-out gain over the baseline (None: not
-    measured). Structure whose held-out gain is below REMAINDER_FRACTION of what the named terms gain is a
-    remainder of an explained residual (said, with its size), not a verdict against them."""
+    measured). Structure whose held-out gain is below REMAINDER_FRACTION of what the named terms gain and below
+    RESIDUAL_FRACTION of the residual's RMS is a remainder of an explained residual (said, with its size), not a
+    verdict against them."""
     present = [s for s in structures if s["present"]]
-    material = [s for s in present if not (gain_mg and gain_mg > 0) or s["heldout_gain_mg"] >= REMAINDER_FRACTION * gain_mg]
+    material = [s for s in present if not (gain_mg and gain_mg > 0) or s["heldout_gain_mg"] >= REMAINDER_FRACTION * gain_mg
+                or s["heldout_gain_mg"] >= RESIDUAL_FRACTION * resid_mg]
     worse = outer is not None and had_findings and outer.extended_mg > (1 + WORSE_FRACTION) * outer.baseline_mg
     ratio = None if not reference_mg else resid_mg / reference_mg
     out: dict[str, Any] = {"structure": structures, "residual_rms_mg": round(resid_mg, 4),

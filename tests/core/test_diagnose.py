@@ -92,12 +92,29 @@ def test_calibrate_and_diagnose_give_one_answer_on_the_chamber(actigraph):
     assert abs(pred - obs["predicted_mg"]) <= 0.05 * pred, (pred, obs)
 
 
+def independent_nine_parameter_heldout_mg(ws, start, folds: int = 5) -> float:
+    """A 9-parameter fit (sensitivities, offsets, cross-axis terms) on the other contiguous time blocks, scored
+    on each block: no selection, no held axes."""
+    order = np.argsort(ws.t, kind="stable")
+    res = np.empty(len(ws))
+    for test in np.array_split(order, folds):
+        cal = LottersBatch("9").fit(ws.subset(np.setdiff1d(order, test)), start)
+        res[test] = 1 - np.linalg.norm(cal.apply(ws.subset(test).mean), axis=1)
+    return float(np.sqrt(np.mean(res**2)) * 1e3)
+
+
 def test_xsens_reveals_misalignment(measured_data_dir):
     r = D.load("imu_tk_xsens")
     d = diagnose(r.t, r.acc, fs=r.fs, replicas=10)
     names = [f["effect"] for f in d.findings]
     assert "misalignment" in names
-    assert d.heldout_gain_mg > 2.0  # measured, nested folds: 3.48 -> 0.92 mg
+    # the held-out figure is the delivered procedure's: what an independent 9-parameter fit gives on held-out
+    # contiguous blocks (measured 0.20 mg; the nested selection 0.177 mg; 0.92 mg when the outer folds held the
+    # xz angle at 0)
+    indep = independent_nine_parameter_heldout_mg(d.windows, d.baseline_cal)
+    assert abs(d.extended_heldout_mg - indep) <= 0.2 * indep, (d.extended_heldout_mg, indep)
+    assert d.nested.selected == [["misalignment"]] * d.nested.folds
+    assert d.verdict["status"] == "explained"
     mag = d.findings[names.index("misalignment")]["magnitude"]
     assert mag["unit"] == "deg_from_orthogonal"  # 90° minus the angle between the two axes
     assert 1.0 < mag["value"]["yz"] / mag["std"]["yz"] and all(v is not None for v in mag["value"].values())
@@ -208,13 +225,21 @@ def test_cli_json_and_report(tmp_path, capsys):
 
     path = tmp_path / "rec.csv"
     write_recording(path, s.samples)
-    rc = main(["diagnose", str(path), "--json", "--replicas", "3", "--report", str(tmp_path / "rep")])
+    rc = main(["diagnose", str(path), "--json", "--replicas", "3", "--report", str(tmp_path / "rep"),
+               "--offer", "thermal_lag"])
     out = json.loads(capsys.readouterr().out)
     assert rc == 0
-    assert set(out) >= {"findings", "baseline", "extended", "untestable"}
+    assert set(out) >= {"findings", "baseline", "extended", "untestable", "verdict", "partial", "undetermined"}
+    assert out["verdict"]["status"] in ("explained", "unexplained", "nothing found") and out["verdict"]["text"]
+    # the offered term is tested (or said untestable), as the default catalogue's are
+    judged = out["findings"] + out["partial"] + out["untestable"] + out["not_found"]
+    assert "thermal_lag" in {x["effect"] for x in judged}
     assert out["baseline"]["heldout_rms_mg"] is None or out["baseline"]["heldout_rms_mg"] > 0
     page = (tmp_path / "rep" / "report.md").read_text()
-    assert "## Findings" in page and "Held-out gain" in page
+    assert "## Verdict" in page and "## Findings" in page and "Held-out gain" in page
+    assert main(["diagnose", str(path), "--offer", "thermal_lagg"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown term(s) thermal_lagg" in err and "Traceback" not in err
     assert (tmp_path / "rep" / "residual_vs_orientation.png").stat().st_size > 1000
 
 

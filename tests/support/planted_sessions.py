@@ -43,10 +43,10 @@ def _rng(seed: int, purpose: int) -> np.random.Generator:
 
 def postures(rng: np.random.Generator, m: int, kind: str = "daily") -> np.ndarray:
     """Unit gravity directions: ``daily`` (upright with tilts, reclined, lying on back/front/sides) or
-    ``single`` (one resting pose with a 2° wobble)."""
+    ``single`` (one resting pose, set down again between moments: 0.3° apart)."""
     if kind == "single":
         base = np.tile([0.05, -0.03, 1.0], (m, 1))
-        v = base + rng.normal(0, 0.035, (m, 3))
+        v = base + rng.normal(0, 0.005, (m, 3))
     else:
         anchors = np.array([[0, 0, 1.0], [0.6, 0, 0.8], [1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0],
                             [0.3, 0.3, 0.9]])
@@ -116,10 +116,10 @@ def signs(rng: np.random.Generator, scale: float) -> np.ndarray:
     return np.where(rng.random(3) < 0.5, -1.0, 1.0) * rng.uniform(1.0, 2.0, 3) * scale
 
 
-def quadratic_temperature(c2_g: float, t_ref: float = 27.0):
-    """Offset c2 (T - t_ref)^2 on every axis (c2 [g/°C²] with a per-axis sign and U(1, 1.5) factor)."""
+def quadratic_temperature(lo_g: float = 0.1e-3, hi_g: float = 0.25e-3, t_ref: float = 27.0):
+    """Offset c2 (T - t_ref)^2 on every axis, |c2| ~ U(lo, hi) [g/°C²] with a random sign per axis."""
     def d(t, T, rng):
-        c = np.where(rng.random(3) < 0.5, -1.0, 1.0) * c2_g * rng.uniform(1.0, 1.5, 3)
+        c = np.where(rng.random(3) < 0.5, -1.0, 1.0) * rng.uniform(lo_g, hi_g, 3)
         return np.outer((T - t_ref) ** 2, c)
     return d
 
