@@ -320,6 +320,10 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
                       "posture: an offset across gravity does not change the norm to first order)" for j in sel.held_base}
     if base == "offsets":
         d.undetermined.update({f"s_{a}": "held at the start: the sensitivities need several postures" for a in "xyz"})
+    for term, axes in held.items():  # a named term's axes the windows do not determine: held at 0 in the model
+        names = calibration_view(term).param_names()
+        d.undetermined.update({names[i]: f"{term} {'xyz'[i]}: held at 0 in the extended calibration (not determined "
+                                         f"by these windows; the finding states what is known)" for i in axes})
     d.nested = outer
     d.selection_heldout_mg = sel_ho
     return d

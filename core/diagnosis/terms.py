@@ -483,9 +483,12 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
     provisional = sel.var
     for term in testable:  # each term on its own with the base: hold its worst-determined axis until the rest are
         # its std judged with the floor of the model that contains it: the baseline's floor carries the very misfit
-        # the term explains, and would hold a determined axis at 0 (a misalignment angle on a training fold)
-        par, f = sel.fit((term,), {})
-        sel.var = sel.var0 + floor_for(f.resid_g, sel.var0, sel.m - int(sel.free_mask(par, {}).sum())) ** 2
+        # the term explains, and would hold a determined axis at 0 (a misalignment angle on a training fold). Not
+        # with an offsets-only baseline (one posture): there an axis across gravity is "determined" only through
+        # the tilt of the held offsets, and the baseline's floor keeps it held
+        if sel.base != "offsets":
+            par, f = sel.fit((term,), {})
+            sel.var = sel.var0 + floor_for(f.resid_g, sel.var0, sel.m - int(sel.free_mask(par, {}).sum())) ** 2
         while len(held_all[term]) < 3:
             par, f = sel.fit((term,), held_all)
             sd = np.where(np.isin(np.arange(3), held_all[term]), 0.0, np.nan_to_num(sel.effect_std_g(par, f, term),
