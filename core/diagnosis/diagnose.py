@@ -265,7 +265,7 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
             notes.append(f"{len(ws)} windows are too few for a held-out gain on folds the selection never saw")
     else:
         ho_b, ho_e = outer.baseline_mg, (outer.extended_without(withdrawn) if withdrawn else outer.extended_mg)
-    groups = inseparable(sel, chosen, held, tests)
+    groups = inseparable(sel, chosen, held, tests, outer)
     par_b, fit_b = sel.fit((), {})
     par_e, fit_e = sel.fit(chosen, held)
     res_b = extended_residuals_g(par_b, fit_b.p, ws)

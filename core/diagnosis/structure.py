@@ -23,10 +23,29 @@ from .noise import DELTA_BIC
 # (covariate, highest polynomial degree, words for the shape: first degree, higher degrees)
 SHAPES: tuple[tuple[str, int, str, str], ...] = (
     ("temperature", 2, "rises or falls with temperature", "is curved"),
+    ("temperature rate", 1, "follows the temperature's rate of change (a lag)", "is curved"),
     ("time", 4, "trends with time", "wanders in time"),
     ("supply", 1, "rises or falls with supply voltage", "is curved"),
 )
 FOLDS = 5
+
+
+RATE_SPAN_S = 300.0  # the temperature's rate of change over this span [s] (window temperatures are noisy)
+
+
+def temperature_rate(t: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """dT/dt [°C/h] at each window: the change of the windows' running-mean temperature over RATE_SPAN_S."""
+    order = np.argsort(t, kind="stable")
+    ts, Ts = t[order], T[order]
+    half = RATE_SPAN_S / 2
+    lo, hi = np.searchsorted(ts, ts - half), np.searchsorted(ts, ts + half, side="right")
+    c = np.concatenate([[0.0], np.cumsum(Ts)])
+    smooth = (c[hi] - c[lo]) / np.maximum(hi - lo, 1)
+    rate = (np.interp(ts + half, ts, smooth) - np.interp(ts - half, ts, smooth)) / (
+        np.minimum(ts + half, ts[-1]) - np.maximum(ts - half, ts[0]) + 1e-9) * 3600.0
+    out = np.empty_like(rate)
+    out[order] = rate
+    return out
 
 
 def _covariate(ws: WindowSet, name: str, has_temp: bool) -> np.ndarray | None:
@@ -34,6 +53,8 @@ def _covariate(ws: WindowSet, name: str, has_temp: bool) -> np.ndarray | None:
         return ws.t
     if name == "temperature":
         return ws.aux[:, 0] if has_temp else None
+    if name == "temperature rate":
+        return temperature_rate(ws.t, ws.aux[:, 0]) if has_temp else None
     v = ws.covariate("vsupply")
     return v if v is not None and np.all(np.isfinite(v)) and np.ptp(v) > 0 else None
 
@@ -90,6 +111,6 @@ def residual_structure(ws: WindowSet, resid_g: np.ndarray, u: np.ndarray, var_g2
 def describe(s: dict[str, Any]) -> str:
     """'residual vs temperature is curved' (or the structure's own words)."""
     shape = s["shape"]
-    if shape.startswith(("rises", "trends", "wanders")):
+    if shape.startswith(("rises", "trends", "wanders", "follows")):
         return f"residual {shape}"
     return f"residual vs {s['covariate']} {shape}"

@@ -5,8 +5,9 @@ group when the session cannot separate two causes, and "unexplained" when the mo
    selection never saw (NestedHeldout.term_gain_mg > 0), and only when the whole procedure gains
    (NestedHeldout.gain_mg > 0). Otherwise it is withdrawn, with its nested gain as the reason.
 2. Separable: a chosen term A and a candidate B the session cannot tell apart (B in A's place explains most of
-   what A explains, and either fits within ΔBIC 10 of A or adds nothing once A is in the model: its columns
-   lie in the model's span, so the split between A and B is not determined) are named as a group, "A or B", with their joint
+   what A explains, and either fits within ΔBIC 10 of A, or adds nothing once A is in the model: its columns
+   lie in the model's span, so the split between A and B is not determined, or the selection takes B instead
+   of A on some outer training sets) are named as a group, "A or B", with their joint
    held-out gain and the correlation of their covariates over the session; neither magnitude is stated.
 3. Explained: the extended model's residual must show no structure (structure.py). When it does, or when the
    selection's nested held-out error is above the baseline's, the verdict is "unexplained" with the
@@ -63,13 +64,15 @@ def _correlation(ws: Any, a: str, b: str) -> float | None:
     return float(np.corrcoef(x, y)[0, 1])
 
 
-def inseparable(sel: Any, chosen: tuple[str, ...], held: dict[str, list[int]], tests: list[Any]
-                ) -> dict[str, dict[str, Any]]:
+def inseparable(sel: Any, chosen: tuple[str, ...], held: dict[str, list[int]], tests: list[Any],
+                outer: Any = None) -> dict[str, dict[str, Any]]:
     """Per chosen term, the candidates this session cannot tell from it (rule 2): {term: {"with": [..],
-    "correlation": {other: r}}}."""
+    "correlation": {other: r}}}. ``outer`` (NestedHeldout): a candidate the selection takes instead of a chosen
+    term on some outer training sets is an alternative the data do not rule out."""
     out: dict[str, dict[str, Any]] = {}
     by_name = {t.effect: t for t in tests}
     for a in chosen:
+        instead = set() if outer is None else {b for s in outer.selected if a not in s for b in s if b not in chosen}
         rest = tuple(c for c in chosen if c != a)
         held_rest = {k: v for k, v in held.items() if k in rest}
         chi_without = sel.fit(rest, held_rest)[1].chi2
@@ -80,8 +83,6 @@ def inseparable(sel: Any, chosen: tuple[str, ...], held: dict[str, list[int]], t
             spanned = tb.status == "untestable" and tb.why.startswith("indistinguishable from")
             if b in chosen or (tb.status == "untestable" and not spanned):
                 continue
-            if calibration_view(b).acts_on != calibration_view(a).acts_on:
-                continue
             hb = [] if spanned else ["xyz".index(x) for x in tb.undetermined_axes]
             if len(hb) == 3:
                 continue
@@ -91,7 +92,7 @@ def inseparable(sel: Any, chosen: tuple[str, ...], held: dict[str, list[int]], t
                 continue
             k_b = 3 - len(hb)
             # spanned: with A in the model B adds nothing, so how much is A's and how much B's is not determined
-            close = spanned or chi_b - chi_with < DELTA_BIC
+            close = spanned or b in instead or chi_b - chi_with < DELTA_BIC
             if close and chi_without - chi_b > DELTA_BIC + k_b * math.log(sel.m) and chi_without - chi_b > 0.5 * explained:
                 entry = out.setdefault(a, {"with": [], "correlation": {}})
                 entry["with"].append(b)
