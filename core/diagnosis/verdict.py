@@ -7,7 +7,7 @@ group when the session cannot separate two causes, and "unexplained" when the mo
 2. Separable: a chosen term A and a candidate B the session cannot tell apart (B in A's place explains most of
    what A explains, and either fits within ΔBIC 10 of A, or adds nothing once A is in the model: its columns
    lie in the model's span, so the split between A and B is not determined, or the selection takes B instead
-   of A on some outer training sets) are named as a group, "A or B", with their joint
+   of A on at least two outer training sets) are named as a group, "A or B", with their joint
    held-out gain and the correlation of their covariates over the session; neither magnitude is stated.
 3. Explained: the extended model's residual must show no structure (structure.py). When it does, or when the
    selection's nested held-out error is above the baseline's, the verdict is "unexplained" with the
@@ -24,13 +24,15 @@ import numpy as np
 from gravcal.core.model.terms import calibration_view
 
 from .noise import DELTA_BIC
+from .terms import LAG_GRID_POINTS
 from .structure import describe
 
 # structure is a remainder of an explained residual when its held-out gain is below both shares: of what the named
 # terms gain, and of the residual's RMS
 REMAINDER_FRACTION = 0.2
 RESIDUAL_FRACTION = 0.15
-WORSE_FRACTION = 0.05  # a nested held-out error this far above the baseline's: the selection misleads
+WORSE_FRACTION = 0.05
+MIN_SWAPS = 2  # outer training sets taking a candidate instead of a chosen term: an alternative the data allow  # a nested held-out error this far above the baseline's: the selection misleads
 
 
 def unearned(outer: Any, chosen: tuple[str, ...]) -> dict[str, str]:
@@ -72,7 +74,8 @@ def inseparable(sel: Any, chosen: tuple[str, ...], held: dict[str, list[int]], t
     out: dict[str, dict[str, Any]] = {}
     by_name = {t.effect: t for t in tests}
     for a in chosen:
-        instead = set() if outer is None else {b for s in outer.selected if a not in s for b in s if b not in chosen}
+        swaps = [b for s in ([] if outer is None else outer.selected) if a not in s for b in s if b not in chosen]
+        instead = {b for b in swaps if swaps.count(b) >= MIN_SWAPS}
         rest = tuple(c for c in chosen if c != a)
         held_rest = {k: v for k, v in held.items() if k in rest}
         chi_without = sel.fit(rest, held_rest)[1].chi2
@@ -92,7 +95,13 @@ def inseparable(sel: Any, chosen: tuple[str, ...], held: dict[str, list[int]], t
                 continue
             k_b = 3 - len(hb)
             # spanned: with A in the model B adds nothing, so how much is A's and how much B's is not determined
-            close = spanned or b in instead or chi_b - chi_with < DELTA_BIC
+            # a profiled term (a lag) contains simpler terms as limits and pays for its time constant: compared
+            # with that price, and never grouped for being spanned (parsimony decides between nested models)
+            profiled = calibration_view(b).profiled is not None
+            if profiled and calibration_view(b).covariate == calibration_view(a).covariate:
+                continue  # b contains a (a lag at short tau): the selection's penalised choice of a stands
+            price = math.log(sel.m) + 2 * math.log(LAG_GRID_POINTS) if profiled else 0.0
+            close = (spanned and not profiled) or b in instead or chi_b + price - chi_with < DELTA_BIC
             if close and chi_without - chi_b > DELTA_BIC + k_b * math.log(sel.m) and chi_without - chi_b > 0.5 * explained:
                 entry = out.setdefault(a, {"with": [], "correlation": {}})
                 entry["with"].append(b)
