@@ -91,6 +91,7 @@ def summary(out: dict[str, Any], name: str) -> str:
         group = f.get("group")
         if group:
             lines.append(f"  FOUND {group['text']}")
+            lines.append(f"    if {f['effect']} alone: {magnitude_text(f['magnitude'])}")
             continue
         lines.append(f"  FOUND {f['effect']}: {magnitude_text(f['magnitude'])} "
                      f"(ΔBIC {f['evidence'].get('delta_bic')}, nested held-out gain "

@@ -176,17 +176,14 @@ def _findings(j: dict[str, Any]) -> list[str]:
         return ["No cause named (rule: observable, ΔBIC > 10, lower held-out error, and a positive gain on folds "
                 "the selection never saw)."]
     L = []
-    groups = [x for x in j["findings"] if x.get("group")]
-    for x in groups:
-        L.append(f"- **{x['group']['text']}** (magnitudes withheld: the session cannot apportion the effect)")
-    single = [x for x in j["findings"] if not x.get("group")]
-    if not single:
-        return L
+    for x in j["findings"]:
+        if x.get("group"):
+            L.append(f"- **{x['group']['text']}**; the table gives {x['magnitude']['conditional']}")
     L += ["", "| effect | axis | value ± std | unit | raw units |", "|---|---|---|---|---|"]
-    for x in single:
+    for x in j["findings"]:
         L += _finding_rows(x)
     L.append("")
-    for x in single:
+    for x in j["findings"]:
         mag, ev = x["magnitude"], x["evidence"]
         L.append(f"- **{x['effect']}**: ΔBIC {num(ev.get('delta_bic'), 4)} "
                  f"(threshold {num(ev.get('delta_bic_threshold'))}); "

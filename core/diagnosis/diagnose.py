@@ -296,11 +296,11 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
             if outer is not None:
                 ev["nested_heldout_gain_mg"] = round(outer.term_gain_mg(t.effect), 4)
             term = sensor_model_term(t.effect, t.magnitude)
-            if term and t.effect not in groups:
+            if term:
                 ev["sensor_model_term"] = term
             f = {"effect": t.effect, "magnitude": t.magnitude, "evidence": ev}
             if t.effect in groups:
-                withhold_group(f, groups[t.effect], ev.get("nested_heldout_gain_mg"))
+                name_group(f, groups[t.effect], ev.get("nested_heldout_gain_mg"))
             (partial if verdict["status"] == "unexplained" else findings).append(f)
             for partner in t.magnitude.get("confounded_with", []):
                 notes.append(f"{t.effect} and {partner} cannot be told apart on this recording (one posture): "
@@ -349,18 +349,14 @@ def honest_magnitude(tt: TermTest, held_sd: np.ndarray | None, sources: list[str
         one_posture_magnitude(tt, ws, scale, scale_rel_std)
 
 
-def withhold_group(f: dict[str, Any], group: dict[str, Any], joint_gain_mg: float | None) -> None:
-    """A finding the session cannot separate from other candidates: named as the group, its magnitude withheld
-    (the value would be either term's, or a mix)."""
+def name_group(f: dict[str, Any], group: dict[str, Any], joint_gain_mg: float | None) -> None:
+    """A finding the session cannot separate from other candidates: named as the group; its magnitude is what
+    it would be if it alone were the cause (said so: the session cannot apportion the effect)."""
     text = group_text(f["effect"], group, joint_gain_mg)
     f["group"] = {"effects": [f["effect"]] + group["with"], "correlation": group["correlation"],
                   "joint_heldout_gain_mg": joint_gain_mg, "text": text}
-    mag = f["magnitude"]
-    reason = f"not separable from {' or '.join(group['with'])} in this session"
-    mag["undetermined"] = {k: reason for k in mag.get("value", {})}
-    for key in ("value", "std", "raw_value", "raw_std"):
-        if isinstance(mag.get(key), dict):
-            mag[key] = {k: None for k in mag[key]}
+    f["magnitude"]["conditional"] = (f"the value if {f['effect']} alone were the cause: this session cannot apportion "
+                                     f"the effect between {' and '.join(f['group']['effects'])}")
 
 
 @dataclass

@@ -8,7 +8,8 @@ group when the session cannot separate two causes, and "unexplained" when the mo
    what A explains, and either fits within ΔBIC 10 of A, or adds nothing once A is in the model: its columns
    lie in the model's span, so the split between A and B is not determined, or the selection takes B instead
    of A on at least two outer training sets) are named as a group, "A or B", with their joint
-   held-out gain and the correlation of their covariates over the session; neither magnitude is stated.
+   held-out gain and the correlation of their covariates over the session; A's magnitude is given as
+   conditional (its value if A alone were the cause).
 3. Explained: the extended model's residual must show no structure (structure.py). When it does, or when the
    selection's nested held-out error is above the baseline's, the verdict is "unexplained" with the
    residual's structure and its size against the simulated (or the window noise); terms found are then
