@@ -34,7 +34,7 @@ from gravcal.core.windows import WindowSet
 
 from .compare import Comparison, simulate_compare
 from .noise import AllanResult, colored_noise_test, flat_stretches, pooled_allan, quantization_test
-from .held import held_contributions, one_posture_magnitude, one_posture_partner, scale_rel_std
+from .held import channel_slopes, held_contributions, one_posture_magnitude, one_posture_partner, scale_rel_std
 from .structure import residual_structure
 from .terms import TermSelector, TermTest, evaluate_term, select_terms
 from .verdict import group_text, inseparable, unearned, unexplained
@@ -48,6 +48,7 @@ OUTLIER_SIGMA = 6.0  # robust (MAD) std of the baseline residual beyond which a 
 DOMINANT_POSTURE_DEG = 20.0  # offsets-only baseline: term tests on windows this close to the dominant posture
 MIN_WINDOWS = 8  # fewer quasi-static windows: nothing can be tested
 MIN_ALLAN_STRETCH_S = 20.0  # colored noise needs a static stretch at least this long [s]
+SINGLE_POSE_DEG = 3.0  # windows within this of one direction: one pose, each channel's slope is the term's
 
 
 @dataclass
@@ -291,7 +292,8 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
     for t in tests:
         if t.status == "found":
             honest_magnitude(t, held_sd.get(t.effect), held_sources, one_posture=base == "offsets", ws=ws,
-                             scale=np.abs(np.diag(base_cal.sensitivity)), scale_rel_std=scale_rel_std(held_meta, start))
+                             scale=np.abs(np.diag(base_cal.sensitivity)), scale_rel_std=scale_rel_std(held_meta, start),
+                             spread_deg=cov["spread_deg"])
             ev = t.evidence()
             if outer is not None:
                 ev["nested_heldout_gain_mg"] = round(outer.term_gain_mg(t.effect), 4)
@@ -330,10 +332,12 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
 
 
 def honest_magnitude(tt: TermTest, held_sd: np.ndarray | None, sources: list[str], *, one_posture: bool,
-                     ws: WindowSet, scale: np.ndarray | None = None, scale_rel_std: np.ndarray | None = None) -> None:
-    """Fold the held quantities' contribution into a found term's stated std (report and raw units); in one
-    posture the magnitude is each channel's own slope (held.one_posture_magnitude: ``scale`` [raw/g] and its
-    relative std convert it)."""
+                     ws: WindowSet, scale: np.ndarray | None = None, scale_rel_std: np.ndarray | None = None,
+                     spread_deg: float = 180.0) -> None:
+    """Fold the held quantities' contribution into a found term's stated std (report and raw units). With an
+    offsets-only baseline: in one pose (every window within ``spread_deg`` <= SINGLE_POSE_DEG of one direction)
+    the magnitude is each channel's own slope (held.one_posture_magnitude: ``scale`` [raw/g] and its relative
+    std convert it); with tilts about one dominant posture the norm's change along gravity, the partner named."""
     mag = tt.magnitude
     keys = list(mag.get("value", {}))
     if held_sd is not None and sources:
@@ -345,8 +349,24 @@ def honest_magnitude(tt: TermTest, held_sd: np.ndarray | None, sources: list[str
                 if d.get(k) is not None:
                     d[k] = float(np.hypot(d[k], held_sd[off + i]))
         mag["held"] = list(sources)
-    if one_posture and one_posture_partner(tt.effect) is not None:
+    partner = one_posture_partner(tt.effect) if one_posture else None
+    if partner is None:
+        return
+    if spread_deg <= SINGLE_POSE_DEG:
         one_posture_magnitude(tt, ws, scale, scale_rel_std)
+        return
+    # one dominant posture with tilts: a channel across gravity moves with the tilt, so its slope is not the
+    # term's; the value is the norm's change along gravity, and the axes across gravity are not determined
+    mag["confounded_with"] = [partner]
+    slopes = channel_slopes(ws, calibration_view(tt.effect).covariate)
+    if slopes is not None:
+        mag["raw_channel_slopes"] = slopes
+    across = sorted(mag.get("undetermined", {}))
+    mag.setdefault("notes", []).append(
+        f"one dominant posture: an offset change and a sensitivity change along gravity ({partner}) read alike; "
+        f"the value along gravity is their sum; " + (f"{', '.join(across)} not determined (across gravity)" if across
+                                                    else "the axes across gravity are determined through the tilts "
+                                                         "about the posture"))
 
 
 def name_group(f: dict[str, Any], group: dict[str, Any], joint_gain_mg: float | None) -> None:
