@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["__version__", "read", "calibrate", "Calibration", "Recording"]
+__all__ = ["__version__", "read", "calibrate", "Calibration", "Recording", "study_report"]
 _API = {"read", "calibrate", "Calibration", "Recording"}
 
 
@@ -30,6 +30,10 @@ def __getattr__(name: str) -> Any:
         from . import api
 
         return getattr(api, name)
+    if name == "study_report":
+        from .io.study_report import write_report
+
+        return write_report
     raise AttributeError(f"module 'gravcal' has no attribute {name!r}")
 
 

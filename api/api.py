@@ -39,6 +39,17 @@ class Calibration(_CoreCalibration):
     def insample_rms_mg(self) -> float | None:
         return self.report.get("insample_rms_mg")
 
+    @property
+    def status(self) -> str:
+        """The verdict: "ok" or "partial" (offsets only) to use; "not_improved" (the start is returned),
+        "unreliable" or "refused" (the start is returned; nothing determined) not to (``gravcal calibrate``
+        exits 3 for these). ``reason`` says why."""
+        return str(self.report.get("status", "ok"))
+
+    @property
+    def reason(self) -> str:
+        return str(self.report.get("reason", ""))
+
     def __getattr__(self, name: str) -> Any:
         report = self.__dict__.get("report") or {}
         if name in report:
@@ -87,9 +98,10 @@ def calibrate(data: Recording | str | Path | tuple, model: str = "auto", *, temp
 
     ``model``: "auto" (the largest order the windows determine), "offsets", "6", "9", "12" or an order
     with terms ("6+temperature_offset" style names from the registry). Raises ValueError when the
-    recording holds no usable stillness (the message says why). Check ``converged`` and ``observable``
-    before using the result, as ``gravcal calibrate`` does (exit 3). ``progress=True``: tqdm bars of
-    the reading and of the calibration's block pass and stages.
+    recording is unusable input (the message says why). A readable recording always gets a verdict:
+    check ``status`` ("ok", "partial", "not_improved", "unreliable", "refused") and ``reason`` before
+    using the result, as ``gravcal calibrate`` does (exit 3 unless ok or partial). ``progress=True``:
+    tqdm bars of the reading and of the calibration's block pass and stages.
     """
     opts = offline.Options(model=model, detector=detector, folds=folds, start=start, columns=columns)
     offline.check_options(opts)

@@ -5,8 +5,9 @@ gravcal.core.pipeline.calibrate_recording through daemon.offline (detector -> st
 (``--model auto``, the default: order.select_order) -> Lötters batch estimator -> held-out error over
 contiguous folds of windows), or with ``--lab`` bragge.calibrate_lab (six faces, all 12 parameters),
 and prints a summary, or with ``--json`` exactly one JSON object (its "order" says which parameters
-were fitted and why; model "none" from auto is an error, exit 2). Exit 3 (with the JSON still
-printed) when the calibration is not converged or not observable.
+were fitted and why). Every readable recording gets a verdict: "status" (ok, partial, not_improved, unreliable,
+refused; gravcal.core.verdict) and "reason", in the JSON and the summary; exit 0 for ok and partial,
+exit 3 (the JSON still printed) for the others.
 
 Several files, a directory, or ``--out``: a study (daemon.study), one results row per file, on a
 dask.distributed cluster (``--workers``, ``--scheduler``).
@@ -25,6 +26,8 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.report import unit_text
+
+TRUSTED = ("ok", "partial")  # statuses that exit 0 (gravcal.core.verdict.TRUSTED; not imported: --help stays light)
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +77,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--scheduler", metavar="ADDRESS", help="study: an existing dask.distributed scheduler, e.g. "
                                                           "tcp://head-node:8786, instead of a local cluster")
     p.add_argument("--quiet", action="store_true", help="no progress bar (one is shown only on a terminal)")
+    p.add_argument("--report", type=Path, metavar="DIR",
+                   help="study: also write DIR/index.html, the study's QC page (error before/after, model orders, "
+                        "statuses; one row per file, each linked to its page), drawn from the results file")
     # No argparse choices: listing them would import the numerics (a second of scipy) for every
     # `gravcal --help`; run() validates and names the known values.
     from gravcal.core.estimators.parameterization import PARAMETERIZATIONS  # numpy only: cheap
@@ -153,6 +159,8 @@ def options(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.report:
+        return run_with_report(args)
     from ..io.formats.csvtext import parse_columns
 
     parse_columns(args.columns)  # a bad mapping is refused before anything is read
@@ -171,6 +179,19 @@ def run(args: argparse.Namespace) -> int:
     return calibrate_one(args.files[0], opts, args)
 
 
+def run_with_report(args: argparse.Namespace) -> int:
+    """The study, then its QC page drawn from the results (whatever the study's exit status)."""
+    if not (len(args.files) > 1 or args.out or args.files[0].is_dir()):
+        raise InputError("--report draws a study's results: give several files or a directory with --out RESULTS.csv")
+    code = run(argparse.Namespace(**{**vars(args), "report": None}))
+    from ..io.study_report import write_report
+
+    page = write_report(args.out, args.report)
+    if not args.quiet:
+        print(f"gravcal: study report in {page}", file=sys.stderr)
+    return code
+
+
 def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
     from ..io import offline
     from .main import request_prompt_exit
@@ -183,18 +204,20 @@ def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
     with offline.progress_bar("calibrating", show) as bar:
         report, out = offline.calibrate(rec, opts, (t_read, c_read), bar)
     cal = report.calibration
-    if args.save:
+    status, reason = out["status"], " ".join(str(out.get("reason") or "").split())
+    saved = None
+    if args.save and status != "refused":  # a refusal has no calibration to save: nothing was fitted
         args.save.write_text(cal.to_json(indent=2) + "\n", encoding="utf-8")
-    trustworthy = bool(cal.converged and cal.observable)
+        saved = args.save
     if args.json:
         print(json.dumps(jsonable(out)))
     else:
-        print(summary(out, cal, saved=args.save))
-    if not trustworthy:
-        why = cal.message or ("not converged" if not cal.converged else "not observable")
-        print(f"gravcal: calibration not trustworthy: {' '.join(why.split())}", file=sys.stderr)
+        print(summary(out, cal, saved=saved))
+    if status not in TRUSTED:
+        print(f"gravcal: calibration {status.replace('_', ' ')}: {reason}"
+              + (f" (--save {args.save} not written)" if args.save and saved is None else ""), file=sys.stderr)
     request_prompt_exit()  # the output is printed, --save written and closed: nothing left to tear down
-    return EXIT_OK if trustworthy else EXIT_NOT_TRUSTWORTHY
+    return EXIT_OK if status in TRUSTED else EXIT_NOT_TRUSTWORTHY
 
 
 def _fmt(v: Any, spec: str = ".6g") -> str:
@@ -213,10 +236,12 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     ]
     for w in inp["warnings"]:
         lines.append(f"warning     {w}")
+    lines.append(f"verdict     {out.get('status', 'ok')}: {' '.join(str(out.get('reason') or '').split())}")
     state = ("converged" if cal.converged else "NOT CONVERGED") + ", " + ("observable" if cal.observable else "NOT OBSERVABLE")
     lines.append(f"model       {cal.model}: {out.get('n_windows', cal.n_windows)} quasi-static windows, {state}")
     order = out.get("order") or {}
-    if order.get("reason"):
+    said = " ".join(str(out.get("reason") or "").split())  # the verdict's reason: said once
+    if order.get("reason") and " ".join(order["reason"].split()) != said:
         lines.append(f"order       {order.get('model')}: {order['reason']}")
     if out.get("faces"):
         lines.append("faces       " + ", ".join(f"{f} ({v['windows']} window(s), tilt {v['tilt_deg']:.2g}°)"
@@ -242,7 +267,10 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     for term, verdict in (out.get("extended_terms") or {}).items():  # model auto: why a term is (not) in
         if isinstance(verdict, dict) and verdict.get("status") != "chosen":
             lines.append(f"{term:<11} {verdict.get('status')}: {verdict.get('reason', '')}")
-    if out.get("heldout_scheme") == "leave-one-face-out":
+    if str(out.get("heldout_scheme") or "").startswith("none"):  # not improved: the start, nothing fitted
+        lines.append(f"|a| - 1 g   RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg over every window under the start "
+                     f"(nothing fitted: every window is held out)")
+    elif out.get("heldout_scheme") == "leave-one-face-out":
         lines.append(f"|a - known| held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg (leave one face out), "
                      f"in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg")
     else:
@@ -250,10 +278,10 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
             f"|a| - 1 g   held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg "
             f"(contiguous folds of windows), in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg"
         )
-    if cal.message:
+    if cal.message and " ".join(cal.message.split()) not in said:
         lines.append(f"note        {cal.message}")
     for note in out.get("notes", []) or []:
-        if note and note not in (cal.message or ""):
+        if note and note not in (cal.message or "") and note not in said:
             lines.append(f"note        {note}")
     lines.append("convention  a [g] = sensitivity^-1 (raw - offset)")
     if saved:

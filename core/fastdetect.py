@@ -48,7 +48,7 @@ import numpy as np
 from ._blockkernels import block_pass, chain_lanes, lotters_chain, variance_chain, window_sums
 from .calibration import Calibration
 from .detectors import estimate_fs
-from .detectors.butterworth import butter_sos, sos_rest_state
+from .butterworth import butter_sos, sos_rest_state
 from .detectors.windowing import settle_samples
 from .windows import WindowSet
 

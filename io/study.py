@@ -22,8 +22,11 @@ log = logging.getLogger(__name__)
 SUFFIXES = (".csv", ".csv.gz", ".gz", ".npy", ".gt3x", ".agdc", ".cwa", ".bin")
 AXES = ("x", "y", "z")
 PARAMETERS = ([f"offset_{a}" for a in AXES] + [f"sensitivity_{a}{b}" for a in AXES for b in AXES])
-FIELDS = ("file", "status", "model", *PARAMETERS, "heldout_rms_mg", "n_windows", "n_excluded_filler", "units", "message")
-"""Results columns: offset [raw], sensitivity [raw per g] (a [g] = sensitivity^-1 (raw - offset))."""
+FIELDS = ("file", "status", "model", *PARAMETERS, "heldout_rms_mg", "n_windows", "n_excluded_filler", "units", "message",
+          "uncalibrated_rms_mg")
+"""Results columns: offset [raw], sensitivity [raw per g] (a [g] = sensitivity^-1 (raw - offset)); errors
+[mg] of |a| - 1 g: held-out, and uncalibrated (the start scored on every window; empty when the start came
+from these data)."""
 
 
 def discover(paths: Iterable[Path]) -> list[Path]:
@@ -88,10 +91,11 @@ def _calibrate_file(path: str, opts: Options, row: dict[str, Any]) -> dict[str, 
     except Exception as exc:  # noqa: BLE001
         return {**row, "status": "error", "message": _one_line(f"{type(exc).__name__}: {exc}")}
     cal = report.calibration
-    trustworthy = bool(cal.converged and cal.observable)
-    row.update(status="ok" if trustworthy else "refused", model=cal.model, n_windows=int(cal.n_windows),
+    # the verdict of `calibrate --json` (gravcal.core.verdict.STATUSES): ok, partial, not_improved, unreliable, refused
+    row.update(status=out["status"], model=cal.model, n_windows=int(cal.n_windows),
                heldout_rms_mg=out.get("heldout_rms_mg"),
-               message=_one_line("; ".join(filter(None, [cal.message, *rec.warnings]))))
+               message=_one_line("; ".join(filter(None, [out.get("reason"), *rec.warnings]))))
+    row["uncalibrated_rms_mg"] = (out.get("verdict") or {}).get("uncalibrated_rms_mg")
     for i, a in enumerate(AXES):
         row[f"offset_{a}"] = float(cal.offset[i])
         for j, b in enumerate(AXES):

@@ -29,7 +29,7 @@ from gravcal.core.estimators.observability import TOL_G, coverage, held_note, is
 from gravcal.core.estimators.order import select_order
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 from gravcal.core.model.terms import CATALOGUE as TERM_CATALOGUE
-from gravcal.core.model.terms import REGISTRY, calibration_view, term_spec
+from gravcal.core.model.terms import CALIBRATION_TERMS, REGISTRY, calibration_view, term_spec
 from gravcal.core.windows import WindowSet
 
 from .compare import Comparison, simulate_compare
@@ -43,7 +43,7 @@ from .verdict import group_text, inseparable, unearned, unexplained
 log = logging.getLogger(__name__)
 
 CATALOGUE: tuple[str, ...] = tuple(sorted(TERM_CATALOGUE, key=lambda c: (
-    REGISTRY[TERM_CATALOGUE[c]].view is None, REGISTRY[TERM_CATALOGUE[c]].view.rank if REGISTRY[TERM_CATALOGUE[c]].view else 0)))
+    CALIBRATION_TERMS.index(TERM_CATALOGUE[c]) if TERM_CATALOGUE[c] in CALIBRATION_TERMS else len(CALIBRATION_TERMS))))
 """The effects diagnose tests (the registry's catalogue): window-mean terms in canonical order, then noise."""
 OUTLIER_SIGMA = 6.0  # robust (MAD) std of the baseline residual beyond which a window is excluded
 DOMINANT_POSTURE_DEG = 20.0  # offsets-only baseline: term tests on windows this close to the dominant posture

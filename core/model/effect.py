@@ -47,7 +47,7 @@ def lagged_deviations(terms: tuple[str, ...] | list[str], values: dict[str, np.n
     out = {}
     for term in terms:
         view = calibration_view(term)
-        if view.acts_on != "lagged_offset" or view.deviation_key in out:
+        if not view.lagged or view.deviation_key in out:
             continue
         v, t = values.get(view.covariate), values.get("time")
         if v is None or t is None:
@@ -118,7 +118,7 @@ def needed_covariates(terms: tuple[str, ...] | list[str]) -> tuple[str, ...]:
         c = calibration_view(t).covariate
         if c is not None and c != "accel" and c not in out:
             out.append(c)
-        if calibration_view(t).acts_on == "lagged_offset" and "time" not in out:
+        if calibration_view(t).lagged and "time" not in out:
             out.append("time")  # the lag runs over the rows' times
     return tuple(out)
 

@@ -64,6 +64,10 @@ def read_actigraph(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], d
             cols["temp"] = temp
             meta["temp_source"] = "ADXL die temperature, interpolated from its own rate"
     units = "g" if nhanes else "counts"
+    scale = float(getattr(info, "acceleration_scale", 0.0) or 0.0)
+    meta["device"] = f"ActiGraph {getattr(info, 'device_type', '') or 'device'}".strip()
+    if units == "g" or scale > 1.0:  # the header's counts per g (an .agdc states 1, which is no scale)
+        meta["nominal_per_g"] = 1.0 if units == "g" else scale
     return cols, {"units": units, **meta}
 
 
@@ -86,7 +90,8 @@ def read_skdh(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], dict[s
     temp = res.get("temperature")
     if temp is not None and np.shape(temp) == t.shape:
         cols["temp"] = np.asarray(temp, dtype=np.float64)
-    meta = {"format": found.kind, "reader": "scikit-digital-health", "device_fs_hz": float(res.get("fs", 0.0))}
+    meta = {"format": found.kind, "reader": "scikit-digital-health", "device_fs_hz": float(res.get("fs", 0.0)),
+            "device": "Axivity" if found.kind == "cwa" else "GENEActiv", "nominal_per_g": 1.0}
     return cols, {"units": "g", **meta}
 
 

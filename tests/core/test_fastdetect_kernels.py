@@ -13,7 +13,7 @@ from scipy import signal
 import gravcal.core.fastdetect as fastdetect
 from gravcal.core._blockkernels import block_pass, lotters_chain, sosfilt, variance_chain
 from gravcal.core.calibration import Calibration
-from gravcal.core.detectors.butterworth import butter_sos, sos_rest_state
+from gravcal.core.butterworth import butter_sos, sos_rest_state
 from gravcal.core.detectors.windowing import settle_samples
 from gravcal.core.samples import raw_triad
 from gravcal.core.simulate import simulate

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from gravcal.core.detectors.butterworth import butter_sos
+from gravcal.core.butterworth import butter_sos
 from gravcal.core.model.base import Context
 from gravcal.core.model.filters import filter_sections, first_order_section, frequency_response, state_at, state_from
 from gravcal.core.model.lag import first_order_lag
