@@ -3,6 +3,8 @@ transposed) may differ when each rounds its operations in its own order: derived
 the coefficients and the filter's gains, never from either implementation's bits."""
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 U = 2.0 ** -53  # unit roundoff of float64
@@ -25,32 +27,41 @@ def _l1_response(sos: np.ndarray, impulse: float, z0: np.ndarray, n: int = 1 << 
     return total
 
 
-def cascade_gains(sos: np.ndarray) -> tuple[float, float, float]:
+def cascade_gains(sos: np.ndarray, n: int = 1 << 16) -> tuple[float, float, float]:
+    sos = np.ascontiguousarray(sos, dtype=float)
+    return _cascade_gains(sos.tobytes(), sos.shape[0], n)
+
+
+@lru_cache(maxsize=256)
+def _cascade_gains(coefficients: bytes, sections: int, n: int) -> tuple[float, float, float]:
     """(G_in, G_state, G_inner): the l1 gain from the input to the output, the largest from a unit error in
     any section's state (where a rounding error lands) to the output, the largest from the input to any
-    section's output."""
-    sos = np.asarray(sos, float)
+    section's output; over the first n samples (a signal of n samples sees no more)."""
+    sos = np.frombuffer(coefficients, dtype=float).reshape(sections, 6)
     ns = sos.shape[0]
-    g_in = _l1_response(sos, 1.0, np.zeros((ns, 2)))
-    g_inner = max(_l1_response(sos[:s + 1], 1.0, np.zeros((s + 1, 2))) for s in range(ns))
+    g_in = _l1_response(sos, 1.0, np.zeros((ns, 2)), n)
+    g_inner = max(_l1_response(sos[:s + 1], 1.0, np.zeros((s + 1, 2)), n) for s in range(ns))
     g_state = 0.0
     for s in range(ns):
         for j in range(2):
             z = np.zeros((ns - s, 2))
             z[0, j] = 1.0
-            g_state = max(g_state, _l1_response(sos[s:], 0.0, z))
+            g_state = max(g_state, _l1_response(sos[s:], 0.0, z, n))
     return g_in, g_state, g_inner
 
 
-def sosfilt_difference_bound(sos: np.ndarray, x_max: float, z_max: float) -> float:
+def sosfilt_difference_bound(sos: np.ndarray, x_max: float, z_max: float, n: int = 1 << 16,
+                             signal_max: float | None = None) -> float:
     """Largest |y_A - y_B| of two DF2T implementations of ``sos`` that round differently, on an input with
     |x| <= x_max from states with |z| <= z_max. Every signal in the cascade stays below
     S = (x_max + z_max) (1 + G_inner) (1 + G_state); per sample and section each implementation rounds at
     most 7 operations, each by at most u times the terms it combines, bounded by (Σ|coefficients| + 2) S;
     every error lands in a state and reaches the output through G_state (at most 1 + G_state, the output's
-    own rounding included); both implementations err: twice."""
+    own rounding included); both implementations err: twice. ``signal_max``: a known bound on every signal in
+    the cascade (e.g. from the outputs of a one-section filter) instead of S; n: the signal's length."""
     sos = np.asarray(sos, float)
-    g_in, g_state, g_inner = cascade_gains(sos)
-    signal_max = (x_max + z_max) * (1.0 + max(g_in, g_inner)) * (1.0 + g_state)
+    g_in, g_state, g_inner = cascade_gains(sos, n)
+    if signal_max is None:
+        signal_max = (x_max + z_max) * (1.0 + max(g_in, g_inner)) * (1.0 + g_state)
     coef = float(np.max(np.abs(sos[:, [0, 1, 2, 4, 5]]).sum(axis=1))) + 2.0
     return 2.0 * 7 * sos.shape[0] * U * coef * signal_max * (1.0 + g_state)
