@@ -123,14 +123,16 @@ def test_scan_chunk_is_its_reference(layout):
         t = np.ascontiguousarray(rec["t"])
     else:
         cols, t = [rec[n] for n in ("ax", "ay", "az")], rec["t"]
+    states = [_fresh_state(), _fresh_state()]  # one per form, carried from chunk to chunk as scan_columns does
     for lo, hi, prev in ((0, 2500, None), (2500, m, np.array([t[2499], *[x[2499] for x in cols]], dtype=float))):
         res = []
-        for mod in (c, r):
-            st, runs = _fresh_state(), np.zeros((hi - lo, 2), np.int64)
+        for mod, st in zip((c, r), states):
+            runs = np.zeros((hi - lo, 2), np.int64)
             n_runs, n_rep = mod.scan_chunk(t[lo:hi], *[x[lo:hi] for x in cols], prev, st, runs, 3)
-            res.append((n_runs, n_rep, st, runs[:n_runs]))
+            res.append((n_runs, n_rep, st.copy(), runs[:n_runs]))
         assert res[0][:2] == res[1][:2] and res[0][1] > 0
         assert np.array_equal(res[0][2], res[1][2]) and np.array_equal(res[0][3], res[1][3])
+    assert states[0][6:12].min() > 1000  # the counts at the extremes add up over both chunks (~625 each)
     cols[1][1234] = np.nan
     states = [_fresh_state(), _fresh_state()]
     for mod, st in zip((c, r), states):
