@@ -27,8 +27,10 @@ def scan_chunk(t: np.ndarray, x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, pr
         before = np.nan if prev is None else float(prev[0])
         dt = np.diff(t, prepend=before)
         dt = dt[dt == dt]  # NaN steps (the first without prev, a NaN time) are never the smallest
-        if dt.size:
-            state[S_MINDT] = min(float(state[S_MINDT]), float(dt.min()))
+        if dt.size:  # `dt < min_dt ? dt : min_dt` row by row: the first of equal minima (-0.0 or 0.0)
+            first_min = dt[np.flatnonzero(dt == dt.min())[0]]
+            if first_min < state[S_MINDT]:
+                state[S_MINDT] = first_min
     n_runs = n_repeats = 0
     if runs is not None:
         rows = np.column_stack([x.astype(np.float64) for x in xs])
@@ -49,7 +51,9 @@ def scan_chunk(t: np.ndarray, x0: np.ndarray, x1: np.ndarray, x2: np.ndarray, pr
         state[S_FINITE] = 0.0  # extremes of non-finite data mean nothing: the scan stops here
     elif m:
         for c, x in enumerate(xs):
-            lo, hi = float(x.min()), float(x.max())
+            # the chunk's extremes as `v < lo ? v : lo` finds them: the first of equal ones (-0.0 or 0.0)
+            lo = float(x[np.flatnonzero(x == x.min())[0]])
+            hi = float(x[np.flatnonzero(x == x.max())[0]])
             if lo <= state[S_LO + c]:
                 n = float(np.count_nonzero(x == lo))
                 state[S_NLO + c] = n if lo < state[S_LO + c] else state[S_NLO + c] + n
