@@ -65,3 +65,18 @@ def sosfilt_difference_bound(sos: np.ndarray, x_max: float, z_max: float, n: int
         signal_max = (x_max + z_max) * (1.0 + max(g_in, g_inner)) * (1.0 + g_state)
     coef = float(np.max(np.abs(sos[:, [0, 1, 2, 4, 5]]).sum(axis=1))) + 2.0
     return 2.0 * 7 * sos.shape[0] * U * coef * signal_max * (1.0 + g_state)
+
+
+def first_order_design_bound(corner: float, fs: float) -> tuple[float, float, float]:
+    """Relative bounds (high-pass gain, low-pass gain, pole) on |butter_sos(1) - signal.butter(1)| per
+    coefficient of the section (k, ±k, 0, 1, -pole, 0). Both take
+    w = 4 tan(x), x = pi (2 corner / fs) / 2 (three roundings, amplified by tan's condition number
+    2x / sin 2x, and tan's own error of at most 2 u in any libm), then 1 / (4 + w), (4 - w) / (4 + w) and
+    4 / (4 + w) or w / (4 + w) in a few rounded operations each; relative errors add, and both sides err."""
+    x = np.pi * (2.0 * corner / fs) / 2.0
+    rel_w = 2 * U + 3 * U * (2 * x / np.sin(2 * x))
+    w = 4.0 * np.tan(x)
+    rel_scale = 2 * U + rel_w * w / (4.0 + w)
+    rel_k_hp, rel_k_lp = rel_scale, rel_w + rel_scale + U
+    rel_pole = 2 * U + rel_w * w / abs(4.0 - w) + rel_scale
+    return 2 * rel_k_hp, 2 * rel_k_lp, 2 * rel_pole

@@ -18,7 +18,7 @@ from gravcal.core.model.filters import filter_sections, first_order_section, fre
 from gravcal.core.model.lag import first_order_lag
 from gravcal.core.model.terms import REGISTRY
 
-from filter_bounds import sosfilt_difference_bound
+from filter_bounds import first_order_design_bound, sosfilt_difference_bound
 
 EPS = np.finfo(float).eps
 U = EPS / 2  # unit roundoff
@@ -59,27 +59,13 @@ def _rest_state_rounding(sos):
 
 
 # -- design --------------------------------------------------------------------------------------------------------
-def _first_order_design_bound(corner, fs):
-    """Bound on |butter_sos(1) - signal.butter(1)| per coefficient (k, ±k or k, 0, 1, -pole, 0). Both take
-    w = 4 tan(x), x = pi (2 corner / fs) / 2 (three roundings, amplified by tan's condition number
-    2x / sin 2x, and tan's own error of at most 2 u in any libm), then 1 / (4 + w), (4 - w) / (4 + w) and
-    4 / (4 + w) or w / (4 + w) in a few rounded operations each; relative errors add, and both sides err."""
-    x = np.pi * (2.0 * corner / fs) / 2.0
-    rel_w = 2 * U + 3 * U * (2 * x / np.sin(2 * x))
-    w = 4.0 * np.tan(x)
-    rel_scale = 2 * U + rel_w * w / (4.0 + w)
-    rel_k_hp, rel_k_lp = rel_scale, rel_w + rel_scale + U
-    rel_pole = 2 * U + rel_w * w / abs(4.0 - w) + rel_scale
-    return 2 * rel_k_hp, 2 * rel_k_lp, 2 * rel_pole
-
-
 def test_first_order_butterworth_is_scipys_within_the_rounding_bound():
     rng = np.random.default_rng(20)
     fss = [50.0, 100.0, 128.0, 200.0, 1000.0, 3.7]
     cases = [(0.3, 100.0), (0.3, 200.0), (25.0, 100.0), (45.0, 100.0), (5.0, 200.0)]
     cases += [(float(rng.uniform(1e-4, 0.4999) * fs), fs) for fs in rng.choice(fss, 400)]
     for corner, fs in cases:
-        rel_hp, rel_lp, rel_pole = _first_order_design_bound(corner, fs)
+        rel_hp, rel_lp, rel_pole = first_order_design_bound(corner, fs)
         for kind in ("highpass", "lowpass"):
             got = butter_sos(1, corner, kind, fs)
             ref = signal.butter(1, corner, kind, fs=fs, output="sos")
