@@ -73,3 +73,19 @@ def test_install_with_cc_false_calibrates_with_the_numpy_forms(tmp_path):
     daemon = subprocess.run([str(venv / "bin" / "gravcald"), "--help"], **run)
     lines = daemon.stderr.strip().splitlines()
     assert daemon.returncode != 0 and len(lines) == 1 and "native engine" in lines[0] and "Traceback" not in daemon.stderr
+
+
+def _native_off_runs(text: str) -> list[list[str]]:
+    """The test files of each `GRAVCAL_NATIVE=0 python3 -m pytest` command in a shell text (continued lines joined)."""
+    joined = text.replace("\\\n", " ")
+    return [[w for w in line.split() if w.startswith("tests/")] for line in joined.splitlines()
+            if "GRAVCAL_NATIVE=0 python3 -m pytest" in line]
+
+
+def test_the_readme_and_ci_run_the_same_commands():
+    readme, ci = (ROOT / "README.md").read_text(), (ROOT / ".ci" / "run").read_text()
+    assert _native_off_runs(readme) == _native_off_runs(ci) and len(_native_off_runs(ci)) == 1
+    for path in _native_off_runs(ci)[0]:
+        assert (ROOT / path).is_file(), path
+    assert "python3 -m venv" in ci and "python3 -m pip install -q -e '.[test,bench]'" in ci
+    assert "python3 -m venv .venv" in readme and "python3 -m pip install -e '.[test,bench]' && python3 -m pytest -q" in readme
