@@ -10,7 +10,7 @@ from gravcal.core.calibration import Calibration
 from gravcal.core.detectors import MovingVarianceDetector, QuasiStaticDetector, detect
 
 from filter_bounds import cascade_gains, sosfilt_difference_bound
-from gravcal.core.detectors.butterworth import sos_rest_state
+from gravcal.core.butterworth import sos_rest_state
 
 FS = 100.0
 NOISE_G = 0.0045  # ADXL210 500 µg/√Hz over ~80 Hz noise bandwidth, per axis [g]
