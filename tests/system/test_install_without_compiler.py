@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import site
 import subprocess
 import sys
@@ -50,7 +51,11 @@ def test_install_with_cc_false_calibrates_with_the_numpy_forms(tmp_path):
     Path(purelib, "test_deps.pth").write_text("\n".join(deps) + "\n")
     env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "VIRTUAL_ENV"))}
     env.update(CC="/bin/false", PIP_NO_DEPS="1")
-    build = subprocess.run([str(py), "-m", "pip", "install", "-v", "--no-deps", str(ROOT)], cwd=tmp_path, env=env,
+    # the sources only: a checkout's build/ or in-place .so files must not reach the wheel
+    src = tmp_path / "src"
+    shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".git", ".venv", "build", "dist", "*.so", "__pycache__",
+                                                             "*.egg-info", ".pytest_cache", ".hypothesis", "out"))
+    build = subprocess.run([str(py), "-m", "pip", "install", "-v", "--no-deps", str(src)], cwd=tmp_path, env=env,
                            capture_output=True, text=True, timeout=300)
     assert build.returncode == 0, build.stdout[-2000:] + build.stderr[-2000:]
     said = [line.strip() for line in (build.stdout + build.stderr).splitlines() if line.strip().startswith("gravcal:")]
