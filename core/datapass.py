@@ -20,10 +20,12 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from . import fastdetect
-from ._scankernel import scan_chunk
+from .accelerator import kernels
 from .fastdetect import BlockPass, BlockStats, block_length, row_releaser, run_lanes
 from .repeats import MIN_RUN, RunCollector
 from .samples import FLAG_SATURATED
+
+scan_chunk = kernels("gravcal.core._scankernel").scan_chunk
 
 MEDIAN_EVERY = 64  # the sample rate is the median of the median steps of every 64th chunk
 

@@ -38,9 +38,9 @@ HEADER_MAX = 1 << 16  # bytes of .npy header read at most
 # `gravcal calibrate`'s options as the prestart reads its command line (tests check them against the parser)
 GLOBAL_FLAGS = frozenset({"-v", "-vv", "-vvv", "--verbose", "--debug"})
 VALUE_OPTIONS = frozenset({"--columns", "--out", "--workers", "--scheduler", "--model", "--lab-calibration",
-                           "--detector", "--folds", "--start", "--save"})
+                           "--detector", "--folds", "--start", "--save", "--report"})
 FLAG_OPTIONS = frozenset({"--quiet", "--lab", "--json", "--no-saturation-check"})
-NOT_PREPARED = frozenset({"--columns", "--lab", "--out", "--workers", "--scheduler"})  # no block statistics, or a study
+NOT_PREPARED = frozenset({"--columns", "--lab", "--out", "--workers", "--scheduler", "--report"})  # no block statistics, or a study
 
 _pending: list["Arena"] = []  # at most one: the arena ``start`` prepared, until ``claim`` takes it
 
@@ -177,7 +177,9 @@ class Arena:
     def _populate(self) -> None:
         ok = True
         try:
-            from ._pages import populate
+            from ..core.accelerator import kernels
+
+            populate = kernels("gravcal.io._pages").populate
 
             for lo in range(0, self.nb, POPULATE_BLOCKS):
                 hi = min(lo + POPULATE_BLOCKS, self.nb)
