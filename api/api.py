@@ -13,6 +13,7 @@ from gravcal.core.calibration import Calibration as _CoreCalibration
 from gravcal.core.calibration import jsonable
 from gravcal.io import offline
 from gravcal.io.recordings import Recording, read_recording, recording_from_arrays
+from gravcal.jsonbounds import JSONInputError, loads
 
 __all__ = ["read", "calibrate", "write_calibrated", "Calibration", "Recording"]
 
@@ -72,6 +73,15 @@ class Calibration(_CoreCalibration):
         """Write ``rec`` (a Recording or a path) calibrated by this calibration to ``path``: see
         :func:`write_calibrated`."""
         return write_calibrated(rec, self, path)
+
+    @classmethod
+    def from_json(cls, text: str | bytes) -> "Calibration":
+        """A calibration from its JSON (``to_json``'s or ``calibrate --save``'s), its nesting and size bounded
+        (gravcal.jsonbounds); ValueError with a one-line message when unusable."""
+        d = loads(text)
+        if not isinstance(d, dict):
+            raise JSONInputError("calibration JSON must be an object")
+        return cls.from_dict(d)
 
     @classmethod
     def _from_core(cls, core: _CoreCalibration, report: dict[str, Any]) -> "Calibration":

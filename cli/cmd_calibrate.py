@@ -25,6 +25,8 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..jsonbounds import JSONInputError
+from ..jsonbounds import loads as bounded_loads
 from ..io.report import unit_text
 
 TRUSTED = ("ok", "partial")  # statuses that exit 0 (gravcal.core.verdict.TRUSTED; not imported: --help stays light)
@@ -125,8 +127,11 @@ def _load_start(path: Path):
     except FileNotFoundError:
         raise InputError(f"{path}: no such file (--start)") from None
     try:
-        return Calibration.from_json(text)
-    except ValueError as exc:
+        obj = bounded_loads(text)
+        if not isinstance(obj, dict):
+            raise ValueError("calibration JSON must be an object")
+        return Calibration.from_dict(obj)
+    except ValueError as exc:  # JSONInputError is one
         raise InputError(f"{path}: {exc}") from None
 
 
@@ -139,9 +144,9 @@ def _load_lab(path: Path):
     except FileNotFoundError:
         raise InputError(f"{path}: no such file (--lab-calibration)") from None
     try:
-        obj = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not JSON ({exc.msg} at line {exc.lineno}) (--lab-calibration)") from None
+        obj = bounded_loads(text)
+    except JSONInputError as exc:
+        raise InputError(f"{path}: {exc} (--lab-calibration)") from None
     try:
         cal = Calibration.from_dict(obj["calibration"] if isinstance(obj, dict) and "calibration" in obj else obj)
     except (ValueError, KeyError, TypeError) as exc:

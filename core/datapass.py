@@ -20,10 +20,12 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from . import fastdetect
-from ._scankernel import scan_chunk
+from .accelerator import kernels
 from .fastdetect import BlockPass, BlockStats, block_length, row_releaser, run_lanes
 from .repeats import MIN_RUN, RunCollector
 from .samples import FLAG_SATURATED
+
+scan_chunk = kernels("gravcal.core._scankernel").scan_chunk
 
 MEDIAN_EVERY = 64  # the sample rate is the median of the median steps of every 64th chunk
 
@@ -50,10 +52,12 @@ FS_DIGITS = 9
 
 
 def fs_from(dt_medians: Sequence[float]) -> float:
-    """The sample rate [Hz] of the sampled median steps, to FS_DIGITS significant digits (nan when they give none)."""
+    """The sample rate [Hz] of the sampled median steps, to FS_DIGITS significant digits (nan when they give
+    none: no steps, or a median step that is not positive, as in a file whose times repeat)."""
     if not len(dt_medians):
         return math.nan
-    return float(f"{1.0 / float(np.median(dt_medians)):.{FS_DIGITS}g}")
+    step = float(np.median(dt_medians))
+    return float(f"{1.0 / step:.{FS_DIGITS}g}") if step > 0 else math.nan
 
 
 def step_medians(t: np.ndarray, chunk: int) -> list[float]:

@@ -45,12 +45,16 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from ._blockkernels import block_pass, chain_lanes, lotters_chain, variance_chain, window_sums
+from .accelerator import kernels
 from .calibration import Calibration
 from .detectors import estimate_fs
 from .butterworth import butter_sos, sos_rest_state
 from .detectors.windowing import settle_samples
 from .windows import WindowSet
+
+_kernels = kernels("gravcal.core._blockkernels")
+block_pass, chain_lanes, lotters_chain = _kernels.block_pass, _kernels.chain_lanes, _kernels.lotters_chain
+variance_chain, window_sums = _kernels.variance_chain, _kernels.window_sums
 
 BLOCK_S = 0.1  # block length [s]: 10 Hz detection, boundaries to 0.1 s
 CHUNK_BLOCKS = 4096  # blocks per chunk of the reducing pass (a few 100 kB per channel: stays in the CPU cache)

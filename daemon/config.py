@@ -23,6 +23,7 @@ from gravcal.core.estimators.observability import ORDER_LADDER
 from gravcal.core.model.terms import AUX_COLUMNS, CALIBRATION_TERMS, calibration_view
 
 from ..errors import InputError
+from ..jsonbounds import JSONInputError, check_bounds
 
 ONLINE_TERMS = tuple(t for t in CALIBRATION_TERMS
                      if calibration_view(t).acts_on != "cross" and calibration_view(t).per_window)
@@ -36,6 +37,7 @@ DEFAULT_ONLINE_TERMS = ",".join(t for t in ONLINE_TERMS if calibration_view(t).a
                                 and calibration_view(t).covariate in AUX_COLUMNS)
 
 DEFAULT_CONFIG_PATH = "/etc/gravcal/gravcald.toml"
+MAX_CONFIG_BYTES = 1 << 20  # the example configuration with every key is ~4 kB
 
 
 class ConfigError(InputError):
@@ -244,7 +246,9 @@ def load_config(path: str | os.PathLike | None = None, overrides: dict[str, Any]
         required = True if required is None else required
         try:
             with open(path, "rb") as fh:
-                data = tomllib.load(fh)
+                raw = fh.read(MAX_CONFIG_BYTES + 1)
+            check_bounds(raw, max_bytes=MAX_CONFIG_BYTES, syntax="toml")  # tomllib recurses per nesting level
+            data = tomllib.loads(raw.decode("utf-8"))
         except FileNotFoundError:
             if required:
                 raise ConfigError(f"{path}: no such configuration file") from None
@@ -257,6 +261,8 @@ def load_config(path: str | os.PathLike | None = None, overrides: dict[str, Any]
             raise ConfigError(f"{path}: invalid TOML: {exc}") from None
         except UnicodeDecodeError as exc:
             raise ConfigError(f"{path}: invalid TOML: not UTF-8 ({exc.reason})") from None
+        except JSONInputError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
         if data is not None:
             cfg = parse_config(data, path)
     if overrides:

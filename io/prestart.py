@@ -180,7 +180,9 @@ class Arena:
     def _populate(self) -> None:
         ok = True
         try:
-            from ._pages import populate
+            from ..core.accelerator import kernels
+
+            populate = kernels("gravcal.io._pages").populate
 
             for lo in range(0, self.nb, POPULATE_BLOCKS):
                 hi = min(lo + POPULATE_BLOCKS, self.nb)

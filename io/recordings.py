@@ -224,7 +224,7 @@ def _load_npy(path: Path, mapping: dict[str, str]) -> tuple[dict[str, np.ndarray
     layout = "a structured array with fields t, ax, ay, az (optional gx, gy, gz, temp)"
     try:
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
+    except Exception as exc:  # noqa: BLE001 - numpy's header parser raises ValueError, SyntaxError, TokenError...
         raise InputError(f"{path}: not a readable .npy file ({excerpt(str(exc), 80)}); expected {layout}") from None
     if isinstance(arr, np.lib.npyio.NpzFile):  # pragma: no cover - np.load only returns this for .npz content
         raise InputError(f"{path}: is an .npz archive; expected a .npy file holding {layout}")

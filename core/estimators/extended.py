@@ -29,8 +29,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from gravcal.core import _fitsums
-from gravcal.core.estimators import _jacobians
+from gravcal.core.accelerator import kernels
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.parameterization import (PARAMETERIZATIONS, Parameterization, h_variance,
                                                       norm_and_projection)
@@ -39,6 +38,9 @@ from gravcal.core.model.effect import (LAG_KEY, constant_rows, covariate_deviati
 from gravcal.core.model.spec import CROSS_PAIRS
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.windows import WindowSet
+
+_fitsums = kernels("gravcal.core._fitsums")
+_jacobians = kernels("gravcal.core.estimators._jacobians")
 
 EXTRA_TERMS: tuple[str, ...] = CALIBRATION_TERMS
 """Registered terms with a calibration-level (window-mean) effect, in canonical order."""

@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._blockkernels import sosfilt
+from ..accelerator import kernels
 from ..butterworth import butter_sos
+
+sosfilt = kernels("gravcal.core._blockkernels").sosfilt
 
 
 def highpass_ba(hp_hz: float, fs: float) -> tuple[np.ndarray, np.ndarray]:

@@ -13,8 +13,10 @@ from typing import Sequence
 
 import numpy as np
 
-from .._blockkernels import sosfilt
+from ..accelerator import kernels
 from ..butterworth import butter_sos, sos_rest_state
+
+sosfilt = kernels("gravcal.core._blockkernels").sosfilt
 
 
 def first_order_section(b: Sequence[float], a: Sequence[float]) -> np.ndarray:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import gzip
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,8 +43,8 @@ def _zip_kind(path: Path) -> Sniffed:
     try:
         with zipfile.ZipFile(path) as z:
             names = z.namelist()[:1000]
-    except (zipfile.BadZipFile, OSError, ValueError):
-        return Sniffed("binary", "a damaged zip archive")
+    except Exception:  # noqa: BLE001 - zipfile's directory parser: BadZipFile, NotImplementedError (a version
+        return Sniffed("binary", "a damaged zip archive")  # or method it lacks), OSError, ValueError, ...
     if "info.txt" in names and ("log.bin" in names or "activity.bin" in names):
         if path.suffix.lower() == ".agdc":
             return Sniffed("agdc", "an ActiGraph .agdc file")
@@ -80,7 +81,7 @@ def sniff(path: Path) -> Sniffed:
         try:
             with gzip.open(path, "rb") as g:
                 inner = g.read(4096)
-        except (OSError, EOFError, gzip.BadGzipFile):
+        except (OSError, EOFError, gzip.BadGzipFile, zlib.error):  # zlib.error: a damaged deflate stream
             return Sniffed("binary", "a damaged gzip file")
         if _looks_binary(inner):
             return Sniffed("binary", "a gzip file holding binary data, not a CSV")

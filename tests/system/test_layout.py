@@ -133,9 +133,9 @@ def test_layers_point_one_way(graph):
     """core imports neither drivers nor daemon; drivers never import daemon; the real drivers never
     import their test rigs (drivers/rigs: emulator, fakes, HIL); daemon/ is gravcald alone: it imports
     none of the offline packages (io, cli, clients); io imports no daemon or command line; nothing
-    below the Python API (api/, imported as gravcal) imports it, but for its shared errors and output
-    helpers (gravcal.errors, gravcal.closed_pipe)."""
-    shared = {"gravcal.errors", "gravcal.closed_pipe"}
+    below the Python API (api/, imported as gravcal) imports it, but for its shared errors, output
+    helpers and bounded JSON parsing (gravcal.errors, gravcal.closed_pipe, gravcal.jsonbounds)."""
+    shared = {"gravcal.errors", "gravcal.closed_pipe", "gravcal.jsonbounds"}
     api = {"gravcal", *(m for m in graph if m.startswith("gravcal.") and not m.startswith(tuple(
         f"{p}." for p in LAYERS.values() if p != "gravcal")) and m not in LAYERS.values())} - shared
     bad = []
