@@ -15,7 +15,7 @@ from gravcal.io import offline
 from gravcal.io.recordings import Recording, read_recording, recording_from_arrays
 from gravcal.jsonbounds import JSONInputError, loads
 
-__all__ = ["read", "calibrate", "Calibration", "Recording"]
+__all__ = ["read", "calibrate", "write_calibrated", "Calibration", "Recording"]
 
 
 @dataclass
@@ -68,6 +68,11 @@ class Calibration(_CoreCalibration):
         cal = super().from_dict(d)
         cal.report = dict(d.get("report") or {})
         return cal
+
+    def write(self, rec: "Recording | str | Path", path: str | Path) -> Path:
+        """Write ``rec`` (a Recording or a path) calibrated by this calibration to ``path``: see
+        :func:`write_calibrated`."""
+        return write_calibrated(rec, self, path)
 
     @classmethod
     def from_json(cls, text: str | bytes) -> "Calibration":
@@ -126,3 +131,20 @@ def calibrate(data: Recording | str | Path | tuple, model: str = "auto", *, temp
     with offline.progress_bar("calibrating", progress) as bar:
         report, out = offline.calibrate(rec, opts, progress=bar)
     return Calibration._from_core(report.calibration, out)
+
+
+def write_calibrated(rec: Recording | str | Path, cal: _CoreCalibration, path: str | Path, *,
+                     columns: str | dict[str, str] | None = None) -> Path:
+    """Write the calibrated samples of ``rec`` (a Recording, or the path of a recording) to ``path``, as
+    ``gravcal calibrate REC --write OUT`` does: .npy, .csv, .csv.gz or .parquet by the ending; columns
+    t [s], ax, ay, az [g] (``cal.apply`` with every term, at each sample's temperature and supply) and
+    flags (core.samples.FLAG_SATURATED, io.recordings.FLAG_FILLER: rows excluded from the fit, kept
+    here); the calibration in OUT.json (parquet: in its metadata). Every finite row of the file is
+    written (read again with its saturated and filler rows kept when ``rec`` dropped some; a
+    Recording made from arrays is written as it is). Returns the path written."""
+    from gravcal.io.calibrated import write_calibrated as write, write_for
+
+    report = jsonable(cal.report) if isinstance(cal, Calibration) else None
+    if isinstance(rec, (str, Path)):
+        return write(path, read_recording(rec, columns=columns, flag_only=True), cal, report)
+    return write_for(path, rec, cal, columns=columns, report=report)

@@ -63,12 +63,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "calibrate", help="calibrate a recording or a whole study from its quasi-static moments",
         description="Offline in-use calibration of recordings. CSV (or .csv.gz): header row; columns t [s], ax, ay, "
                     "az (raw units of any scale), optional gx, gy, gz, temp [°C], vsupply [V]; other columns ignored "
-                    "(or mapped with --columns). .npy: a structured array with the same field names. ActiGraph "
+                    "(or mapped with --columns). .npy: a structured array with the same field names; .parquet: the same "
+                    "column names. ActiGraph "
                     ".gt3x/.agdc, Axivity .cwa, GENEActiv .bin: through their readers (pip install 'gravcal[formats]'). "
                     "Exactly repeated filler (idle sleep) is excluded and reported.",
     )
     p.add_argument("files", type=Path, nargs="+", metavar="FILE|DIR",
-                   help="recording(s): .csv, .csv.gz, .npy, .gt3x, .agdc, .cwa, .bin (recognised by content), or a "
+                   help="recording(s): .csv, .csv.gz, .npy, .parquet, .gt3x, .agdc, .cwa, .bin (recognised by content), or a "
                         "directory of them; more than one, a directory, or --out: a study, one results row per file")
     p.add_argument("--columns", metavar="t=NAME,ax=NAME,...",
                    help="map the CSV's own column names, e.g. t=t_unix,ax=x_counts,ay=y_counts,az=z_counts")
@@ -105,6 +106,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--start", type=Path, metavar="CAL.json",
                    help="start from this calibration (gravcal JSON) instead of the ellipsoid fit of the data")
     p.add_argument("--save", type=Path, metavar="CAL.json", help="also write the calibration (gravcal JSON) here")
+    p.add_argument("--write", type=Path, metavar="OUT", help="also write the calibrated samples: t [s], a [g] with every "
+                   "term applied, flags (saturated, filler) as .npy, .csv, .csv.gz or .parquet (by OUT's ending), the "
+                   "calibration in OUT.json (parquet: in its metadata); only for a calibration with status ok or partial")
+    p.add_argument("--write-dir", type=Path, metavar="DIR", help="study: write each file's calibrated samples into "
+                   "DIR as NAME.calibrated.<--write-format> (see --write); the row names the file")
+    p.add_argument("--write-format", default="npy", metavar="npy|csv|csv.gz|parquet",
+                   help="study: the format --write-dir writes (default npy)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
     p.add_argument("--no-saturation-check", dest="check_saturation", action="store_false",
                    help="do not treat samples piled up at a channel's extreme value as saturated")
@@ -169,6 +177,7 @@ def run(args: argparse.Namespace) -> int:
     from ..io.formats.csvtext import parse_columns
 
     parse_columns(args.columns)  # a bad mapping is refused before anything is read
+    _check_write(args)
     opts = options(args)
     if len(args.files) > 1 or args.out or args.files[0].is_dir():
         from ..io.study import run_study
@@ -178,7 +187,10 @@ def run(args: argparse.Namespace) -> int:
         if not args.out:
             raise InputError("several files or a directory: name the results file with --out RESULTS.csv")
         return run_study(args.files, args.out, opts, workers=args.workers, scheduler=args.scheduler,
-                         quiet=args.quiet)
+                         quiet=args.quiet, **({"write_dir": args.write_dir, "write_format": args.write_format}
+                                             if args.write_dir else {}))
+    if args.write_dir:
+        raise InputError("--write-dir is for a study; for one file name the output with --write OUT")
     if args.workers is not None or args.scheduler:
         raise InputError("--workers and --scheduler are for a study (several files or a directory with --out)")
     return calibrate_one(args.files[0], opts, args)
@@ -214,15 +226,35 @@ def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
     if args.save and status != "refused":  # a refusal has no calibration to save: nothing was fitted
         args.save.write_text(cal.to_json(indent=2) + "\n", encoding="utf-8")
         saved = args.save
+    if args.write and status in TRUSTED:
+        from ..io.calibrated import write_for
+
+        out["written"] = str(write_for(args.write, rec, cal, columns=opts.columns,
+                                       check_saturation=opts.check_saturation, report=jsonable(out)))
     if args.json:
         print(json.dumps(jsonable(out)))
     else:
-        print(summary(out, cal, saved=saved))
+        print(summary(out, cal, saved=saved) + (f"\nwritten     {out['written']}" if out.get("written") else ""))
     if status not in TRUSTED:
         print(f"gravcal: calibration {status.replace('_', ' ')}: {reason}"
-              + (f" (--save {args.save} not written)" if args.save and saved is None else ""), file=sys.stderr)
+              + (f" (--save {args.save} not written)" if args.save and saved is None else "")
+              + (f" (--write {args.write} not written)" if args.write else ""), file=sys.stderr)
     request_prompt_exit()  # the output is printed, --save written and closed: nothing left to tear down
     return EXIT_OK if status in TRUSTED else EXIT_NOT_TRUSTWORTHY
+
+
+def _check_write(args: argparse.Namespace) -> None:
+    """Refuse a calibrated output the command cannot write before anything is computed."""
+    from ..io.calibrated import FORMATS, format_of
+
+    if args.write:
+        format_of(args.write)
+        if not args.write.parent.is_dir():
+            raise InputError(f"--write {args.write}: no such directory {args.write.parent}")
+    if args.write_dir and args.write_format not in FORMATS:
+        raise InputError(f"--write-format {args.write_format!r}: choose one of {', '.join(FORMATS)}")
+    if args.write and (len(args.files) > 1 or args.out or args.files[0].is_dir()):
+        raise InputError("--write names one output; a study writes one per file with --write-dir DIR")
 
 
 def _fmt(v: Any, spec: str = ".6g") -> str:

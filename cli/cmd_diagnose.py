@@ -25,7 +25,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Fit the baseline model, re-simulate the session with it, compare measured vs simulated "
                     "statistics, test the catalogue of sensor-model terms (held-out error and BIC), extend "
                     "the model with the terms found and measure the held-out gain.")
-    p.add_argument("file", type=Path, help="recording: FILE.csv or FILE.npy (calibrate format; temp column optional)")
+    p.add_argument("file", type=Path, help="recording: .csv, .csv.gz, .npy, .parquet, .gt3x, .agdc, .cwa or .bin, recognised "
+                                           "by content as calibrate reads it (temp column optional)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
     p.add_argument("--report", type=Path, metavar="DIR", help="write DIR/report.md with PNG plots")
     p.add_argument("--replicas", type=int, default=40, help="simulated replicas of the session (default 40)")

@@ -46,13 +46,18 @@ class ScanStats:
     blocks: BlockStats | None = None  # block statistics of every row at fs_from(dt_medians), when asked for
 
 
+FS_DIGITS = 9
+"""Significant digits of the sample rate: a float64 time of a week (6e5 s) resolves ~1e-10 s, 1e-8 of a
+100 Hz step, so digits past the ninth are rounding noise of the time stamps (100.00000000009095 Hz)."""
+
+
 def fs_from(dt_medians: Sequence[float]) -> float:
-    """The sample rate [Hz] of the sampled median steps (nan when they give none: no steps, or a median step
-    that is not positive, as in a file whose times repeat)."""
+    """The sample rate [Hz] of the sampled median steps, to FS_DIGITS significant digits (nan when they give
+    none: no steps, or a median step that is not positive, as in a file whose times repeat)."""
     if not len(dt_medians):
         return math.nan
     step = float(np.median(dt_medians))
-    return 1.0 / step if step > 0 else math.nan
+    return float(f"{1.0 / step:.{FS_DIGITS}g}") if step > 0 else math.nan
 
 
 def step_medians(t: np.ndarray, chunk: int) -> list[float]:

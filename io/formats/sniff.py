@@ -15,7 +15,7 @@ HEAD_BYTES = 1 << 16
 """Bytes read to recognise a format (bounded: a 1 GB file costs the same as a 1 kB one)."""
 EXCERPT_CHARS = 40
 
-FORMATS = ("csv", "csv.gz", "npy", "gt3x", "agdc", "cwa", "bin")
+FORMATS = ("csv", "csv.gz", "npy", "parquet", "gt3x", "agdc", "cwa", "bin")
 """The recording formats ``read_recording`` accepts."""
 
 EXTRA_FOR = {"gt3x": ("pygt3x", "formats"), "agdc": ("pygt3x", "formats"),
@@ -73,6 +73,8 @@ def sniff(path: Path) -> Sniffed:
         return Sniffed("empty", "an empty file")
     if head.startswith(b"\x93NUMPY"):
         return Sniffed("npy", "a NumPy .npy file")
+    if head.startswith(b"PAR1"):
+        return Sniffed("parquet", "an Apache Parquet file")
     if head.startswith(b"PK\x03\x04") or head.startswith(b"PK\x05\x06"):
         return _zip_kind(path)
     if head.startswith(b"\x1f\x8b"):
