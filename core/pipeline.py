@@ -464,6 +464,9 @@ def calibrate_recording(
                     auto=model == "auto", baseline_origin_unknown=user_start is not None
                     and user_start.metadata.get("method") != "device_nominal")
     verdict.evidence["heldout_by_order"] = {c.model: c.heldout_mg for c in [*lower, chosen]}
+    if baseline is None and "offsets" in lower_models(fitted.model):
+        verdict.evidence["not_compared"] = {"offsets": "its held sensitivities would be the bootstrap's, fitted to "
+                                                       "these same windows: no lower order"}
     order = dict(fitted.order or {})
     terms = fitted.extended_terms
     if pick is not chosen:

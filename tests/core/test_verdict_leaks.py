@@ -18,7 +18,7 @@ from gravcal.core.estimators.start import device_start
 from gravcal.core.fold_bootstrap import fold_bootstrap
 from gravcal.core.heldout import HeldoutResult, fold_indices
 from gravcal.core.pipeline import calibrate_recording, chosen_heldout
-from gravcal.core.verdict import Candidate, judge, uncalibrated
+from gravcal.core.verdict import Candidate, judge, lower_models, uncalibrated
 
 from tests.core.test_verdict import logger_recording
 from tests.support.independent_sessions import session
@@ -67,6 +67,16 @@ def test_a_start_of_unknown_origin_is_said_to_be_possibly_in_sample():
     again = calibrate_recording(t, raw, start=first.calibration)  # a --start produced from the same data
     assert again.verdict.evidence.get("uncalibrated_origin") == "unknown"
     assert "origin is unknown" in again.verdict.reason and "in-sample" in again.verdict.reason
+
+
+def test_an_offsets_only_fit_from_the_bootstrap_is_said_not_compared():
+    """Without a start the offsets-only alternative would hold the bootstrap's sensitivities (fitted to the
+    same windows): it is no lower order, and the verdict's evidence says why it was not compared."""
+    t, raw, _ = logger_recording(np.random.default_rng(3002))
+    rep = calibrate_recording(t, raw)
+    assert "offsets" not in rep.verdict.evidence["heldout_by_order"]
+    if "offsets" in lower_models(rep.order["model"]):
+        assert "bootstrap" in rep.verdict.evidence["not_compared"]["offsets"]
 
 
 def test_judge_states_the_caveat_for_every_status_that_quotes_the_start():
