@@ -124,7 +124,9 @@ class LottersBatch:
         motion that cov/n does not describe (slow sway, posture drift inside the window, unmodelled
         cross-axis terms), so cov/n alone makes C_mu far too small and C_e over-confident. When the reduced
         chi² of the residuals exceeds 1 we solve for the floor that brings it to 1 and refit with it
-        (re-weighting, not just scaling C_e). With an explicit floor, a reduced chi² > 1 inflates C_e by
+        (re-weighting, not just scaling C_e), until the floor is the one of the fit it weights; each std is
+        then widened for the floor's estimation from m - P residuals (``floor_t_factor``, metadata
+        ``floor_t_factor``). With an explicit floor, a reduced chi² > 1 inflates C_e by
         that factor (Birge ratio) and is reported in metadata and the message.
     max_iter, tol: Gauss-Newton limits; tol is the largest step in fractions of 1 g (eq. 15-16 units).
     max_std_g: a parameter whose std exceeds this fraction of 1 g is "not determined" -> observable=False.
