@@ -521,8 +521,10 @@ def floor_t_factor(B: np.ndarray, var: np.ndarray, cov: np.ndarray, floor2: floa
     if dof <= 2 or floor2 <= 0:
         return np.ones(P)
     W = 1.0 / var
-    dC = cov @ ((B.T * W * W) @ B) @ cov
-    eps = np.clip(floor2 * np.diag(dC) / np.maximum(np.diag(cov), 1e-300), 0.0, 1.0)
+    with np.errstate(all="ignore"):  # a guarded, barely determined direction may overflow: widen it fully
+        dC = cov @ ((B.T * W * W) @ B) @ cov
+        eps = floor2 * np.diag(dC) / np.maximum(np.diag(cov), 1e-300)
+    eps = np.clip(np.nan_to_num(eps, nan=1.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
     half = 0.5 * dof
     g = np.exp(eps * math.log(half) + np.array([math.lgamma(half - e) for e in eps]) - math.lgamma(half))
     return np.sqrt(np.maximum(g, 1.0))

@@ -74,3 +74,19 @@ def test_t_factor_limits():
         g = floor_t_factor(B, var, cov, f2, dof) ** 2
         assert np.all(g >= lo * (1 - 1e-9)) and np.all(g <= hi * (1 + 1e-9)), g
     assert np.all(floor_t_factor(B, np.full(40, 1e-6), np.eye(6), 0.0, dof) == 1.0)
+
+
+def test_t_factor_between_its_limits_when_the_floor_is_half_the_variance():
+    """Window noise equal to the floor: each determined parameter widens by less than the floor-alone factor
+    and more than none; a direction two collinear columns leave undetermined (its variance is the guard's,
+    independent of f²) is not widened, and nothing is NaN."""
+    rng = np.random.default_rng(2)
+    B = rng.normal(size=(30, 6))
+    B[:, 5] = B[:, 4]
+    var = np.full(30, 2e-6)
+    lam, V = np.linalg.eigh((B.T / var) @ B)
+    cov = (V / np.maximum(lam, 1e-15 * lam[-1])) @ V.T
+    g = floor_t_factor(B, var, cov, 1e-6, 24) ** 2
+    assert np.all(np.isfinite(g))
+    assert np.all((g[:4] > 1.0 + 1e-3) & (g[:4] < 24 / 22 - 1e-3)), g
+    assert np.allclose(g[4:], 1.0, atol=1e-9), g
