@@ -40,6 +40,7 @@ from gravcal.core.estimators.start import bootstrap
 from gravcal.core.fastdetect import BlockStats, block_length, block_stats, detect_blocks, pass_chunks
 from gravcal.core.model.effect import needed_covariates
 from gravcal.core.model.terms import COVARIATES
+from gravcal.core.fold_bootstrap import heldout_own_start
 from gravcal.core.heldout import HeldoutResult, heldout_error
 from gravcal.core.verdict import Candidate, Verdict, choose, judge, lower_models, uncalibrated
 from gravcal.core.windows import MAX_WINDOW_STD_G, WindowSet, window_std_g
@@ -452,8 +453,7 @@ def calibrate_recording(
         if off > START_TOLERANCE and "too far off" not in cal.message:
             note = start_far_note(off)
             cal.message = f"{cal.message}; {note}" if cal.message else note
-    ho = heldout_error(ws, fitted.model, scheme="contiguous", folds=min(folds, len(ws)), start=fitted.fold_start,
-                       full_fit=cal, estimator=fitted.estimator)
+    ho = chosen_heldout(ws, fitted, min(folds, len(ws)), data_start=baseline is None)
     notes += ho.notes
     # the verdict: no order returned as good that holds out worse than a lower one or than no calibration
     chosen = Candidate(fitted.model, cal, ho, fitted)
@@ -461,8 +461,12 @@ def calibrate_recording(
     pick, guard_note = choose(chosen, lower, auto=model == "auto")
     none = None if baseline is None else uncalibrated(baseline, ws)
     verdict = judge(pick, baseline=none, baseline_name=_baseline_name(baseline), guard_note=guard_note,
-                    auto=model == "auto")
+                    auto=model == "auto", baseline_origin_unknown=user_start is not None
+                    and user_start.metadata.get("method") != "device_nominal")
     verdict.evidence["heldout_by_order"] = {c.model: c.heldout_mg for c in [*lower, chosen]}
+    if baseline is None and "offsets" in lower_models(fitted.model):
+        verdict.evidence["not_compared"] = {"offsets": "its held sensitivities would be the bootstrap's, fitted to "
+                                                       "these same windows: no lower order"}
     order = dict(fitted.order or {})
     terms = fitted.extended_terms
     if pick is not chosen:
@@ -532,4 +536,16 @@ def _lower_candidates(ws: WindowSet, model: str, start: Calibration, lab: Calibr
             continue
         out.append(Candidate(k, fit, ho))
     return out
+
+
+
+def chosen_heldout(ws: WindowSet, fitted: Any, folds: int, *, data_start: bool) -> HeldoutResult:
+    """The held-out error of the fitted order (order_fit.Fitted) on contiguous folds. Its folds start from
+    ``fitted.fold_start``, except an offsets-only fit from a start drawn from these windows (``data_start``:
+    the bootstrap): its held sensitivities came from every window, the held-out fold's included, so each fold
+    bootstraps its own from its training windows (``heldout_own_start``)."""
+    if data_start and fitted.model.split("+", 1)[0] == "offsets":
+        return heldout_own_start(ws, fitted.estimator, folds, full_fit=fitted.calibration)
+    return heldout_error(ws, fitted.model, scheme="contiguous", folds=folds, start=fitted.fold_start,
+                         full_fit=fitted.calibration, estimator=fitted.estimator)
 

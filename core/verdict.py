@@ -98,10 +98,14 @@ def choose(chosen: Candidate, lower: list[Candidate], *, auto: bool) -> tuple[Ca
     return chosen, f"held-out guard: {cmp}: the lower order {best.model} generalises better than the requested one (--model {best.model})"
 
 
-def judge(cand: Candidate, *, baseline: Candidate | None, baseline_name: str, guard_note: str, auto: bool) -> Verdict:
+def judge(cand: Candidate, *, baseline: Candidate | None, baseline_name: str, guard_note: str, auto: bool,
+          baseline_origin_unknown: bool = False) -> Verdict:
     """The verdict on ``cand`` (the calibration returned unless not_improved), given no calibration
     (``baseline``: the start scored on every window, uncalibrated(); None when the start came from these
-    data) and the guard's sentence. Not improved: no calibration is off by less than the fit holds out."""
+    data) and the guard's sentence. Not improved: no calibration is off by less than the fit holds out.
+    ``baseline_origin_unknown``: the start is a given calibration whose source nobody stated (not a device's
+    nominal scale, not a lab calibration): if it was fitted to this same recording, its error here is
+    in-sample, which no held-out error can fairly be compared with; the reason says so."""
     cal, ho = cand.calibration, cand.heldout
     held, ins = float(ho.heldout_rms_mg), float(ho.insample_rms_mg)
     ev: dict[str, Any] = {"heldout_rms_mg": held if np.isfinite(held) else None,
@@ -110,9 +114,15 @@ def judge(cand: Candidate, *, baseline: Candidate | None, baseline_name: str, gu
     if baseline_mg is not None:
         ev["uncalibrated_rms_mg"] = baseline_mg
     lead = f"{guard_note}; " if guard_note else ""
+    caveat = ""
+    if baseline is not None and baseline_origin_unknown:
+        ev["uncalibrated_origin"] = "unknown"
+        caveat = (f" (the start's origin is unknown: if it was fitted to this recording, its {_mg(baseline_mg)} is "
+                  f"in-sample and not comparable with a held-out error)")
     if baseline is not None and np.isfinite(held) and held >= baseline.heldout_mg:
         return Verdict("not_improved", f"{lead}no calibration ({baseline_name}) is off by {_mg(baseline_mg)}, "
-                                       f"the {cand.model} fit holds out at {_mg(held)}: the start is returned unchanged", ev)
+                                       f"the {cand.model} fit holds out at {_mg(held)}: the start is returned unchanged"
+                                       f"{caveat}", ev)
     if not cal.converged:
         return Verdict("unreliable", f"{lead}the fit did not converge: {cal.message or 'no reason given'}", ev)
     if not cal.observable:
@@ -127,7 +137,7 @@ def judge(cand: Candidate, *, baseline: Candidate | None, baseline_name: str, gu
         return Verdict("unreliable", f"{lead}no held-out error could be computed (every fold's fit failed)", ev)
     if guard_note and not auto:
         return Verdict("unreliable", guard_note, ev)
-    gain = "" if baseline_mg is None else f", against {_mg(baseline_mg)} uncalibrated ({baseline_name})"
+    gain = "" if baseline_mg is None else f", against {_mg(baseline_mg)} uncalibrated ({baseline_name}){caveat}"
     if cand.model.split("+", 1)[0] == "offsets":
         what = "" if guard_note else ", what the windows determine"
         return Verdict("partial", f"{lead}offsets only{what}: the sensitivities are held at the start; held-out "

@@ -25,7 +25,7 @@ contains (see LottersBatch).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -42,6 +42,8 @@ from .start import ellipsoid_fit
 START_TOLERANCE = 0.05  # the paper's convergence assumption: start within 5 % of the truth
 _RCOND = 1e-12  # relative eigenvalue below which a direction of the (normalised) Fisher information is void
 ANCHOR_STD_G = 0.3  # weak prior on the start [fraction of 1 g] (see LottersBatch._solve)
+FLOOR_ROUNDS = 6  # floor/refit rounds at most (two or three settle it)
+FLOOR_RTOL = 0.01  # the floor has settled when f² moves by less than this fraction
 STEP_TOL_STD = 1e-6  # Gauss-Newton stops when no parameter moves by more than this fraction of its std
 MAX_PLAUSIBLE_RMS_G = 0.5  # a converged fit leaving more than this RMS |a| - 1 g is not a calibration
 _TINY_VAR_G2 = 1e-14  # guard against zero-variance windows when no floor is given [g²]
@@ -122,7 +124,9 @@ class LottersBatch:
         motion that cov/n does not describe (slow sway, posture drift inside the window, unmodelled
         cross-axis terms), so cov/n alone makes C_mu far too small and C_e over-confident. When the reduced
         chi² of the residuals exceeds 1 we solve for the floor that brings it to 1 and refit with it
-        (re-weighting, not just scaling C_e). With an explicit floor, a reduced chi² > 1 inflates C_e by
+        (re-weighting, not just scaling C_e), until the floor is the one of the fit it weights; each std is
+        then widened for the floor's estimation from m - P residuals (``floor_t_factor``, metadata
+        ``floor_t_factor``). With an explicit floor, a reduced chi² > 1 inflates C_e by
         that factor (Birge ratio) and is reported in metadata and the message.
     max_iter, tol: Gauss-Newton limits; tol is the largest step in fractions of 1 g (eq. 15-16 units).
     max_std_g: a parameter whose std exceeds this fraction of 1 g is "not determined" -> observable=False.
@@ -335,17 +339,24 @@ class LottersBatch:
         chi2_red_stat = sol.chi2 / dof if dof > 0 else float("nan")
         floor_used = math.sqrt(floor2)
         inflation = 1.0
+        t_factor = np.ones(P)  # the std's widening for a floor estimated from the residuals (floor_t_factor)
         if self.sigma_floor_g is None and dof > 0 and chi2_red_stat > 1.0:
-            # data-derived floor: solve sum xi²/(v + f²) = dof for f², then re-weight and refit
-            v0 = sol.var_g2 - floor2
-            r2 = sol.resid_g**2
-            floor2 = quasi_static_floor(r2, v0, dof, _TINY_VAR_G2)
+            # data-derived floor: solve sum xi²/(v + f²) = dof for f² and refit with it, until the floor is the
+            # one of the fit it weights (the first residuals come from a fit weighted by the window noise alone,
+            # larger than those of the re-weighted fit wherever that noise varies among windows)
+            for _ in range(FLOOR_ROUNDS):
+                new2 = quasi_static_floor(sol.resid_g**2, sol.var_g2 - floor2, dof, _TINY_VAR_G2)
+                settled = abs(new2 - floor2) <= FLOOR_RTOL * new2
+                floor2 = new2
+                sol2 = self._solve(par, sol.p, anchor, mean, cov_mean, floor2, at_p0=sol)
+                sol = replace(sol2, iterations=sol.iterations + sol2.iterations,
+                              converged=sol.converged and sol2.converged)
+                if settled:
+                    break
             floor_used = math.sqrt(floor2)
-            sol2 = self._solve(par, sol.p, anchor, mean, cov_mean, floor2, at_p0=sol)
-            sol = _Solve(sol2.p, sol2.cov, sol2.chi2, sol2.resid_g, sol2.var_g2, sol.iterations + sol2.iterations,
-                         sol.converged and sol2.converged, sol2.fisher_eig, sol2.B)
             notes.append(f"reduced chi² {chi2_red_stat:.3g} from window noise alone: added a quasi-static floor "
                          f"of {floor_used * 1e3:.3g} mg to C_mu")
+            t_factor = floor_t_factor(sol.B, sol.var_g2, sol.cov, floor2, dof)
         if not np.all(np.isfinite(sol.fisher_eig)):
             raise ValueError(f"the {par.model} fit overflowed to non-finite values from the start "
                              f"({start_source}): the start is far off these windows' scale (units?)")
@@ -358,7 +369,7 @@ class LottersBatch:
         if self.sigma_floor_g is not None and dof > 0 and chi2_red > 1.0:
             inflation = chi2_red  # Birge ratio: the given C_mu is too small by this factor
             notes.append(f"reduced chi² {chi2_red:.3g} > 1 with sigma_floor_g={self.sigma_floor_g}: C_e inflated by it")
-        cov_noise = sol.cov * inflation
+        cov_noise = sol.cov * inflation * np.outer(t_factor, t_factor)
 
         K, o = par.unpack(sol.p)
         if not verdict:
@@ -409,6 +420,7 @@ class LottersBatch:
             "reduced_chi2_window_noise_only": float(chi2_red_stat),
             "sigma_floor_g": float(floor_used),
             "cov_inflation": float(inflation),
+            "floor_t_factor": {n: float(f) for n, f in zip(par.names, t_factor)},
             "start": start_source,
             "start_offset_from_estimate": off,
             "std_g": {n: float(s) for n, s in zip(par.names, std_g)},
@@ -494,6 +506,28 @@ def _mvu_solve(B: np.ndarray, var: np.ndarray, xi: np.ndarray, w_prior: float, d
     b = BW @ xi - w_prior * dev
     Finv = np.linalg.inv(F)
     return Finv @ b, np.sqrt(np.diag(Finv))
+
+
+def floor_t_factor(B: np.ndarray, var: np.ndarray, cov: np.ndarray, floor2: float, dof: int) -> np.ndarray:
+    """Per parameter, the factor on its std for a floor f² estimated from ``dof`` residuals (P,).
+
+    The floor's equation, sum r²/(v + f²) = dof with dof = m - P, is unbiased for f² (the residuals'
+    leverages sum to P). But an error divided by a std estimated from dof residuals is Student t, not
+    Gaussian: with C_ii ∝ (f²)^ε, where ε = f² ∂ln C_ii/∂f² (1 when the floor alone weights every window,
+    less where the windows' own noise does; ∂C/∂f² = C Bᵀ W² B C), the mean of (true / stated variance) is
+    E[X^-ε] for X = chi²_dof / dof, (dof/2)^ε Γ(dof/2 - ε) / Γ(dof/2): dof / (dof - 2) at ε = 1. The std
+    widened by its square root is the Gaussian-equivalent one (RMS z of 1)."""
+    P = cov.shape[0]
+    if dof <= 2 or floor2 <= 0:
+        return np.ones(P)
+    W = 1.0 / var
+    with np.errstate(all="ignore"):  # a guarded, barely determined direction may overflow: widen it fully
+        dC = cov @ ((B.T * W * W) @ B) @ cov
+        eps = floor2 * np.diag(dC) / np.maximum(np.diag(cov), 1e-300)
+    eps = np.clip(np.nan_to_num(eps, nan=1.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    half = 0.5 * dof
+    g = np.exp(eps * math.log(half) + np.array([math.lgamma(half - e) for e in eps]) - math.lgamma(half))
+    return np.sqrt(np.maximum(g, 1.0))
 
 
 def _mvu_covariance(B: np.ndarray, var: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
