@@ -31,6 +31,7 @@ from .parameterization import Parameterization
 LIN_FRACTION = 0.1
 MAX_PENDING = 500
 MAX_GN_ITERATIONS = 20
+IEKF_ITERATIONS = 3  # relinearisations of a window's own update once nothing is pending
 GN_STEP_TOL_STD = 1e-3  # Gauss-Newton stops when no parameter moves by more than this fraction of its std
 _TINY_VAR_G2 = 1e-14  # as the batch fit's guard against zero-variance windows [g²]
 
@@ -197,6 +198,8 @@ class LottersRecursive:
         # dh/dp_k = -g (dK_k a + do_k)
         self._ag = np.array((a0 * g0, a1 * g0, a2 * g0, a0 * g1, a1 * g1, a2 * g1, a0 * g2, a1 * g2, a2 * g2))
         self._g = np.array((g0, g1, g2))
+        self._a = np.array((a0, a1, a2))
+        self._Kinv = np.array(((i00, i01, i02), (i10, i11, i12), (i20, i21, i22)))
         B = -(self._dKg @ self._ag + self._do @ self._g)
         R = (g0 * (Cm[0] * g0 + Cm[1] * g1 + Cm[2] * g2) + g1 * (Cm[3] * g0 + Cm[4] * g1 + Cm[5] * g2)
              + g2 * (Cm[6] * g0 + Cm[7] * g1 + Cm[8] * g2)) + self.R_floor
@@ -229,11 +232,13 @@ class LottersRecursive:
                 self.P = self.P + self.Q * (t - self.t_last)  # random-walk prediction
                 self.P_a = self.P_a + self.Q * (t - self.t_last) if self._pending else self.P
             self.t_last = float(t) if self.t_last is None else max(self.t_last, float(t))
-        if self.relinearise:
+        if self.relinearise and self._pending:
             return self._step_relinearised(m, Cm, t, aux)
-        p_prior, P = self.p, self.P
+        p_prior, P, S_prior = self.p, self.P, self.S
         p = p_prior
-        for i in range(self.iterations):
+        settled = not self.relinearise
+        n_iter = max(self.iterations, IEKF_ITERATIONS) if self.relinearise else self.iterations
+        for i in range(n_iter):
             h, B, R = self._h_B_R(p, m, Cm)
             PB = P @ B
             S = float(B @ PB) + R
@@ -247,12 +252,23 @@ class LottersRecursive:
             else:
                 xi = 1.0 - h - float(B @ (p_prior - p))  # IEKF: relinearised at p, referred to the prior
             p = p_prior + PB * (xi / S)  # K_g = P B^T / S
+            if i == 0 and not settled:
+                # settled once the posterior leaves this window's second-order term negligible: then relinearising
+                # it cannot move the estimate (one EKF update is the Gauss-Newton solution), else iterate and keep it
+                settled = self._settled_one(P - np.outer(PB, PB * (1.0 / S)), R)
+                if settled:
+                    break
         if self.held is not None:  # consider sensitivity: S <- (I - K_g B) S - K_g B_h (K_g = PB / S)
             B_h = -(self._dKh9 @ self._ag + self._doh @ self._g)
             self.S = self.S - np.outer(PB * (1.0 / S), B @ self.S + B_h)
         # P - K_g S K_g^T = P - PB PB^T / S: equal to the Joseph form for the optimal gain, and exactly symmetric
         self.P = P - np.outer(PB, PB * (1.0 / S))
         self.p = p
+        if not settled:  # this window stays pending (the anchor is the prior): the next steps relinearise it
+            self.p_a, self.P_a, self.S_a = p_prior, P, S_prior
+            self._pending.append((np.array(m), np.reshape(np.asarray(Cm, dtype=float), (3, 3)),
+                                  0.0 if t is None else float(t),
+                                  np.zeros(0) if aux is None else np.ravel(np.asarray(aux, dtype=float))))
         self.nis_sum += xi0 * xi0 / S
         self.n_updates += 1
         self.consecutive_rejected = 0
@@ -348,6 +364,13 @@ class LottersRecursive:
             self._pending = []
             self.p_a, self.P_a, self.S_a = self.p, self.P, self.S
             self.n_folds += 1
+
+    def _settled_one(self, P: np.ndarray, R: float) -> bool:
+        """_settled for the window _h_B_R linearised last (its a and K^-1) under the covariance P."""
+        n = self._n
+        a, Kinv = self._a, self._Kinv
+        J = -((self._dK9.reshape(n, 3, 3) @ a + self._do) @ Kinv.T)  # (da/dp)^T (P, 3)
+        return 0.5 * float(np.sum((P @ J) * J)) <= LIN_FRACTION * math.sqrt(R)
 
     def _settled(self, par: Parameterization, mean: np.ndarray, R: np.ndarray) -> bool:
         """Every pending window's second-order term 1/2 tr(J P J^T) (J = da/dp at p) <= LIN_FRACTION sqrt(R)."""
