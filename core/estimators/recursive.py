@@ -24,6 +24,7 @@ from .extended import extended_metadata
 from .lotters import START_TOLERANCE, resolve_parameterization
 from .observability import SIGMA_FLOOR_G
 from .parameterization import Parameterization
+from .start import ellipsoid_fit
 
 # Sliding-window relinearisation (LottersRecursive docstring): pending windows are folded into the anchor when
 # their second-order term is at most this fraction of their noise std (its effect on the estimate is then ~1 %
@@ -33,6 +34,8 @@ MAX_PENDING = 500
 MAX_GN_ITERATIONS = 20
 IEKF_ITERATIONS = 3  # relinearisations of a window's own update once nothing is pending
 GN_STEP_TOL_STD = 1e-3  # Gauss-Newton stops when no parameter moves by more than this fraction of its std
+POOR_FIT_SIGMA = 5.0  # pending windows' chi² this many stds above its mean: a wrong minimum, not folded
+ELLIPSOID_MIN_WINDOWS = 12  # pending windows before an ellipsoid-fit restart is tried (twice its 6 unknowns)
 _TINY_VAR_G2 = 1e-14  # as the batch fit's guard against zero-variance windows [g²]
 
 
@@ -45,6 +48,39 @@ def stated_variances(start: Calibration) -> dict[str, float]:
     names = list(held["names"])
     cov = np.asarray(held["cov"], dtype=float).reshape(len(names), len(names))
     return {nm: float(cov[k, k]) for k, nm in enumerate(names) if np.isfinite(cov[k, k]) and cov[k, k] > 0}
+
+
+def _gauss_newton(evaluate, p: np.ndarray, info_a: np.ndarray, p_a: np.ndarray):
+    """Gauss-Newton (eq. 11a with a prior of information info_a at p_a), step-halved, from p; ``evaluate(p)``
+    gives (xi, B, R, cost). Returns (p, xi, B, R, cost) at the end."""
+    xi, B, R, cost = evaluate(p)
+    for _ in range(MAX_GN_ITERATIONS):
+        H = info_a + B.T @ (B / R[:, None])
+        grad = B.T @ (xi / R) - info_a @ (p - p_a)
+        try:
+            step = np.linalg.solve(H, grad)
+        except np.linalg.LinAlgError:
+            break
+        if not np.all(np.isfinite(step)):
+            break
+        lam, trial = 1.0, None
+        for _ in range(20):  # never accept a worse fit: the linearisation only holds near p
+            try:
+                cand = evaluate(p + lam * step)
+            except (ValueError, np.linalg.LinAlgError):
+                cand = None
+            if cand is not None and np.isfinite(cand[3]) and cand[3] <= cost * (1 + 1e-12) + 1e-300:
+                trial = cand
+                break
+            lam *= 0.5
+        if trial is None:
+            break
+        p = p + lam * step
+        xi, B, R, cost = trial
+        std = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 1e-300))
+        if np.max(np.abs(lam * step) / std) < GN_STEP_TOL_STD:
+            break
+    return p, xi, B, R, cost
 
 
 class LottersRecursive:
@@ -244,7 +280,8 @@ class LottersRecursive:
             S = float(B @ PB) + R
             if i == 0:
                 xi0 = 1.0 - h  # eq. 14
-                if xi0 * xi0 > self.gate2 * S:
+                # (relinearising) the gate allows the linearisation error too: the estimate may still be far
+                if xi0 * xi0 > self.gate2 * (S + (self._second_order(P) ** 2 if self.relinearise else 0.0)):
                     self.n_rejected += 1
                     self.consecutive_rejected += 1
                     return False
@@ -280,10 +317,8 @@ class LottersRecursive:
         h, B, R = self._h_B_R(self.p, m, Cm)
         xi0 = 1.0 - h
         S_inn = float(B @ self.P @ B) + R
-        if xi0 * xi0 > self.gate2 * S_inn:
-            self.n_rejected += 1
-            self.consecutive_rejected += 1
-            return False
+        # no gate at arrival: while windows are pending the estimate is not settled (it may still be far, a
+        # datasheet start, or in a wrong minimum) and no reference for one; pending windows are gated at the fold
         aux_row = np.zeros(0) if aux is None else np.ravel(np.asarray(aux, dtype=float))
         self._pending.append((np.array(m), np.reshape(np.asarray(Cm, dtype=float), (3, 3)),
                               0.0 if t is None else float(t), aux_row))
@@ -323,34 +358,21 @@ class LottersRecursive:
             d = p - p_a
             return xi, B, R, float(np.sum(xi * xi / R) + d @ info_a @ d)
 
-        p = self.p
-        xi, B, R, cost = evaluate(p)
-        for _ in range(MAX_GN_ITERATIONS):
-            H = info_a + B.T @ (B / R[:, None])
-            grad = B.T @ (xi / R) - info_a @ (p - p_a)
+        p, xi, B, R, cost = _gauss_newton(evaluate, self.p, info_a, p_a)
+        m = len(mean)
+        poor = float(np.sum(xi * xi / R)) > m + POOR_FIT_SIGMA * math.sqrt(2 * m)
+        if poor and m >= ELLIPSOID_MIN_WINDOWS:
+            # a far start (the datasheet's offsets are up to ~1 g off) can stall Gauss-Newton in a wrong minimum:
+            # also start from an ellipsoid fit of the pending windows, as the batch fit does, keep the better
             try:
-                step = np.linalg.solve(H, grad)
-            except np.linalg.LinAlgError:
-                break
-            if not np.all(np.isfinite(step)):
-                break
-            lam, trial = 1.0, None
-            for _ in range(20):  # never accept a worse fit: the linearisation only holds near p
-                try:
-                    cand = evaluate(p + lam * step)
-                except (ValueError, np.linalg.LinAlgError):
-                    cand = None
-                if cand is not None and np.isfinite(cand[3]) and cand[3] <= cost * (1 + 1e-12) + 1e-300:
-                    trial = cand
-                    break
-                lam *= 0.5
-            if trial is None:
-                break
-            p = p + lam * step
-            xi, B, R, cost = trial
-            std = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 1e-300))
-            if np.max(np.abs(lam * step) / std) < GN_STEP_TOL_STD:
-                break
+                e = ellipsoid_fit(WindowSet(mean, cov, np.ones(m), np.arange(m, dtype=float), np.zeros((m, 0)),
+                                            np.zeros(m, dtype=np.int64), np.ones(m, dtype=np.int64)))
+                alt = _gauss_newton(evaluate, self.par.pack(e.sensitivity, e.offset), info_a, p_a)
+            except (ValueError, np.linalg.LinAlgError):
+                alt = None
+            if alt is not None and alt[4] < cost:
+                p, xi, B, R, cost = alt
+                poor = float(np.sum(xi * xi / R)) > m + POOR_FIT_SIGMA * math.sqrt(2 * m)
         H = info_a + B.T @ (B / R[:, None])
         try:
             P = np.linalg.inv(H)
@@ -360,17 +382,29 @@ class LottersRecursive:
         if self.held is not None:  # dp/dtheta_held of the minimiser: P (P_a^-1 S_a - sum B^T B_h / R)
             B_h = held_jacobian(par, p, mean, self.held)
             self.S = self.P @ (info_a @ self.S_a - B.T @ (B_h / R[:, None]))
-        if len(self._pending) >= MAX_PENDING or self._settled(par, mean, R):
+        if len(self._pending) >= MAX_PENDING or (not poor and self._settled(par, mean, R)):
+            out = xi * xi > self.gate2 * (R + np.einsum("mp,pq,mq->m", B, self.P, B))
+            if out.any() and not out.all():  # outliers among them, judged at the settled estimate: drop, re-solve
+                self._pending = [w for w, o in zip(self._pending, out) if not o]
+                k = int(out.sum())
+                self.n_rejected += k
+                self.n_updates -= k
+                self._solve_pending()
+                return
             self._pending = []
             self.p_a, self.P_a, self.S_a = self.p, self.P, self.S
             self.n_folds += 1
 
-    def _settled_one(self, P: np.ndarray, R: float) -> bool:
-        """_settled for the window _h_B_R linearised last (its a and K^-1) under the covariance P."""
+    def _second_order(self, P: np.ndarray) -> float:
+        """1/2 tr(J P J^T) [g] for the window _h_B_R linearised last (J = da/dp from its a and K^-1): the size
+        of h's second-order term over the spread P leaves (|a| = 1)."""
         n = self._n
-        a, Kinv = self._a, self._Kinv
-        J = -((self._dK9.reshape(n, 3, 3) @ a + self._do) @ Kinv.T)  # (da/dp)^T (P, 3)
-        return 0.5 * float(np.sum((P @ J) * J)) <= LIN_FRACTION * math.sqrt(R)
+        J = -((self._dK9.reshape(n, 3, 3) @ self._a + self._do) @ self._Kinv.T)  # (da/dp)^T (P, 3)
+        return 0.5 * float(np.sum((P @ J) * J))
+
+    def _settled_one(self, P: np.ndarray, R: float) -> bool:
+        """_settled for the window _h_B_R linearised last, under the covariance P."""
+        return self._second_order(P) <= LIN_FRACTION * math.sqrt(R)
 
     def _settled(self, par: Parameterization, mean: np.ndarray, R: np.ndarray) -> bool:
         """Every pending window's second-order term 1/2 tr(J P J^T) (J = da/dp at p) <= LIN_FRACTION sqrt(R)."""
