@@ -45,13 +45,14 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..crlb import sphere_directions
+from ..model.datasheet import OFFSET_WALK_G_PER_SQRT_H, SENS_WALK_PER_SQRT_H
 from ..model.effect import needed_covariates, references
-from ..model.terms import COVARIATES
+from ..model.terms import COVARIATES, calibration_view
 from ..windows import Window, WindowSet, validate_windows
 from .inuse12 import with_frame
 from .consider import datasheet_held_uncertainty
-from .extended import extended_class, parameterization
-from .lotters import LottersBatch
+from .extended import EXTRA_TERMS, extended_class, model_name, parameterization
+from .lotters import LottersBatch, resolve_parameterization
 from .observability import N_PARAMS, ORDERS, POSTURE_CELLS, SIGMA_FLOOR_G, SYSTEMATIC_G, TOL_G, OrderDecision, held_note
 from .online_policy import OnlinePolicy, OnlineStep, PolicySettings, online_candidates
 from .order import (compare_extended, extended_base, extended_terms, fit_extended_floor, is_observable_extended,
@@ -64,6 +65,22 @@ STORE_CAPACITY = 4000  # window summaries kept (~0.4 MB); ~11 h of windows at on
 CHECK_EVERY = 10  # windows between order re-selections while the store is small ...
 CHECK_FRACTION = 0.02  # ... and at least this fraction of the store (bounds the amortised cost)
 COMPARE_EVERY = 2000  # windows between 6-vs-full comparisons (BIC + held-out: 12 batch fits)
+
+
+# The random walk of a sensitivity against an offset's, both in raw units (datasheet.py's assumed walks: 0.05 %/sqrt(h)
+# of the sensitivity against 2 mg/sqrt(h)): the configured process noise is the offsets' walk.
+SENS_WALK_RATIO2 = (SENS_WALK_PER_SQRT_H / OFFSET_WALK_G_PER_SQRT_H) ** 2
+
+
+def drift_walk(names: list[str], process_noise: float | np.ndarray | None) -> np.ndarray | float | None:
+    """Per-parameter random walk [raw²/s] from the configured ``process_noise``: a scalar q is the offsets' walk;
+    sensitivities (and cross-axis entries) walk SENS_WALK_RATIO2 q (the same q on them made their std grow
+    ~4x faster than any sensor drifts, so a day upright left them "not determined"); an extended term's
+    coefficient is a property of the part, not a drift: 0. A vector is taken as given."""
+    if process_noise is None or np.ndim(process_noise) > 0:
+        return process_noise
+    q = float(process_noise)
+    return np.array([q if n.startswith("o_") else q * SENS_WALK_RATIO2 if n.startswith("s_") else 0.0 for n in names])
 
 
 class WindowStore:
@@ -398,19 +415,24 @@ class OnlineCalibrator:
                 self._ext_verdict.pop(c, None)
                 continue
             if compare or c not in self._ext_verdict:
+                drift = self._drift_nuisance(c)
+                b_cmp, c_cmp = (model_name(base, drift), model_name(base, extended_terms(c) + drift)) if drift \
+                    else (base, c)
                 try:
-                    sc = compare_extended(ws, base, c, at, lab=self.lab,
+                    sc = compare_extended(ws, b_cmp, c_cmp, at, lab=self.lab,
                                           sigma_floor_g=self.sigma_floor_g if self.sigma_floor_g is not None
                                           else SIGMA_FLOOR_G)
                 except (ValueError, np.linalg.LinAlgError) as exc:
                     self.extended_status[c] = {"status": "not warranted", "reason": f"comparison failed ({exc})"}
                     self._ext_verdict[c] = False
                     continue
-                sb, se = sc[base], sc[c]
+                sb, se = sc[b_cmp], sc[c_cmp]
                 hb, he = sb["heldout_rms_mg"], se["heldout_rms_mg"]
                 better = se["bic"] < sb["bic"] and (hb is None or he is None or he < hb)
                 cmp = (f"BIC {c} {se['bic']:.1f} vs {base} {sb['bic']:.1f}" +
-                       ("" if hb is None or he is None else f", held-out {he:.4g} vs {hb:.4g} mg"))
+                       ("" if hb is None or he is None else f", held-out {he:.4g} vs {hb:.4g} mg") +
+                       (f" (both with {' and '.join(drift)}: the parameters drift (process noise), and a drift "
+                        "over the stored windows must not pass for the term)" if drift else ""))
                 self._ext_verdict[c] = better
                 self.extended_status[c] = {"status": "chosen" if better else "not warranted",
                                            "reason": cmp, "predicted_mg": obs.get("predicted_mg"), "comparison": sc}
@@ -423,6 +445,18 @@ class OnlineCalibrator:
                 self.extended_status[c] = {**self.extended_status[c], "status": "not warranted",
                                            "reason": self.extended_status[c]["reason"] + f"; {chosen} chosen first"}
         return chosen
+
+    def _drift_nuisance(self, candidate: str) -> tuple[str, ...]:
+        """The time-drift terms a covariate term's evidence is judged against: with a random walk configured the
+        parameters drift, the stored windows span days, and a drift that happens to follow the covariate (a daily
+        temperature cycle) would otherwise be named a temperature effect. The drift terms of what walks
+        (drift_walk: offsets and sensitivities), unless the candidate itself is such a term."""
+        if self.process_noise is None or not np.any(np.asarray(self.process_noise, dtype=float) > 0):
+            return ()
+        terms = extended_terms(candidate)
+        if any(calibration_view(t).covariate == "time" for t in terms):
+            return ()
+        return tuple(t for t in ("offset_drift", "sensitivity_drift") if t in EXTRA_TERMS and t not in terms)
 
     def _reseed(self, model: str, ws: WindowSet, here: Calibration, d: OrderDecision) -> None:
         """Batch fit of the stored windows (eq. 11a), then the recursion continues from it."""
@@ -490,7 +524,8 @@ class OnlineCalibrator:
         if floor is None:
             floor = float(cal.metadata.get("sigma_floor_g") or 0.0)
         if "+" not in model:
-            return LottersRecursive(cal, model, sigma_floor_g=floor, process_noise=self.process_noise,
+            par = resolve_parameterization(model, cal)
+            return LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=drift_walk(par.names, self.process_noise),
                                     gate_sigma=self.gate_sigma)
         # an extended model: the parameterization carries the fit's reference (T_ref, t0)
         ext = cal.metadata.get("extended") or {}
@@ -498,7 +533,7 @@ class OnlineCalibrator:
         par = parameterization(model, cal.sensitivity, cal.offset, t_ref_c=refs["temp"], t0_s=refs["time"],
                                v_ref=refs["vsupply"], temp_column=ext.get("temp_column", 0))
         # LottersRecursive starts the extra parameters from the fit's metadata["params"]
-        return LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=self.process_noise,
+        return LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=drift_walk(par.names, self.process_noise),
                                 gate_sigma=self.gate_sigma)
 
     def stats(self) -> dict[str, Any]:

@@ -58,6 +58,7 @@ def run_soak(days: float, seed: int = 0, *, process_noise: float = 3e-11, check_
     z: list[list[float]] = []
     checks_t: list[float] = []
     mem: list[tuple[float, float, int, int]] = []  # (t [h], RSS [MB], live objects, stored windows)
+    hourly: list[dict[str, Any]] = []  # every check: the published order and whether it was accepted (and why not)
     next_check = check_every_s
     t1 = time.perf_counter()
     for i in range(len(ws)):
@@ -67,6 +68,8 @@ def run_soak(days: float, seed: int = 0, *, process_noise: float = 3e-11, check_
             continue
         next_check += check_every_s
         st = p.state
+        hourly.append({"t_h": round(t / 3600.0, 2), "model": st.model, "accepted": bool(st.accepted),
+                       **({} if st.accepted else {"why": _why_not(st.calibration, p)})})
         if st.accepted and set(PARAMS) <= set(st.calibration.std):
             tr = info["truth"](float(ws.aux[i, 0]) if ws.aux.shape[1] else 25.0, t)
             cal = st.calibration
@@ -90,7 +93,11 @@ def run_soak(days: float, seed: int = 0, *, process_noise: float = 3e-11, check_
         "days": days, "seed": seed, "process_noise": process_noise, "windows": len(ws),
         "generate_s": round(t_gen, 2), "run_s": round(t_run, 2),
         "windows_per_s": round(len(ws) / max(t_run, 1e-9), 1),
-        "checks": int(za.shape[0]), "check_values": int(za.size),
+        "checks": int(za.shape[0]), "check_values": int(za.size), "hourly_checks": len(hourly),
+        "accepted_share": sum(h["accepted"] for h in hourly) / max(len(hourly), 1),
+        # after the first acceptance (a datasheet start needs the first lying postures to determine order 6)
+        "accepted_share_after_first": _share_after_first(hourly),
+        "not_accepted": [h for h in hourly if not h["accepted"]],
         "within_1sigma": float(np.mean(za <= 1)) if za.size else None,
         "within_2sigma": float(np.mean(za <= 2)) if za.size else None,
         "within_3sigma": float(np.mean(za <= 3)) if za.size else None,
@@ -116,6 +123,27 @@ def run_soak(days: float, seed: int = 0, *, process_noise: float = 3e-11, check_
         out["memory_samples"] = len(mem)
     out["_processor"] = p  # for tests (bounded structures); main() drops it
     return out
+
+
+def _share_after_first(hourly: list[dict[str, Any]]) -> float | None:
+    first = next((k for k, h in enumerate(hourly) if h["accepted"]), None)
+    if first is None:
+        return None
+    rest = hourly[first:]
+    return sum(h["accepted"] for h in rest) / len(rest)
+
+
+def _why_not(cal, p) -> str:
+    """Why a published calibration is not accepted (the policy's criteria, in its order)."""
+    if not cal.converged:
+        return "not converged"
+    if not cal.observable:
+        return "not observable" + (" (provisional)" if p.online.provisional else "")
+    if p.policy.suspect():
+        return f"suspect ({sum(p.policy.recent_rejections)} of the last {len(p.policy.recent_rejections)} rejected)"
+    if p.policy.refitting:
+        return "refitting"
+    return "other: " + (cal.message or "")[:120]
 
 
 def run_controls(n: int) -> dict[str, Any]:
