@@ -507,16 +507,35 @@ class OnlineCalibrator:
         self.n_reseeds += 1
 
     def _drift_inflation(self, ws: WindowSet) -> None:
-        """With a random walk (``process_noise`` Q per second) a batch fit of windows spread over time estimates
-        the parameters at their (weighted) mean time, not now: the recursion starts with P + Q (t_last - t_mean),
-        the walk's variance since then, so a re-seed never states drifting parameters more precisely than the
-        drift allows (the recursion then tracks them from there)."""
+        """With a random walk (``process_noise``: Q per second) a batch fit of windows spread over time is not an
+        estimate of the parameters now: window i measured p(t_i) = p(now) - d_i, d_i the walk since t_i, so
+        p_fit - p(now) = H^-1 sum_i G_i (-d_i) + noise (G_i = B_i^T B_i / R_i, H = sum G_i). The walk's
+        increments are independent: over the stretch between consecutive window times (length dt, newest
+        first) the windows before it carry C = sum of their G, and the covariance of the batch estimate about
+        p(now) grows by H^-1 (sum C Q C^T dt) H^-1 -- through every coupling of the fit (an offset's drift
+        between a day upright and a night lying lands in the sensitivities). The recursion starts from that,
+        so a re-seed never states drifting parameters more precisely than the drift allows."""
         rec = self.recursive
         if rec is None or not rec._has_Q or not len(ws):
             return
-        w = ws.n / max(float(np.sum(ws.n)), 1e-300)
-        lag = max(float(np.max(ws.t)) - float(w @ ws.t), 0.0)
-        rec.P = rec.P + rec.Q * lag
+        par = rec.par.at_windows(ws) if rec.par.covariates else rec.par
+        try:
+            _, B, _, var = par.norm_jacobian_variance(rec.p, ws.mean, ws.cov_of_mean)
+        except (ValueError, np.linalg.LinAlgError):
+            return
+        w = 1.0 / np.maximum(var + rec.R_floor, 1e-14)
+        order = np.argsort(-ws.t, kind="stable")  # newest first
+        t = ws.t[order]
+        G = (B[order, :, None] * B[order, None, :]) * w[order, None, None]  # (M, P, P)
+        C = np.cumsum(G[::-1], axis=0)[::-1]  # C[k]: the windows at or before t[k]
+        dt = np.concatenate([[0.0], t[:-1] - t[1:]])  # stretch from t[k] to the next newer window
+        X = np.einsum("k,kij,klj->il", dt, C @ rec.Q, C)
+        try:
+            Hinv = np.linalg.inv(C[0])
+        except np.linalg.LinAlgError:
+            return
+        extra = Hinv @ X @ Hinv
+        rec.P = rec.P + 0.5 * (extra + extra.T)
         rec.t_last = float(np.max(ws.t))
 
     def _recursion(self, cal: Calibration, model: str) -> LottersRecursive:

@@ -44,7 +44,7 @@ def drifting_model(seed: int):
     return default_model(seed, offset_drift=True, sensitivity_drift=True)
 
 
-def run_soak(days: float, seed: int = 0, *, process_noise: float = 3e-11, check_every_s: float = 3600.0,
+def run_soak(days: float, seed: int = 0, *, process_noise: float = 5e-12, check_every_s: float = 3600.0,
              warmup_s: float = 86400.0, day_start_h: float = 8.0, progress: bool = False,
              max_window_s: float = 10.0) -> dict[str, Any]:
     """The soak (module docstring); returns the figures. ``max_window_s``: the longest quasi-static window
