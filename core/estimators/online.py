@@ -450,13 +450,15 @@ class OnlineCalibrator:
         """The time-drift terms a covariate term's evidence is judged against: with a random walk configured the
         parameters drift, the stored windows span days, and a drift that happens to follow the covariate (a daily
         temperature cycle) would otherwise be named a temperature effect. The drift terms of what walks
-        (drift_walk: offsets and sensitivities), unless the candidate itself is such a term."""
+        (drift_walk: offsets and sensitivities; the registry's time terms acting on them), unless the candidate
+        itself is such a term."""
         if self.process_noise is None or not np.any(np.asarray(self.process_noise, dtype=float) > 0):
             return ()
         terms = extended_terms(candidate)
         if any(calibration_view(t).covariate == "time" for t in terms):
             return ()
-        return tuple(t for t in ("offset_drift", "sensitivity_drift") if t in EXTRA_TERMS and t not in terms)
+        return tuple(t for t in EXTRA_TERMS if calibration_view(t).covariate == "time" and calibration_view(t).per_window
+                     and calibration_view(t).acts_on in ("offset", "sensitivity"))
 
     def _reseed(self, model: str, ws: WindowSet, here: Calibration, d: OrderDecision) -> None:
         """Batch fit of the stored windows (eq. 11a), then the recursion continues from it."""
