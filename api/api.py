@@ -13,8 +13,9 @@ from gravcal.core.calibration import Calibration as _CoreCalibration
 from gravcal.core.calibration import jsonable
 from gravcal.io import offline
 from gravcal.io.recordings import Recording, read_recording, recording_from_arrays
+from gravcal.jsonbounds import JSONInputError, loads
 
-__all__ = ["read", "calibrate", "Calibration", "Recording"]
+__all__ = ["read", "calibrate", "write_calibrated", "Calibration", "Recording"]
 
 
 @dataclass
@@ -39,6 +40,17 @@ class Calibration(_CoreCalibration):
     def insample_rms_mg(self) -> float | None:
         return self.report.get("insample_rms_mg")
 
+    @property
+    def status(self) -> str:
+        """The verdict: "ok" or "partial" (offsets only) to use; "not_improved" (the start is returned),
+        "unreliable" or "refused" (the start is returned; nothing determined) not to (``gravcal calibrate``
+        exits 3 for these). ``reason`` says why."""
+        return str(self.report.get("status", "ok"))
+
+    @property
+    def reason(self) -> str:
+        return str(self.report.get("reason", ""))
+
     def __getattr__(self, name: str) -> Any:
         report = self.__dict__.get("report") or {}
         if name in report:
@@ -56,6 +68,20 @@ class Calibration(_CoreCalibration):
         cal = super().from_dict(d)
         cal.report = dict(d.get("report") or {})
         return cal
+
+    def write(self, rec: "Recording | str | Path", path: str | Path) -> Path:
+        """Write ``rec`` (a Recording or a path) calibrated by this calibration to ``path``: see
+        :func:`write_calibrated`."""
+        return write_calibrated(rec, self, path)
+
+    @classmethod
+    def from_json(cls, text: str | bytes) -> "Calibration":
+        """A calibration from its JSON (``to_json``'s or ``calibrate --save``'s), its nesting and size bounded
+        (gravcal.jsonbounds); ValueError with a one-line message when unusable."""
+        d = loads(text)
+        if not isinstance(d, dict):
+            raise JSONInputError("calibration JSON must be an object")
+        return cls.from_dict(d)
 
     @classmethod
     def _from_core(cls, core: _CoreCalibration, report: dict[str, Any]) -> "Calibration":
@@ -87,9 +113,10 @@ def calibrate(data: Recording | str | Path | tuple, model: str = "auto", *, temp
 
     ``model``: "auto" (the largest order the windows determine), "offsets", "6", "9", "12" or an order
     with terms ("6+temperature_offset" style names from the registry). Raises ValueError when the
-    recording holds no usable stillness (the message says why). Check ``converged`` and ``observable``
-    before using the result, as ``gravcal calibrate`` does (exit 3). ``progress=True``: tqdm bars of
-    the reading and of the calibration's block pass and stages.
+    recording is unusable input (the message says why). A readable recording always gets a verdict:
+    check ``status`` ("ok", "partial", "not_improved", "unreliable", "refused") and ``reason`` before
+    using the result, as ``gravcal calibrate`` does (exit 3 unless ok or partial). ``progress=True``:
+    tqdm bars of the reading and of the calibration's block pass and stages.
     """
     opts = offline.Options(model=model, detector=detector, folds=folds, start=start, columns=columns)
     offline.check_options(opts)
@@ -104,3 +131,20 @@ def calibrate(data: Recording | str | Path | tuple, model: str = "auto", *, temp
     with offline.progress_bar("calibrating", progress) as bar:
         report, out = offline.calibrate(rec, opts, progress=bar)
     return Calibration._from_core(report.calibration, out)
+
+
+def write_calibrated(rec: Recording | str | Path, cal: _CoreCalibration, path: str | Path, *,
+                     columns: str | dict[str, str] | None = None) -> Path:
+    """Write the calibrated samples of ``rec`` (a Recording, or the path of a recording) to ``path``, as
+    ``gravcal calibrate REC --write OUT`` does: .npy, .csv, .csv.gz or .parquet by the ending; columns
+    t [s], ax, ay, az [g] (``cal.apply`` with every term, at each sample's temperature and supply) and
+    flags (core.samples.FLAG_SATURATED, io.recordings.FLAG_FILLER: rows excluded from the fit, kept
+    here); the calibration in OUT.json (parquet: in its metadata). Every finite row of the file is
+    written (read again with its saturated and filler rows kept when ``rec`` dropped some; a
+    Recording made from arrays is written as it is). Returns the path written."""
+    from gravcal.io.calibrated import write_calibrated as write, write_for
+
+    report = jsonable(cal.report) if isinstance(cal, Calibration) else None
+    if isinstance(rec, (str, Path)):
+        return write(path, read_recording(rec, columns=columns, flag_only=True), cal, report)
+    return write_for(path, rec, cal, columns=columns, report=report)

@@ -26,7 +26,7 @@ import numpy as np
 from gravcal.core import fastdetect
 from gravcal.core import _blockkernels, _scankernel
 from gravcal.core._blockkernels import lotters_chain, window_sums
-from gravcal.core.detectors.butterworth import butter_sos, sos_rest_state
+from gravcal.core.butterworth import butter_sos, sos_rest_state
 
 
 def best(fn, repeat: int) -> float:

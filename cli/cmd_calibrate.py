@@ -5,8 +5,9 @@ gravcal.core.pipeline.calibrate_recording through daemon.offline (detector -> st
 (``--model auto``, the default: order.select_order) -> Lötters batch estimator -> held-out error over
 contiguous folds of windows), or with ``--lab`` bragge.calibrate_lab (six faces, all 12 parameters),
 and prints a summary, or with ``--json`` exactly one JSON object (its "order" says which parameters
-were fitted and why; model "none" from auto is an error, exit 2). Exit 3 (with the JSON still
-printed) when the calibration is not converged or not observable.
+were fitted and why). Every readable recording gets a verdict: "status" (ok, partial, not_improved, unreliable,
+refused; gravcal.core.verdict) and "reason", in the JSON and the summary; exit 0 for ok and partial,
+exit 3 (the JSON still printed) for the others.
 
 Several files, a directory, or ``--out``: a study (daemon.study), one results row per file, on a
 dask.distributed cluster (``--workers``, ``--scheduler``).
@@ -24,7 +25,11 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..jsonbounds import JSONInputError
+from ..jsonbounds import loads as bounded_loads
 from ..io.report import unit_text
+
+TRUSTED = ("ok", "partial")  # statuses that exit 0 (gravcal.core.verdict.TRUSTED; not imported: --help stays light)
 
 log = logging.getLogger(__name__)
 
@@ -58,12 +63,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "calibrate", help="calibrate a recording or a whole study from its quasi-static moments",
         description="Offline in-use calibration of recordings. CSV (or .csv.gz): header row; columns t [s], ax, ay, "
                     "az (raw units of any scale), optional gx, gy, gz, temp [°C], vsupply [V]; other columns ignored "
-                    "(or mapped with --columns). .npy: a structured array with the same field names. ActiGraph "
+                    "(or mapped with --columns). .npy: a structured array with the same field names; .parquet: the same "
+                    "column names. ActiGraph "
                     ".gt3x/.agdc, Axivity .cwa, GENEActiv .bin: through their readers (pip install 'gravcal[formats]'). "
                     "Exactly repeated filler (idle sleep) is excluded and reported.",
     )
     p.add_argument("files", type=Path, nargs="+", metavar="FILE|DIR",
-                   help="recording(s): .csv, .csv.gz, .npy, .gt3x, .agdc, .cwa, .bin (recognised by content), or a "
+                   help="recording(s): .csv, .csv.gz, .npy, .parquet, .gt3x, .agdc, .cwa, .bin (recognised by content), or a "
                         "directory of them; more than one, a directory, or --out: a study, one results row per file")
     p.add_argument("--columns", metavar="t=NAME,ax=NAME,...",
                    help="map the CSV's own column names, e.g. t=t_unix,ax=x_counts,ay=y_counts,az=z_counts")
@@ -74,6 +80,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--scheduler", metavar="ADDRESS", help="study: an existing dask.distributed scheduler, e.g. "
                                                           "tcp://head-node:8786, instead of a local cluster")
     p.add_argument("--quiet", action="store_true", help="no progress bar (one is shown only on a terminal)")
+    p.add_argument("--report", type=Path, metavar="DIR",
+                   help="study: also write DIR/index.html, the study's QC page (error before/after, model orders, "
+                        "statuses; one row per file, each linked to its page), drawn from the results file")
     # No argparse choices: listing them would import the numerics (a second of scipy) for every
     # `gravcal --help`; run() validates and names the known values.
     from gravcal.core.estimators.parameterization import PARAMETERIZATIONS  # numpy only: cheap
@@ -97,6 +106,13 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--start", type=Path, metavar="CAL.json",
                    help="start from this calibration (gravcal JSON) instead of the ellipsoid fit of the data")
     p.add_argument("--save", type=Path, metavar="CAL.json", help="also write the calibration (gravcal JSON) here")
+    p.add_argument("--write", type=Path, metavar="OUT", help="also write the calibrated samples: t [s], a [g] with every "
+                   "term applied, flags (saturated, filler) as .npy, .csv, .csv.gz or .parquet (by OUT's ending), the "
+                   "calibration in OUT.json (parquet: in its metadata); only for a calibration with status ok or partial")
+    p.add_argument("--write-dir", type=Path, metavar="DIR", help="study: write each file's calibrated samples into "
+                   "DIR as NAME.calibrated.<--write-format> (see --write); the row names the file")
+    p.add_argument("--write-format", default="npy", metavar="npy|csv|csv.gz|parquet",
+                   help="study: the format --write-dir writes (default npy)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
     p.add_argument("--no-saturation-check", dest="check_saturation", action="store_false",
                    help="do not treat samples piled up at a channel's extreme value as saturated")
@@ -111,8 +127,11 @@ def _load_start(path: Path):
     except FileNotFoundError:
         raise InputError(f"{path}: no such file (--start)") from None
     try:
-        return Calibration.from_json(text)
-    except ValueError as exc:
+        obj = bounded_loads(text)
+        if not isinstance(obj, dict):
+            raise ValueError("calibration JSON must be an object")
+        return Calibration.from_dict(obj)
+    except ValueError as exc:  # JSONInputError is one
         raise InputError(f"{path}: {exc}") from None
 
 
@@ -125,9 +144,9 @@ def _load_lab(path: Path):
     except FileNotFoundError:
         raise InputError(f"{path}: no such file (--lab-calibration)") from None
     try:
-        obj = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not JSON ({exc.msg} at line {exc.lineno}) (--lab-calibration)") from None
+        obj = bounded_loads(text)
+    except JSONInputError as exc:
+        raise InputError(f"{path}: {exc} (--lab-calibration)") from None
     try:
         cal = Calibration.from_dict(obj["calibration"] if isinstance(obj, dict) and "calibration" in obj else obj)
     except (ValueError, KeyError, TypeError) as exc:
@@ -153,9 +172,12 @@ def options(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.report:
+        return run_with_report(args)
     from ..io.formats.csvtext import parse_columns
 
     parse_columns(args.columns)  # a bad mapping is refused before anything is read
+    _check_write(args)
     opts = options(args)
     if len(args.files) > 1 or args.out or args.files[0].is_dir():
         from ..io.study import run_study
@@ -165,10 +187,26 @@ def run(args: argparse.Namespace) -> int:
         if not args.out:
             raise InputError("several files or a directory: name the results file with --out RESULTS.csv")
         return run_study(args.files, args.out, opts, workers=args.workers, scheduler=args.scheduler,
-                         quiet=args.quiet)
+                         quiet=args.quiet, **({"write_dir": args.write_dir, "write_format": args.write_format}
+                                             if args.write_dir else {}))
+    if args.write_dir:
+        raise InputError("--write-dir is for a study; for one file name the output with --write OUT")
     if args.workers is not None or args.scheduler:
         raise InputError("--workers and --scheduler are for a study (several files or a directory with --out)")
     return calibrate_one(args.files[0], opts, args)
+
+
+def run_with_report(args: argparse.Namespace) -> int:
+    """The study, then its QC page drawn from the results (whatever the study's exit status)."""
+    if not (len(args.files) > 1 or args.out or args.files[0].is_dir()):
+        raise InputError("--report draws a study's results: give several files or a directory with --out RESULTS.csv")
+    code = run(argparse.Namespace(**{**vars(args), "report": None}))
+    from ..io.study_report import write_report
+
+    page = write_report(args.out, args.report)
+    if not args.quiet:
+        print(f"gravcal: study report in {page}", file=sys.stderr)
+    return code
 
 
 def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
@@ -183,18 +221,40 @@ def calibrate_one(path: Path, opts: Any, args: argparse.Namespace) -> int:
     with offline.progress_bar("calibrating", show) as bar:
         report, out = offline.calibrate(rec, opts, (t_read, c_read), bar)
     cal = report.calibration
-    if args.save:
+    status, reason = out["status"], " ".join(str(out.get("reason") or "").split())
+    saved = None
+    if args.save and status != "refused":  # a refusal has no calibration to save: nothing was fitted
         args.save.write_text(cal.to_json(indent=2) + "\n", encoding="utf-8")
-    trustworthy = bool(cal.converged and cal.observable)
+        saved = args.save
+    if args.write and status in TRUSTED:
+        from ..io.calibrated import write_for
+
+        out["written"] = str(write_for(args.write, rec, cal, columns=opts.columns,
+                                       check_saturation=opts.check_saturation, report=jsonable(out)))
     if args.json:
         print(json.dumps(jsonable(out)))
     else:
-        print(summary(out, cal, saved=args.save))
-    if not trustworthy:
-        why = cal.message or ("not converged" if not cal.converged else "not observable")
-        print(f"gravcal: calibration not trustworthy: {' '.join(why.split())}", file=sys.stderr)
+        print(summary(out, cal, saved=saved) + (f"\nwritten     {out['written']}" if out.get("written") else ""))
+    if status not in TRUSTED:
+        print(f"gravcal: calibration {status.replace('_', ' ')}: {reason}"
+              + (f" (--save {args.save} not written)" if args.save and saved is None else "")
+              + (f" (--write {args.write} not written)" if args.write else ""), file=sys.stderr)
     request_prompt_exit()  # the output is printed, --save written and closed: nothing left to tear down
-    return EXIT_OK if trustworthy else EXIT_NOT_TRUSTWORTHY
+    return EXIT_OK if status in TRUSTED else EXIT_NOT_TRUSTWORTHY
+
+
+def _check_write(args: argparse.Namespace) -> None:
+    """Refuse a calibrated output the command cannot write before anything is computed."""
+    from ..io.calibrated import FORMATS, format_of
+
+    if args.write:
+        format_of(args.write)
+        if not args.write.parent.is_dir():
+            raise InputError(f"--write {args.write}: no such directory {args.write.parent}")
+    if args.write_dir and args.write_format not in FORMATS:
+        raise InputError(f"--write-format {args.write_format!r}: choose one of {', '.join(FORMATS)}")
+    if args.write and (len(args.files) > 1 or args.out or args.files[0].is_dir()):
+        raise InputError("--write names one output; a study writes one per file with --write-dir DIR")
 
 
 def _fmt(v: Any, spec: str = ".6g") -> str:
@@ -213,10 +273,12 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     ]
     for w in inp["warnings"]:
         lines.append(f"warning     {w}")
+    lines.append(f"verdict     {out.get('status', 'ok')}: {' '.join(str(out.get('reason') or '').split())}")
     state = ("converged" if cal.converged else "NOT CONVERGED") + ", " + ("observable" if cal.observable else "NOT OBSERVABLE")
     lines.append(f"model       {cal.model}: {out.get('n_windows', cal.n_windows)} quasi-static windows, {state}")
     order = out.get("order") or {}
-    if order.get("reason"):
+    said = " ".join(str(out.get("reason") or "").split())  # the verdict's reason: said once
+    if order.get("reason") and " ".join(order["reason"].split()) != said:
         lines.append(f"order       {order.get('model')}: {order['reason']}")
     if out.get("faces"):
         lines.append("faces       " + ", ".join(f"{f} ({v['windows']} window(s), tilt {v['tilt_deg']:.2g}°)"
@@ -242,7 +304,10 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     for term, verdict in (out.get("extended_terms") or {}).items():  # model auto: why a term is (not) in
         if isinstance(verdict, dict) and verdict.get("status") != "chosen":
             lines.append(f"{term:<11} {verdict.get('status')}: {verdict.get('reason', '')}")
-    if out.get("heldout_scheme") == "leave-one-face-out":
+    if str(out.get("heldout_scheme") or "").startswith("none"):  # not improved: the start, nothing fitted
+        lines.append(f"|a| - 1 g   RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg over every window under the start "
+                     f"(nothing fitted: every window is held out)")
+    elif out.get("heldout_scheme") == "leave-one-face-out":
         lines.append(f"|a - known| held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg (leave one face out), "
                      f"in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg")
     else:
@@ -250,10 +315,10 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
             f"|a| - 1 g   held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg "
             f"(contiguous folds of windows), in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg"
         )
-    if cal.message:
+    if cal.message and " ".join(cal.message.split()) not in said:
         lines.append(f"note        {cal.message}")
     for note in out.get("notes", []) or []:
-        if note and note not in (cal.message or ""):
+        if note and note not in (cal.message or "") and note not in said:
             lines.append(f"note        {note}")
     lines.append("convention  a [g] = sensitivity^-1 (raw - offset)")
     if saved:

@@ -25,11 +25,15 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         description="Fit the baseline model, re-simulate the session with it, compare measured vs simulated "
                     "statistics, test the catalogue of sensor-model terms (held-out error and BIC), extend "
                     "the model with the terms found and measure the held-out gain.")
-    p.add_argument("file", type=Path, help="recording: FILE.csv or FILE.npy (calibrate format; temp column optional)")
+    p.add_argument("file", type=Path, help="recording: .csv, .csv.gz, .npy, .parquet, .gt3x, .agdc, .cwa or .bin, recognised "
+                                           "by content as calibrate reads it (temp column optional)")
     p.add_argument("--json", action="store_true", help="print exactly one JSON object")
     p.add_argument("--report", type=Path, metavar="DIR", help="write DIR/report.md with PNG plots")
     p.add_argument("--replicas", type=int, default=40, help="simulated replicas of the session (default 40)")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated replicas (default 0)")
+    p.add_argument("--offer", default="", metavar="TERMS",
+                   help="comma-separated terms to test beyond the default catalogue (e.g. thermal_lag: the zero-g "
+                        "level following the temperature through a first-order lag, its time constant profiled)")
     p.add_argument("--no-saturation-check", dest="check_saturation", action="store_false",
                    help="do not treat samples piled up at a channel's extreme value as saturated")
     return p
@@ -40,11 +44,20 @@ def run(args: argparse.Namespace) -> int:
 
     from ..io.recordings import jsonable, read_recording
 
+    from gravcal.core.diagnosis import CATALOGUE
+    from gravcal.core.estimators.extended import EXTRA_TERMS
+
     if args.replicas < 1:
         raise InputError(f"--replicas must be >= 1, got {args.replicas}")
+    offered = [x.strip() for x in args.offer.split(",") if x.strip()]
+    unknown = [x for x in offered if x not in EXTRA_TERMS]
+    if unknown:
+        raise InputError(f"--offer: unknown term(s) {', '.join(unknown)}; terms: {', '.join(sorted(EXTRA_TERMS))}")
+    candidates = tuple(CATALOGUE) + tuple(x for x in offered if x not in CATALOGUE)
     rec = read_recording(args.file, check_saturation=args.check_saturation)
     try:
-        d = diagnose(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, fs=rec.fs, replicas=args.replicas, seed=args.seed)
+        d = diagnose(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, fs=rec.fs, replicas=args.replicas,
+                     seed=args.seed, candidates=candidates)
     except ValueError as exc:
         raise InputError(f"{args.file}: {exc}") from None
     out = d.to_json_dict()
@@ -72,19 +85,35 @@ def summary(out: dict[str, Any], name: str) -> str:
     if sim:
         lines.append(f"  baseline simulation: measured RMS {sim['measured']['rms_mg']:.3f} mg vs simulated "
                      f"{sim['simulated_mean']['rms_mg']:.3f} mg; disagrees on: {', '.join(sim['disagree']) or 'nothing'}")
-    if out["findings"]:
-        for f in out["findings"]:
-            lines.append(f"  FOUND {f['effect']}: {magnitude_text(f['magnitude'])} "
-                         f"(ΔBIC {f['evidence'].get('delta_bic')})")
-            for axis, why in f["magnitude"].get("undetermined", {}).items():
-                lines.append(f"    {axis} undetermined: {why}")
-            for note in f["magnitude"].get("notes", []):
-                lines.append(f"    note: {note}")
-    else:
+    verdict = out.get("verdict") or {}
+    if verdict.get("status") == "unexplained":
+        lines.append(f"  UNEXPLAINED: {verdict['text'].removeprefix('unexplained: ')}")
+    for f in out["findings"]:
+        group = f.get("group")
+        if group:
+            lines.append(f"  FOUND {group['text']}")
+            lines.append(f"    if {f['effect']} alone: {magnitude_text(f['magnitude'])}")
+            continue
+        lines.append(f"  FOUND {f['effect']}: {magnitude_text(f['magnitude'])} "
+                     f"(ΔBIC {f['evidence'].get('delta_bic')}, nested held-out gain "
+                     f"{fmt(f['evidence'].get('nested_heldout_gain_mg'))} mg)")
+        for axis, why in f["magnitude"].get("undetermined", {}).items():
+            lines.append(f"    {axis} undetermined: {why}")
+        for note in f["magnitude"].get("notes", []):
+            lines.append(f"    note: {note}")
+    for f in out.get("partial", []):
+        lines.append(f"  explains part, not the cause: {f['effect']} (the residual it leaves is unexplained)")
+    if not out["findings"] and verdict.get("status") != "unexplained":
         lines.append("  no significant effect found")
+    for w in verdict.get("withdrawn", []):
+        lines.append(f"  not named {w['effect']}: {w['why']}")
+    if verdict.get("status") != "unexplained" and verdict.get("text"):
+        lines.append(f"  residual: {verdict['text']}")
     lines.append(f"  extended {e['model']}: held-out {fmt(e['heldout_rms_mg'])} mg (gain {fmt(e['heldout_gain_mg'])} mg)")
     for u in out["untestable"]:
         lines.append(f"  untestable {u['effect']}: {u['why']}")
+    for q, why in (out.get("undetermined") or {}).items():
+        lines.append(f"  undetermined {q}: {why}")
     for n in out["notes"]:
         lines.append(f"  note: {n}")
     if out.get("report"):

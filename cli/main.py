@@ -189,12 +189,26 @@ def pin_blas_threads(argv: Sequence[str]) -> bool:
     return True
 
 
+def asks_version(argv: Sequence[str]) -> bool:
+    """``--version`` among the options before any command word: answered before anything is imported."""
+    for a in argv:
+        if a == "--version":
+            return True
+        if not a.startswith("-") or a in ("-h", "--help"):
+            return False
+    return False
+
+
 def console() -> None:
     """The ``gravcal`` program: ``main()``, then the exit status; after a command that asked for it
     (request_prompt_exit), the standard streams and log handlers are flushed and the process ends
     at once (os._exit: no atexit handlers, no teardown). ``gravcal calibrate`` runs with one OpenBLAS
     thread (pin_blas_threads), and the memory of its file's block statistics is faulted in while the
-    imports run (io/prestart.py); ``main()`` called in-process does neither."""
+    imports run (io/prestart.py); ``main()`` called in-process does neither. ``gravcal --version``
+    prints the version without importing any command (their imports load numpy and the drivers)."""
+    if asks_version(sys.argv[1:]):
+        write_or_stop(f"gravcal {_version()}")
+        sys.exit(EXIT_OK)
     pin_blas_threads(sys.argv[1:])
     from ..io import prestart
 

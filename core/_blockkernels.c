@@ -72,9 +72,9 @@ typedef float v2f __attribute__((vector_size(8)));
         const Py_ssize_t B = c->B, nb = c->nb, s0 = c->sx[0], s1 = c->sx[1], s2 = c->sx[2];           \
         const double inv_B = 1.0 / (double)B, max_step = c->max_step;                               \
         const char *p0 = c->x[0], *p1 = c->x[1], *p2 = c->x[2], *tp = c->t;                         \
-        double prev = c->first ? *(const double *)tp - 0.5 * max_step : *(const double *)(tp - c->st); \
+        double prev = c->first ? LOAD(double, tp) - 0.5 * max_step : LOAD(double, (tp - c->st)); \
         for (Py_ssize_t b = 0; b < c->m; b++) {                                                     \
-            const double r0 = *(const T *)p0, r1 = *(const T *)p1, r2 = *(const T *)p2;             \
+            const double r0 = LOAD(T, p0), r1 = LOAD(T, p1), r2 = LOAD(T, p2);             \
             const v2d r01 = {r0, r1};                                                               \
             /* channels 0 and 1 side by side in a v2d, each lane its own sums in order: (a0, a1),  \
              * (q00, q11), (q02, q12) = Σ (d0, d1) d2; a2, q22, q01 alone */                        \
@@ -82,9 +82,9 @@ typedef float v2f __attribute__((vector_size(8)));
             double a2 = 0, q22 = 0, q01 = 0;                                                        \
             int ok = 1;                                                                             \
             for (Py_ssize_t k = 0; k < B; k++) {                                                    \
-                const v2d d01 = (v2d){*(const T *)p0, *(const T *)p1} - r01;                        \
-                const double d2 = (double)*(const T *)p2 - r2;                                      \
-                const double now = *(const double *)tp, dt = now - prev;                            \
+                const v2d d01 = (v2d){LOAD(T, p0), LOAD(T, p1)} - r01;                        \
+                const double d2 = (double)LOAD(T, p2) - r2;                                      \
+                const double now = LOAD(double, tp), dt = now - prev;                            \
                 p0 += s0, p1 += s1, p2 += s2, tp += c->st;                                          \
                 a01 += d01, a2 += d2;                                                               \
                 q0011 += d01 * d01, q22 += d2 * d2;                                                 \
@@ -124,19 +124,19 @@ DEFINE_CHUNK_ROWS(chunk_rows_d, double)
         const v2d zero = {0.0, 0.0};                                                                \
         for (Py_ssize_t b = 0; b + 1 < c->m; b += 2) {                                              \
             const char *ra = c->t + b * BS, *rb = ra + BS;                                          \
-            const v2d r0 = {*(const T *)(ra + o0), *(const T *)(rb + o0)};                          \
-            const v2d r1 = {*(const T *)(ra + o1), *(const T *)(rb + o1)};                          \
-            const v2d r2 = {*(const T *)(ra + o2), *(const T *)(rb + o2)};                          \
-            v2d prev = {b == 0 && c->first ? *(const double *)ra - 0.5 * c->max_step               \
-                                            : *(const double *)(ra - S), *(const double *)(rb - S)};  \
+            const v2d r0 = {LOAD(T, (ra + o0)), LOAD(T, (rb + o0))};                          \
+            const v2d r1 = {LOAD(T, (ra + o1)), LOAD(T, (rb + o1))};                          \
+            const v2d r2 = {LOAD(T, (ra + o2)), LOAD(T, (rb + o2))};                          \
+            v2d prev = {b == 0 && c->first ? LOAD(double, ra) - 0.5 * c->max_step               \
+                                            : LOAD(double, (ra - S)), LOAD(double, (rb - S))};  \
             v2d a0 = zero, a1 = zero, a2 = zero, q00 = zero, q11 = zero, q22 = zero, q01 = zero,      \
                 q02 = zero, q12 = zero;                                                             \
             v2l good = {0, 0}; /* minus one per step above 0, one per step up to max_step: ok at 2 B */ \
             for (Py_ssize_t k = 0; k < B; k++, ra += S, rb += S) {                                  \
-                const v2d d0 = (v2d){*(const T *)(ra + o0), *(const T *)(rb + o0)} - r0;             \
-                const v2d d1 = (v2d){*(const T *)(ra + o1), *(const T *)(rb + o1)} - r1;             \
-                const v2d d2 = (v2d){*(const T *)(ra + o2), *(const T *)(rb + o2)} - r2;             \
-                const v2d now = {*(const double *)ra, *(const double *)rb}, dt = now - prev;        \
+                const v2d d0 = (v2d){LOAD(T, (ra + o0)), LOAD(T, (rb + o0))} - r0;             \
+                const v2d d1 = (v2d){LOAD(T, (ra + o1)), LOAD(T, (rb + o1))} - r1;             \
+                const v2d d2 = (v2d){LOAD(T, (ra + o2)), LOAD(T, (rb + o2))} - r2;             \
+                const v2d now = {LOAD(double, ra), LOAD(double, rb)}, dt = now - prev;        \
                 a0 += d0, a1 += d1, a2 += d2;                                                       \
                 q00 += d0 * d0, q11 += d1 * d1, q22 += d2 * d2;                                     \
                 q01 += d0 * d1, q02 += d0 * d2, q12 += d1 * d2;                                     \
@@ -257,7 +257,7 @@ static PyObject *block_pass(PyObject *self, PyObject *args)
         for (Py_ssize_t b = 0; b < m; b++) {
             double sa = 0.0;
             for (Py_ssize_t k = 0; k < B; k++)
-                sa += *(const double *)(AT(*aux, b * B + k) + a * aux_s1);
+                sa += LOAD(double, (AT(*aux, b * B + k) + a * aux_s1));
             double ma = sa / (double)B;
             ao[a * nb + b0 + b] = ma;
             if (!isfinite(ma))

@@ -97,6 +97,25 @@ static inline void release_all(Py_buffer *v, int n)
 
 #define AT(view, i) ((const char *)(view).buf + (i) * (view).strides[0])
 
+/* Items of strided views may sit at any address (a record of t float64 and three float32 is 20 bytes: most
+ * rows' t is not 8-byte aligned): loaded through memcpy, which compilers turn into one plain load where the
+ * CPU allows unaligned ones, and which is defined behaviour where it does not. */
+static inline double load_double(const char *p)
+{
+    double v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+static inline float load_float(const char *p)
+{
+    float v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+#define LOAD(T, p) load_##T((const char *)(p))
+
 /* Get a C-contiguous float64 buffer of exactly n doubles (writable if asked); 0 on success. */
 static inline int get_doubles(PyObject *obj, Py_buffer *view, Py_ssize_t n, int writable, const char *name)
 {

@@ -74,8 +74,8 @@ enum { S_LO = 0, S_HI = 3, S_NLO = 6, S_NHI = 9, S_MINDT = 12, S_FINITE = 13, SC
  * extremes and (TRACK) the run of repeated rows it continues or ends. */
 #define SCAN_ROW(T, k, tq, q0, q1, q2, TRACK)                                                       \
     do {                                                                                            \
-        const double tk = *(const double *)(tp + (k) * ts), v0 = *(const T *)(p0 + (k) * s0),      \
-                     v1 = *(const T *)(p1 + (k) * s1), v2 = *(const T *)(p2 + (k) * s2);           \
+        const double tk = LOAD(double, (tp + (k) * ts)), v0 = LOAD(T, (p0 + (k) * s0)),      \
+                     v1 = LOAD(T, (p1 + (k) * s1)), v2 = LOAD(T, (p2 + (k) * s2));           \
         f += (tk - tk) + ((v0 - v0) + ((v1 - v1) + (v2 - v2)));                                     \
         const double dt = tk - (tq); /* NaN before the first row: never below min_dt */            \
         min_dt = dt < min_dt ? dt : min_dt;                                                         \
@@ -95,14 +95,14 @@ enum { S_LO = 0, S_HI = 3, S_NLO = 6, S_NHI = 9, S_MINDT = 12, S_FINITE = 13, SC
         if ((clo)[c] <= (st)[S_LO + c]) {                                                           \
             double n = 0.0;                                                                         \
             for (Py_ssize_t k = 0; k < (m); k++)                                                    \
-                n += *(const T *)(p + k * sc) == (clo)[c];                                          \
+                n += LOAD(T, (p + k * sc)) == (clo)[c];                                          \
             (st)[S_NLO + c] = (clo)[c] < (st)[S_LO + c] ? n : (st)[S_NLO + c] + n;                  \
             (st)[S_LO + c] = (clo)[c];                                                              \
         }                                                                                           \
         if ((chi)[c] >= (st)[S_HI + c]) {                                                           \
             double n = 0.0;                                                                         \
             for (Py_ssize_t k = 0; k < (m); k++)                                                    \
-                n += *(const T *)(p + k * sc) == (chi)[c];                                          \
+                n += LOAD(T, (p + k * sc)) == (chi)[c];                                          \
             (st)[S_NHI + c] = (chi)[c] > (st)[S_HI + c] ? n : (st)[S_NHI + c] + n;                  \
             (st)[S_HI + c] = (chi)[c];                                                              \
         }                                                                                           \
@@ -128,8 +128,8 @@ enum { S_LO = 0, S_HI = 3, S_NLO = 6, S_NHI = 9, S_MINDT = 12, S_FINITE = 13, SC
             SCAN_ROW(T, 0, prev ? prev[0] : NAN, prev ? prev[1] : NAN, prev ? prev[2] : NAN,         \
                      prev ? prev[3] : NAN, TRACK);                                                  \
         for (Py_ssize_t k = 1; k < m; k++)                                                          \
-            SCAN_ROW(T, k, *(const double *)(tp + (k - 1) * ts), *(const T *)(p0 + (k - 1) * s0),    \
-                     *(const T *)(p1 + (k - 1) * s1), *(const T *)(p2 + (k - 1) * s2), TRACK);       \
+            SCAN_ROW(T, k, LOAD(double, (tp + (k - 1) * ts)), LOAD(T, (p0 + (k - 1) * s0)),    \
+                     LOAD(T, (p1 + (k - 1) * s1)), LOAD(T, (p2 + (k - 1) * s2)), TRACK);       \
         if (TRACK)                                                                                  \
             TRACK_END(m - first);                                                                   \
         st[S_MINDT] = min_dt;                                                                       \

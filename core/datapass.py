@@ -20,10 +20,12 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from . import fastdetect
-from ._scankernel import scan_chunk
+from .accelerator import kernels
 from .fastdetect import BlockPass, BlockStats, block_length, row_releaser, run_lanes
 from .repeats import MIN_RUN, RunCollector
 from .samples import FLAG_SATURATED
+
+scan_chunk = kernels("gravcal.core._scankernel").scan_chunk
 
 MEDIAN_EVERY = 64  # the sample rate is the median of the median steps of every 64th chunk
 
@@ -44,11 +46,18 @@ class ScanStats:
     blocks: BlockStats | None = None  # block statistics of every row at fs_from(dt_medians), when asked for
 
 
+FS_DIGITS = 9
+"""Significant digits of the sample rate: a float64 time of a week (6e5 s) resolves ~1e-10 s, 1e-8 of a
+100 Hz step, so digits past the ninth are rounding noise of the time stamps (100.00000000009095 Hz)."""
+
+
 def fs_from(dt_medians: Sequence[float]) -> float:
-    """The sample rate [Hz] of the sampled median steps (nan when they give none)."""
+    """The sample rate [Hz] of the sampled median steps, to FS_DIGITS significant digits (nan when they give
+    none: no steps, or a median step that is not positive, as in a file whose times repeat)."""
     if not len(dt_medians):
         return math.nan
-    return 1.0 / float(np.median(dt_medians))
+    step = float(np.median(dt_medians))
+    return float(f"{1.0 / step:.{FS_DIGITS}g}") if step > 0 else math.nan
 
 
 def step_medians(t: np.ndarray, chunk: int) -> list[float]:

@@ -68,6 +68,7 @@ class HeldoutResult:
     fold_rms_mg: list[float] = field(default_factory=list)  # per fold [mg]
     fold_sizes: list[int] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    window_errors_mg: np.ndarray | None = None  # |a| - 1 g of each window when held out [mg] (NaN: fold not fitted)
 
     def to_dict(self) -> dict[str, Any]:
         return {"heldout_rms_mg": self.heldout_rms_mg, "insample_rms_mg": self.insample_rms_mg, "scheme": self.scheme,
@@ -102,6 +103,7 @@ def heldout_error(
     fold_rms: list[float] = []
     sizes: list[int] = []
     notes: list[str] = []
+    per_window = np.full(len(ws), np.nan)
     for k, test in enumerate(held):
         train = np.setdiff1d(all_idx, test, assume_unique=True)
         try:
@@ -112,6 +114,7 @@ def heldout_error(
         if not cal.converged:
             notes.append(f"fold {k}: fit did not converge")
         e = norm_error_mg(cal, ws.subset(test))
+        per_window[test] = e
         errors.append(e)
         fold_rms.append(float(np.sqrt(np.mean(e**2))))
         sizes.append(int(test.size))
@@ -119,4 +122,4 @@ def heldout_error(
     heldout = float(np.sqrt(np.mean(pooled**2))) if pooled.size else float("nan")
     if not errors:
         notes.append("no fold could be fitted: held-out error unavailable")
-    return HeldoutResult(heldout, insample, scheme, len(held), fold_rms, sizes, notes)
+    return HeldoutResult(heldout, insample, scheme, len(held), fold_rms, sizes, notes, per_window)

@@ -31,8 +31,9 @@ import numpy as np
 from gravcal.core.calibration import Calibration
 from gravcal.core.detectors import DETECTORS
 from gravcal.core.estimators.extended import extended_class
-from gravcal.core.estimators.lotters import START_TOLERANCE, relative_difference, start_far_note
-from gravcal.core.estimators.order import extended_terms
+from gravcal.core.estimators.lotters import START_TOLERANCE, LottersBatch, relative_difference, start_far_note
+from gravcal.core.estimators.observability import is_observable
+from gravcal.core.estimators.order import extended_terms, reference_start
 from gravcal.core.estimators.order_fit import AUTO_EXTENDED_TERMS, OrderNotDetermined  # noqa: F401 (the pipeline's API)
 from gravcal.core.estimators.order_fit import fit_order as _fit_order
 from gravcal.core.estimators.start import bootstrap
@@ -40,6 +41,7 @@ from gravcal.core.fastdetect import BlockStats, block_length, block_stats, detec
 from gravcal.core.model.effect import needed_covariates
 from gravcal.core.model.terms import COVARIATES
 from gravcal.core.heldout import HeldoutResult, heldout_error
+from gravcal.core.verdict import Candidate, Verdict, choose, judge, lower_models, uncalibrated
 from gravcal.core.windows import MAX_WINDOW_STD_G, WindowSet, window_std_g
 
 log = logging.getLogger(__name__)
@@ -68,11 +70,19 @@ class CalibrationReport:
     start: Calibration | None = None
     order: dict[str, Any] | None = None  # {"model", "reason", "evidence"}: which order was fitted and why
     extended_terms: dict[str, dict[str, Any]] | None = None  # auto: per AUTO_EXTENDED_TERMS term, status and reason
+    verdict: Verdict | None = None  # status (core.verdict.STATUSES) and reason
+
+    @property
+    def status(self) -> str:
+        return self.verdict.status if self.verdict is not None else "ok"
 
     def to_json_dict(self) -> dict[str, Any]:
         """The `gravcal calibrate --json` object (raw units: offset [raw], sensitivity [raw per g])."""
         cal = self.calibration
+        v = self.verdict
         d = {
+            "status": v.status if v is not None else "ok",
+            "reason": v.reason if v is not None else "",
             "model": cal.model,
             "offset": cal.offset.tolist(),
             "sensitivity": cal.sensitivity.tolist(),
@@ -92,6 +102,7 @@ class CalibrationReport:
                                {"model": cal.model, "reason": "", "evidence": {}}),
             "extended": extended_summary(cal),
             "extended_terms": _jsonable(self.extended_terms),
+            "verdict": _jsonable(v.evidence) if v is not None else {},
             "calibration": cal.to_dict(),
         }
         return d
@@ -390,6 +401,7 @@ def calibrate_recording(
                              f"column; the recording has none")
     temp = covariate_columns(cols.n, temp, vsupply)
     user_start = start
+    baseline = start if start is not None else lab  # no calibration: what the user had before (None: nothing)
     if start is None and lab is not None:
         start = lab
         notes.append("start: the lab calibration")
@@ -443,9 +455,81 @@ def calibrate_recording(
     ho = heldout_error(ws, fitted.model, scheme="contiguous", folds=min(folds, len(ws)), start=fitted.fold_start,
                        full_fit=cal, estimator=fitted.estimator)
     notes += ho.notes
+    # the verdict: no order returned as good that holds out worse than a lower one or than no calibration
+    chosen = Candidate(fitted.model, cal, ho, fitted)
+    lower = _lower_candidates(ws, fitted.model, start, lab, sigma_floor_g, folds, from_data=baseline is None)
+    pick, guard_note = choose(chosen, lower, auto=model == "auto")
+    none = None if baseline is None else uncalibrated(baseline, ws)
+    verdict = judge(pick, baseline=none, baseline_name=_baseline_name(baseline), guard_note=guard_note,
+                    auto=model == "auto")
+    verdict.evidence["heldout_by_order"] = {c.model: c.heldout_mg for c in [*lower, chosen]}
+    order = dict(fitted.order or {})
+    terms = fitted.extended_terms
+    if pick is not chosen:
+        cal, ho = pick.calibration, pick.heldout
+        order["model"], order["reason"] = pick.model, f"{order.get('reason', '')}; {guard_note}"
+        terms = {k: ({**v, "status": "not warranted", "reason": f"{v.get('reason', '')}; dropped: the held-out "
+                                                               f"guard returned {pick.model}"}
+                     if v.get("status") == "chosen" else v) for k, v in (terms or {}).items()} or terms
+    if verdict.status == "not_improved":  # the start is what the user gets: its error is the one reported
+        cal, ho = unchanged(baseline, verdict.reason), none.heldout
     steps.stage()
-    log.info("calibrated %d windows (order %s): held-out %.3g mg, in-sample %.3g mg", len(ws), fitted.model,
-             ho.heldout_rms_mg, ho.insample_rms_mg)
-    return CalibrationReport(cal, ws, ho.heldout_rms_mg, ho.insample_rms_mg, len(ws), notes, ho, start, fitted.order,
-                             fitted.extended_terms)
+    log.info("calibrated %d windows (order %s, %s): held-out %.3g mg, in-sample %.3g mg", len(ws), order.get("model"),
+             verdict.status, ho.heldout_rms_mg, ho.insample_rms_mg)
+    return CalibrationReport(cal, ws, ho.heldout_rms_mg, ho.insample_rms_mg, len(ws), notes, ho, start, order,
+                             terms, verdict)
+
+
+def refused_report(reason: str, start: Calibration | None) -> CalibrationReport:
+    """The report of a recording whose windows determine nothing (``reason``: the ValueError's message of
+    calibrate_recording): the start returned unchanged (when there is one; else an identity marked "none",
+    not converged, not observable), status "refused"."""
+    if start is None:
+        cal = Calibration("none", np.zeros(3), np.eye(3), converged=False, observable=False, message=reason)
+    else:
+        cal = unchanged(start, reason)
+        cal.converged, cal.observable = False, False
+    empty = WindowSet(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0), np.zeros(0), np.zeros((0, 0)),
+                      np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    return CalibrationReport(cal, empty, float("nan"), float("nan"), 0, [], None, start,
+                             {"model": "none", "reason": reason, "evidence": {}}, None, Verdict("refused", reason))
+
+
+def _baseline_name(baseline: Calibration | None) -> str:
+    if baseline is None:
+        return ""
+    return baseline.message or f"the start ({baseline.model})"
+
+
+def unchanged(start: Calibration, reason: str) -> Calibration:
+    """The start returned as the result (nothing fitted improved on it), saying why."""
+    return Calibration(start.model, start.offset, start.sensitivity, covariance=start.covariance.copy(),
+                       param_names=list(start.param_names), n_windows=start.n_windows, converged=start.converged,
+                       observable=start.observable, message=reason, metadata=dict(start.metadata))
+
+
+def _lower_candidates(ws: WindowSet, model: str, start: Calibration, lab: Calibration | None,
+                      sigma_floor_g: float | None, folds: int, from_data: bool) -> list[Candidate]:
+    """The observable orders below ``model`` (verdict.lower_models), each fitted on all windows and scored on
+    the same contiguous folds as the chosen one. An offsets-only fit holds the start's sensitivities: when
+    the start came from these windows (the bootstrap's ellipsoid fit) it is no lower order (its
+    sensitivities were fitted to the same windows) and is not compared."""
+    out = []
+    for k in lower_models(model):
+        if k == "offsets" and from_data:
+            continue
+        fit_start = start if k == "offsets" else reference_start(k, start, lab)
+        try:
+            ok, _ = is_observable(ws, fit_start, k)
+            if not ok:
+                continue
+            est = LottersBatch(k, sigma_floor_g=sigma_floor_g)
+            fit = est.fit(ws, fit_start)
+            ho = heldout_error(ws, k, scheme="contiguous", folds=min(folds, len(ws)), start=fit_start, full_fit=fit,
+                               estimator=est)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            log.info("guard: order %s not scored (%s)", k, exc)
+            continue
+        out.append(Candidate(k, fit, ho))
+    return out
 

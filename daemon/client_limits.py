@@ -171,7 +171,8 @@ class ServerConfig:
 
 
 class RequestBudget:
-    """A token bucket: ``rate`` requests per second on average, ``burst`` at once.
+    """A token bucket: ``rate`` requests per second on average, ``burst`` at once (a request is one command:
+    a line of several is charged for each, request_intake.py).
 
     ``take(n, now)`` grants up to ``n`` requests and returns how many; what is not granted is
     refused by the caller (one ERROR, reading paused) so that a flooding client costs the

@@ -23,6 +23,7 @@ from gravcal.core.estimators.observability import ORDER_LADDER
 from gravcal.core.model.terms import AUX_COLUMNS, CALIBRATION_TERMS, calibration_view
 
 from ..errors import InputError
+from ..jsonbounds import JSONInputError, check_bounds
 
 ONLINE_TERMS = tuple(t for t in CALIBRATION_TERMS
                      if calibration_view(t).acts_on != "cross" and calibration_view(t).per_window)
@@ -36,6 +37,7 @@ DEFAULT_ONLINE_TERMS = ",".join(t for t in ONLINE_TERMS if calibration_view(t).a
                                 and calibration_view(t).covariate in AUX_COLUMNS)
 
 DEFAULT_CONFIG_PATH = "/etc/gravcal/gravcald.toml"
+MAX_CONFIG_BYTES = 1 << 20  # the example configuration with every key is ~4 kB
 
 
 class ConfigError(InputError):
@@ -64,7 +66,7 @@ class DeviceConfig:
 class EstimatorConfig:
     model: str = field(default="6", metadata=_meta("model order", choices=tuple(ORDER_LADDER)))
     min_windows: int = field(default=6, metadata=_meta("windows before a calibration may be accepted (the first batch fit also waits for 2 per parameter)", min=0))
-    process_noise: float = field(default=0.0, metadata=_meta("random-walk variance of each offset per second of sensor time added to P [raw²/s]; sensitivities walk 1/16 of it, extended-term coefficients not at all (0: none; drifting sensors: e.g. 1e-12 tracks ~1 mg/h)", min=0.0))
+    process_noise: float = field(default=0.0, metadata=_meta("random-walk variance of each offset per second of sensor time added to P [raw²/s]; sensitivities walk 1/16 of it, extended-term coefficients not at all (0: none; a drifting sensor: 3e-12 to 1e-11, measured by bench/bench_soak.py)", min=0.0))
     extended_terms: str = field(default=DEFAULT_ONLINE_TERMS, metadata=_meta(
         f"extended terms the online estimator may add to orders >= 6, comma-separated ({', '.join(ONLINE_TERMS)}; "
         "\"\" for none); each is used only when the windows can test it (its covariate channel with a spread), "
@@ -244,7 +246,9 @@ def load_config(path: str | os.PathLike | None = None, overrides: dict[str, Any]
         required = True if required is None else required
         try:
             with open(path, "rb") as fh:
-                data = tomllib.load(fh)
+                raw = fh.read(MAX_CONFIG_BYTES + 1)
+            check_bounds(raw, max_bytes=MAX_CONFIG_BYTES, syntax="toml")  # tomllib recurses per nesting level
+            data = tomllib.loads(raw.decode("utf-8"))
         except FileNotFoundError:
             if required:
                 raise ConfigError(f"{path}: no such configuration file") from None
@@ -257,6 +261,8 @@ def load_config(path: str | os.PathLike | None = None, overrides: dict[str, Any]
             raise ConfigError(f"{path}: invalid TOML: {exc}") from None
         except UnicodeDecodeError as exc:
             raise ConfigError(f"{path}: invalid TOML: not UTF-8 ({exc.reason})") from None
+        except JSONInputError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
         if data is not None:
             cfg = parse_config(data, path)
     if overrides:

@@ -9,13 +9,26 @@ Entry point: ``gravcal.daemon.gravcald:main`` (console script ``gravcald``).
 from __future__ import annotations
 
 import argparse
+import importlib.machinery
 import logging
 import math
 import os
 import sys
+from pathlib import Path
 from typing import Any, Sequence
 
-from ..core.estimators.observability import ORDER_LADDER
+# the per-sample engine is compiled (a build without a C compiler installs without it): its files are looked
+# for before anything imports them (importing a package's __init__ may), so that its absence is one line
+NATIVE_ENGINE = ("drivers/_framekernel", "core/_correctkernel", "daemon/_linekernel", "daemon/_fastpath")
+MISSING_ENGINE = [name for name in NATIVE_ENGINE
+                  if not any((Path(__file__).resolve().parents[1] / (name + suffix)).is_file()
+                             for suffix in importlib.machinery.EXTENSION_SUFFIXES)]
+if MISSING_ENGINE:
+    sys.stderr.write(f"gravcald: its native engine is missing ({', '.join(MISSING_ENGINE)} not built): reinstall "
+                     f"gravcal where a C compiler and Python's headers are installed (e.g. apt install gcc python3-dev)\n")
+    raise SystemExit(1)
+
+from ..core.estimators.observability import ORDER_LADDER  # noqa: E402
 from ..drivers.rigs.options import disconnect_arg, speed_arg
 from . import config as config_mod
 from . import memory_probe, privileges

@@ -28,6 +28,8 @@ import numpy as np
 from ..core.calibration import SCHEMA as CALIBRATION_SCHEMA
 from ..core.calibration import Calibration
 from ..errors import InputError
+from ..jsonbounds import MAX_BYTES, JSONInputError
+from ..jsonbounds import loads as bounded_loads
 
 log = logging.getLogger("gravcal.persistence")
 
@@ -115,6 +117,19 @@ def fsync_dir(directory: str) -> None:
         os.close(fd)
 
 
+def make_directories_durable(directory: str | os.PathLike, mode: int = 0o750) -> None:
+    """``os.makedirs(directory, exist_ok=True)``, then fsync the parent of each directory it created, top
+    down: a new directory is an entry in its parent, lost in a power cut like an unsynced rename."""
+    path = os.path.abspath(directory)
+    created = []
+    while not os.path.isdir(path) and os.path.dirname(path) != path:
+        created.append(path)
+        path = os.path.dirname(path)
+    os.makedirs(directory, mode=mode, exist_ok=True)
+    for new in reversed(created):
+        fsync_dir(os.path.dirname(new))
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, *, mode: int = 0o640) -> None:
     """Replace ``path`` with ``data`` atomically: temp file in the same directory, fsync,
     rename over the target, fsync the directory."""
@@ -145,11 +160,11 @@ def write_state(path: str | os.PathLike, state: CalibrationState) -> None:
 def read_state(path: str | os.PathLike) -> CalibrationState:
     """Parse a state file; StateError (or OSError for I/O) when unusable."""
     with open(path, "rb") as fh:
-        raw = fh.read()
+        raw = fh.read(MAX_BYTES + 1)
     try:
-        d = json.loads(raw)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise StateError(f"not valid JSON ({exc})") from exc
+        d = bounded_loads(raw)
+    except JSONInputError as exc:
+        raise StateError(str(exc)) from None
     return CalibrationState.from_dict(d)
 
 
@@ -203,7 +218,7 @@ def load_lab_calibration(path: str | os.PathLike) -> Calibration:
     path = os.fspath(path)
     try:
         with open(path, "rb") as fh:
-            text = fh.read()
+            text = fh.read(MAX_BYTES + 1)
     except FileNotFoundError:
         raise InputError(f"{path}: no such calibration file") from None
     except PermissionError:
@@ -211,9 +226,9 @@ def load_lab_calibration(path: str | os.PathLike) -> Calibration:
     except IsADirectoryError:
         raise InputError(f"{path}: is a directory, expected a calibration JSON file") from None
     try:
-        d = json.loads(text)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from None
+        d = bounded_loads(text)
+    except JSONInputError as exc:
+        raise InputError(f"{path}: {exc}") from None
     return calibration_from_json_dict(d, path)
 
 
@@ -240,7 +255,7 @@ class StateStore:
     def ensure_directory(self) -> None:
         self._create_on_save = False
         try:
-            os.makedirs(self.directory, mode=0o750, exist_ok=True)
+            make_directories_durable(self.directory, mode=0o750)
         except OSError as exc:
             raise InputError(f"state directory {self.directory}: cannot create it: {exc.strerror or exc}") from exc
         if not os.access(self.directory, os.W_OK | os.X_OK):

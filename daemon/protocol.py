@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ..jsonbounds import MAX_DEPTH, JSONInputError, raw_decode
 from ..core.samples import duty_ratios
 from ._linekernel import imu_line
 
@@ -28,6 +29,7 @@ PROTOCOL_MINOR = 1  # additions only; docs/socket-protocol.md lists what each mi
 STANDARD_GRAVITY = 9.80665  # m/s² per g (CGPM 1901)
 
 MAX_REQUEST_BYTES = 1024
+MAX_REQUEST_DEPTH = MAX_DEPTH  # brackets in one ?WATCH argument, its own braces included
 """Default bound on one request line (bytes, without the newline)."""
 
 COMMANDS = ("WATCH", "POLL", "CALIB", "STATUS", "DEVICES", "VERSION")
@@ -124,7 +126,6 @@ def parse_requests(line: bytes | str) -> list[Request | ProtocolError]:
     text = text.strip()
     out: list[Request | ProtocolError] = []
     pos = 0
-    decoder = json.JSONDecoder()
     while True:
         while pos < len(text) and text[pos] in " \t\r;":
             pos += 1
@@ -148,9 +149,9 @@ def parse_requests(line: bytes | str) -> list[Request | ProtocolError]:
                 out.append(ProtocolError(f"?{name} takes no arguments"))
                 return out
             try:
-                args, pos = decoder.raw_decode(text, pos + 1)
-            except json.JSONDecodeError as exc:
-                out.append(ProtocolError(f"?{name}: argument is not valid JSON: {exc.msg} at column {exc.colno}"))
+                args, pos = raw_decode(text, pos + 1, max_depth=MAX_REQUEST_DEPTH)
+            except JSONInputError as exc:
+                out.append(ProtocolError(f"?{name}: argument is {exc}"))
                 return out
             if not isinstance(args, dict):
                 out.append(ProtocolError(f"?{name}: argument must be a JSON object, got {type(args).__name__}"))

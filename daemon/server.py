@@ -12,9 +12,11 @@ Design (why it looks like this):
 - Every client has a queue of encoded lines bounded in messages and bytes (output_queue.py).
   What a slow client loses is counted and announced to it (``DROPPED``) before its next data. A
   client with output pending that makes no read progress for ``stall_timeout_s`` is disconnected.
-- Requests spend a per-client budget (client_limits.RequestBudget); the excess is discarded with
-  one ERROR and reading paused, so a flood costs bounded work; ``flood_timeout_s`` of it
-  disconnects. ?STATUS comes from a status cached for ``status_cache_s``.
+- Requests spend a per-client budget (client_limits.RequestBudget), one per command however many a
+  line carries (request_intake.py); the excess is discarded with one ERROR and reading paused, so a
+  flood costs bounded work; ``flood_timeout_s`` of it disconnects. Whatever one client's request
+  raises costs that client, never the server thread. ?STATUS comes from a status cached for
+  ``status_cache_s``.
 - Non-watchers idle for ``idle_timeout_s`` are disconnected (as gpsd does) and the longest-idle
   makes room in a full table; clients whose peer hung up are closed even while no data flows.
 - IMU lines are encoded once per block and encoding (plain / raw) and shared by all clients.
@@ -41,7 +43,8 @@ from .fanout import deliver, deliver_line, fast_snapshot, finish_delivery
 from .client_limits import ClientState as _Client
 from .client_limits import RequestBudget, ServerConfig, check_due_in, hung_up, return_memory_to_os
 from .output_queue import OutputQueue
-from .protocol import ImuBlock, ProtocolError
+from .protocol import ImuBlock
+from .request_intake import RequestIntake
 from .socket_activation import bind_unix_socket
 
 log = logging.getLogger("gravcal.server")
@@ -52,7 +55,7 @@ _COUNTERS = ("clients_total", "clients_rejected", "clients_stalled", "clients_id
              "clients_flooding", "requests_refused", "published_samples", "inbox_overruns")  # in STATUS's server
 
 
-class SocketServer:
+class SocketServer(RequestIntake):
     """Serves IMU/CALIB/STATUS to local clients from its own thread.
 
     ``status_provider`` (called in the server thread; must be quick and thread-safe)
@@ -258,7 +261,7 @@ class SocketServer:
                         if c.id not in self._clients:
                             continue
                         if mask & selectors.EVENT_READ:
-                            self._on_readable(c)
+                            self._on_readable_guarded(c)
                         if mask & selectors.EVENT_WRITE and c.id in self._clients:
                             self._flush(c)
                 self._flush_published()
@@ -341,111 +344,7 @@ class SocketServer:
             self.clients_idle += 1
             self._close(oldest, f"idle for {now - oldest.last_request:.0f} s, room made for a new client")
 
-    # -- requests --------------------------------------------------------------------
-    def _on_readable(self, c: _Client) -> None:
-        try:
-            data = c.sock.recv(65536)
-        except (BlockingIOError, InterruptedError):
-            return
-        except OSError as exc:
-            self._close(c, f"read error: {exc}")
-            return
-        if not data:
-            self._on_eof(c)
-            return
-        limit = self.config.max_request_bytes
-        buf = c.inbuf
-        buf += data
-        while True:
-            nl = buf.find(b"\n")
-            if c.discarding:
-                if nl < 0:
-                    buf.clear()
-                    return
-                del buf[: nl + 1]
-                c.discarding = False
-                continue
-            if nl < 0:
-                if len(buf) > limit:
-                    self._oversized(c)
-                    if c.id not in self._clients:
-                        return
-                    buf.clear()
-                    c.discarding = True
-                return
-            if not c.budget.take(1, time.monotonic()):
-                self._throttle(c)
-                return
-            line = bytes(buf[:nl])
-            del buf[: nl + 1]
-            if len(line) > limit:
-                self._oversized(c)
-                if c.id not in self._clients:
-                    return
-                continue
-            c.last_request = time.monotonic()
-            self._handle_line(c, line)
-            if c.id not in self._clients:
-                return
-        c.flood_since = None
-
-    def _throttle(self, c: _Client) -> None:
-        """Over the request budget: discard what is buffered, say so once, stop reading for a while."""
-        now = time.monotonic()
-        buf = c.inbuf
-        refused = buf.count(b"\n") + (0 if buf.endswith(b"\n") else 1)
-        c.discarding = not buf.endswith(b"\n")
-        buf.clear()
-        c.refused += refused
-        self.requests_refused += refused
-        if c.flood_since is None:
-            c.flood_since = now
-            log.warning("client %d: more than %g requests/s; refusing and pausing its reads",
-                        c.id, self.config.request_rate_hz)
-        elif now - c.flood_since > self.config.flood_timeout_s:
-            self.clients_flooding += 1
-            self._close(c, f"flooding requests for {now - c.flood_since:.0f} s ({c.refused} refused)")
-            return
-        self._reply(c, protocol.error_message(
-            f"too many requests (limit {self.config.request_rate_hz:g}/s): {refused} discarded", None), flush=False)
-        c.paused_until = now + max(c.budget.wait_for_one(now), 0.25)
-        self._flush(c)
-
-    def _oversized(self, c: _Client) -> None:
-        c.oversize_count += 1
-        limit = self.config.max_request_bytes
-        self._reply(c, protocol.error_message(f"request longer than {limit} bytes; discarded up to the next newline"))
-        if c.oversize_count >= self.config.max_oversize:
-            self._flush(c)
-            self._close(c, f"{c.oversize_count} oversized requests")
-
-    def _on_eof(self, c: _Client) -> None:
-        # A client that half-closes after its commands (echo '?WATCH=...' | nc -U) still reads.
-        c.read_closed = True
-        if c.inbuf and not c.discarding:
-            line = bytes(c.inbuf)
-            c.inbuf.clear()
-            if len(line) <= self.config.max_request_bytes:
-                self._handle_line(c, line)
-        if c.id not in self._clients:
-            return
-        if not c.watch.enable:
-            c.close_when_flushed = True  # answer what it asked, then hang up
-        self._flush(c)
-
-    def _handle_line(self, c: _Client, line: bytes) -> None:
-        text = line.decode("utf-8", "replace").strip()
-        for req in protocol.parse_requests(line):
-            if isinstance(req, ProtocolError):
-                c.errors += 1
-                self._reply(c, protocol.error_message(str(req), text))
-                continue
-            try:
-                self._execute(c, req)
-            except ProtocolError as exc:
-                c.errors += 1
-                self._reply(c, protocol.error_message(str(exc), text))
-
+    # -- requests (read, split into lines and charged to the budget by RequestIntake) ------
     def _execute(self, c: _Client, req: protocol.Request) -> None:
         if req.command == "WATCH":
             was = c.watch.enable

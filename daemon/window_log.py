@@ -14,6 +14,7 @@ from typing import IO
 import numpy as np
 
 from ..core.windows import Window
+from ..jsonbounds import loads as bounded_loads
 
 log = logging.getLogger("gravcal.gravcald")
 
@@ -65,8 +66,8 @@ def read_windows(path: str | Path) -> list[Window]:
     with open(path, encoding="utf-8") as f:
         for i, line in enumerate(f, 1):
             try:
-                d = json.loads(line)
-                if d.get("class") != WINDOW_CLASS:
+                d = bounded_loads(line)  # a JSONInputError is a ValueError
+                if not isinstance(d, dict) or d.get("class") != WINDOW_CLASS:
                     raise ValueError("not a WINDOW record")
                 out.append(window_from_record(d))
             except (ValueError, KeyError, TypeError) as exc:

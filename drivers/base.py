@@ -37,6 +37,7 @@ import numpy as np
 
 from ..core.samples import FLAG_GAP_BEFORE, FLAG_RECONNECT, SAMPLE_DTYPE
 from .codec import TICK_HZ
+from .ordering import InOrder
 
 log = logging.getLogger(__name__)
 
@@ -111,6 +112,7 @@ class Driver(ABC):
         # sample is returned as soon as it has arrived (set before open(): I2C derives its FIFO
         # watermark from it).
         self.latency_budget_s = 0.0
+        self._order = InOrder()  # seq only goes up in what read() returns (ordering.py)
         self.counters: dict[str, Any] = {
             "samples": 0,
             "disconnects": 0,
@@ -166,19 +168,24 @@ class Driver(ABC):
         if self._pending.shape[0]:
             return self._take(max_samples)
         deadline = time.monotonic() + max(0.0, timeout)
+        order = self._order
         while not self._closing.is_set():
             if not self._connected and not self._reconnect(deadline):
                 break
+            held_due = order.wait_until
             try:
-                block = self._read_block(deadline)
+                block = self._read_block(deadline if held_due is None else min(deadline, held_due))
             except self.transient_errors as exc:
                 self._lost(exc)
                 continue
-            n = block.shape[0]
-            if n:
+            if block.shape[0]:
                 self._stamp(block, time.monotonic())
                 if self._flag_reconnect:
                     self._mark_reconnect(block)
+            if block.shape[0] or held_due is not None:
+                block = order.settle(block, time.monotonic(), self._hold_s())
+            n = block.shape[0]
+            if n:
                 if n <= max_samples:  # the usual case (a sample per read): handed over whole
                     self.counters["samples"] += n
                     return block
@@ -203,6 +210,7 @@ class Driver(ABC):
         """Counters: samples, frames, crc_errors, gaps, missing, reconnects, ... (bus-specific extras)."""
         out = dict(self.counters)
         out.update(self._codec_stats())
+        out["out_of_order"] = self._order.out_of_order
         out["connected"] = self._connected
         out["bus"] = self.bus
         out["device"] = self.description
@@ -225,6 +233,7 @@ class Driver(ABC):
         self._count_fast_frames(n)
         self.counters["samples"] += n
         self._last_t = last_t
+        self._order.last = u.last + u.offset
         self._rate.update_seq(u.last + u.offset, t_recv)
 
     def _count_fast_frames(self, n: int) -> None:
@@ -232,6 +241,16 @@ class Driver(ABC):
         raise NotImplementedError
 
     # -- internals ------------------------------------------------------------------
+    def _hold_s(self) -> float:
+        """How long a sample that jumped may wait for the next to confirm it: three sample periods."""
+        rate = self._rate.rate_hz
+        return min(max(3.0 / rate, 0.02), 0.5) if rate else 0.1
+
+    @property
+    def _holding(self) -> bool:
+        """A sample waits in the ordering filter: the next bytes go through read()."""
+        return self._order.held is not None
+
     def _take(self, max_samples: int) -> np.ndarray:
         out, self._pending = self._pending[:max_samples], self._pending[max_samples:]
         self.counters["samples"] += out.shape[0]

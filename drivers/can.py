@@ -112,6 +112,7 @@ class SampleAssembler(can.Listener):
         self._ready: list[tuple] = []
         self.counters = {"can_frames": 0, "orphan_frames": 0, "bad_frames": 0, "partial": 0,
                          "error_frames": 0, "foreign_frames": 0, "garbled_lines": 0}
+        self.garbled_kinds: dict[str, int] = {}  # garbled_lines by the parser's exception
 
     def on_message_received(self, msg: can.Message) -> None:
         if msg.is_error_frame:
@@ -144,6 +145,11 @@ class SampleAssembler(can.Listener):
         p[_PRESENT] |= 1 << k
         if p[_PRESENT] == _ALL:
             self._finish()
+
+    def count_garbled(self, kind: str) -> None:
+        """One interface line lost to its parser, which raised ``kind`` (an exception's class name)."""
+        self.counters["garbled_lines"] += 1
+        self.garbled_kinds[kind] = self.garbled_kinds.get(kind, 0) + 1
 
     def on_error(self, exc: Exception) -> None:  # Notifier hook
         self.counters["error_frames"] += 1
@@ -309,6 +315,7 @@ class CanDriver(Driver):
 
     def _codec_stats(self):
         out = dict(self.assembler.counters)
+        out["garbled_kinds"] = dict(self.assembler.garbled_kinds)
         out.update(frames=out["can_frames"], gaps=self.unwrapper.gaps, missing=self.unwrapper.missing,
                    restarts=self.unwrapper.restarts,
                    duplicates=self.unwrapper.duplicates, strays=self.unwrapper.strays)
@@ -329,7 +336,8 @@ class CanDriver(Driver):
         budget, a sequence question open)."""
         bus, asm = self._bus, self.assembler
         if (not isinstance(bus, BufferedSlcanBus) or not self._connected or self._closing.is_set()
-                or self._pending.shape[0] or self._flag_reconnect or self._deferred is not None
+                or self._pending.shape[0] or self._holding or self._flag_reconnect
+                or self._deferred is not None
                 or self.latency_budget_s > 0 or asm._pending is not None or asm._ready):
             return None
         fd = bus.fast_fd()
@@ -347,13 +355,18 @@ class CanDriver(Driver):
         self.assembler.counters["can_frames"] += 4 * n
 
     def _recv(self, timeout: float) -> can.Message | None:
-        """bus.recv, with a line the interface cannot parse counted and skipped: python-can's slcan
-        raises ValueError on a garbled ASCII line (bytes lost on the USB link), after consuming it,
-        so the next call reads on from the following line. Not a bus failure: no reconnect."""
+        """bus.recv, with a line the interface cannot parse counted and skipped: python-can's slcan parser
+        raises whatever its indexing and int()/fromhex()/Message() checks raise on a garbled ASCII line (bytes
+        lost on the USB link: ``t12`` IndexError, ``t10G8`` ValueError, non-ASCII UnicodeDecodeError), after
+        consuming it, so the next call reads on from the following line. One lost line, counted in
+        ``garbled_lines`` and by kind in ``garbled_kinds``; not a bus failure: no reconnect. Only the
+        interface's own failures (transient_errors: the port, the adapter) reach read()'s reconnect."""
         try:
             return self._bus.recv(timeout=timeout)
-        except ValueError:
-            self.assembler.counters["garbled_lines"] += 1
+        except self.transient_errors:
+            raise
+        except Exception as exc:
+            self.assembler.count_garbled(type(exc).__name__)
             return None
 
     def _read_block(self, deadline: float) -> np.ndarray:

@@ -332,7 +332,7 @@ class I2CDriver(FramedStreamDriver):
         :meth:`read` (an outage or a reconnect in hand, a partial frame or samples waiting, a sequence
         question open, a FIFO overflow to flag)."""
         if (not self._connected or self._closing.is_set() or self._pending.shape[0] or self._flag_reconnect
-                or self._overflow_pending or self.decoder.tail or self._unread):
+                or self._holding or self._overflow_pending or self.decoder.tail or self._unread):
             return None
         nxt = self.decoder.unwrapper.next_frame()
         return None if nxt is None else (nxt[0], nxt[1], self._last_t)

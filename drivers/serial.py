@@ -115,7 +115,7 @@ class SerialDriver(FramedStreamDriver):
         through :meth:`read` (a pyserial URL, an outage or a reconnect in hand, a partial frame or
         samples waiting, a latency budget, a sequence question open)."""
         if (self._fd is None or not self._connected or self._closing.is_set() or self._pending.shape[0]
-                or self._flag_reconnect or self.decoder.tail or self._unread or self.latency_budget_s > 0):
+                or self._holding or self._flag_reconnect or self.decoder.tail or self._unread or self.latency_budget_s > 0):
             return None
         nxt = self.decoder.unwrapper.next_frame()
         if nxt is None:

@@ -55,6 +55,9 @@ def check_options(opts: Options) -> None:
             raise InputError(f"unknown --model {opts.model!r}; choose one of {', '.join(m for m in models if '+' not in m)}, "
                              f"or an order with registered terms, <order>+<term>[+<term>...], terms: "
                              f"{', '.join(CALIBRATION_TERMS)}")
+    if opts.model.split("+", 1)[0] == "12" and opts.lab is None and not opts.lab_session:
+        raise InputError("--model 12 holds the frame of a lab calibration: give --lab-calibration LAB.json (from "
+                         "`gravcal calibrate LAB.csv --lab --save LAB.json`), or use --model 9 (frame convention R0 = I)")
     if opts.lab_session and opts.model not in ("auto", "12"):
         raise InputError(f"--lab fits all 12 parameters from the six faces; --model {opts.model} does not apply")
     if opts.detector not in DETECTORS:
@@ -77,15 +80,34 @@ def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0,
     ``progress(done, total)`` follows calibrate_recording's stages (not a --lab session's)."""
     from gravcal.core.pipeline import calibrate_recording
 
+    from gravcal.core.pipeline import refused_report
+
     t0, c0 = time.perf_counter(), time.process_time()
-    if opts.lab_session:
+    start = opts.start if opts.start is not None or opts.lab is not None else device_start_of(rec)
+    if "+" in opts.model:  # a model whose terms need a column the recording lacks: the option is wrong (exit 2)
+        from gravcal.core.estimators.order import extended_terms
+        from gravcal.core.model.effect import needed_covariates
+
+        have = {"temp": rec.temp is not None, "vsupply": rec.vsupply is not None, "time": True}
+        missing = [c for c in needed_covariates(extended_terms(opts.model)) if not have[c]]
+        if missing:
+            raise InputError(f"--model {opts.model} has terms that need a {' and a '.join(missing)} column; "
+                             f"{rec.source} has none")
+    if opts.lab_session:  # a six-face session missing a face is refused as bad input (exit 2)
         from gravcal.core.estimators.bragge import calibrate_lab
 
         report = calibrate_lab(rec.t, rec.raw, fs=rec.fs, to_g=opts.start)
     else:
-        report = calibrate_recording(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, model=opts.model, fs=rec.fs,
-                                     detector=opts.detector, start=opts.start, folds=opts.folds, lab=opts.lab,
-                                     progress=progress, blocks=rec.blocks)
+        report = None
+    try:
+        if report is None:
+            report = calibrate_recording(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, model=opts.model,
+                                         fs=rec.fs, detector=opts.detector, start=start, folds=opts.folds,
+                                         lab=opts.lab, progress=progress, blocks=rec.blocks)
+    except InputError:
+        raise
+    except ValueError as exc:  # a readable recording whose windows determine nothing: a verdict, not an error
+        report = refused_report(" ".join(str(exc).split()), start if start is not None else opts.lab)
     t_cal, c_cal = time.perf_counter() - t0, time.process_time() - c0
     cal = report.calibration
     out = dict(report.to_json_dict())
@@ -99,6 +121,10 @@ def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0,
     out.setdefault("converged", bool(cal.converged))
     out.setdefault("observable", bool(cal.observable))
     out.setdefault("message", cal.message)
+    if "status" not in out:  # a lab session (Bragge): converged and observable, or not to be trusted
+        ok = bool(cal.converged and cal.observable)
+        out["status"] = "ok" if ok else "unreliable"
+        out["reason"] = f"lab session, model {cal.model}" + ("" if ok else f": {cal.message or 'not converged'}")
     out["input"] = {
         "file": str(rec.source), "format": rec.metadata.get("format"), "units": rec.units,
         "n_samples": rec.n_samples, "duration_s": rec.duration_s, "fs_hz": rec.fs,
@@ -112,6 +138,19 @@ def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0,
 
         out["gyro"] = gyro_report(rec.t, rec.gyro, report, fs=rec.fs)
     return report, out
+
+
+def device_start_of(rec: Recording) -> Any:
+    """The device's own nominal scale as the start, for a device file whose reader states it
+    (``metadata["nominal_per_g"]``: 1 for a file in g, the header's counts per g); None otherwise (the
+    pipeline then bootstraps a scale-free start from the data)."""
+    scale = rec.metadata.get("nominal_per_g") if isinstance(rec.metadata, dict) else None
+    if not scale:
+        return None
+    from gravcal.core.estimators.start import device_start
+
+    return device_start(float(scale), str(rec.metadata.get("device") or rec.metadata.get("format") or "device"),
+                        rec.units)
 
 
 @contextmanager

@@ -38,9 +38,11 @@ HEADER_MAX = 1 << 16  # bytes of .npy header read at most
 # `gravcal calibrate`'s options as the prestart reads its command line (tests check them against the parser)
 GLOBAL_FLAGS = frozenset({"-v", "-vv", "-vvv", "--verbose", "--debug"})
 VALUE_OPTIONS = frozenset({"--columns", "--out", "--workers", "--scheduler", "--model", "--lab-calibration",
-                           "--detector", "--folds", "--start", "--save"})
+                           "--detector", "--folds", "--start", "--save", "--write", "--write-dir", "--write-format",
+                           "--report"})
 FLAG_OPTIONS = frozenset({"--quiet", "--lab", "--json", "--no-saturation-check"})
-NOT_PREPARED = frozenset({"--columns", "--lab", "--out", "--workers", "--scheduler"})  # no block statistics, or a study
+# no block statistics, or a study
+NOT_PREPARED = frozenset({"--columns", "--lab", "--out", "--workers", "--scheduler", "--write-dir", "--report"})
 
 _pending: list["Arena"] = []  # at most one: the arena ``start`` prepared, until ``claim`` takes it
 
@@ -150,7 +152,8 @@ def guess_block_n(path: Path, n: int, data_offset: int, itemsize: int, t_offset:
     step = steps[m] if len(steps) % 2 else 0.5 * (steps[m - 1] + steps[m])
     if not (math.isfinite(step) and step > 0):
         return None
-    return max(1, int(round(BLOCK_S * (1.0 / step))))  # as block_length(fs) of fs = 1 / median step
+    fs = float(f"{1.0 / step:.9g}")  # as core.datapass.fs_from rounds it (FS_DIGITS)
+    return max(1, int(round(BLOCK_S * fs)))  # as block_length(fs)
 
 
 class Arena:
@@ -177,7 +180,9 @@ class Arena:
     def _populate(self) -> None:
         ok = True
         try:
-            from ._pages import populate
+            from ..core.accelerator import kernels
+
+            populate = kernels("gravcal.io._pages").populate
 
             for lo in range(0, self.nb, POPULATE_BLOCKS):
                 hi = min(lo + POPULATE_BLOCKS, self.nb)

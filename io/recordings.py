@@ -60,6 +60,9 @@ SATURATION_MIN_DISTINCT = 200
 least this many distinct values (otherwise only a ``flags`` column can mark saturation)."""
 CHUNK = 1 << 20  # rows per chunk of the slow paths (bounded temporaries)
 SCAN_CHUNK = 1 << 16  # rows per chunk of the validation scan: small enough to stay in the CPU cache
+FLAG_FILLER = 1 << 8
+"""A row of exactly repeated filler (idle sleep, frozen output): in ``Recording.quality`` beside the
+samples' own flags (core.samples.FLAG_*, FLAG_SATURATED for a clipped row)."""
 
 
 @dataclass
@@ -86,6 +89,7 @@ class Recording:
     metadata: dict[str, Any] = field(default_factory=dict)
     n_filler: int = 0  # rows excluded as exactly repeated filler (exclude_filler)
     blocks: BlockStats | None = None  # block statistics of exactly these rows at fs (read with blocks=True)
+    quality: np.ndarray | None = None  # read with flag_only: per row the file's flags | FLAG_SATURATED | FLAG_FILLER
 
     @property
     def acc(self) -> np.ndarray:
@@ -105,7 +109,8 @@ class Recording:
 # ---------------------------------------------------------------------------------------
 def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_saturation: bool = True,
                    columns: str | dict[str, str] | None = None, exclude_filler: bool = False,
-                   progress: Callable[[int, int], None] | None = None, blocks: bool = False) -> Recording:
+                   progress: Callable[[int, int], None] | None = None, blocks: bool = False,
+                   flag_only: bool = False) -> Recording:
     """Read and validate a recording of any format in ``FORMATS`` (recognised by content).
 
     ``columns``: other CSV header names, ``"t=t_unix,ax=x_counts"`` or a dict. ``exclude_filler``:
@@ -113,7 +118,8 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
     ``progress(done, total)``: chunks of the validation pass done, as it goes. ``blocks``: the
     validation pass also computes the block detector's statistics (``Recording.blocks``, for
     core.pipeline.calibrate_recording), kept when no row is dropped (else None: calibrating
-    computes them on the rows it gets).
+    computes them on the rows it gets). ``flag_only``: saturated and filler rows stay and are marked in
+    ``Recording.quality`` instead (rows with NaN/inf are still dropped): the rows calibrated data is written for.
     """
     path = Path(path)
     mapping = parse_columns(columns)
@@ -125,7 +131,7 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
         raise InputError(f"{path}: empty file (expected a header row t,ax,ay,az and samples)")
     found = sniff(path)
     named = path.suffix.lower().lstrip(".")
-    if named in ("npy", "gt3x", "agdc", "cwa", "bin") and found.kind != named:
+    if named in ("npy", "parquet", "gt3x", "agdc", "cwa", "bin") and found.kind != named:
         raise InputError(f"{path}: not a readable .{named} file: its content is {found.what}")
     units, meta = "raw", {"format": found.kind}
     if found.kind == "npy":
@@ -135,6 +141,10 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
             cols, where, names = load_csv(path, gz=found.kind == "csv.gz", mapping=mapping)
         except (EOFError, zlib.error, gzip.BadGzipFile) as exc:
             raise InputError(f"{path}: damaged gzip data ({type(exc).__name__}: {excerpt(str(exc), 60)})") from None
+    elif found.kind == "parquet":
+        from .formats.parquet import load_parquet
+
+        cols, where, names = load_parquet(path, mapping)
     elif found.kind in ("gt3x", "agdc", "cwa", "bin"):
         from .formats.wearables import read_wearable
 
@@ -146,7 +156,8 @@ def read_recording(path: str | Path, *, min_samples: int = MIN_SAMPLES, check_sa
     # the block statistics' memory, when `gravcal calibrate` prepared it for this file (io/prestart.py)
     allocate = prestart.claim(path) if blocks else None
     rec = _validate(path, cols, where, names, min_samples=min_samples, check_saturation=check_saturation,
-                    progress=progress, exclude_filler=exclude_filler, blocks=blocks, allocate=allocate)
+                    progress=progress, exclude_filler=exclude_filler or flag_only, blocks=blocks, allocate=allocate,
+                    flag_only=flag_only)
     rec.units, rec.metadata = units, meta
     return rec
 
@@ -213,7 +224,7 @@ def _load_npy(path: Path, mapping: dict[str, str]) -> tuple[dict[str, np.ndarray
     layout = "a structured array with fields t, ax, ay, az (optional gx, gy, gz, temp)"
     try:
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
+    except Exception as exc:  # noqa: BLE001 - numpy's header parser raises ValueError, SyntaxError, TokenError...
         raise InputError(f"{path}: not a readable .npy file ({excerpt(str(exc), 80)}); expected {layout}") from None
     if isinstance(arr, np.lib.npyio.NpzFile):  # pragma: no cover - np.load only returns this for .npz content
         raise InputError(f"{path}: is an .npz archive; expected a .npy file holding {layout}")
@@ -274,7 +285,7 @@ def _scan(t: np.ndarray, raw: np.ndarray, extra: list[np.ndarray], flags: np.nda
 def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tuple[str, ...], *,
               min_samples: int, check_saturation: bool, progress: Callable[[int, int], None] | None = None,
               exclude_filler: bool = False, blocks: bool = False,
-              allocate: Callable[..., np.ndarray] | None = None) -> Recording:
+              allocate: Callable[..., np.ndarray] | None = None, flag_only: bool = False) -> Recording:
     t = cols["t"]
     raw = cols.pop("_triad", None)
     if raw is None:
@@ -323,6 +334,7 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
 
     # 2. Saturated (clipped) samples: a flags column says so exactly; else the pile-up heuristic.
     n_saturated = 0
+    sat_rows = None
     if check_saturation:
         sat, detail = _saturated_rows(raw, flags, keep, scan)
         if sat is not None:
@@ -331,14 +343,17 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
             first = int(np.argmax(sat))
             msg = (f"{n_saturated} of {n_valid} samples ({100.0 * n_saturated / n_valid:.1f} %) are saturated "
                    f"(sensor at the end of its range: {detail}; first at {where(first)})")
-            if n_saturated > MAX_SATURATED_FRACTION * n_valid:
+            if flag_only:
+                sat_rows = sat
+            elif n_saturated > MAX_SATURATED_FRACTION * n_valid:
                 raise InputError(
                     f"{path}: {msg}: too many to drop, a calibration from the rest would be biased "
                     f"(use a wider range or --no-saturation-check if the data is merely quantised)"
                 )
-            notes.append(f"dropped {msg}")
-            keep = ~sat if keep is None else keep & ~sat
-            scan.repeats = None  # found on rows that are no longer all there
+            if not flag_only:
+                notes.append(f"dropped {msg}")
+                keep = ~sat if keep is None else keep & ~sat
+                scan.repeats = None  # found on rows that are no longer all there
 
     if keep is not None:
         t, raw = t[keep], raw[keep]
@@ -362,9 +377,25 @@ def _validate(path: Path, cols: dict[str, np.ndarray], where: Where, columns: tu
     rec = Recording(t=t, raw=raw, temp=temp, vsupply=vsupply, gyro=gyro, fs=fs, source=path, n_dropped=n_dropped,
                     n_saturated=n_saturated, columns=columns, warnings=notes,
                     blocks=scan.blocks if keep is None else None)
+    if flag_only:
+        rec.quality = _quality(n_kept, flags, sat_rows, keep,
+                               scan.repeats.result(n_kept) if scan.repeats is not None else _filler_stretches(raw))
+        return rec
     if not exclude_filler:
         return rec
     return _without_filler(rec, min_samples, scan.repeats.result(n_kept) if scan.repeats is not None else None)
+
+
+def _quality(n: int, flags: np.ndarray | None, sat: np.ndarray | None, keep: np.ndarray | None,
+             flats: FlatStretches) -> np.ndarray:
+    """Per kept row: the file's own flags, FLAG_SATURATED where clipped, FLAG_FILLER inside a filler run."""
+    pick = (lambda v: v if keep is None else v[keep])
+    quality = np.zeros(n, dtype=np.uint16) if flags is None else pick(np.asarray(flags)).astype(np.uint16)
+    if sat is not None:
+        quality[pick(sat)] |= FLAG_SATURATED
+    for a, b in flats.runs:
+        quality[a + 1:b] |= FLAG_FILLER  # the first sample of a run is a real one
+    return quality
 
 
 def _nonfinite_rows(used: dict[str, np.ndarray], n: int) -> np.ndarray:

@@ -90,6 +90,20 @@ def _plots(d: Any, out: Path) -> list[tuple[str, str]]:
     ax.set_ylabel(NORM_LABEL)
     ax.legend(fontsize=7)
     save(fig, "residual_vs_time.png", "Window norm residual vs time")
+    present = [x for x in (d.verdict or {}).get("structure", []) if x["present"]]
+    if present and present[0]["covariate"] in (d.structure_curves or {}):
+        x_s = present[0]
+        c, fitted = d.structure_curves[x_s["covariate"]]
+        scale, unit = (1 / 60, "min") if x_s["covariate"] == "time" else (1.0, {"temperature": "°C", "supply": "V"}[
+            x_s["covariate"]])
+        fig, ax = plt.subplots(figsize=(6, 3.4))
+        ax.plot(c * scale, re_, ".", ms=3, color=EXTENDED_COLOR, label=f"residual, {ext_lab}")
+        ax.plot(c * scale, fitted * 1e3, "x", ms=3, color="k", label=f"structure left ({x_s['structure_rms_mg']:.3g} mg RMS)")
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_xlabel(f"{x_s['covariate']} [{unit}]")
+        ax.set_ylabel(NORM_LABEL)
+        ax.legend(fontsize=7)
+        save(fig, "residual_structure.png", f"What the model leaves: residual vs {x_s['covariate']}")
     if d.compare_baseline is not None:
         fig, ax = plt.subplots(figsize=(6, 3.4))
         bins = np.linspace(min(rb.min(), -1e-3), max(rb.max(), 1e-3), 40)
@@ -133,10 +147,39 @@ def _finding_rows(x: dict[str, Any]) -> list[str]:
     return rows
 
 
+def _verdict(j: dict[str, Any]) -> list[str]:
+    """The verdict first: unexplained (with the structure left), what was withdrawn and why, what is undetermined."""
+    v = j.get("verdict") or {}
+    L = []
+    if v.get("status") == "unexplained":
+        L += [f"**Unexplained.** {v['text'][len('unexplained: '):]}", ""]
+        if j.get("partial"):
+            L += ["Terms that explain part of the residual (not named as its cause; their values are the best fit of an "
+                  "effect the catalogue does not describe): " + ", ".join(x["effect"] for x in j["partial"]), ""]
+    elif v.get("text"):
+        L += [f"Residual of the extended model: {v['text']}.", ""]
+    if v.get("structure"):
+        L += ["| residual vs | shape | ΔBIC | held-out gain [mg] | RMS [mg] | present |", "|---|---|---|---|---|---|"]
+        L += [f"| {x['covariate']} | {x['shape']} (degree {x['degree']}) | {num(x['delta_bic'], 4)} | "
+              f"{num(x['heldout_gain_mg'])} | {num(x['structure_rms_mg'])} | {'yes' if x['present'] else 'no'} |"
+              for x in v["structure"]]
+        L.append("")
+    for w in v.get("withdrawn", []):
+        L.append(f"- not named **{w['effect']}**: {w['why']}")
+    for q, why in (j.get("undetermined") or {}).items():
+        L.append(f"- undetermined {q}: {why}")
+    return L
+
+
 def _findings(j: dict[str, Any]) -> list[str]:
     if not j["findings"]:
-        return ["No significant effect (rule: observable, ΔBIC > 10 and lower held-out error)."]
-    L = ["| effect | axis | value ± std | unit | raw units |", "|---|---|---|---|---|"]
+        return ["No cause named (rule: observable, ΔBIC > 10, lower held-out error, and a positive gain on folds "
+                "the selection never saw)."]
+    L = []
+    for x in j["findings"]:
+        if x.get("group"):
+            L.append(f"- **{x['group']['text']}**; the table gives {x['magnitude']['conditional']}")
+    L += ["", "| effect | axis | value ± std | unit | raw units |", "|---|---|---|---|---|"]
     for x in j["findings"]:
         L += _finding_rows(x)
     L.append("")
@@ -144,7 +187,10 @@ def _findings(j: dict[str, Any]) -> list[str]:
         mag, ev = x["magnitude"], x["evidence"]
         L.append(f"- **{x['effect']}**: ΔBIC {num(ev.get('delta_bic'), 4)} "
                  f"(threshold {num(ev.get('delta_bic_threshold'))}); "
-                 f"held-out RMS {num(ev.get('heldout_rms_mg_without'))} → {num(ev.get('heldout_rms_mg_with'))} mg")
+                 f"held-out RMS {num(ev.get('heldout_rms_mg_without'))} → {num(ev.get('heldout_rms_mg_with'))} mg; "
+                 f"gain on folds the selection never saw {num(ev.get('nested_heldout_gain_mg'))} mg")
+        for note in mag.get("notes", []):
+            L.append(f"  - {note}")
         if mag.get("convention"):
             L.append(f"  - convention: {mag['convention']}")
         if mag.get("held"):
@@ -184,7 +230,9 @@ def write_report(d: Any, out_dir: str | Path, *, source: str = "") -> Path:
          f"| baseline | {b['model']} | {num(b['heldout_rms_mg'])} | {num(b['insample_rms_mg'])} |",
          f"| extended | {e['model']} | {num(e['heldout_rms_mg'])} | {num(e['insample_rms_mg'])} |", "",
          f"Held-out gain: **{num(e['heldout_gain_mg'])} mg** (folds the selection never saw: contiguous time blocks).",
-         "", "## Findings", ""]
+         "", "## Verdict", ""]
+    L += _verdict(j)
+    L += ["", "## Findings", ""]
     L += _findings(j)
     L += ["", "## What the baseline simulation gets wrong", ""]
     for name, sim in (("baseline", b.get("simulation")), ("extended", e.get("simulation"))):

@@ -6,7 +6,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..windows import Window
-from .butterworth import butter_sos, sos_rest_state
+from ..butterworth import butter_sos, sos_rest_state
 from .windowing import (
     _KEEP_WORKSPACE,
     _THREAD_MIN_BLOCK,

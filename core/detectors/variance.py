@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..windows import Window
-from ._movingstd import moving_std
+from ..accelerator import kernels
 from .quasistatic import QuasiStaticDetector
 from .windowing import (
     ToG,
@@ -14,6 +14,8 @@ from .windowing import (
     _unsettled,
     _Windower,
 )
+
+moving_std = kernels("gravcal.core.detectors._movingstd").moving_std
 
 
 class MovingVarianceDetector(_Windower):

@@ -8,9 +8,11 @@ from typing import Callable
 
 import numpy as np
 
-from .._blockkernels import sosfilt
+from ..accelerator import kernels
 from ..calibration import Calibration
 from ..windows import Window
+
+sosfilt = kernels("gravcal.core._blockkernels").sosfilt
 
 ToG = Calibration | Callable[[np.ndarray], np.ndarray] | None
 

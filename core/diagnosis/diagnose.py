@@ -27,24 +27,28 @@ from gravcal.core.estimators.consider import HELD_KEY
 from gravcal.core.estimators.lotters import LottersBatch
 from gravcal.core.estimators.observability import TOL_G, coverage, held_note, is_observable
 from gravcal.core.estimators.order import select_order
+from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 from gravcal.core.model.terms import CATALOGUE as TERM_CATALOGUE
-from gravcal.core.model.terms import REGISTRY, calibration_view, term_spec
+from gravcal.core.model.terms import CALIBRATION_TERMS, REGISTRY, calibration_view, term_spec
 from gravcal.core.windows import WindowSet
 
 from .compare import Comparison, simulate_compare
-from .noise import AllanResult, colored_noise_test, flat_stretches, pooled_allan, quantization_test
-from .held import channel_slopes, held_contributions, one_posture_partner
-from .terms import TermSelector, TermTest, select_terms
+from .noise import AllanResult, flat_stretches
+from .held import channel_slopes, held_contributions, one_posture_magnitude, one_posture_partner, scale_rel_std
+from .sample_tests import SAMPLE_TESTS
+from .structure import residual_structure
+from .terms import TermSelector, TermTest, evaluate_term, select_terms
+from .verdict import group_text, inseparable, unearned, unexplained
 
 log = logging.getLogger(__name__)
 
 CATALOGUE: tuple[str, ...] = tuple(sorted(TERM_CATALOGUE, key=lambda c: (
-    REGISTRY[TERM_CATALOGUE[c]].view is None, REGISTRY[TERM_CATALOGUE[c]].view.rank if REGISTRY[TERM_CATALOGUE[c]].view else 0)))
+    CALIBRATION_TERMS.index(TERM_CATALOGUE[c]) if TERM_CATALOGUE[c] in CALIBRATION_TERMS else len(CALIBRATION_TERMS))))
 """The effects diagnose tests (the registry's catalogue): window-mean terms in canonical order, then noise."""
 OUTLIER_SIGMA = 6.0  # robust (MAD) std of the baseline residual beyond which a window is excluded
 DOMINANT_POSTURE_DEG = 20.0  # offsets-only baseline: term tests on windows this close to the dominant posture
 MIN_WINDOWS = 8  # fewer quasi-static windows: nothing can be tested
-MIN_ALLAN_STRETCH_S = 20.0  # colored noise needs a static stretch at least this long [s]
+SINGLE_POSE_DEG = 3.0  # windows within this of one direction: one pose, each channel's slope is the term's
 
 
 @dataclass
@@ -75,6 +79,10 @@ class Diagnosis:
     observability: dict[str, Any] | None = None  # the offsets by order.is_observable, as `gravcal calibrate` judges them
     nested: "NestedHeldout | None" = None  # the held-out errors above: folds the selection never saw
     selection_heldout_mg: tuple[float | None, float | None] | None = None  # the selection's own inner folds
+    verdict: dict[str, Any] = field(default_factory=dict)  # explained / unexplained / nothing found (verdict.py)
+    partial: list[dict[str, Any]] = field(default_factory=list)  # terms that explain part of an unexplained residual
+    undetermined: dict[str, str] = field(default_factory=dict)  # calibration quantities these windows do not determine
+    structure_curves: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # for the report's plot
 
     @property
     def heldout_gain_mg(self) -> float | None:
@@ -82,10 +90,15 @@ class Diagnosis:
             return None
         return self.baseline_heldout_mg - self.extended_heldout_mg
 
+    def _calibration_dict(self) -> dict[str, Any]:
+        return _withheld(self.extended_cal.to_dict(), self.undetermined)
+
     def to_json_dict(self) -> dict[str, Any]:
         r = lambda x: None if x is None or not math.isfinite(x) else round(float(x), 4)  # noqa: E731
         return {
+            "verdict": self.verdict,
             "findings": self.findings,
+            "partial": self.partial,
             "observability": self.observability,
             "baseline": {"model": self.base_model, "heldout_rms_mg": r(self.baseline_heldout_mg),
                          "insample_rms_mg": r(self.baseline_insample_mg),
@@ -96,9 +109,10 @@ class Diagnosis:
                          "heldout_scheme": None if self.nested is None else self.nested.to_dict(),
                          "selection_heldout_rms_mg": None if self.selection_heldout_mg is None else
                          [r(x) for x in self.selection_heldout_mg],
-                         "calibration": self.extended_cal.to_dict(),
+                         "calibration": self._calibration_dict(),
                          "simulation": None if self.compare_extended is None else self.compare_extended.to_dict()},
             "untestable": self.untestable,
+            "undetermined": self.undetermined,
             "not_found": [{"effect": t.effect, "why": t.why, "evidence": t.evidence()} for t in self.tests
                           if t.status == "not_found"],
             "n_windows": self.n_windows,
@@ -107,6 +121,15 @@ class Diagnosis:
             "allan": None if self.allan is None else self.allan.to_dict(),
             "notes": self.notes,
         }
+
+
+def _withheld(cal_dict: dict[str, Any], undetermined: dict[str, str]) -> dict[str, Any]:
+    """A calibration's dict with the std of every quantity the windows do not determine withheld (null)."""
+    std = cal_dict.get("std")
+    if isinstance(std, dict):
+        cal_dict["std"] = {k: (None if k in undetermined else v) for k, v in std.items()}
+    cal_dict["undetermined"] = dict(undetermined)
+    return cal_dict
 
 
 def sensor_model_term(effect: str, magnitude: dict[str, Any]) -> dict[str, Any] | None:
@@ -178,6 +201,8 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
         has_temp = False
         notes.append(f"{no_temp} of {len(ws)} windows carry no temperature (the temp channel read no value): "
                      f"temperature terms untestable")
+    # a lagged covariate runs over every window's input, excluded or held out alike
+    history = (ws.t.copy(), ws.aux[:, 0].copy()) if has_temp else None
     if len(ws) < MIN_WINDOWS:
         raise ValueError(f"only {len(ws)} quasi-static window(s): need at least {MIN_WINDOWS} to fit a baseline and "
                          f"test any term (record longer, with still moments)")
@@ -215,20 +240,35 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
                          f"{DOMINANT_POSTURE_DEG:g}° of the dominant posture ({int((~near).sum())} others excluded)")
             ws = ws.subset(np.flatnonzero(near))  # base_cal stays the fit on all windows (offsets determined)
     cov = coverage(ws, base_cal)
-    sel = TermSelector(ws, base, base_cal, has_temp=has_temp, folds=folds)
+    sel = TermSelector(ws, base, base_cal, has_temp=has_temp, folds=folds, lag_history=history)
     chosen, held, tests = select_terms(sel, tuple(c for c in candidates if c in EXTRA_TERMS), cov["spread_deg"])
     p_max = sel.par(tuple(t.effect for t in tests if t.status != "untestable")).n_params
-    par_b, fit_b = sel.fit((), {})
-    par_e, fit_e = sel.fit(chosen, held)
+    selected_all = chosen
     sel_ho = (sel.heldout_mg((), {}, p_max), sel.heldout_mg(chosen, held, p_max) if chosen else None)
     outer = nested_heldout(ws, base, base_cal, has_temp=has_temp, candidates=candidates,
-                           spread_deg=cov["spread_deg"], folds=folds, held_base=sel.held_base) if nested else None
+                           spread_deg=cov["spread_deg"], folds=folds, held_base=sel.held_base,
+                           lag_history=history) if nested else None
+    withdrawn = unearned(outer, chosen)
+    if withdrawn:  # named only what earns its place on folds the selection never saw (verdict.py, rule 1)
+        chosen = tuple(c for c in chosen if c not in withdrawn)
+        held = {k: v for k, v in held.items() if k in chosen}
+        for i, t in enumerate(tests):
+            if t.effect in withdrawn:
+                t.status, t.why = "not_found", withdrawn[t.effect]
+            elif t.effect in chosen:  # its magnitude given the terms still named
+                others, held_o = tuple(c for c in chosen if c != t.effect), {k: v for k, v in held.items() if k != t.effect}
+                tests[i] = evaluate_term(sel, others, held_o, t.effect, ["xyz".index(x) for x in t.undetermined_axes],
+                                         p_max)
+                tests[i].status, tests[i].why = "found", ""
     if outer is None:
         ho_b = ho_e = None
         if nested:
             notes.append(f"{len(ws)} windows are too few for a held-out gain on folds the selection never saw")
     else:
-        ho_b, ho_e = outer.baseline_mg, outer.extended_mg
+        ho_b, ho_e = outer.baseline_mg, (outer.extended_without(withdrawn) if withdrawn else outer.extended_mg)
+    groups = inseparable(sel, chosen, held, tests, outer)
+    par_b, fit_b = sel.fit((), {})
+    par_e, fit_e = sel.fit(chosen, held)
     res_b = extended_residuals_g(par_b, fit_b.p, ws)
     res_e = extended_residuals_g(par_e, fit_e.p, ws)
     cmp_b = cmp_e = None
@@ -237,33 +277,67 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
         cmp_e = simulate_compare(par_e, fit_e.p, ws, sel.var0 + 0.0, res_e, has_temp=has_temp, replicas=replicas,
                                  seed=seed + 1, free=sel.free_mask(sel.par(chosen), held)) if chosen else cmp_b
     ext_cal = fit_e.calibration(len(ws))
+    a = ext_cal.apply_reference(ws.mean)
+    structures, curves = residual_structure(ws, res_e, a / np.linalg.norm(a, axis=1, keepdims=True), sel.var,
+                                    has_temp=has_temp)
+    rms_e = float(np.sqrt(np.mean(res_e**2)) * 1e3)
+    ref_mg, ref_name = ((cmp_e.simulated_mean["rms_mg"], "simulated") if cmp_e is not None else
+                        (float(np.sqrt(np.mean(sel.var0)) * 1e3), "window noise"))
+    verdict = unexplained(structures, rms_e, ref_mg, ref_name, outer, bool(selected_all),
+                          None if ho_b is None or ho_e is None else ho_b - ho_e)
+    verdict["withdrawn"] = [{"effect": k, "why": v} for k, v in withdrawn.items()]
     held_sd, held_sources = held_contributions(sel, chosen, held, base=base, base_cal=base_cal, ws_base=ws_base,
                                                start=start, held_meta=held_meta)
-    findings = []
+    findings, partial = [], []
     for t in tests:
         if t.status == "found":
-            honest_magnitude(t, held_sd.get(t.effect), held_sources, one_posture=base == "offsets", ws=ws)
+            honest_magnitude(t, held_sd.get(t.effect), held_sources, one_posture=base == "offsets", ws=ws,
+                             scale=np.abs(np.diag(base_cal.sensitivity)), scale_rel_std=scale_rel_std(held_meta, start),
+                             spread_deg=cov["spread_deg"])
             ev = t.evidence()
+            if outer is not None:
+                ev["nested_heldout_gain_mg"] = round(outer.term_gain_mg(t.effect), 4)
             term = sensor_model_term(t.effect, t.magnitude)
             if term:
                 ev["sensor_model_term"] = term
-            findings.append({"effect": t.effect, "magnitude": t.magnitude, "evidence": ev})
+            f = {"effect": t.effect, "magnitude": t.magnitude, "evidence": ev}
+            if t.effect in groups:
+                name_group(f, groups[t.effect], ev.get("nested_heldout_gain_mg"))
+            (partial if verdict["status"] == "unexplained" else findings).append(f)
             for partner in t.magnitude.get("confounded_with", []):
                 notes.append(f"{t.effect} and {partner} cannot be told apart on this recording (one posture): "
                              f"{t.effect} is reported, the change along gravity may be either")
+    if partial:
+        notes.append(f"{verdict['text']}: {', '.join(f['effect'] for f in partial)} explain(s) part of the residual "
+                     f"and is not named as its cause (its value is the best fit of an effect the catalogue does not "
+                     f"describe)")
     untestable = [{"effect": t.effect, "why": t.why} for t in tests if t.status == "untestable"]
     d = Diagnosis(base, ext_cal.model, len(ws), ho_b, ho_e, float(np.sqrt(np.mean(res_b**2)) * 1e3),
-                  float(np.sqrt(np.mean(res_e**2)) * 1e3), findings, untestable, tests, base_cal, ext_cal,
+                  rms_e, findings, untestable, tests, base_cal, ext_cal,
                   cmp_b, cmp_e, None, cov, sel.floor_g * 1e3, notes, ws, res_b, res_e, has_temp)
+    d.verdict, d.partial = verdict, partial
+    d.structure_curves = curves
+    base_names = PARAMETERIZATIONS[base](base_cal.sensitivity, base_cal.offset).names
+    d.undetermined = {base_names[j]: "held at the all-window baseline: these windows do not determine it (one "
+                      "posture: an offset across gravity does not change the norm to first order)" for j in sel.held_base}
+    if base == "offsets":
+        d.undetermined.update({f"s_{a}": "held at the start: the sensitivities need several postures" for a in "xyz"})
+    for term, axes in held.items():  # a named term's axes the windows do not determine: held at 0 in the model
+        names = calibration_view(term).param_names()
+        d.undetermined.update({names[i]: f"{term} {'xyz'[i]}: held at 0 in the extended calibration (not determined "
+                                         f"by these windows; the finding states what is known)" for i in axes})
     d.nested = outer
     d.selection_heldout_mg = sel_ho
     return d
 
 
 def honest_magnitude(tt: TermTest, held_sd: np.ndarray | None, sources: list[str], *, one_posture: bool,
-                     ws: WindowSet) -> None:
-    """Fold the held quantities' contribution into a found term's stated std (report and raw units), and in
-    one posture name the term it cannot be told from and give the raw channel slopes an independent fit sees."""
+                     ws: WindowSet, scale: np.ndarray | None = None, scale_rel_std: np.ndarray | None = None,
+                     spread_deg: float = 180.0) -> None:
+    """Fold the held quantities' contribution into a found term's stated std (report and raw units). With an
+    offsets-only baseline: in one pose (every window within ``spread_deg`` <= SINGLE_POSE_DEG of one direction)
+    the magnitude is each channel's own slope (held.one_posture_magnitude: ``scale`` [raw/g] and its relative
+    std convert it); with tilts about one dominant posture the norm's change along gravity, the partner named."""
     mag = tt.magnitude
     keys = list(mag.get("value", {}))
     if held_sd is not None and sources:
@@ -275,17 +349,34 @@ def honest_magnitude(tt: TermTest, held_sd: np.ndarray | None, sources: list[str
                 if d.get(k) is not None:
                     d[k] = float(np.hypot(d[k], held_sd[off + i]))
         mag["held"] = list(sources)
-    if one_posture:
-        partner = one_posture_partner(tt.effect)
-        if partner is not None:
-            mag["confounded_with"] = [partner]
-            cov = calibration_view(tt.effect).covariate
-            slopes = channel_slopes(ws, cov)
-            if slopes is not None:
-                mag["raw_channel_slopes"] = slopes
-            mag.setdefault("notes", []).append(
-                f"one posture: an offset change and a sensitivity change along gravity ({partner}) read alike; "
-                f"the value is their sum along gravity, and the axes across gravity are not determined")
+    partner = one_posture_partner(tt.effect) if one_posture else None
+    if partner is None:
+        return
+    if spread_deg <= SINGLE_POSE_DEG:
+        one_posture_magnitude(tt, ws, scale, scale_rel_std)
+        return
+    # one dominant posture with tilts: a channel across gravity moves with the tilt, so its slope is not the
+    # term's; the value is the norm's change along gravity, and the axes across gravity are not determined
+    mag["confounded_with"] = [partner]
+    slopes = channel_slopes(ws, calibration_view(tt.effect).covariate)
+    if slopes is not None:
+        mag["raw_channel_slopes"] = slopes
+    across = sorted(mag.get("undetermined", {}))
+    mag.setdefault("notes", []).append(
+        f"one dominant posture: an offset change and a sensitivity change along gravity ({partner}) read alike; "
+        f"the value along gravity is their sum; " + (f"{', '.join(across)} not determined (across gravity)" if across
+                                                    else "the axes across gravity are determined through the tilts "
+                                                         "about the posture"))
+
+
+def name_group(f: dict[str, Any], group: dict[str, Any], joint_gain_mg: float | None) -> None:
+    """A finding the session cannot separate from other candidates: named as the group; its magnitude is what
+    it would be if it alone were the cause (said so: the session cannot apportion the effect)."""
+    text = group_text(f["effect"], group, joint_gain_mg)
+    f["group"] = {"effects": [f["effect"]] + group["with"], "correlation": group["correlation"],
+                  "joint_heldout_gain_mg": joint_gain_mg, "text": text}
+    f["magnitude"]["conditional"] = (f"the value if {f['effect']} alone were the cause: this session cannot apportion "
+                                     f"the effect between {' and '.join(f['group']['effects'])}")
 
 
 @dataclass
@@ -298,10 +389,28 @@ class NestedHeldout:
     extended_mg: float
     folds: int
     selected: list[list[str]]  # the terms selected on each outer training set
+    runs: list[tuple] = field(default_factory=list, repr=False)  # per fold (selector, chosen, held, test windows)
+    resid_extended: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def gain_mg(self) -> float:
         return self.baseline_mg - self.extended_mg
+
+    def extended_without(self, terms: set[str] | tuple[str, ...]) -> float:
+        """The procedure's held-out RMS [mg] when it never names ``terms``: on each outer fold whose selection
+        chose one of them, the rest of that selection refitted on the training folds and scored on the fold."""
+        res = self.resid_extended.copy()
+        for sel, chosen, held, test, wte in self.runs:
+            if not set(chosen) & set(terms):
+                continue
+            keep = tuple(c for c in chosen if c not in terms)
+            par, f = sel.fit(keep, {k: v for k, v in held.items() if k in keep})
+            res[test] = extended_residuals_g(par, f.p, wte)
+        return float(np.sqrt(np.mean(res * res)) * 1e3)
+
+    def term_gain_mg(self, term: str) -> float:
+        """What naming ``term`` gains on folds the selection never saw (0 when no outer selection names it)."""
+        return self.extended_without((term,)) - self.extended_mg
 
     def to_dict(self) -> dict[str, Any]:
         return {"baseline_rms_mg": round(self.baseline_mg, 4), "extended_rms_mg": round(self.extended_mg, 4),
@@ -310,22 +419,25 @@ class NestedHeldout:
 
 
 def nested_heldout(ws: WindowSet, base: str, base_cal: Calibration, *, has_temp: bool, candidates: tuple[str, ...],
-                   spread_deg: float, folds: int = 5, held_base: list[int] | None = None) -> NestedHeldout | None:
+                   spread_deg: float, folds: int = 5, held_base: list[int] | None = None,
+                   lag_history: tuple[np.ndarray, np.ndarray] | None = None) -> NestedHeldout | None:
     """The held-out gain of the selection procedure itself (NestedHeldout); None when the training sets are too
     small for the inner folds. The base parameters are refitted on each training set from ``base_cal``, except
     ``held_base``, the ones the whole recording does not determine (kept at base_cal's values, as in the
-    selection: left free on a subset they would turn the direction and absorb a trend)."""
+    selection: left free on a subset they would turn the direction and absorb a trend). ``lag_history``: every
+    window's (t, temperature), which a lagged term runs over on training and held-out windows alike."""
     k = min(folds, len(ws) // MIN_WINDOWS)
     if k < 2:
         return None
     order = np.argsort(ws.t, kind="stable")
     res_b, res_e = np.empty(len(ws)), np.empty(len(ws))
-    selected = []
+    selected, runs = [], []
     for test in np.array_split(order, k):
         train = np.setdiff1d(order, test)
         wtr = ws.subset(train)
         try:
-            sel = TermSelector(wtr, base, base_cal, has_temp=has_temp, folds=folds, held_base=held_base)
+            sel = TermSelector(wtr, base, base_cal, has_temp=has_temp, folds=folds, held_base=held_base,
+                               lag_history=lag_history)
             chosen, held, _ = select_terms(sel, tuple(c for c in candidates if c in EXTRA_TERMS), spread_deg,
                                            report=False)
             par_b, f_b = sel.fit((), {})
@@ -336,8 +448,9 @@ def nested_heldout(ws: WindowSet, base: str, base_cal: Calibration, *, has_temp:
         res_b[test] = extended_residuals_g(par_b, f_b.p, wte)
         res_e[test] = extended_residuals_g(par_e, f_e.p, wte)
         selected.append(list(chosen))
+        runs.append((sel, chosen, held, test, wte))
     rms = lambda r: float(np.sqrt(np.mean(r * r)) * 1e3)  # noqa: E731
-    return NestedHeldout(rms(res_b), rms(res_e), k, selected)
+    return NestedHeldout(rms(res_b), rms(res_e), k, selected, runs, res_e)
 
 
 def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, vsupply: np.ndarray | None = None,
@@ -411,63 +524,11 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
         d.tests.append(tt)
         if tt.status == "found":
             ev = {"delta_bic": tt.delta_bic, "delta_bic_threshold": 10.0, **getattr(tt, "_extra", {})}
-            d.findings.append({"effect": tt.effect, "magnitude": tt.magnitude, "evidence": ev})
+            # beside an unexplained slow residual, colored noise may be that residual: part of it, not a cause
+            (d.partial if d.verdict.get("status") == "unexplained" else d.findings).append(
+                {"effect": tt.effect, "magnitude": tt.magnitude, "evidence": ev})
         elif tt.status == "untestable":
             d.untestable.append({"effect": tt.effect, "why": tt.why})
     if d.allan is not None:
         d.white_g = d.allan.white_g
     return d
-
-
-def _allan_test(name: str, parts_raw: list, parts_g: list, scale: np.ndarray, fs: float, longest: float) -> TermTest:
-    """Colored noise on static stretches: the Allan deviation beyond white noise (fitted on the earlier half of
-    the stretches in time, judged on the later half)."""
-    if longest < MIN_ALLAN_STRETCH_S:
-        return TermTest(name, "untestable", f"the longest static stretch is {longest:.1f} s "
-                                            f"(need >= {MIN_ALLAN_STRETCH_S:g} s for the Allan deviation)")
-    train, test = time_halves(parts_g)
-    tr, te = pooled_allan(train, fs), pooled_allan(test, fs)
-    res = colored_noise_test(tr, te) if tr is not None else {"found": False}
-    tt = TermTest(name, "found" if res["found"] else "not_found",
-                  "" if res["found"] else "Allan deviation explained by white noise (ΔBIC <= 10 or no "
-                  "held-out gain on the later half of the stretches)", res.get("delta_bic"))
-    bi, rw = res.get("bias_instability_mg", [0.0] * 3), res.get("random_walk_mg_per_sqrt_s", [0.0] * 3)
-    white_only = "white noise alone on this axis (no flicker floor or random walk fitted)"
-    tt.magnitude = {"unit": "mg", "value": {a: (bi[i] or None) if (bi[i] or rw[i]) else None for i, a in enumerate("xyz")},
-                    "random_walk_mg_per_sqrt_s": {a: rw[i] if (bi[i] or rw[i]) else None for i, a in enumerate("xyz")},
-                    "undetermined": {a: white_only for i, a in enumerate("xyz") if not (bi[i] or rw[i])}}
-    if tt.status == "found" and not any(bi[i] or rw[i] for i in range(3)):
-        tt.status, tt.why = "not_found", "the colored model's extra components fitted to zero on every axis"
-    tt._extra = res  # type: ignore[attr-defined]
-    tt._allan = pooled_allan(parts_g, fs)  # type: ignore[attr-defined]
-    return tt
-
-
-def _lsb_test(name: str, parts_raw: list, parts_g: list, scale: np.ndarray, fs: float, longest: float) -> TermTest:
-    """Quantisation on static stretches: samples on a grid of steps well above the noise."""
-    if not parts_raw:
-        return TermTest(name, "untestable", "no static stretch")
-    res = quantization_test(parts_raw, scale)
-    tt = TermTest(name, "found" if res["found"] else "not_found",
-                  "" if res["found"] else "samples look continuous at the noise level (ΔBIC <= 10 or no "
-                  "held-out gain)", res.get("delta_bic"))
-    tt.magnitude = {"unit": "mg_per_lsb", "value": {a: r.get("lsb_mg") or None for a, r in zip("xyz", res["axes"])},
-                    "noise_std_lsb": {a: r.get("noise_std_lsb") for a, r in zip("xyz", res["axes"])},
-                    "undetermined": {a: "samples on no grid (continuous)" for a, r in zip("xyz", res["axes"])
-                                     if not r.get("lsb_mg")}}
-    tt._extra = res  # type: ignore[attr-defined]
-    return tt
-
-
-def time_halves(parts: list[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """Static stretches (in time order) split into an earlier and a later half by sample count: contiguous
-    in time, so a held-out score on the later half is not flattered by neighbours of the training half."""
-    if len(parts) == 1:
-        h = parts[0].shape[0] // 2
-        return [parts[0][:h]], [parts[0][h:]]
-    n = np.cumsum([p.shape[0] for p in parts])
-    cut = int(np.clip(np.searchsorted(n, n[-1] / 2), 1, len(parts) - 1))
-    return parts[:cut], parts[cut:]
-
-
-SAMPLE_TESTS = {"allan": _allan_test, "lsb": _lsb_test}  # TermSpec.sample_test -> the static-sample test

@@ -30,7 +30,7 @@ def _magnitudes(sel: TermSelector, base_cal: Calibration, chosen: tuple[str, ...
                 ) -> dict[str, np.ndarray]:
     """Per chosen term: (report values (3,), raw values (3,)) refitted with ``base_cal`` as the held baseline."""
     k_sel = TermSelector(sel.ws, sel.base, base_cal, has_temp=sel.has_temp, folds=sel.folds, t_ref_c=sel.t_ref_c,
-                         t0_s=sel.t0_s, held_base=sel.held_base)
+                         t0_s=sel.t0_s, held_base=sel.held_base, lag_history=sel.lag_history)
     k_sel.var = sel.var
     par, f = k_sel.fit(chosen, held)
     mags = par.magnitudes(f.p)
@@ -98,17 +98,79 @@ def one_posture_partner(term: str) -> str | None:
                  and calibration_view(t).covariate == view.covariate), None)
 
 
+JACKKNIFE_BLOCKS = 10  # contiguous time blocks of the slope's std (neighbouring windows share slow errors)
+
+
 def channel_slopes(ws: WindowSet, covariate: str) -> dict[str, Any] | None:
-    """Each raw channel's mean regressed on a covariate over the windows: slope and std [raw per unit].
-    Needs no offsets, sensitivities or direction: what an independent least-squares fit sees."""
+    """Each raw channel's mean regressed on a covariate over the windows: slope [raw per unit] and its std.
+    Needs no offsets, sensitivities or direction: what an independent least-squares fit sees. The std is the
+    larger of the least-squares one and a delete-one-block jackknife over contiguous time blocks (windows
+    close in time share slow errors, which the least-squares std takes for independent)."""
     x = ws.covariate(covariate) if covariate != "time" else ws.t / 3600.0
     if x is None or np.ptp(x) == 0 or len(ws) < 3:
         return None
-    A = np.column_stack([np.ones_like(x), x - x.mean()])
-    coef, res, *_ = np.linalg.lstsq(A, ws.mean, rcond=None)
-    dof = max(len(ws) - 2, 1)
-    resid = ws.mean - A @ coef
-    s2 = (resid ** 2).sum(axis=0) / dof
-    sd = np.sqrt(s2 / np.sum((x - x.mean()) ** 2))
+
+    def fit(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xi = x[idx]
+        A = np.column_stack([np.ones_like(xi), xi - xi.mean()])
+        coef = np.linalg.lstsq(A, ws.mean[idx], rcond=None)[0]
+        resid = ws.mean[idx] - A @ coef
+        s2 = (resid ** 2).sum(axis=0) / max(len(idx) - 2, 1)
+        return coef[1], np.sqrt(s2 / max(float(np.sum((xi - xi.mean()) ** 2)), 1e-300))
+
+    order = np.argsort(ws.t, kind="stable")
+    slope, sd = fit(order)
+    blocks = min(JACKKNIFE_BLOCKS, len(ws) // 5)
+    if blocks >= 5:
+        parts = [fit(np.setdiff1d(order, b, assume_unique=True))[0] for b in np.array_split(order, blocks)]
+        jk = np.sqrt((blocks - 1) / blocks * np.sum((np.array(parts) - np.mean(parts, axis=0)) ** 2, axis=0))
+        sd = np.maximum(sd, jk)
     unit = COVARIATES[covariate].unit
-    return {"unit": f"raw/{unit}", "value": dict(zip("xyz", coef[1].tolist())), "std": dict(zip("xyz", sd.tolist()))}
+    return {"unit": f"raw/{unit}", "value": dict(zip("xyz", slope.tolist())), "std": dict(zip("xyz", sd.tolist()))}
+
+
+def scale_rel_std(held_meta: dict[str, Any] | None, start: Calibration) -> np.ndarray:
+    """(3,) relative std of the held sensitivities (the start's stated held covariance; 0 where none)."""
+    out = np.zeros(3)
+    if not held_meta:
+        return out
+    names, cov = held_meta.get("names", []), np.asarray(held_meta.get("cov", []), dtype=float)
+    s = np.abs(np.diag(start.sensitivity))
+    for n, name in enumerate(names):
+        if name in ("s_x", "s_y", "s_z"):
+            i = "xyz".index(name[2])
+            out[i] = float(np.sqrt(cov[n, n])) / s[i]
+    return out
+
+
+def one_posture_magnitude(tt: Any, ws: WindowSet, scale: np.ndarray, scale_rel_std: np.ndarray) -> None:
+    """In one posture an offset term's magnitude is each channel's slope on the covariate: determined for
+    every channel (the pose does not move), converted at the held sensitivity with its relative std. What
+    one pose does not determine is said instead of printed: along gravity whether the change is the offset's or
+    the sensitivity's, and the absolute offsets across gravity (the norm does not see them)."""
+    mag = tt.magnitude
+    view = calibration_view(tt.effect)
+    partner = one_posture_partner(tt.effect)
+    slopes = channel_slopes(ws, view.covariate)
+    mag["confounded_with"] = [partner]
+    if slopes is None:
+        return
+    conv = np.abs(view.report_factor(scale))
+    raw = np.array([slopes["value"][a] for a in "xyz"])
+    raw_sd = np.array([slopes["std"][a] for a in "xyz"])
+    value = raw * conv
+    stat = raw_sd * conv
+    sd = np.hypot(stat, value * scale_rel_std)
+    mag.update({"value": dict(zip("xyz", value.tolist())), "std": dict(zip("xyz", sd.tolist())),
+                "std_statistical": dict(zip("xyz", stat.tolist())),
+                "std_scale": dict(zip("xyz", (np.abs(value) * scale_rel_std).tolist())),
+                "raw_value": slopes["value"], "raw_std": slopes["std"], "raw_unit": slopes["unit"],
+                "raw_channel_slopes": slopes, "method": "per-channel least squares of the window means on the "
+                "covariate; std: the larger of least squares and a contiguous-block jackknife, with the held "
+                "sensitivity's relative std"})
+    for key in ("undetermined", "std_noise", "std_held", "held"):
+        mag.pop(key, None)
+    mag.setdefault("notes", []).append(
+        f"one posture: each channel's reading slope is determined; along gravity an offset change and a "
+        f"sensitivity change ({partner}) read alike, so the gravity channel's slope may be either; the absolute "
+        f"offsets across gravity are not determined")

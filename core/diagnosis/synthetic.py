@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from gravcal.core.calibration import Calibration
-from gravcal.core.model.base import Context, SensorModel
+from gravcal.core.model import Context, SensorModel
 from gravcal.core.model.datasheet import D0_TYP, NOISE_DENSITY_UG, SENS_TYP
 from gravcal.core.model.spec import planted_values
 from gravcal.core.model.terms import CALIBRATION_TERMS, REGISTRY, Axes, DutyCycle, term_spec

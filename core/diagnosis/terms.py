@@ -77,8 +77,13 @@ class TermSelector:
     """Fits and held-out scores of base + terms on one WindowSet with fixed weights."""
 
     def __init__(self, ws: WindowSet, base: str, base_cal: Calibration, *, has_temp: bool, folds: int = 5,
-                 t_ref_c: float | None = None, t0_s: float | None = None, held_base: list[int] | None = None):
+                 t_ref_c: float | None = None, t0_s: float | None = None, held_base: list[int] | None = None,
+                 lag_history: tuple[np.ndarray, np.ndarray] | None = None):
         self.ws, self.base, self.base_cal, self.has_temp = ws, base, base_cal, has_temp
+        # (t [s], temperature [°C]) a lagged term runs over: the inputs of every window of the recording, also
+        # when these windows are one fold's training set (temperature is an input, known at every window)
+        self.lag_history = lag_history if lag_history is not None else (
+            (ws.t, ws.aux[:, 0]) if has_temp else None)
         self.m = len(ws)
         self.t_ref_c = float(np.median(ws.aux[:, 0])) if (has_temp and t_ref_c is None) else (t_ref_c or 25.0)
         self.t0_s = float(ws.t.min()) if t0_s is None else float(t0_s)
@@ -128,7 +133,7 @@ class TermSelector:
         if not terms:
             return PARAMETERIZATIONS[self.base](K0, o0)
         kw = {} if self.v_ref is None else {"v_ref": self.v_ref}
-        history = (self.ws.t, self.ws.aux[:, 0]) if self.has_temp else None
+        history = self.lag_history if self.has_temp else None
         return extended_class(name)(K0, o0, t_ref_c=self.t_ref_c, t0_s=self.t0_s, lag_tau_s=self.lag_tau_s,
                                     lag_history=history, **kw)
 
@@ -475,7 +480,15 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
             profile_lag(sel, term)
     # one floor for every model: from the largest model (base + all testable terms, determined axes)
     held_all: dict[str, list[int]] = {t: [] for t in testable}
+    provisional = sel.var
     for term in testable:  # each term on its own with the base: hold its worst-determined axis until the rest are
+        # its std judged with the floor of the model that contains it: the baseline's floor carries the very misfit
+        # the term explains, and would hold a determined axis at 0 (a misalignment angle on a training fold). Not
+        # with an offsets-only baseline (one posture): there an axis across gravity is "determined" only through
+        # the tilt of the held offsets, and the baseline's floor keeps it held
+        if sel.base != "offsets":
+            par, f = sel.fit((term,), {})
+            sel.var = sel.var0 + floor_for(f.resid_g, sel.var0, sel.m - int(sel.free_mask(par, {}).sum())) ** 2
         while len(held_all[term]) < 3:
             par, f = sel.fit((term,), held_all)
             sd = np.where(np.isin(np.arange(3), held_all[term]), 0.0, np.nan_to_num(sel.effect_std_g(par, f, term),
@@ -483,6 +496,7 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
             if sd.max() <= TOL_G:
                 break
             held_all[term].append(int(np.argmax(sd)))
+    sel.var = provisional
     live = [t for t in testable if len(held_all[t]) < 3]
     for term in testable:
         if term not in live:

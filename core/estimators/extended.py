@@ -29,15 +29,18 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from gravcal.core import _fitsums
-from gravcal.core.estimators import _jacobians
+from gravcal.core.accelerator import kernels
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.parameterization import (PARAMETERIZATIONS, Parameterization, h_variance,
                                                       norm_and_projection)
 from gravcal.core.model.effect import (LAG_KEY, constant_rows, covariate_deviation, default_lag_tau_s,
                                        lagged_deviations, needed_covariates, references, term_entries, term_rows)
+from gravcal.core.model.spec import CROSS_PAIRS
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.windows import WindowSet
+
+_fitsums = kernels("gravcal.core._fitsums")
+_jacobians = kernels("gravcal.core.estimators._jacobians")
 
 EXTRA_TERMS: tuple[str, ...] = CALIBRATION_TERMS
 """Registered terms with a calibration-level (window-mean) effect, in canonical order."""
@@ -125,21 +128,81 @@ class ExtendedParameterization(Parameterization):
         return dK, do
 
     # -- physical magnitudes ---------------------------------------------------------------------
-    def magnitudes(self, p: np.ndarray, std: np.ndarray | None = None) -> dict[str, dict[str, Any]]:
-        """Each extra term in its report units (per axis), with std when given."""
+    def report_values(self, p: np.ndarray) -> dict[str, np.ndarray]:
+        """Each extra term in its report units (per axis, in ``view.keys`` order) at parameters p. A cross-axis
+        term is the exact misalignment of the calibrated axes (:func:`axis_misalignment_deg` of K at the
+        references), the others the view's ``report_factor`` of the diagonal sensitivities."""
         K, _ = self.unpack(p)
         s = np.abs(np.diag(K))
-        out: dict[str, dict[str, Any]] = {}
+        out: dict[str, np.ndarray] = {}
         k = self.base.n_params
         for term in self.terms:
             view = calibration_view(term)
-            conv, keys = view.report_factor(s), view.keys
-            d: dict[str, Any] = {"unit": view.unit, "value": dict(zip(keys, (np.asarray(p[k:k + 3]) * conv).tolist()))}
-            if std is not None:
-                d["std"] = dict(zip(keys, (np.asarray(std[k:k + 3]) * np.abs(conv)).tolist()))
-            out[term] = d
+            if view.acts_on == "cross":
+                out[term] = axis_misalignment_deg(K)
+            else:
+                out[term] = np.asarray(p[k:k + 3], dtype=float) * view.report_factor(s)
             k += 3
         return out
+
+    def magnitudes(self, p: np.ndarray, std: np.ndarray | None = None, *,
+                   cov: np.ndarray | None = None) -> dict[str, dict[str, Any]]:
+        """Each extra term in its report units (per axis), with std when ``cov`` (the parameters' covariance,
+        propagated through the report conversion: the sensitivities' uncertainty and their correlation with
+        the terms included) or ``std`` (taken as independent) is given."""
+        p = np.asarray(p, dtype=float)
+        values = self.report_values(p)
+        if cov is None and std is not None:
+            cov = np.diag(np.square(np.asarray(std, dtype=float)))
+        rep_std = None if cov is None else _propagated_std(self.report_values, p, np.asarray(cov, dtype=float))
+        out: dict[str, dict[str, Any]] = {}
+        for n, term in enumerate(self.terms):
+            view = calibration_view(term)
+            d: dict[str, Any] = {"unit": view.unit, "value": dict(zip(view.keys, values[term].tolist()))}
+            if rep_std is not None:
+                d["std"] = dict(zip(view.keys, rep_std[3 * n:3 * n + 3].tolist()))
+            out[term] = d
+        return out
+
+
+def axis_misalignment_deg(K: np.ndarray) -> np.ndarray:
+    """90° minus the angle between the calibrated axes i and j, pairs xy, xz, yz [deg]: channel i senses
+    along row i of K, so the angle is that between the rows (exact; it depends on K K^T alone, which the
+    gravity norm determines whatever frame K carries). Positive when the axes are closer than 90°."""
+    u = np.asarray(K, dtype=float) / np.linalg.norm(K, axis=1, keepdims=True)
+    return np.degrees(np.arcsin(np.clip([u[i] @ u[j] for i, j in CROSS_PAIRS], -1.0, 1.0)))
+
+
+def axis_angles(par: Parameterization, p: np.ndarray, cov: np.ndarray) -> dict[str, Any]:
+    """The calibrated axes' misalignment (:func:`axis_misalignment_deg` of K at p) with its std from the
+    parameters' covariance ``cov``: {"unit", "value": {xy, xz, yz}, "std": {...}} [deg from orthogonal]."""
+    def f(q: np.ndarray) -> dict[str, np.ndarray]:
+        return {"angles": axis_misalignment_deg(par.unpack(q)[0])}
+
+    p = np.asarray(p, dtype=float)
+    keys = [f"{'xyz'[i]}{'xyz'[j]}" for i, j in CROSS_PAIRS]
+    std = _propagated_std(f, p, np.asarray(cov, dtype=float))
+    return {"unit": "deg_from_orthogonal", "value": dict(zip(keys, f(p)["angles"].tolist())),
+            "std": dict(zip(keys, std.tolist()))}
+
+
+def _propagated_std(f, p: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """sqrt(diag(J C J^T)) of the concatenated values of f (a dict of arrays) at p, J by central differences
+    with steps of 1e-4 of each parameter's std (the conversions are smooth on that scale)."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    h = np.where(sd > 0, 1e-4 * sd, 1e-7 * np.maximum(np.abs(p), 1.0))
+    cols = []
+    for k in range(len(p)):
+        e = np.zeros(len(p))
+        e[k] = h[k]
+        hi, lo = f(p + e), f(p - e)
+        cols.append(np.concatenate([hi[t] - lo[t] for t in hi]) / (2 * h[k]))
+    J = np.stack(cols, axis=1) if cols else np.zeros((0, 0))
+    C = np.where(np.isfinite(cov), cov, 0.0)
+    var = np.einsum("ij,jk,ik->i", J, C, J)
+    bad = ~np.all(np.isfinite(cov), axis=1)  # a parameter without a finite variance: no finite std either
+    var = np.where((np.abs(J[:, bad]) > 0).any(axis=1), np.nan, var) if bad.any() else var
+    return np.sqrt(np.clip(var, 0, None))
 
 
 class _Bound(Parameterization):
@@ -171,7 +234,7 @@ class _Bound(Parameterization):
         hand LAPACK a NaN Jacobian (it raises on some systems and loops forever on others)."""
         label = {c: v.label for c, v in COVARIATES.items()}
         label.update({v.deviation_key: f"lagged {COVARIATES[v.covariate].label}"
-                      for v in map(calibration_view, self.parent.terms) if v.acts_on == "lagged_offset"})
+                      for v in map(calibration_view, self.parent.terms) if v.lagged})
         bad = [f"{int(m.sum())} of {self.n_rows} windows carry no {label.get(c, c)} value"
                for c, m in self._missing.items() if m.any()]
         return f"model {self.model} cannot be fitted: {'; '.join(bad)}" if bad else ""
@@ -182,8 +245,7 @@ class _Bound(Parameterization):
         the recording's history), so the rows are sliced, equal bit for bit to binding the subset; a lag
         without a history and the reference acceleration (a matrix product) are bound anew."""
         par = self.parent
-        lag_restarts = par.lag_history is None and any(calibration_view(t).acts_on == "lagged_offset"
-                                                       for t in par.terms)
+        lag_restarts = par.lag_history is None and any(calibration_view(t).lagged for t in par.terms)
         idx = np.asarray(idx)
         ws = self._ws.subset(idx) if ws is None else ws
         if lag_restarts or any(calibration_view(t).covariate == "accel" for t in par.terms):
@@ -296,18 +358,20 @@ def parameterization(model: str, K0: np.ndarray, o0: np.ndarray, **kw: Any) -> P
 
 
 # -- what a calibration must carry -----------------------------------------------------------------
-def extended_metadata(par: Parameterization, p: np.ndarray, std: np.ndarray | None = None) -> dict[str, Any]:
+def extended_metadata(par: Parameterization, p: np.ndarray, std: np.ndarray | None = None, *,
+                      cov: np.ndarray | None = None) -> dict[str, Any]:
     """Calibration metadata every estimator stores with its result: ``params`` (the parameter vector by
     name) and, for an extended parameterization, ``extended`` (terms, reference T_ref / t0, temperature
     column, per-term magnitudes with ``std``), which :func:`apply_extended` needs to correct at each
-    sample's temperature and time. ``par`` may be bound to windows (``at_windows``)."""
+    sample's temperature and time. ``par`` may be bound to windows (``at_windows``). ``cov``: the parameters'
+    covariance, propagated in full into the magnitudes' std (``std`` alone: taken as independent)."""
     par = getattr(par, "parent", par)  # unbind
     p = np.asarray(p, dtype=float)
     meta: dict[str, Any] = {"params": dict(zip(par.names, p.tolist()))}
     if isinstance(par, ExtendedParameterization):
         meta["extended"] = {"terms": list(par.terms), "t_ref_c": par.t_ref_c, "t0_s": par.t0_s, "v_ref": par.v_ref,
                             "temp_column": par.temp_column, LAG_KEY: par.lag_tau_s,
-                            "magnitudes": par.magnitudes(p, std)}
+                            "magnitudes": par.magnitudes(p, std, cov=cov)}
     return meta
 
 
@@ -331,7 +395,7 @@ class ExtendedFit:
     def calibration(self, n_windows: int) -> Calibration:
         K, o = self.par.unpack(self.p)
         par = getattr(self.par, "parent", self.par)
-        meta: dict[str, Any] = {"estimator": "fit_extended", **extended_metadata(par, self.p, self.std)}
+        meta: dict[str, Any] = {"estimator": "fit_extended", **extended_metadata(par, self.p, cov=self.cov)}
         return Calibration(model=par.model, offset=o, sensitivity=K, covariance=self.cov, param_names=list(par.names),
                            n_windows=n_windows, converged=self.converged, observable=True, metadata=meta)
 
@@ -453,4 +517,5 @@ def apply_windows(cal: Calibration, ws: WindowSet) -> np.ndarray:
 
 __all__ = ["EXTRA_TERMS", "ExtendedParameterization", "ExtendedFit", "extended_class", "model_name", "parameterization",
            "fit_extended", "extended_residuals_g", "extended_metadata", "apply_extended", "apply_windows",
+           "axis_angles", "axis_misalignment_deg",
            "T_REF_C"]

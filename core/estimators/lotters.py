@@ -33,7 +33,7 @@ from ..calibration import Calibration
 from ..windows import WindowSet, require_windows, validate_windows
 from .consider import (CONSIDER_KEY, HELD_KEY, consider_gain, consider_metadata, held_jacobian, held_std_note,
                        held_uncertainty)
-from .extended import extended_class, extended_metadata
+from .extended import axis_angles, extended_class, extended_metadata
 from .floor import quasi_static_floor
 from .observability import N_PARAMS, SIGMA_FLOOR_G, TOL_G, held_note, is_observable
 from .parameterization import PARAMETERIZATIONS, Parameterization
@@ -253,7 +253,7 @@ class LottersBatch:
         window's std, scipy.optimize.least_squares from the least-squares solution) keeps two outliers from
         masking each other: least squares spreads them over the other windows, so its residuals would not
         single them out."""
-        from scipy.optimize import least_squares  # noqa: PLC0415
+        from scipy.optimize import least_squares  # noqa: PLC0415 (start-up cost: only this robust fit needs it)
 
         floor_g2 = floor2 if self.sigma_floor_g is not None else SIGMA_FLOOR_G**2
         sd = np.sqrt(np.maximum(sol.var_g2 - floor2 + floor_g2, _TINY_VAR_G2))
@@ -367,7 +367,7 @@ class LottersBatch:
                                message="; ".join(["held-out fold: observability not judged", *notes]),
                                metadata={"estimator": "lotters_batch", "iterations": int(sol.iterations),
                                          "chi2": float(sol.chi2), "dof": int(dof), "sigma_floor_g": float(floor_used),
-                                         **extended_metadata(par, sol.p, np.sqrt(np.clip(np.diag(cov_noise), 0, None)))})
+                                         **extended_metadata(par, sol.p, cov=cov_noise)})
         scale = np.abs(np.diag(K))
         scale_ref = float(np.mean(scale))
         # consider term: the held parameters' uncertainty (consider.py)
@@ -417,10 +417,13 @@ class LottersBatch:
             "insample_rms_mg": float(np.sqrt(np.mean(sol.resid_g**2)) * 1e3),
             **held_meta,
             # params (+ extended terms): K, o above hold at T_ref / t0 only; apply_extended needs these
-            **extended_metadata(par, sol.p, std),
+            **extended_metadata(par, sol.p, cov=cov),
         }
         if consider_meta is not None:
             metadata[CONSIDER_KEY] = consider_meta
+        if (par.model if par.model in N_PARAMS else getattr(par, "base_model", None)) in ("9", "12"):
+            # the symmetric cross-axis entries as the angles between the calibrated axes (K's rows), with std
+            metadata["misalignment_deg"] = axis_angles(par, sol.p, cov)
         return Calibration(
             model=par.model, offset=o, sensitivity=K, covariance=cov, param_names=list(par.names),
             n_windows=m, converged=converged, observable=observable, message="; ".join(notes), metadata=metadata,

@@ -23,6 +23,7 @@ from ..crlb import RANK_RTOL, norm_noise_var, sphere_directions
 from ..model.terms import calibration_view
 from ..windows import WindowSet
 from .extended import ExtendedParameterization, extended_residuals_g, fit_extended, parameterization
+from .floor import quasi_static_floor
 from .inuse12 import full_start, with_frame
 from .lotters import LottersBatch
 from .parameterization import norm_and_projection
@@ -297,8 +298,6 @@ def fit_extended_floor(model: str, ws: WindowSet, start: Calibration, *, sigma_f
     """fit_extended (iterated eq. 11a) of ``model`` held at ``start``, with the quasi-static floor derived
     from the data as LottersBatch does (None: the floor that brings the reduced chi² to 1, if > 1).
     Returns (ExtendedFit, floor [g])."""
-    from .floor import quasi_static_floor  # noqa: PLC0415
-
     par = parameterization(model, start.sensitivity, start.offset)
     p0 = _extended_params(par, start) if p0 is None else p0
     var0 = norm_noise_var(ws, start)

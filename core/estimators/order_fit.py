@@ -64,7 +64,7 @@ def fit_order(ws: WindowSet, model: Any, start: Calibration, lab: Calibration | 
                         f"`gravcal diagnose` answers, relative to them)")
             raise OrderNotDetermined(f"model auto: the windows determine nothing: {why}. Record several "
                                      f"still postures (sitting, lying, bending); with little variety give a --start calibration "
-                                     f"(datasheet values) so the windows are seen in g")
+                                     f"(the sensor's nominal scale, or a lab calibration) so the windows are seen in g")
         chosen = d.model
         fit_start = start if chosen == "offsets" else reference_start(chosen, start, lab)
         order = {"model": chosen, "reason": f"auto: {d.reason}", "evidence": d.evidence}

@@ -17,9 +17,10 @@ from typing import ClassVar
 
 import numpy as np
 
-from gravcal.core import _fitsums
-from gravcal.core.estimators import _jacobians
+from gravcal.core.accelerator import kernels
 
+_fitsums = kernels("gravcal.core._fitsums")
+_jacobians = kernels("gravcal.core.estimators._jacobians")
 AXES = ("x", "y", "z")
 
 

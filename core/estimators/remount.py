@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from ..crlb import sphere_directions
+from ..windows import WindowSet
 
 CELLS = 400  # ~10° cells on the sphere (order.POSTURE_CELLS)
 
@@ -248,7 +249,7 @@ class RemountDetector:
 def session_motion(scenario: str = "daily_living", *, seed: int = 0, duration: float = 86400.0,
                    fs_motion: float = 2.0, **scenario_kw: Any) -> Any:
     """The scenario's motion as :func:`session_windows` renders it (pass it there as ``motion``)."""
-    from ..scenarios import make_motion  # noqa: PLC0415
+    from ..scenarios import make_motion  # noqa: PLC0415 (start-up cost: the daemon imports this module, not the simulator)
 
     return make_motion(scenario, duration=duration, fs=fs_motion, rng=seed, **scenario_kw)
 
@@ -273,10 +274,9 @@ differ only in sensor, re-mount or temperature share its rendering (the costly p
     Returns (WindowSet, info) with info["truth"](temp_c, t) -> Calibration and info["f"] the true specific
     forces [g] of the windows (board frame).
     """
-    from scipy.spatial.transform import Rotation  # noqa: PLC0415
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415 (start-up cost: scipy.spatial, as below)
 
-    from ..model.defaults import default_model, triad_truth  # noqa: PLC0415
-    from ..windows import WindowSet  # noqa: PLC0415
+    from ..model.defaults import default_model, triad_truth  # noqa: PLC0415 (start-up cost, as make_motion above)
 
     rng = np.random.default_rng([seed, 7])
     if motion is None:

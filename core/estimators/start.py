@@ -32,12 +32,18 @@ TUKEY_C = 4.685  # bisquare tuning constant (95 % efficiency under Gaussian resi
 SIGMA_FLOOR_G = 1e-4  # robust-scale floor [g]: never reject on residuals below ~0.5 mg
 MAX_OFFSET_STD_G = 0.05  # refuse when an offset is this uncertain [g] ...
 MAX_SENS_REL_STD = 0.05  # ... or a sensitivity entry this uncertain (relative): not observable
-# The isotropic fallback assumes equal per-axis gains. ADXL210 sensitivity is specified 0.032-0.048
-# duty/g around 0.040 (core/model/defaults.py): a part's gain may sit anywhere within +-20 % of the
-# typical value, and the triad's x/y (chip A) and z (chip B) are different parts. Stating the full
-# half-range (3 sigma of the datasheet spread, 6.7 %) as one std keeps a fit that holds these gains
-# honest even for a worst-case pair of chips and for the median norm's own bias (offset assumed 0).
+# The isotropic fallback assumes equal per-axis gains, for a sensor of unknown make. A MEMS part's gain
+# may sit anywhere within +-20 % of its typical value (the ADXL210's 0.032-0.048 duty/g around 0.040,
+# core/model/datasheet.py, is such a spread), and the axes may come from different dies. Stating the
+# full half-range as one std keeps a fit that holds these gains honest even for a worst case and for
+# the median norm's own bias (offset assumed 0).
 ISOTROPIC_SENS_REL_STD = (SENS_LIMITS[1] - SENS_LIMITS[0]) / 2.0 / SENS_TYP  # 0.20
+# A device file's own nominal scale (1 for a file in g, the counts per g its header states): the
+# residual per-axis gain error about it is assumed (1 sigma; not a figure the file states) 1 % for a file
+# the device already scaled to g with its own calibration, 3 % for raw counts at the header's nominal
+# scale (a MEMS part's gain spread; the ISM_Enabled Link's still norm reads 266 counts for its nominal
+# 256). A fit that holds the sensitivities there carries this into its offsets' uncertainty.
+DEVICE_SENS_REL_STD = {"g": 0.01, "counts": 0.03}
 FLOOR_CHUNK = 1 << 13  # samples per piece of the noise-floor probe (its temporaries stay in the CPU cache)
 
 
@@ -322,10 +328,25 @@ def bootstrap(t, raw, fs: float | None = None, *, noise_factor: float = 4.0, per
         sd = ISOTROPIC_SENS_REL_STD * scale
         return with_held_uncertainty(iso, {f"s_{a}": sd for a in "xyz"},
                                      source=f"isotropic fallback: per-axis sensitivities assumed equal "
-                                            f"(±{100 * ISOTROPIC_SENS_REL_STD:.0f} %, ADXL210 gain spread)")
+                                            f"(±{100 * ISOTROPIC_SENS_REL_STD:.0f} %, a MEMS part's gain spread)")
     cal.metadata = {**meta, **cal.metadata, "method": "bootstrap+ellipsoid_fit"}
     cal.message = f"bootstrap from {len(ws)} still segments; " + cal.message
     return cal
+
+
+def device_start(scale: float, device: str, units: str) -> Calibration:
+    """The start for a device file: its own nominal scale (``scale`` [units per g] on every axis, offsets 0),
+    stating a per-axis gain uncertainty of DEVICE_SENS_REL_STD[units] (assumed) for fits that hold the
+    sensitivities."""
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"a device's nominal scale must be a positive number, got {scale!r}")
+    rel = DEVICE_SENS_REL_STD["g" if units == "g" else "counts"]
+    what = "g" if units == "g" else f"{scale:g} {units} per g"
+    cal = Calibration(model="nominal", offset=np.zeros(3), sensitivity=scale * np.eye(3), converged=True, observable=True,
+                      message=f"the {device}'s nominal scale ({what})",
+                      metadata={"method": "device_nominal", "device": device, "scale": float(scale), "units": units})
+    return with_held_uncertainty(cal, {f"s_{a}": rel * scale for a in "xyz"},
+                                 source=f"the {device}'s nominal scale, per-axis gains assumed within ±{100 * rel:.0f} %")
 
 
 def _noise_floor(t, raw, fs, window_s, percentile) -> float:

@@ -23,14 +23,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._blockkernels import sosfilt
+from ..accelerator import kernels
+from ..butterworth import butter_sos
+
+sosfilt = kernels("gravcal.core._blockkernels").sosfilt
 
 
 def highpass_ba(hp_hz: float, fs: float) -> tuple[np.ndarray, np.ndarray]:
     """The board's first-order high-pass as simulated at ``fs`` [Hz]: the simulator's own section
     (signal.butter(1, hp_hz, "highpass", fs=fs) bit for bit, without scipy.signal) as lfilter's (b, a)."""
-    from ..detectors.butterworth import butter_sos  # noqa: PLC0415 (the detectors' package imports the model)
-
     if not (0 < hp_hz < fs / 2):
         raise ValueError(f"high-pass corner must lie in (0, fs/2 = {fs / 2} Hz), got {hp_hz}")
     b0, b1, _, _, a1, _ = butter_sos(1, float(hp_hz), "highpass", float(fs))[0]

@@ -28,7 +28,11 @@ from typing import Callable
 
 import numpy as np
 
+from ..model.defaults import default_model, triad_truth
+from ..model.enc03j import gyro_truth
+from ..samples import raw_triad
 from ..scenarios import Motion
+from ..simulate import simulate
 
 G = 9.80665  # m/s^2 per g
 H_DIFF = 1e-4  # s
@@ -181,11 +185,6 @@ class FootSession:
 def simulate_foot(motion: Motion, seed: int, **model_overrides) -> FootSession:
     """Run ``motion`` through a default_model drawn from ``seed`` (datasheet spreads: the
     ENC-03J scale factor +-20 %, its null voltage, the ADXL210 parts) and collect the truth."""
-    from ..model.defaults import default_model, triad_truth
-    from ..model.enc03j import gyro_truth
-    from ..samples import raw_triad
-    from ..simulate import simulate
-
     model = default_model(np.random.default_rng(seed), **model_overrides)
     sim = simulate(motion, model, seed=seed)
     vs = float(np.median(motion.vsupply))

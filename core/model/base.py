@@ -1,10 +1,11 @@
 """The contract of the one sensor model.
 
 A physical effect is a :class:`Term`: a name, a stage, parameters (a dict of arrays) and
-a ``forward`` that transforms the signal of its stage. A :class:`SensorModel` is an
-ordered set of terms; running it forward is the simulator, inverting its calibration-level
-view (``triad_truth``) is what the estimators do. Extending the model means adding a
-Term subclass (and registering it), never forking the simulator or the estimators.
+a ``forward`` that transforms the signal of its stage. A
+:class:`~gravcal.core.model.sensor_model.SensorModel` is an ordered set of terms; running it forward
+is the simulator, inverting its calibration-level view (``triad_truth``) is what the estimators do.
+Extending the model means adding a Term subclass and its line in the registry (core/model/terms),
+never forking the simulator or the estimators.
 
 Signal flow through the stages (in this order)::
 
@@ -49,14 +50,13 @@ class Context:
 class Term(ABC):
     """One named physical effect with its own parameters.
 
-    Subclasses set ``name`` (the catalogue name used in docs, JSON and ``diagnose``),
-    ``stage`` (one of STAGES) and ``order`` (position within the stage), and implement
-    ``forward``. ``params`` holds numpy arrays only, so a term serialises to JSON.
+    Subclasses set ``name`` (the catalogue name used in docs, JSON and ``diagnose``) and
+    ``stage`` (one of STAGES), and implement ``forward``; their position within the stage is the
+    registry's (core/model/terms). ``params`` holds numpy arrays only, so a term serialises to JSON.
     """
 
     name: ClassVar[str]
     stage: ClassVar[str]
-    order: ClassVar[int] = 50
 
     def __init__(self, **params: Any):
         self.params: dict[str, np.ndarray] = {k: np.asarray(v, dtype=float) for k, v in params.items()}
@@ -82,67 +82,3 @@ class Term(ABC):
     def __repr__(self) -> str:
         ps = ", ".join(f"{k}={np.array2string(v, precision=4)}" for k, v in self.params.items())
         return f"{type(self).__name__}({ps})"
-
-
-TERM_REGISTRY: dict[str, type[Term]] = {}
-
-
-def register(cls: type[Term]) -> type[Term]:
-    """Class decorator: make a term constructible by its catalogue name."""
-    if cls.stage not in STAGES:
-        raise ValueError(f"term {cls.__name__}: unknown stage {cls.stage!r}")
-    TERM_REGISTRY[cls.name] = cls
-    return cls
-
-
-def term_from_dict(d: dict[str, Any]) -> Term:
-    try:
-        cls = TERM_REGISTRY[d["name"]]
-    except KeyError as exc:
-        raise ValueError(f"unknown sensor-model term {d.get('name')!r}; known: {sorted(TERM_REGISTRY)}") from exc
-    return cls(**d.get("params", {}))
-
-
-class SensorModel:
-    """An ordered collection of terms, at most one per name."""
-
-    def __init__(self, terms: list[Term]):
-        names = [t.name for t in terms]
-        dup = {n for n in names if names.count(n) > 1}
-        if dup:
-            raise ValueError(f"sensor model has duplicate terms: {sorted(dup)}")
-        self.terms: list[Term] = sorted(terms, key=lambda t: (STAGES.index(t.stage), t.order))
-
-    def __contains__(self, name: str) -> bool:
-        return any(t.name == name for t in self.terms)
-
-    def __getitem__(self, name: str) -> Term:
-        for t in self.terms:
-            if t.name == name:
-                return t
-        raise KeyError(f"sensor model has no term {name!r}; it has {[t.name for t in self.terms]}")
-
-    def with_term(self, term: Term) -> "SensorModel":
-        """A new model with ``term`` added, replacing any term of the same name."""
-        return SensorModel([t for t in self.terms if t.name != term.name] + [term])
-
-    def without(self, name: str) -> "SensorModel":
-        return SensorModel([t for t in self.terms if t.name != name])
-
-    def stage_terms(self, stage: str) -> list[Term]:
-        return [t for t in self.terms if t.stage == stage]
-
-    def run_stage(self, stage: str, x: np.ndarray, ctx: Context) -> np.ndarray:
-        for term in self.stage_terms(stage):
-            x = term.forward(x, ctx)
-        return x
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"terms": [t.to_dict() for t in self.terms]}
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "SensorModel":
-        return cls([term_from_dict(t) for t in d["terms"]])
-
-    def __repr__(self) -> str:
-        return "SensorModel(\n  " + ",\n  ".join(repr(t) for t in self.terms) + "\n)"

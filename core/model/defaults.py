@@ -11,8 +11,9 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..samples import TRIAD
-from .base import Context, SensorModel, Term
+from .base import Context, Term
 from .datasheet import V_NOMINAL
+from .sensor_model import SensorModel
 from .terms import BASE_TERMS, CATALOGUE, GROUPS, REGISTRY, Axes, projection_matrix, term_spec
 
 

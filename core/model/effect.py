@@ -47,7 +47,7 @@ def lagged_deviations(terms: tuple[str, ...] | list[str], values: dict[str, np.n
     out = {}
     for term in terms:
         view = calibration_view(term)
-        if view.acts_on != "lagged_offset" or view.deviation_key in out:
+        if not view.lagged or view.deviation_key in out:
             continue
         v, t = values.get(view.covariate), values.get("time")
         if v is None or t is None:
@@ -118,7 +118,7 @@ def needed_covariates(terms: tuple[str, ...] | list[str]) -> tuple[str, ...]:
         c = calibration_view(t).covariate
         if c is not None and c != "accel" and c not in out:
             out.append(c)
-        if calibration_view(t).acts_on == "lagged_offset" and "time" not in out:
+        if calibration_view(t).lagged and "time" not in out:
             out.append("time")  # the lag runs over the rows' times
     return tuple(out)
 
@@ -168,9 +168,10 @@ def apply_terms(K: np.ndarray, o: np.ndarray, terms: tuple[str, ...], extra: np.
     raw = np.asarray(raw, dtype=float).reshape(-1, 3)
     n = raw.shape[0]
     P = 3 * len(terms)
-    dK0, do0 = constant_rows(tuple(terms), 0, P)
-    dK = np.broadcast_to(dK0, (n,) + dK0.shape).copy()
-    do = np.broadcast_to(do0, (n,) + do0.shape).copy()
+    # only the covariate-dependent rows: the cross-axis terms act at the reference, and K (the fit's K at the
+    # reference, ExtendedFit.calibration) already holds them; adding their constant rows again doubled them
+    dK = np.zeros((n, P, 3, 3))
+    do = np.zeros((n, P, 3))
     Kinv = np.linalg.inv(K)
     accel_sq = None
     if any(calibration_view(t).covariate == "accel" for t in terms):

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from .base import Context, Term, register
+from .base import Context, Term
 from .datasheet import (GYRO_ADC_BITS, GYRO_GAIN, GYRO_HP_HZ, GYRO_LP_HZ, GYRO_NOISE_DPS_RTHZ, GYRO_NULL_TEMPCO_MV_PER_C,
                         GYRO_NULL_TOL_V, GYRO_NULL_V, GYRO_RANGE_DPS, GYRO_SCALE_MV_PER_DPS, GYRO_SCALE_TOL)
 from .filters import butterworth_first_order, filter_sections, frequency_response, state_at
@@ -24,7 +24,6 @@ from .stateful import StatefulTerm
 DEG = np.pi / 180.0
 
 
-@register
 class GyroSensor(StatefulTerm):
     """The ENC-03J element: rate along its sensitive axis -> output voltage [V].
 
@@ -36,7 +35,6 @@ class GyroSensor(StatefulTerm):
 
     name = "gyro_sensor"
     stage = "gyro"
-    order = 10
 
     def __init__(self, axis: Any = (0.0, 1.0, 0.0), scale_mv_per_dps: Any = 0.67, null_v: Any = 1.35,
                  null_tempco_mv_per_c: Any = 0.0, t0_c: Any = 25.0, range_dps: Any = 300.0,
@@ -57,7 +55,6 @@ class GyroSensor(StatefulTerm):
         return null + p["scale_mv_per_dps"] * 1e-3 * rate_dps
 
 
-@register
 class GyroConditioning(StatefulTerm):
     """High-pass (hp_hz) -> amplifier (gain) around vref_ratio * Vsupply -> low-pass (lp_hz) [V -> V].
 
@@ -67,7 +64,6 @@ class GyroConditioning(StatefulTerm):
 
     name = "gyro_conditioning"
     stage = "gyro"
-    order = 50
 
     def __init__(self, hp_hz: Any = 0.3, gain: Any = 7.5, lp_hz: Any = 25.0, vref_ratio: Any = 0.5,
                  **params: Any):
@@ -92,13 +88,11 @@ class GyroConditioning(StatefulTerm):
         return np.clip(self.params["vref_ratio"] * vs + self.params["gain"] * y, 0.0, vs)
 
 
-@register
 class GyroADC(Term):
     """bits-bit ADC ratiometric to the supply: counts = floor(V / Vsupply * 2^bits), clipped."""
 
     name = "gyro_adc"
     stage = "gyro"
-    order = 90
 
     def __init__(self, bits: Any = 12, **params: Any):
         super().__init__(bits=bits, **params)

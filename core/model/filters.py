@@ -13,10 +13,10 @@ from typing import Sequence
 
 import numpy as np
 
-from .._blockkernels import sosfilt
+from ..accelerator import kernels
+from ..butterworth import butter_sos, sos_rest_state
 
-# core/detectors/butterworth.py holds the designs and rest states the detector uses; it is imported where it is
-# needed, because the detectors' package imports the calibration, which imports this model.
+sosfilt = kernels("gravcal.core._blockkernels").sosfilt
 
 
 def first_order_section(b: Sequence[float], a: Sequence[float]) -> np.ndarray:
@@ -29,16 +29,12 @@ def first_order_section(b: Sequence[float], a: Sequence[float]) -> np.ndarray:
 
 def butterworth_first_order(corner_hz: float, kind: str, fs: float) -> np.ndarray:
     """signal.butter(1, corner_hz, kind, fs=fs, output="sos") bit for bit: one (1, 6) section."""
-    from ..detectors.butterworth import butter_sos  # noqa: PLC0415 (import cycle, see above)
-
     return butter_sos(1, corner_hz, kind, fs)
 
 
 def state_at(sos: np.ndarray, value: np.ndarray | float, signals: int = 1) -> np.ndarray:
     """The (signals, sections, 2) state of a filter that has long seen the constant ``value``
     (one per signal, or one for all): signal.sosfilt_zi(sos) * value."""
-    from ..detectors.butterworth import sos_rest_state  # noqa: PLC0415 (import cycle, see above)
-
     v = np.broadcast_to(np.asarray(value, dtype=float).ravel(), (signals,))
     return np.ascontiguousarray(sos_rest_state(sos)[None] * v[:, None, None])
 

@@ -12,8 +12,8 @@ axis i a term with parameters p_i (one per axis) changes the reference K, o by
     acts_on "offset"       o_i  += p_i z_i
     acts_on "sensitivity"  K_ii += p_i z_i
     acts_on "cross"        K_ij = K_ji += p_ij   (constant: the symmetric cross-axis part)
-    acts_on "lagged_offset" o_i += p_i z_i, z the covariate through a first-order lag (time constant
-                           ``profiled``, chosen by diagnosis; needs the windows' history, so never online)
+    a LaggedView           o_i += p_i z_i, z the covariate through a first-order lag (time constant
+    (acts_on "lagged_offset") ``profiled``, chosen by diagnosis; needs the windows' history, so never online)
 
 and z is the deviation of the covariate from its reference: temperature [°C] from T_ref, supply
 [V] from V_ref, time [h] from t0, or the squared reference acceleration (diag K0 a0²) for a
@@ -22,7 +22,7 @@ quadratic nonlinearity.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, ClassVar
 
 import numpy as np
 
@@ -56,45 +56,56 @@ AUX_COLUMNS: tuple[str, ...] = tuple(c.name for c in sorted((c for c in COVARIAT
 """Names of the windows' aux columns, in column order (temperature [°C], supply voltage [V])."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class CalibrationView:
     """A term's calibration-level view (module docstring).
 
-    prefix: parameter names are ``<prefix>_x`` ... (``m_xy`` ... for "cross"); rank: canonical
-    position in extended model names; unit / report_factor: magnitudes in report units, per axis,
-    from raw-unit parameters and the diagonal sensitivities s [raw/g]; min_span: the smallest spread
-    (5-95 %) of the covariate, in its unit, at which the windows can test the term (None: always);
+    prefix: parameter names are ``<prefix>_x`` ... (``m_xy`` ... for "cross"), unique in the registry
+    (the parameters' position is the registry's, core/model/terms); unit / report_factor: magnitudes in
+    report units, per axis, from raw-unit parameters and the diagonal sensitivities s [raw/g]; min_span: the
+    smallest spread (5-95 %) of the covariate, in its unit, at which the windows can test the term (None: always);
     convention: the definition of the reported value, copied into every finding's magnitude;
-    profiled: the default of a nonlinear time constant [s] (``lagged_offset``) that the fit profiles
+    profiled: the default of a nonlinear time constant [s] (a :class:`LaggedView`'s) that the fit profiles
     instead of estimating linearly (None: the term is linear in its parameters).
     """
 
+    ACTS_ON: ClassVar[tuple[str, ...]] = ("offset", "sensitivity", "cross")
+    lagged: ClassVar[bool] = False
+    """The rows need the windows' history (a lag), not the window alone."""
+
     prefix: str
-    acts_on: str  # "offset" | "sensitivity" | "cross" | "lagged_offset"
+    acts_on: str  # one of ACTS_ON
     covariate: str | None
     unit: str
-    rank: int
     report_factor: Callable[[np.ndarray], np.ndarray]
     min_span: float | None = None
     span_reason: str = ""
     convention: str = ""  # how the reported value is defined, when the unit alone does not say it
     profiled: float | None = None
 
+    def __post_init__(self) -> None:
+        if self.acts_on not in self.ACTS_ON:
+            raise ValueError(f"calibration view {self.prefix!r}: acts_on must be one of {self.ACTS_ON}, "
+                             f"got {self.acts_on!r}")
+        if self.covariate is not None and self.covariate not in COVARIATES:
+            raise ValueError(f"calibration view {self.prefix!r}: unknown covariate {self.covariate!r}; "
+                             f"known: {', '.join(COVARIATES)}")
+
     @property
     def on_offset(self) -> bool:
-        return self.acts_on in ("offset", "lagged_offset")
+        return self.acts_on == "offset" or self.lagged
 
     @property
     def per_window(self) -> bool:
         """A window's rows need no other window: what the recursive (online) estimator requires."""
-        return self.acts_on != "lagged_offset"
+        return not self.lagged
 
     @property
     def deviation_key(self) -> str | None:
         """Key of the per-window deviation this term's rows use: its covariate, or the lagged covariate."""
         if self.covariate is None:
             return None
-        return self.covariate + ("_lagged" if self.acts_on == "lagged_offset" else "")
+        return self.covariate + ("_lagged" if self.lagged else "")
 
     @property
     def keys(self) -> list[str]:
@@ -138,6 +149,25 @@ class CalibrationView:
             return False, (f"no {what} spread: the windows span {hi - lo:.2g} {cov.unit} (5-95 %) < {self.min_span:g} "
                            f"{cov.unit}, so {self.span_reason}")
         return True, ""
+
+
+@dataclass(frozen=True, kw_only=True)
+class LaggedView(CalibrationView):
+    """A lagged offset (module docstring): acts on the offsets through its covariate lagged by a first-order
+    filter whose time constant (``profiled``, required) the fit profiles; a window's rows need the windows'
+    history, so the term is offline only."""
+
+    ACTS_ON: ClassVar[tuple[str, ...]] = ("lagged_offset",)
+    lagged: ClassVar[bool] = True
+
+    acts_on: str = field(default="lagged_offset", init=False)
+    profiled: float
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.covariate in (None, "accel", "time"):
+            raise ValueError(f"calibration view {self.prefix!r}: a lag needs a recorded covariate, "
+                             f"got {self.covariate!r}")
 
 
 def per_sensitivity(scale: float) -> Callable[[np.ndarray], np.ndarray]:

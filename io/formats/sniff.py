@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import gzip
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,7 +15,7 @@ HEAD_BYTES = 1 << 16
 """Bytes read to recognise a format (bounded: a 1 GB file costs the same as a 1 kB one)."""
 EXCERPT_CHARS = 40
 
-FORMATS = ("csv", "csv.gz", "npy", "gt3x", "agdc", "cwa", "bin")
+FORMATS = ("csv", "csv.gz", "npy", "parquet", "gt3x", "agdc", "cwa", "bin")
 """The recording formats ``read_recording`` accepts."""
 
 EXTRA_FOR = {"gt3x": ("pygt3x", "formats"), "agdc": ("pygt3x", "formats"),
@@ -42,8 +43,8 @@ def _zip_kind(path: Path) -> Sniffed:
     try:
         with zipfile.ZipFile(path) as z:
             names = z.namelist()[:1000]
-    except (zipfile.BadZipFile, OSError, ValueError):
-        return Sniffed("binary", "a damaged zip archive")
+    except Exception:  # noqa: BLE001 - zipfile's directory parser: BadZipFile, NotImplementedError (a version
+        return Sniffed("binary", "a damaged zip archive")  # or method it lacks), OSError, ValueError, ...
     if "info.txt" in names and ("log.bin" in names or "activity.bin" in names):
         if path.suffix.lower() == ".agdc":
             return Sniffed("agdc", "an ActiGraph .agdc file")
@@ -72,13 +73,15 @@ def sniff(path: Path) -> Sniffed:
         return Sniffed("empty", "an empty file")
     if head.startswith(b"\x93NUMPY"):
         return Sniffed("npy", "a NumPy .npy file")
+    if head.startswith(b"PAR1"):
+        return Sniffed("parquet", "an Apache Parquet file")
     if head.startswith(b"PK\x03\x04") or head.startswith(b"PK\x05\x06"):
         return _zip_kind(path)
     if head.startswith(b"\x1f\x8b"):
         try:
             with gzip.open(path, "rb") as g:
                 inner = g.read(4096)
-        except (OSError, EOFError, gzip.BadGzipFile):
+        except (OSError, EOFError, gzip.BadGzipFile, zlib.error):  # zlib.error: a damaged deflate stream
             return Sniffed("binary", "a damaged gzip file")
         if _looks_binary(inner):
             return Sniffed("binary", "a gzip file holding binary data, not a CSV")

@@ -9,6 +9,7 @@ from __future__ import annotations
 import importlib
 import logging
 import warnings
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +34,67 @@ def _on_sample_times(t: np.ndarray, t_cov: np.ndarray, cov: np.ndarray) -> np.nd
     return np.interp(t, t_cov[ok], cov[ok])
 
 
+# What an ActiGraph file can hold, from its own info.txt: a zip bomb (2 MB on disk, gigabytes of zeros inside)
+# would otherwise keep the reader decompressing for half an hour. Python's zipfile never inflates a member past
+# the size the central directory declares, so bounding the declared sizes bounds the work.
+SAMPLE_BYTES = 6  # log.bin's ACTIVITY2 record: three int16 per sample (the packed formats take less)
+SECOND_BYTES = 512  # per-second record headers and checksums, battery, temperature, lux, events
+FIXED_BYTES = 16 << 20  # firmware images, metadata and RAM dumps some devices add (neo.gt3x: 0.3 MB)
+INFO_BYTES = 1 << 16  # the largest info.txt worth reading (real ones: ~0.5 kB)
+RATIO_WITHOUT_INFO = 50  # declared / compressed, when info.txt gives no duration (real log.bin: 1-3)
+TICKS_PER_S = 10_000_000  # .NET ticks, info.txt's dates
+
+
+def _info_fields(z: zipfile.ZipFile) -> dict[str, str]:
+    try:
+        if z.getinfo("info.txt").file_size > INFO_BYTES:
+            return {}
+        text = z.read("info.txt").decode("utf-8-sig", "replace")
+    except Exception:  # noqa: BLE001 - no usable info.txt (missing, damaged, encrypted, an unknown method)
+        return {}
+    return {k.strip(): v.strip() for k, _, v in (line.partition(":") for line in text.splitlines()) if _}
+
+
+def _recorded_span(info: dict[str, str]) -> tuple[float, float] | None:
+    """(seconds, Hz) the file says it recorded, or None when info.txt does not say it plausibly."""
+    try:
+        rate = float(info["Sample Rate"])
+        start = int(info["Start Date"])
+        ends = [int(info[k]) for k in ("Last Sample Time", "Stop Date", "Download Date") if int(info.get(k) or 0) > start]
+    except (KeyError, ValueError):
+        return None
+    if not (0 < rate <= 10_000 and ends):
+        return None
+    return (ends[0] - start) / TICKS_PER_S, rate
+
+
+def check_declared_sizes(path: Path, found: Sniffed) -> None:
+    """InputError when the members of an ActiGraph zip declare more bytes than its recording can hold: the
+    span and rate of its info.txt (or, without them, ``RATIO_WITHOUT_INFO`` x the compressed size)."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            members = z.infolist()
+            span = _recorded_span(_info_fields(z))
+    except Exception as exc:  # noqa: BLE001 - zipfile's directory parser, whatever it raises
+        raise InputError(f"{path}: {found.what} with a damaged zip directory ({type(exc).__name__})") from None
+    declared = sum(m.file_size for m in members)
+    biggest = max(members, key=lambda m: m.file_size)
+    if span is not None:
+        seconds, rate = span
+        limit = FIXED_BYTES + seconds * (2 * rate * SAMPLE_BYTES + SECOND_BYTES)
+        why = f"more than {seconds:.0f} s at {rate:g} Hz can hold"
+    else:
+        limit = max(FIXED_BYTES, RATIO_WITHOUT_INFO * sum(m.compress_size for m in members))
+        why = f"more than {RATIO_WITHOUT_INFO}x its compressed size, and info.txt gives no span to allow it"
+    if declared > limit:
+        raise InputError(f"{path}: {found.what} whose members declare {declared >> 20} MiB ({biggest.filename} "
+                         f"{biggest.file_size >> 20} MiB), {why} (at most {int(limit) >> 20} MiB): a damaged "
+                         f"file or a zip bomb; not read")
+
+
 def read_actigraph(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     _reader_module(path, found, "pygt3x")
+    check_declared_sizes(path, found)
     from pygt3x.reader import FileReader
 
     logging.getLogger("pygt3x").setLevel(logging.ERROR)  # per-second sample-count chatter
@@ -64,6 +124,10 @@ def read_actigraph(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], d
             cols["temp"] = temp
             meta["temp_source"] = "ADXL die temperature, interpolated from its own rate"
     units = "g" if nhanes else "counts"
+    scale = float(getattr(info, "acceleration_scale", 0.0) or 0.0)
+    meta["device"] = f"ActiGraph {getattr(info, 'device_type', '') or 'device'}".strip()
+    if units == "g" or scale > 1.0:  # the header's counts per g (an .agdc states 1, which is no scale)
+        meta["nominal_per_g"] = 1.0 if units == "g" else scale
     return cols, {"units": units, **meta}
 
 
@@ -86,7 +150,8 @@ def read_skdh(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], dict[s
     temp = res.get("temperature")
     if temp is not None and np.shape(temp) == t.shape:
         cols["temp"] = np.asarray(temp, dtype=np.float64)
-    meta = {"format": found.kind, "reader": "scikit-digital-health", "device_fs_hz": float(res.get("fs", 0.0))}
+    meta = {"format": found.kind, "reader": "scikit-digital-health", "device_fs_hz": float(res.get("fs", 0.0)),
+            "device": "Axivity" if found.kind == "cwa" else "GENEActiv", "nominal_per_g": 1.0}
     return cols, {"units": "g", **meta}
 
 

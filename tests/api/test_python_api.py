@@ -92,6 +92,16 @@ def test_bad_arrays_and_inputs_say_what_is_wrong():
         gravcal.calibrate((np.arange(10.0), np.zeros((10, 3))), model="seven")
 
 
+def test_a_recording_that_determines_nothing_is_a_refusal_not_an_exception():
+    """One still posture (its own generator: 60 s at 50 Hz, in g, 3 mg noise): the API returns the verdict."""
+    rng = np.random.default_rng(11)
+    t = np.arange(3000) / 50.0
+    acc = np.array([0.02, -0.01, 1.0]) + rng.normal(0.0, 0.003, (3000, 3))
+    cal = gravcal.calibrate((t, acc))
+    assert cal.status == "refused" and cal.reason and cal.heldout_rms_mg is None
+    assert not (cal.converged and cal.observable)
+
+
 def test_json_round_trip_keeps_report_and_start_accepts_it(six, tmp_path, capsys):
     from gravcal.cli.main import main
 
@@ -101,8 +111,14 @@ def test_json_round_trip_keeps_report_and_start_accepts_it(six, tmp_path, capsys
     assert np.array_equal(back.sensitivity, cal.sensitivity)
     p = tmp_path / "cal.json"
     p.write_text(cal.to_json())
-    assert main(["calibrate", str(six), "--start", str(p), "--model", "6", "--json"]) == 0
-    capsys.readouterr()
+    code = main(["calibrate", str(six), "--start", str(p), "--model", "6", "--json"])
+    again = json.loads(capsys.readouterr().out)
+    # the start already fits these windows (in-sample): a refit holding out no better returns it unchanged
+    assert again["verdict"]["uncalibrated_rms_mg"] == pytest.approx(cal.insample_rms_mg, rel=1e-6)
+    if again["status"] == "not_improved":
+        assert code == 3 and np.allclose(again["offset"], cal.offset, rtol=0, atol=0)
+    else:
+        assert code == 0 and again["heldout_rms_mg"] < again["verdict"]["uncalibrated_rms_mg"]
 
 
 def test_calibrate_from_a_path_reuses_the_reading_pass_blocks(tmp_path, monkeypatch):

@@ -21,6 +21,15 @@ def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
     return code, out, err
 
 
+def assert_one_verdict_line(err: str, status: str, *fragments: str) -> None:
+    """exit 3's one line on stderr: "gravcal: calibration <status>: <reason>", no error line, no traceback."""
+    lines = [ln for ln in err.splitlines() if ln.startswith("gravcal: calibration ")]
+    assert len(lines) == 1 and "gravcal: error:" not in err and "Traceback" not in err, err
+    assert lines[0].startswith(f"gravcal: calibration {status.replace('_', ' ')}: "), lines[0]
+    for f in fragments:
+        assert f in lines[0], (f, lines[0])
+
+
 def assert_one_error_line(err: str, *fragments: str) -> None:
     lines = [ln for ln in err.splitlines() if ln.strip()]
     errors = [ln for ln in lines if ln.startswith("gravcal: error: ")]
@@ -145,9 +154,11 @@ def test_single_window(capsys, tmp_path):
     out = tmp_path / "static.csv"
     assert main(["simulate", "--scenario", "static", "--duration", "30", "--out", str(out)]) == 0
     capsys.readouterr()
-    code, stdout, err = run_cli(capsys, "calibrate", out)
-    assert code == 2 and stdout == ""
-    assert_one_error_line(err, "quasi-static window", "need at least 6")
+    code, stdout, err = run_cli(capsys, "calibrate", out, "--json")
+    d = json.loads(stdout)  # a readable recording gets a verdict: refused, with the reason, exit 3
+    assert code == 3 and d["status"] == "refused" and "quasi-static window" in d["reason"]
+    assert "need at least 6" in d["reason"] and d["heldout_rms_mg"] is None and d["order"]["model"] == "none"
+    assert_one_verdict_line(err, "refused", "quasi-static window", "need at least 6")
 
 
 def test_saturated_samples(capsys, tmp_path, six):
@@ -194,15 +205,18 @@ def loetters_csv(tmp_path, theta_deg: float):
     return out
 
 
-def test_auto_determining_nothing_exits_2_with_the_reason(capsys, tmp_path):
-    """Postures within 10° of standing: auto (the default) finds not even the offsets determined -> exit 2,
-    one line saying why (the predicted error against the 10 mg tolerance), nothing on stdout."""
+def test_auto_determining_nothing_is_refused_with_the_reason(capsys, tmp_path):
+    """Postures within 10° of standing: auto (the default) finds not even the offsets determined -> status
+    "refused", exit 3 with the JSON, one line saying why (the predicted error against the 10 mg tolerance);
+    the start is returned unchanged and --save writes nothing."""
     out = loetters_csv(tmp_path, 10)
     capsys.readouterr()
-    code, stdout, err = run_cli(capsys, "calibrate", out, "--json")
-    assert code == 2 and stdout == ""
-    assert_one_error_line(err, "model auto: the windows determine nothing", "not even the offsets are determined",
-                          "Record several still postures")
+    code, stdout, err = run_cli(capsys, "calibrate", out, "--json", "--save", tmp_path / "cal.json")
+    d = json.loads(stdout)
+    assert code == 3 and d["status"] == "refused" and d["converged"] is False and d["observable"] is False
+    assert "not even the offsets are determined" in d["reason"] and not (tmp_path / "cal.json").exists()
+    assert_one_verdict_line(err, "refused", "model auto: the windows determine nothing",
+                            "not even the offsets are determined", "Record several still postures", "not written")
     m = re.search(r"predicted error ([0-9.e+]+) mg > 10 mg", err)
     assert m and float(m.group(1)) > 10, err
 
@@ -221,11 +235,13 @@ def test_explicit_model_fitted_but_not_observable_exits_3_and_still_prints_the_j
     assert 10 < predicted <= 30, d["order"]
     assert "sensitivities not observable" in d["message"] and "use --model offsets" in d["message"]
     assert set(d["std"]) == {"o_x", "o_y", "o_z", "s_x", "s_y", "s_z"}
-    assert "calibration not trustworthy" in err and "Traceback" not in err
+    assert d["status"] == "unreliable" and "not observable" in d["reason"]
+    assert_one_verdict_line(err, "unreliable", "not observable")
 
     code, stdout, err = run_cli(capsys, "calibrate", out, "--json")
     a = json.loads(stdout)
     assert code == 0 and a["model"] == "offsets" and a["observable"] is True and set(a["std"]) == {"o_x", "o_y", "o_z"}
+    assert a["status"] == "partial" and "offsets only, what the windows determine" in a["reason"]
     m = re.search(r"not observable: 6: predicted error ([0-9.]+) mg", a["order"]["reason"])
     assert m and float(m.group(1)) == pytest.approx(predicted, rel=0.01), a["order"]["reason"]
 

@@ -36,7 +36,7 @@ def test_json_saved_calibration_and_log_arrive_whole(tmp_path, rec_path):
     saved = tmp_path / "cal.json"
     rc, out, err = _program(tmp_path, "-v", "calibrate", str(rec_path), "--json", "--save", str(saved))
     obj = json.loads(out)  # exactly one complete object
-    assert rc == (0 if obj["converged"] and obj["observable"] else 3)
+    assert rc == (0 if obj["status"] in ("ok", "partial") else 3)
     assert obj["n_windows"] > 0 and set(obj["timing_s"]) >= {"read", "calibrate"}
     cal = Calibration.from_json(saved.read_text(encoding="utf-8"))
     assert cal.offset.tolist() == obj["offset"] and cal.sensitivity.tolist() == obj["sensitivity"]

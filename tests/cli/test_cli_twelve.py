@@ -123,32 +123,39 @@ def test_model_9_12_and_lab(capsys, sessions, tmp_path):
     assert code == 2 and "carries no frame" in one_error_line(err)
 
 
-def test_bad_input_exit_2_says_what_is_missing(capsys, tmp_path):
+def verdict_of(capsys, *argv) -> tuple[int, dict, str]:
+    code, out, err = run_cli(capsys, *argv, "--json")
+    assert "Traceback" not in err and "gravcal: error:" not in err, err
+    return code, json.loads(out), err
+
+
+def test_windows_that_determine_nothing_are_refused_with_what_is_missing(capsys, tmp_path):
+    """Readable recordings whose windows determine nothing: status "refused", exit 3, the JSON with the reason."""
     # one posture: fewer windows than parameters / nothing determined
     one = postures_csv(tmp_path / "one.csv", [[0, 0, 1]], hold_s=40)
-    code, out, err = run_cli(capsys, "calibrate", one)
-    assert code == 2 and out == ""
-    line = one_error_line(err)
-    assert "quasi-static window" in line and "need at least" in line
+    code, d, err = verdict_of(capsys, "calibrate", one)
+    assert code == 3 and d["status"] == "refused", d["reason"]
+    assert "quasi-static window" in d["reason"] and "need at least" in d["reason"]
+    assert "gravcal: calibration refused: " in err
     # repeated single posture: many windows, nothing determined
     rep = postures_csv(tmp_path / "rep.csv", [[0.1, 0, 1]] * 8, hold_s=15)
-    code, _, err = run_cli(capsys, "calibrate", rep)
-    line = one_error_line(err)
-    assert code == 2 and "determine nothing" in line and "not even the offsets" in line, line
+    code, d, _ = verdict_of(capsys, "calibrate", rep)
+    assert code == 3 and d["status"] == "refused" and "determine nothing" in d["reason"]
+    assert "not even the offsets" in d["reason"]
     # collinear postures: upright and upside down, repeated
     col = postures_csv(tmp_path / "col.csv", [[0, 0, 1], [0, 0, -1]] * 5, hold_s=15)
-    code, _, err = run_cli(capsys, "calibrate", col)
-    assert code == 2 and "determine nothing" in one_error_line(err)
+    code, d, _ = verdict_of(capsys, "calibrate", col)
+    assert code == 3 and d["status"] == "refused" and "determine nothing" in d["reason"]
     # (a datasheet start: two postures give a scale-free bootstrap no scale for x and y)
     (tmp_path / "nominal.json").write_text(Calibration("nominal", O_SYN + 0.002, np.diag(np.diag(K_SYN)) * 1.03).to_json())
-    code, _, err = run_cli(capsys, "calibrate", col, "--model", "6", "--start", tmp_path / "nominal.json")
-    line = one_error_line(err)
-    assert code == 2 and "do not determine the sensitivities" in line and "distinct posture" in line, line
+    code, d, _ = verdict_of(capsys, "calibrate", col, "--model", "6", "--start", tmp_path / "nominal.json")
+    assert code == 3 and d["status"] == "refused"
+    assert "do not determine the sensitivities" in d["reason"] and "distinct posture" in d["reason"], d["reason"]
+    np.testing.assert_allclose(d["offset"], O_SYN + 0.002)  # the start, returned unchanged
     # fewer windows than parameters for an explicit order
     few = postures_csv(tmp_path / "few.csv", [[1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, -1, 0]], hold_s=15)
-    code, _, err = run_cli(capsys, "calibrate", few, "--model", "9")
-    line = one_error_line(err)
-    assert code == 2 and "need at least 9" in line, line
+    code, d, _ = verdict_of(capsys, "calibrate", few, "--model", "9")
+    assert code == 3 and d["status"] == "refused" and "need at least 9" in d["reason"], d["reason"]
 
 
 def test_lab_session_with_a_face_missing_or_held_twice(capsys, tmp_path):

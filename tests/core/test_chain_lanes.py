@@ -14,7 +14,7 @@ import pytest
 import gravcal.core.fastdetect as fastdetect
 from gravcal.core._blockkernels import lotters_chain
 from gravcal.core.calibration import Calibration
-from gravcal.core.detectors.butterworth import butter_sos, sos_rest_state
+from gravcal.core.butterworth import butter_sos, sos_rest_state
 
 B = 10
 FS = 100.0

@@ -9,6 +9,9 @@ from hypothesis import strategies as st
 from gravcal.core.calibration import Calibration
 from gravcal.core.detectors import MovingVarianceDetector, QuasiStaticDetector, detect
 
+from filter_bounds import cascade_gains, sosfilt_difference_bound
+from gravcal.core.butterworth import sos_rest_state
+
 FS = 100.0
 NOISE_G = 0.0045  # ADXL210 500 µg/√Hz over ~80 Hz noise bandwidth, per axis [g]
 
@@ -269,8 +272,10 @@ def test_window_statistics_are_those_of_its_samples(cls, max_s):
 
 
 def test_threads_fortran_input_and_scipys_sosfilt_give_identical_results(monkeypatch):
-    """threads=2 splits the channels between threads, Fortran-ordered raw skips a transpose, and
-    scipy.signal.sosfilt in place of the compiled kernel is the filter's reference: none may change a bit."""
+    """threads=2 splits the channels between threads and Fortran-ordered raw skips a transpose: neither may
+    change a bit. scipy.signal.sosfilt in place of the compiled kernel is the filter's reference: its detection
+    signal within the rounding bound of the two filters (tests/core/filter_bounds.py), never SciPy's bits, and
+    (no sample that close to the threshold) the same windows."""
     from scipy import signal
 
     from gravcal.core.detectors import windowing
@@ -298,8 +303,17 @@ def test_threads_fortran_input_and_scipys_sosfilt_give_identical_results(monkeyp
     variants = [run(raw, threads=2), run(np.asfortranarray(raw))]
     monkeypatch.setattr(windowing, "sosfilt", scipy_sosfilt)
     variants.append(run(raw))
-    for windows, det in variants:
-        np.testing.assert_array_equal(det, ref_det)
+    probe = QuasiStaticDetector(FS, **kw)
+    u_max = float(max(np.linalg.norm(f, axis=1).max(), np.abs(f).max())) * 1.01  # |a| and the axes [g]
+    hp, lp = probe.sos_hp, probe.sos_lp
+    bound = (sosfilt_difference_bound(hp, u_max, u_max * np.abs(sos_rest_state(hp)).max()) * cascade_gains(lp)[0]
+             + sosfilt_difference_bound(lp, u_max * (1 + cascade_gains(hp)[0]), 0.0))
+    assert bound < 1e-3 * probe.threshold_g and np.all(np.abs(ref_det - probe.threshold_g) > bound)
+    for k, (windows, det) in enumerate(variants):
+        if k < 2:
+            np.testing.assert_array_equal(det, ref_det)
+        else:
+            assert np.max(np.abs(det - ref_det)) <= bound
         assert [(w.start, w.end) for w in windows] == [(w.start, w.end) for w in ref]
         for a, b in zip(windows, ref):
             np.testing.assert_allclose(a.mean, b.mean, rtol=1e-14)

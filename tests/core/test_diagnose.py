@@ -24,31 +24,43 @@ def actigraph(measured_data_dir):
     return diagnose(r.t, r.acc, temp=r.temp, fs=r.fs, replicas=10)
 
 
+def independent_channel_slopes(r, d) -> np.ndarray:
+    """Each raw channel against temperature on the windows diagnose used, fitted here without gravcal: slope
+    [raw/°C] (ordinary least squares on the window means)."""
+    ws = d.windows
+    A = np.column_stack([np.ones(len(ws)), ws.aux[:, 0]])
+    return np.linalg.lstsq(A, ws.mean, rcond=None)[0][1]
+
+
 def test_actigraph_reveals_temperature_offset(actigraph):
     d = actigraph
     names = [f["effect"] for f in d.findings]
     assert "temperature_offset" in names
     f = d.findings[names.index("temperature_offset")]
     mag = f["magnitude"]
-    z, sd = mag["value"]["z"], mag["std"]["z"]  # mg/°C along gravity (the chamber pose is Z up)
-    # one posture: across gravity nothing is determined, and the report says so instead of printing 0 ± 0
-    assert mag["value"]["x"] is None and mag["value"]["y"] is None
-    assert set(mag["undetermined"]) == {"x", "y"} and "not observable" in mag["undetermined"]["x"]
+    # one posture: each channel's slope against temperature is determined (the pose does not move) and given
+    # per channel; the z channel (along gravity) is in the range independent fits give at the plausible scales
+    assert all(mag["value"][a] is not None and mag["std"][a] > 0 for a in "xyz")
+    z, sd = mag["value"]["z"], mag["std"]["z"]
+    assert -0.42 <= z <= -0.26, (z, sd)
+    raw = independent_channel_slopes(None, d)
+    s = abs(d.baseline_cal.sensitivity[2, 2])
+    for i, a in enumerate("xyz"):  # the same slope an outside least-squares fit sees, at the held scale
+        assert abs(mag["value"][a] - raw[i] / s * 1e3) <= 0.5 * mag["std_statistical"][a] + 1e-9, (a, mag["value"])
+    # the std carries the held counts-per-g scale (one pose cannot determine it) beside the statistics
+    assert mag["std_scale"]["z"] > 3 * mag["std_statistical"]["z"]
+    assert abs(sd - np.hypot(mag["std_scale"]["z"], mag["std_statistical"]["z"])) < 1e-12
+    # what one pose cannot determine is said, not printed: the gravity channel's change may be offset or
+    # sensitivity, the absolute offsets across gravity are unknown (their std withheld in the calibration)
     assert mag["confounded_with"] == ["temperature_sensitivity"]
+    assert any("offsets across gravity are not determined" in n for n in mag["notes"])
+    assert {"o_x", "o_y"} <= set(d.undetermined) and "o_z" not in d.undetermined
+    cal = d.to_json_dict()["extended"]["calibration"]
+    assert cal["std"]["o_x"] is None and cal["std"]["o_y"] is None and cal["std"]["o_z"] > 0
     assert any("cannot be told apart" in n and "temperature_sensitivity" in n for n in d.notes)
-    # the stated std carries the held sensitivities (±20 %: the counts-per-g scale one pose cannot determine,
-    # and the direction of gravity through the held offsets): far above the statistical std alone
-    assert any(h.startswith("s_z") for h in mag["held"]) and mag["std_held"]["z"] > 5 * mag["std_noise"]["z"]
-    # an independent least-squares fit: each raw channel on temperature, projected on the raw mean direction
-    # (offsets << 1 g), in mg/°C at the fitted scale; the finding agrees with it within its stated std
-    slopes = np.array([mag["raw_channel_slopes"]["value"][a] for a in "xyz"])
-    u = d.windows.mean.mean(axis=0)
-    indep = float(slopes @ u / np.linalg.norm(u)) / d.baseline_cal.sensitivity[2, 2] * 1e3
-    assert -0.4 < indep < -0.25 and z < 0 and abs(z - indep) <= 2.5 * sd, (z, sd, indep)
-    # the y channel drifts as much as z (what tilts a held-offset projection): reported, not hidden
-    assert abs(slopes[1]) > 0.5 * abs(slopes[2])
     assert d.heldout_gain_mg > 1.0  # measured, nested folds: 2.69 -> 0.70 mg
     assert d.nested.selected == [["temperature_offset"]] * d.nested.folds  # chosen on every outer training set
+    assert f["evidence"]["nested_heldout_gain_mg"] > 1.0
     # the baseline simulation gets the residual size and its temperature dependence wrong
     assert d.compare_baseline.measured["rms_mg"] > 3 * d.compare_baseline.simulated_mean["rms_mg"]
     r2 = d.compare_baseline.measured["r2_temperature"]  # measured: residual explained by temperature
@@ -80,12 +92,29 @@ def test_calibrate_and_diagnose_give_one_answer_on_the_chamber(actigraph):
     assert abs(pred - obs["predicted_mg"]) <= 0.05 * pred, (pred, obs)
 
 
+def independent_nine_parameter_heldout_mg(ws, start, folds: int = 5) -> float:
+    """A 9-parameter fit (sensitivities, offsets, cross-axis terms) on the other contiguous time blocks, scored
+    on each block: no selection, no held axes."""
+    order = np.argsort(ws.t, kind="stable")
+    res = np.empty(len(ws))
+    for test in np.array_split(order, folds):
+        cal = LottersBatch("9").fit(ws.subset(np.setdiff1d(order, test)), start)
+        res[test] = 1 - np.linalg.norm(cal.apply(ws.subset(test).mean), axis=1)
+    return float(np.sqrt(np.mean(res**2)) * 1e3)
+
+
 def test_xsens_reveals_misalignment(measured_data_dir):
     r = D.load("imu_tk_xsens")
     d = diagnose(r.t, r.acc, fs=r.fs, replicas=10)
     names = [f["effect"] for f in d.findings]
     assert "misalignment" in names
-    assert d.heldout_gain_mg > 2.0  # measured, nested folds: 3.48 -> 0.92 mg
+    # the held-out figure is the delivered procedure's: what an independent 9-parameter fit gives on held-out
+    # contiguous blocks (measured 0.20 mg; the nested selection 0.177 mg; 0.92 mg when the outer folds held the
+    # xz angle at 0)
+    indep = independent_nine_parameter_heldout_mg(d.windows, d.baseline_cal)
+    assert abs(d.extended_heldout_mg - indep) <= 0.2 * indep, (d.extended_heldout_mg, indep)
+    assert d.nested.selected == [["misalignment"]] * d.nested.folds
+    assert d.verdict["status"] == "explained"
     mag = d.findings[names.index("misalignment")]["magnitude"]
     assert mag["unit"] == "deg_from_orthogonal"  # 90° minus the angle between the two axes
     assert 1.0 < mag["value"]["yz"] / mag["std"]["yz"] and all(v is not None for v in mag["value"].values())
@@ -196,13 +225,21 @@ def test_cli_json_and_report(tmp_path, capsys):
 
     path = tmp_path / "rec.csv"
     write_recording(path, s.samples)
-    rc = main(["diagnose", str(path), "--json", "--replicas", "3", "--report", str(tmp_path / "rep")])
+    rc = main(["diagnose", str(path), "--json", "--replicas", "3", "--report", str(tmp_path / "rep"),
+               "--offer", "thermal_lag"])
     out = json.loads(capsys.readouterr().out)
     assert rc == 0
-    assert set(out) >= {"findings", "baseline", "extended", "untestable"}
+    assert set(out) >= {"findings", "baseline", "extended", "untestable", "verdict", "partial", "undetermined"}
+    assert out["verdict"]["status"] in ("explained", "unexplained", "nothing found") and out["verdict"]["text"]
+    # the offered term is tested (or said untestable), as the default catalogue's are
+    judged = out["findings"] + out["partial"] + out["untestable"] + out["not_found"]
+    assert "thermal_lag" in {x["effect"] for x in judged}
     assert out["baseline"]["heldout_rms_mg"] is None or out["baseline"]["heldout_rms_mg"] > 0
     page = (tmp_path / "rep" / "report.md").read_text()
-    assert "## Findings" in page and "Held-out gain" in page
+    assert "## Verdict" in page and "## Findings" in page and "Held-out gain" in page
+    assert main(["diagnose", str(path), "--offer", "thermal_lagg"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown term(s) thermal_lagg" in err and "Traceback" not in err
     assert (tmp_path / "rep" / "residual_vs_orientation.png").stat().st_size > 1000
 
 

@@ -11,6 +11,9 @@ from gravcal.core.pipeline import calibrate_recording
 from gravcal.core.samples import raw_triad
 from gravcal.core.simulate import simulate
 from tests.support.smaps import mapped_kb
+from gravcal.core.accelerator import is_native
+
+NATIVE = is_native(fastdetect._kernels)
 
 FS = 100.0
 # Boundary tolerance: the block detector decides per 0.1 s block on the same filter chain
@@ -205,6 +208,7 @@ def test_rest_state_of_a_cascade_is_scipys():
     np.testing.assert_allclose(fastdetect.butter_sos(4, 0.5, "highpass", 10.0), sos, rtol=0, atol=0)
 
 
+@pytest.mark.skipif(not NATIVE, reason="the numpy references filter with scipy.signal")
 def test_block_calibration_does_not_import_scipy_signal(tmp_path):
     """scipy.signal's package import is most of `gravcal calibrate`'s start-up: the block path filters
     with its own compiled kernel and loads neither scipy.signal nor SciPy's sosfilt extension."""
@@ -239,6 +243,7 @@ def test_calibration_runs_blas_single_threaded(monkeypatch):
     assert [p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"] == before
 
 
+@pytest.mark.skipif(not NATIVE, reason="the numpy references filter with scipy.signal")
 def test_block_calibration_imports_neither_scipy_optimize_nor_linalg(tmp_path):
     """Their imports cost ~0.6 CPU-s, a tenth of a week's calibration: the default path needs neither."""
     out = _in_a_child(tmp_path, (

@@ -1,13 +1,13 @@
 """core/estimators/_jacobians.c: the batch fit's corrected accelerations and Jacobians, window by window.
 
-linear_norm_jacobian (offsets, 6, 9, 12): equal bit for bit to the numpy form it replaced
-(Parameterization.accel_and_jacobian's products, norm_and_projection, crlb.h_variance), whose (M, 3) @ (3, n)
-products OpenBLAS adds as one fused chain; one row (numpy's dgemv) keeps the numpy form.
+linear_norm_jacobian (offsets, 6, 9, 12): equal to the numpy form it replaced (Parameterization.accel_and_jacobian's
+products, norm_and_projection, crlb.h_variance) to the rounding of its three-term products and sums (never to
+a BLAS's bits); one row keeps the numpy form.
 
-extended_accel_jacobian: three oracles: the numpy form written out operation by operation in the kernel's
-order (equal bit for bit: the kernel is built without fused multiply-add), the batched-matmul form it
-replaced (OpenBLAS adds the three-term products in another order: equal to a bound derived from the
-rounding of those sums), and LAPACK's solve (the adjugate inverse against LU, to the condition number).
+extended_accel_jacobian: three oracles: its numpy reference (core/estimators/_jacobians_reference.py, the
+operations in the kernel's order: equal bit for bit, the kernel is built without fused multiply-add), the
+batched-matmul form it replaced (a BLAS adds the three-term products in its own order: equal to a bound derived
+from the rounding of those sums), and LAPACK's solve (the adjugate inverse against LU, to the condition number).
 
 Bad buffers are clear errors.
 """
@@ -18,6 +18,7 @@ import pytest
 
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators import _jacobians
+from gravcal.core.estimators._jacobians_reference import dot3, extended_form, inverse_3x3
 from gravcal.core.crlb import h_variance
 from gravcal.core.estimators.extended import combine_rows, parameterization
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS, norm_and_projection
@@ -26,34 +27,9 @@ from gravcal.core.windows import WindowSet
 EPS = np.finfo(float).eps
 
 
-def inverse_3x3(K: np.ndarray) -> np.ndarray:
-    """Adjugate / determinant of a stack (M, 3, 3), elementwise (the kernel's operations, in its order)."""
-    a, b, c = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2]
-    d, e, f = K[:, 1, 0], K[:, 1, 1], K[:, 1, 2]
-    g, h, i = K[:, 2, 0], K[:, 2, 1], K[:, 2, 2]
-    out = np.empty_like(K, dtype=float)
-    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = e * i - f * h, c * h - b * i, b * f - c * e
-    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = f * g - d * i, a * i - c * g, c * d - a * f
-    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = d * h - e * g, b * g - a * h, a * e - b * d
-    det = a * out[:, 0, 0] + b * out[:, 1, 0] + c * out[:, 2, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out /= det[:, None, None]
-    return out
-
-
-def dot3(A: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """A (..., 3, 3) @ x (..., 3), each row's three products added left to right."""
-    return A[..., 0] * x[..., None, 0] + A[..., 1] * x[..., None, 1] + A[..., 2] * x[..., None, 2]
-
-
 def ordered_form(Kc, oc, p, dK, do, raw):
-    K = Kc[None] + combine_rows(p, dK)
-    o = oc[None] + combine_rows(p, do)
-    inv = inverse_3x3(K)
-    a = dot3(inv, raw - o)
-    inner = dot3(dK, np.broadcast_to(a[:, None, :], do.shape)) + do  # (M, P, 3)
-    J = -dot3(inv[:, None], inner)  # (M, P, 3)
-    return a, J.transpose(0, 2, 1), K, o, inv
+    """The reference's form: a, J (M, 3, P), K, o and K^-1, every operation in the kernel's order."""
+    return extended_form(Kc, oc, p, dK, do, raw)
 
 
 def matmul_form(Kc, oc, p, dK, do, raw):
@@ -256,9 +232,37 @@ def linear_numpy_form(par, p, raw, cov_mean):
     return h, B, a, h_variance(a, np.linalg.inv(par.unpack(p)[0]), cov_mean, h)
 
 
+U = EPS / 2  # unit roundoff
+
+
+def linear_bounds(par, p, raw, cov_mean, want):
+    """Bounds on |kernel - numpy form| for h, B, a, var. Each of a's components is a three-term product sum:
+    in any two orders (fused or not) within 2 · 3u of the sum of the terms' magnitudes; h = |a| moves by at most
+    that difference's norm plus its own few roundings; J = -(G a + C) and B = Σ (a_i / h) J_i carry the
+    differences of a and h through the magnitudes of their terms and add their own sums; var = g cov g, with
+    g = (a / h) K^-1, likewise (a nine-term sum)."""
+    h, B, a, var = want
+    K, o = par.unpack(p)
+    Ki = np.linalg.inv(K)
+    G = np.matmul(Ki, par.dK)  # (P, 3, 3)
+    C = (par.do @ Ki.T).T  # (3, P)
+    e_a = 6 * U * (np.abs(raw - o) @ np.abs(Ki).T)  # (M, 3)
+    e_h = np.linalg.norm(e_a, axis=1) + 8 * U * h
+    rel = (e_h + np.linalg.norm(e_a, axis=1)) / h  # relative change of a / h
+    u = np.abs(a) / h[:, None]
+    J_mag = np.einsum("pik,mk->mip", np.abs(G), np.abs(a)) + np.abs(C)[None]  # (M, 3, P)
+    J_err = np.einsum("pik,mk->mip", np.abs(G), e_a) + 8 * U * J_mag
+    B_mag = np.einsum("mi,mip->mp", u, J_mag)
+    e_B = np.einsum("mi,mip->mp", u, J_err) + (2 * rel[:, None] + 12 * U) * B_mag
+    g_mag = u @ np.abs(Ki)
+    v_mag = np.einsum("mi,mij,mj->m", g_mag, np.abs(cov_mean), g_mag)
+    e_v = (4 * rel + 30 * U) * 2 * v_mag
+    return e_h, e_B, e_a, e_v
+
+
 @pytest.mark.parametrize("M", [1, 2, 3, 17, 1754, 12000])
 @pytest.mark.parametrize("model", ["offsets", "6", "9", "12"])
-def test_linear_kernel_equals_the_numpy_form_bit_for_bit(model, M):
+def test_linear_kernel_equals_the_numpy_form_to_rounding(model, M):
     rng = np.random.default_rng(M)
     K0 = np.array([[0.043, 0.0004, -0.0007], [0.0002, 0.0405, 0.0011], [-0.0009, 0.0006, 0.038]])
     par = PARAMETERIZATIONS[model](K0, [0.46, 0.51, 0.5])
@@ -269,10 +273,10 @@ def test_linear_kernel_equals_the_numpy_form_bit_for_bit(model, M):
     cov = L @ L.transpose(0, 2, 1)
     got = par.norm_jacobian_variance(p, raw, cov)
     want = linear_numpy_form(par, p, raw, cov)
-    for g, w in zip(got, want):
-        assert g.shape == w.shape and np.array_equal(g, w)
+    for g, w, e in zip(got, want, linear_bounds(par, p, raw, cov, want)):
+        assert g.shape == w.shape and np.all(np.abs(g - w) <= e)
     h, B, a = par.norm_and_jacobian(p, raw)
-    assert np.array_equal(h, want[0]) and np.array_equal(B, want[1]) and np.array_equal(a, want[2])
+    assert np.array_equal(h, got[0]) and np.array_equal(B, got[1]) and np.array_equal(a, got[2])
     assert par.norm_jacobian_variance(p, raw)[3] is None
 
 
@@ -285,8 +289,10 @@ def test_linear_kernel_propagates_non_finite_values_as_numpy():
     with np.errstate(invalid="ignore", divide="ignore"):
         got = par.norm_jacobian_variance(p, raw, cov)
         want = linear_numpy_form(par, p, raw, cov)
-    for g, w in zip(got, want):
-        assert np.array_equal(g, w, equal_nan=True)
+    for g, w in zip(got, want):  # the same NaN and inf where numpy has them; the finite rows to rounding
+        assert np.array_equal(np.isnan(g), np.isnan(w)) and np.array_equal(np.isinf(g), np.isinf(w))
+        fin = np.isfinite(w)
+        assert np.allclose(g[fin], w[fin], rtol=64 * U, atol=0) and not fin.all()
 
 
 def test_linear_kernel_bad_buffers_are_clear_errors():

@@ -1,6 +1,6 @@
-"""core/detectors/_movingstd.c: the moving-variance detector's signal equals the numpy form it replaced (the
-oracle below: np.cumsum of the increments after the carried sums, the ddof=1 variance, np.maximum over the
-axes, np.clip at 0, np.sqrt) bit for bit, and a bad buffer is a clear error, never a crash.
+"""core/detectors/_movingstd.c: the moving-variance detector's signal equals its numpy reference
+(core/detectors/_movingstd_reference.py: running sums of the increments after the carried sums, the ddof=1
+variance, np.maximum over the axes and at 0, np.sqrt) bit for bit, and a bad buffer is a clear error, never a crash.
 
 Random blocks: window lengths 2-250, block lengths 0 to 300 000, values spanning magnitudes (so a change in
 the order of the sums changes the rounding somewhere), constant stretches (variances of exactly 0), and
@@ -12,21 +12,9 @@ import pytest
 
 from gravcal.core.detectors import variance
 from gravcal.core.detectors._movingstd import moving_std
+from gravcal.core.detectors._movingstd_reference import moving_std as numpy_moving_std
 from gravcal.core.detectors.variance import MovingVarianceDetector
 from gravcal.core.estimators.start import bootstrap
-
-
-def numpy_moving_std(ext: np.ndarray, w: int, sums: np.ndarray, det: np.ndarray) -> None:
-    """The numpy form: same contract as moving_std (sums carried in place, det written)."""
-    n = ext.shape[1] - w
-    inc = np.empty((6, n + 1))
-    inc[:, 0] = sums
-    np.subtract(ext[:, w:], ext[:, :n], out=inc[:, 1:])
-    run = np.cumsum(inc, axis=1)[:, 1:]
-    if n:
-        sums[:] = run[:, -1]
-    var = (run[3:] - run[:3] * run[:3] / w) / (w - 1)
-    det[:] = np.sqrt(np.clip(np.maximum(np.maximum(var[0], var[1]), var[2]), 0.0, None))
 
 
 def random_ext(rng: np.random.Generator, w: int, n: int) -> np.ndarray:

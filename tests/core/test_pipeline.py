@@ -136,8 +136,11 @@ def test_model_12_holds_the_lab_frame_and_auto_with_a_stale_lab_chooses_12(rich_
     t, raw, truth = rich_misaligned
     with pytest.raises(ValueError, match="model 12 holds the frame of a lab calibration"):
         calibrate_recording(t, raw, model="12")
-    rep = calibrate_recording(t, raw, model="12", lab=truth)
+    # the truth's frame, its gains 1 % off and offsets 10 mg off (the fit must improve on it to be returned)
+    lab = Calibration("12", truth.offset + 0.01 * np.diag(truth.sensitivity), 1.01 * truth.sensitivity)
+    rep = calibrate_recording(t, raw, model="12", lab=lab)
     cal = rep.calibration
+    assert rep.verdict.status == "ok", rep.verdict.reason
     assert cal.model == "12" and rep.order["reason"].startswith("requested (--model 12)")
     assert rotation_angle_deg(frame_of(cal) @ frame_of(truth).T) < 1e-6  # the frame is held
     err = np.abs(cal.sensitivity - truth.sensitivity) / np.mean(np.diag(truth.sensitivity))

@@ -8,7 +8,8 @@ for any layout. Both must give the same bits, on rows built to break them: NaN a
 in every column, -0.0 beside 0.0 at the extremes, runs of repeated rows at and across the chunk's
 ends, time steps that are zero, negative or NaN, t so large that its high half is a float32 NaN,
 odd block counts and strides, float32 and float64 channels. The numpy oracles here write each
-operation out in the kernels' order (per block, sums over the samples in sequence).
+operation out in the kernels' order (per block, sums over the samples in sequence): they are the
+kernels' numpy references in the package (core/_scankernel_reference.py, core/_blockkernels_reference.py).
 """
 from __future__ import annotations
 
@@ -17,6 +18,8 @@ import pytest
 
 from gravcal.core._blockkernels import block_pass
 from gravcal.core._scankernel import scan_chunk
+from gravcal.core import _blockkernels_reference as block_reference
+from gravcal.core import _scankernel_reference as scan_reference
 from gravcal.core.repeats import chunk_runs, repeated_steps
 
 CH = ("ax", "ay", "az")
@@ -71,38 +74,15 @@ def _fresh() -> np.ndarray:
     return np.array([np.inf] * 3 + [-np.inf] * 3 + [0.0] * 6 + [np.inf, 1.0])
 
 
-def _scan(t, xs, prev, state, min_run):
+def _scan(t, xs, prev, state, min_run, kernel=scan_chunk):
     runs = np.empty((t.shape[0] // min_run + 2, 2), np.int64)
-    n_runs, n_rep = scan_chunk(t, *xs, prev, state, runs, min_run)
+    n_runs, n_rep = kernel(t, *xs, prev, state, runs, min_run)
     return state, n_runs, n_rep, runs[:n_runs].copy()
 
 
 def _scan_oracle(t, x, prev, state, min_run):
-    """scan_chunk's state, runs and count written out in numpy."""
-    tt = t.astype(np.float64) if prev is None else np.concatenate([[prev[0]], t])
-    rows = x.astype(np.float64) if prev is None else np.vstack([prev[1:], x.astype(np.float64)])
-    st = state.copy()
-    with np.errstate(invalid="ignore"):
-        dt = np.diff(tt)
-    steps = dt[~np.isnan(dt)]
-    if steps.size:  # `dt < min_dt ? dt : min_dt` row by row: the first of equal minima (-0.0 or 0.0)
-        first_min = steps[np.flatnonzero(steps == steps.min())[0]]
-        st[12] = first_min if first_min < st[12] else st[12]
-    if not (np.isfinite(t).all() and np.isfinite(x).all()):
-        st[13] = 0.0
-    elif x.shape[0]:
-        lo, hi = x.min(axis=0).astype(np.float64), x.max(axis=0).astype(np.float64)
-        for c in range(3):
-            if lo[c] <= st[c]:
-                n = float((x[:, c] == lo[c]).sum())
-                st[6 + c] = n if lo[c] < st[c] else st[6 + c] + n
-                st[c] = x[:, c][np.flatnonzero(x[:, c] == lo[c])[0]]  # the first of equal extremes (-0.0 or 0.0)
-            if hi[c] >= st[3 + c]:
-                n = float((x[:, c] == hi[c]).sum())
-                st[9 + c] = n if hi[c] > st[3 + c] else st[9 + c] + n
-                st[3 + c] = x[:, c][np.flatnonzero(x[:, c] == hi[c])[0]]
-    starts, lengths, n_rep = chunk_runs(repeated_steps(rows), min_run)
-    return st, len(starts), n_rep, np.column_stack([starts, lengths]).astype(np.int64)
+    """scan_chunk's state, runs and count by its numpy reference (core/_scankernel_reference.py)."""
+    return _scan(t, [x[:, 0], x[:, 1], x[:, 2]], prev, state.copy(), min_run, scan_reference.scan_chunk)
 
 
 def _same_scan(a, b) -> None:
@@ -172,34 +152,13 @@ def _blocks(xs, t, B, b0, nb, max_step, first):
 
 
 def _block_oracle(x, t, B, max_step, first):
-    """Block statistics with every float64 operation in the kernel's order: per block, the sums
-    over its samples in sequence (the loop over k is numpy's, across blocks at once)."""
+    """Block statistics by block_pass's numpy reference (core/_blockkernels_reference.py: every float64
+    operation in the kernel's order)."""
     m = x.shape[0] // B
-    v = x[:m * B].astype(np.float64).reshape(m, B, 3)
-    prev = np.concatenate([[t[0] - 0.5 * max_step], t[:-1]]) if first else t[:-1]
-    now = t if first else t[1:]
-    dt = (now - prev)[:m * B].reshape(m, B)
-    r = v[:, 0, :]
-    a = np.zeros((m, 3))
-    q = np.zeros((m, 6))
-    ok = np.ones(m, bool)
-    I6, J6 = [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]
-    with np.errstate(invalid="ignore", over="ignore"):
-        for k in range(B):
-            d = v[:, k, :] - r
-            a = a + d
-            for p in range(6):
-                q[:, p] = q[:, p] + d[:, I6[p]] * d[:, J6[p]]
-            ok &= (dt[:, k] > 0.0) & (dt[:, k] <= max_step)
-        mean = a * (1.0 / B)
-        w = np.stack([q[:, p] - a[:, I6[p]] * mean[:, J6[p]] for p in range(6)], axis=1)
-        means = r + mean
-        total = means[:, 0] + means[:, 1]
-        total = total + means[:, 2]
-        for p in range(6):
-            total = total + w[:, p]
-        usable = ok & (total * 0.0 == 0.0)
-    return means.T, w.T.astype(np.float32), usable
+    out = np.empty((3, m)), np.empty((6, m), np.float32), np.empty((0, m)), np.empty(m, bool)
+    block_reference.block_pass(x[:m * B, 0], x[:m * B, 1], x[:m * B, 2], t[:m * B + (0 if first else 1)], None, B, 0,
+                               max_step, *out)
+    return out[0], out[1], out[3]
 
 
 @pytest.mark.parametrize("dtype", ["<f4", "<f8"])

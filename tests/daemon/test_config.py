@@ -103,6 +103,17 @@ def test_file_problems(tmp_path):
         load_config(bad)
 
 
+@pytest.mark.parametrize("text", ["[socket]\npath = " + "[" * 2000 + "]" * 2000,
+                                  "x = " + "{a = " * 500 + "1" + "}" * 500,
+                                  "x = '\"'\ny = " + "[" * 100 + "]" * 100],
+                         ids=["2000 arrays", "500 inline tables", "after a quote in a literal string"])
+def test_deeply_nested_toml_is_a_one_line_error(tmp_path, text):
+    p = tmp_path / "deep.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=f"^{p}: TOML nested deeper than 64 levels$"):
+        load_config(p)
+
+
 def test_example_toml_lists_every_key_and_parses_back_to_the_defaults():
     text = example_toml()
     back = parse_config(tomllib.loads(text), "example")

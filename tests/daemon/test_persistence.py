@@ -12,6 +12,7 @@ import pytest
 
 from gravcal.core.calibration import Calibration
 from gravcal.errors import InputError
+from gravcal.daemon import persistence
 from gravcal.daemon.persistence import (
     CalibrationState,
     RateLimitedSaver,
@@ -121,6 +122,9 @@ def test_state_always_loads_after_kill_mid_write(tmp_path):
         (b'{"schema": "gravcal.state/1", "revision": 1}', "no 'calibration'"),
         (b'{"schema": "gravcal.state/1", "revision": -1, "calibration": {}}', "calibration"),
         (b"[1, 2]", "must be a JSON object"),
+        pytest.param(b"[" * 100_000, "nested deeper than 64 levels", id="100k ["),
+        pytest.param(b'{"schema": "gravcal.state/1", "extra": ' + b'{"a":' * 5000, "nested deeper than 64 levels", id="deep extra"),
+        pytest.param(b'{"revision": 1' + b"1" * 5000 + b"}", "not usable JSON", id="5000 digits"),
     ],
 )
 def test_corrupt_state_is_moved_aside_and_reported(tmp_path, content, why):
@@ -245,6 +249,7 @@ def test_lab_calibration_formats(tmp_path):
     "content, message",
     [
         ("{not json", "not valid JSON"),
+        pytest.param("[" * 100_000, "nested deeper than 64 levels", id="100k ["),
         ('{"hello": 1}', "not a gravcal calibration"),
         ('{"model": "6", "offset": [0, 0], "sensitivity": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}', "malformed"),
         ('{"schema": "gravcal.calibration/1", "model": "6", "offset": [0.5, 0.5, 0.5], "sensitivity": [[0, 0, 0], [0, 0, 0], [0, 0, 0]]}', "singular"),
@@ -258,3 +263,31 @@ def test_bad_lab_calibration_names_the_file(tmp_path, content, message):
     assert str(p) in str(e.value)
     with pytest.raises(InputError, match="no such calibration file"):
         load_lab_calibration(tmp_path / "missing.json")
+
+
+def test_the_first_save_makes_the_new_directories_durable(tmp_path, monkeypatch):
+    """A state directory created by the first save is an entry in its parent: the parent of every directory
+    created is fsynced (top down) before the file's own rename is, or a power cut could lose the directory
+    and the state with it."""
+    synced = []
+    real = persistence.fsync_dir
+    monkeypatch.setattr(persistence, "fsync_dir", lambda d: (synced.append(os.path.abspath(d)), real(d)))
+    store = StateStore(tmp_path / "a" / "b")
+    store.check_directory()
+    assert not (tmp_path / "a").exists()
+    store.save(CalibrationState(make_cal(), 1, 1.0, True, {}))
+    assert synced == [str(tmp_path), str(tmp_path / "a"), str(tmp_path / "a" / "b")]
+    synced.clear()
+    store.save(CalibrationState(make_cal(), 2, 2.0, True, {}))  # the directory exists: only the rename
+    assert synced == [str(tmp_path / "a" / "b")]
+
+
+@pytest.mark.parametrize("line", ["[" * 100_000, "[1, 2]", '{"class": "WINDOW", "start": ' + "1" * 5000 + "}"],
+                         ids=["100k [", "a list", "5000 digits"])
+def test_a_hostile_window_log_line_is_named_not_raised(tmp_path, line):
+    from gravcal.daemon.window_log import read_windows
+
+    p = tmp_path / "w.jsonl"
+    p.write_text(line + "\n")
+    with pytest.raises(ValueError, match="line 1 is not a window record"):
+        read_windows(p)

@@ -49,6 +49,23 @@ def test_daemon_reports_an_unreadable_state_in_status_notes(tmp_path):
 
 
 
+def test_daemon_moves_a_deeply_nested_state_aside_and_starts(tmp_path):
+    (tmp_path / "state").mkdir()
+    (tmp_path / "state" / "state.json").write_bytes(b"[" * 100_000)
+    cfg = Config()
+    cfg.socket.path = str(tmp_path / "g.sock")
+    cfg.state.directory = str(tmp_path / "state")
+    d = Gravcald(cfg, driver=SilentDriver(), environ={})
+    d.start()
+    try:
+        notes = d.status()["notes"]
+    finally:
+        d.request_stop()
+        d.shutdown()
+    assert any("is unusable (JSON nested deeper than 64 levels); moved it to" in n for n in notes), notes
+    assert [p.name[:19] for p in (tmp_path / "state").iterdir()] == ["state.json.corrupt-"]
+
+
 def test_a_client_that_never_reads_is_disconnected_and_logged(tmp_path, caplog):
     srv = SocketServer(str(tmp_path / "g.sock"), config=ServerConfig(queue_messages=100, stall_timeout_s=0.5)).start()
     try:

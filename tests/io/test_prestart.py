@@ -221,7 +221,9 @@ def test_the_program_prepares_and_prints_the_same(tmp_path):
 
 
 def test_a_failing_populate_only_leaves_the_faults_to_the_pass(tmp_path, monkeypatch, capfd):
-    import gravcal.io._pages as pages
+    from gravcal.core.accelerator import kernels
+
+    pages = kernels("gravcal.io._pages")  # the module prestart's thread takes populate from
 
     def fail(*_):
         raise OSError(12, "Cannot allocate memory")

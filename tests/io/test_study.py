@@ -42,7 +42,7 @@ def rows_of(path):
 
 def test_rows_match_single_file_calibration(study, tmp_path, capsys):
     out = tmp_path / "results.csv"
-    assert main(["calibrate", str(study), "--out", str(out), "--workers", "0", "--quiet"]) == 0
+    assert main(["calibrate", str(study), "--out", str(out), "--workers", "0", "--quiet"]) == 2  # an error row
     rows = rows_of(out)
     assert len(rows) == N_GOOD + 1
     by_name = {os.path.basename(r["file"]): r for r in rows}
@@ -69,7 +69,7 @@ def test_resume_skips_done_files_and_redoes_a_torn_row(study, tmp_path, capsys):
     assert [r["file"] for r in first] == files
     with open(out, "a") as f:
         f.write(f"{study / 'broken.csv'},ok,6,1.0")  # a row cut short by a kill
-    assert main(["calibrate", str(study), "--out", str(out), "--workers", "0"]) == 0
+    assert main(["calibrate", str(study), "--out", str(out), "--workers", "0"]) == 2
     err = capsys.readouterr().err
     assert "2 of 5 files already done" in err
     rows = rows_of(out)
@@ -125,8 +125,8 @@ def test_ctrl_c_leaves_valid_results_and_resume_finishes(study, tmp_path):
 
 def test_dask_workers_give_the_same_rows(study, tmp_path):
     seq, par = tmp_path / "seq.csv", tmp_path / "par.csv"
-    assert main(["calibrate", str(study), "--out", str(seq), "--workers", "0", "--quiet"]) == 0
-    assert main(["calibrate", str(study), "--out", str(par), "--workers", "2", "--quiet"]) == 0
+    assert main(["calibrate", str(study), "--out", str(seq), "--workers", "0", "--quiet"]) == 2
+    assert main(["calibrate", str(study), "--out", str(par), "--workers", "2", "--quiet"]) == 2
     key = (lambda r: r["file"])
     assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
 
@@ -142,9 +142,9 @@ def test_an_existing_scheduler_runs_the_study(study, tmp_path):
     import dask.distributed as distributed  # the [study] extra, which [test] installs
     seq, par = tmp_path / "seq.csv", tmp_path / "sched.csv"
     files = [str(study / "s0.npy"), str(study / "broken.csv")]
-    assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 0
+    assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 2
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
-        assert main(["calibrate", *files, "--out", str(par), "--scheduler", cluster.scheduler_address, "--quiet"]) == 0
+        assert main(["calibrate", *files, "--out", str(par), "--scheduler", cluster.scheduler_address, "--quiet"]) == 2
     key = (lambda r: r["file"])
     assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
 
@@ -164,7 +164,34 @@ def test_a_task_that_dies_is_an_error_row_not_the_end(study, tmp_path, monkeypat
     out = tmp_path / "r.csv"
     files = [str(study / f"s{i}.npy") for i in range(3)]
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
-        assert main(["calibrate", *files, "--out", str(out), "--scheduler", cluster.scheduler_address, "--quiet"]) == 0
+        assert main(["calibrate", *files, "--out", str(out), "--scheduler", cluster.scheduler_address, "--quiet"]) == 2
     status = {os.path.basename(r["file"]): (r["status"], r["message"]) for r in rows_of(out)}
     assert status["s1.npy"] == ("error", "MemoryError: worker ran out of memory")
     assert status["s0.npy"][0] == status["s2.npy"][0] == "ok"
+
+
+def test_a_rerun_retries_error_rows_keys_by_resolved_path_and_starts_nothing_when_done(study, tmp_path, monkeypatch,
+                                                                                      capsys):
+    import shutil
+
+    from gravcal.io import study as study_mod
+
+    d = tmp_path / "d"
+    d.mkdir()
+    shutil.copy(study / "s0.npy", d / "a.npy")
+    (d / "b.npy").write_bytes(b"not a recording at all")
+    out = tmp_path / "r.csv"
+    monkeypatch.chdir(d)  # relative paths, as typed in the study's folder
+    assert main(["calibrate", "a.npy", "b.npy", "--out", str(out), "--workers", "0", "--quiet"]) == 2
+    rows = rows_of(out)
+    assert [(r["file"], r["status"]) for r in rows] == [(str(d / "a.npy"), "ok"), (str(d / "b.npy"), "error")]
+    shutil.copy(study / "s1.npy", d / "b.npy")  # the broken file fixed
+    monkeypatch.chdir(tmp_path)  # the same study from another folder
+    assert main(["calibrate", "d", "--out", str(out), "--workers", "0", "--quiet"]) == 0
+    rows = rows_of(out)
+    assert [(r["file"], r["status"]) for r in rows] == [(str(d / "a.npy"), "ok"), (str(d / "b.npy"), "ok")]
+    capsys.readouterr()
+    monkeypatch.setattr(study_mod, "_results", lambda *a, **k: pytest.fail("a cluster for nothing"))
+    assert main(["calibrate", str(d), "--out", str(out), "--workers", "2"]) == 0
+    assert "0 file(s) calibrated (nothing new)" in capsys.readouterr().err
+    assert len(rows_of(out)) == 2

@@ -5,14 +5,13 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, register
+from ..base import Context
 from ..datasheet import CX_TOL, CX_UF
 from ..filters import filter_sections, first_order_section, state_at
 from ..spec import TermSpec
 from ..stateful import StatefulTerm
 
 
-@register
 class AnalogLowpass(StatefulTerm):
     """The Cx/Cy filter: one pole at f_3dB = 5 µF / C per channel (RFILT = 32 kohm on chip).
 
@@ -23,7 +22,6 @@ class AnalogLowpass(StatefulTerm):
 
     name = "analog_lowpass"
     stage = "channel"
-    order = 60
 
     def __init__(self, c_uf: Any = np.full(4, CX_UF), **params: Any):
         super().__init__(c_uf=c_uf, **params)

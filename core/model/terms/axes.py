@@ -6,11 +6,10 @@ from typing import Any
 import numpy as np
 
 from ..adxl210 import IDEAL_AXES, N_CHANNELS
-from ..base import Context, Term, register
+from ..base import Context, Term
 from ..spec import TermSpec
 
 
-@register
 class Axes(Term):
     """Projection of the specific force (N, 3) [g, board] on the four channel axes (N, 4) [g].
 
@@ -21,7 +20,6 @@ class Axes(Term):
 
     name = "axes"
     stage = "board"
-    order = 90  # the stage change: last in the board stage
 
     def __init__(self, u: Any = IDEAL_AXES, **params: Any):
         super().__init__(u=u, **params)

@@ -5,14 +5,13 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, register
+from ..base import Context
 from ..datasheet import BIAS_INSTABILITY_G, BIAS_TAU_S
 from ..filters import filter_sections, first_order_section, state_from
 from ..spec import TermSpec
 from ..stateful import StatefulTerm
 
 
-@register
 class ColoredNoise(StatefulTerm):
     """Sum of first-order Gauss-Markov processes per channel.
 
@@ -23,7 +22,6 @@ class ColoredNoise(StatefulTerm):
 
     name = "colored_noise"
     stage = "channel"
-    order = 42
 
     def __init__(self, sigma_g: Any = np.zeros(4), tau_s: Any = (1.0, 10.0, 100.0), **params: Any):
         super().__init__(sigma_g=sigma_g, tau_s=np.atleast_1d(np.asarray(tau_s, float)), **params)

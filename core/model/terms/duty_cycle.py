@@ -5,12 +5,11 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, Term, register
+from ..base import Context, Term
 from ..datasheet import D0_LIMITS, D0_TYP, SENS_LIMITS, SENS_TYP
 from ..spec import TermSpec, spread
 
 
-@register
 class DutyCycle(Term):
     """Duty-cycle modulator: d = d0 + k a per channel; inverse A = (T1/T2 - d0)/k.
 
@@ -20,7 +19,6 @@ class DutyCycle(Term):
 
     name = "duty_cycle"
     stage = "duty"
-    order = 10
 
     def __init__(self, d0: Any = np.full(4, D0_TYP), k: Any = np.full(4, SENS_TYP), **params: Any):
         super().__init__(d0=d0, k=k, **params)

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from ..adxl210 import CHANNEL_SOURCE, CHIP_A_NOMINAL, CHIP_B_NOMINAL, N_CHANNELS
-from ..base import Term, register
+from ..base import Term
 from ..datasheet import ALIGN_DEG, CHIP_PLACEMENT_DEG, MOUNT_B_DEG
 from ..spec import CROSS_PAIRS, CalibrationView, TermSpec
 from .axes import Axes
@@ -39,7 +39,6 @@ def misaligned_axes(chip_a: Any = (0, 0, 0), chip_b: Any = (0, 0, 0), mount_b: A
     return u
 
 
-@register
 class Misalignment(Axes):
     """The axes projection built from mounting angles.
 
@@ -81,7 +80,7 @@ SPEC = TermSpec(
     # Reported: the deviation of the angle between axes i and j from 90° [deg], positive when they are closer
     # than 90°. Axis i leaning by a_ij toward j gives K_ij = s_i a_ij; the norm sees only the symmetric part
     # m_ij = (K_ij + K_ji) / 2, and 90° - angle(i, j) = a_ij + a_ji = 2 m_ij / sqrt(s_i s_j) (small angles).
-    view=CalibrationView(prefix="m", acts_on="cross", covariate=None, unit="deg_from_orthogonal", rank=0,
+    view=CalibrationView(prefix="m", acts_on="cross", covariate=None, unit="deg_from_orthogonal",
                          convention="90° minus the angle between the two calibrated axes [deg]; positive when the "
                                     "axes are closer than 90°",
                          report_factor=lambda s: 2.0 * np.degrees(1.0) / np.sqrt([s[i] * s[j] for i, j in CROSS_PAIRS])),

@@ -5,13 +5,12 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, register
+from ..base import Context
 from ..datasheet import NOISE_DENSITY_UG
 from ..spec import TermSpec
 from ..stateful import StatefulTerm
 
 
-@register
 class Noise(StatefulTerm):
     """White noise of density density_ug [µg/√Hz] over bandwidth_hz (0 = fs/2, the sampled band).
 
@@ -21,7 +20,6 @@ class Noise(StatefulTerm):
 
     name = "noise"
     stage = "channel"
-    order = 40
 
     def __init__(self, density_ug: Any = np.full(4, NOISE_DENSITY_UG), bandwidth_hz: Any = 0.0, **params: Any):
         super().__init__(density_ug=density_ug, bandwidth_hz=bandwidth_hz, **params)

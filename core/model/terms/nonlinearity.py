@@ -6,18 +6,16 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, Term, register
+from ..base import Context, Term
 from ..datasheet import NONLIN_PCT_FS, RANGE_G
 from ..spec import CalibrationView, TermSpec, channels_from_axes, signed
 
 
-@register
 class Nonlinearity(Term):
     """x + c2 x^2 + c3 x^3 per channel (c2 [1/g], c3 [1/g^2]); contributes nothing linear."""
 
     name = "nonlinearity"
     stage = "channel"
-    order = 10
 
     def __init__(self, c2: Any = np.zeros(4), c3: Any = np.zeros(4), **params: Any):
         super().__init__(c2=c2, c3=c3, **params)
@@ -46,7 +44,7 @@ SPEC = TermSpec(
     plant=lambda rng, v, scale: Nonlinearity(c2=v, c3=np.zeros(4)),
     plant_scale=4.0e-3,  # c2 [1/g]; the datasheet's 0.2 % FS at 10 g (2e-4) is far below an hour's floor
     diagnosed_by="windows",
-    view=CalibrationView(prefix="q2", acts_on="offset", covariate="accel", unit="c2_per_g", rank=1,
+    view=CalibrationView(prefix="q2", acts_on="offset", covariate="accel", unit="c2_per_g",
                          report_factor=lambda s: np.ones(3)),
     sensor_term=lambda v: {"name": "nonlinearity", "params": {"c2": channels_from_axes(v, 1.0), "c3": [0.0] * 4}},
 )

@@ -5,19 +5,17 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, register
+from ..base import Context
 from ..datasheet import OFFSET_RATE_G_PER_H, OFFSET_WALK_G_PER_SQRT_H
 from ..spec import CalibrationView, TermSpec, channels_from_axes, column, per_sensitivity, signed
 from .random_walk import RandomWalkTerm
 
 
-@register
 class OffsetDrift(RandomWalkTerm):
     """Bias rate_g_per_h t + random walk (walk_g_per_sqrt_h) per channel [g]; t in hours."""
 
     name = "offset_drift"
     stage = "channel"
-    order = 32
     rate_key, walk_key = "rate_g_per_h", "walk_g_per_sqrt_h"
 
     def __init__(self, rate_g_per_h: Any = np.zeros(4), walk_g_per_sqrt_h: Any = np.zeros(4), **params: Any):
@@ -42,7 +40,7 @@ SPEC = TermSpec(
     plant=lambda rng, v, scale: OffsetDrift(rate_g_per_h=v, walk_g_per_sqrt_h=np.zeros(4)),
     plant_scale=3.0e-3,  # g/h
     diagnosed_by="windows",
-    view=CalibrationView(prefix="oh", acts_on="offset", covariate="time", unit="mg_per_h", rank=4,
+    view=CalibrationView(prefix="oh", acts_on="offset", covariate="time", unit="mg_per_h",
                          report_factor=per_sensitivity(1e3), min_span=DRIFT_MIN_SPAN_H,
                          span_reason="a drift cannot be told from the offsets"),
     sensor_term=lambda v: {"name": "offset_drift", "params": {"rate_g_per_h": channels_from_axes(v, 1e-3),

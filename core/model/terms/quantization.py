@@ -6,13 +6,12 @@ from typing import Any
 import numpy as np
 
 from ..adxl210 import T2_PER_RSET
-from ..base import Context, register
+from ..base import Context
 from ..datasheet import RSET_OHM, RSET_TOL, T2_TEMPCO_PPM, TIMER_CLOCK_HZ
 from ..spec import TermSpec, column, signed
 from ..stateful import StatefulTerm
 
 
-@register
 class Timer(StatefulTerm):
     """Counter capture of T1 and T2.
 
@@ -25,7 +24,6 @@ class Timer(StatefulTerm):
 
     name = "timer"
     stage = "counts"
-    order = 10
 
     def __init__(self, rset_ohm: Any = np.full(2, RSET_OHM), clock_hz: Any = TIMER_CLOCK_HZ,
                  tempco_ppm: Any = np.zeros(2), t0_c: Any = 25.0, async_phase: Any = 1.0, **params: Any):

@@ -6,19 +6,16 @@ from typing import Any
 
 import numpy as np
 
-from ..base import register
 from ..datasheet import SUPPLY_GAIN_PER_V, V_NOMINAL
 from ..spec import TermSpec, signed
 from .linear import CovariateLinearTerm
 
 
-@register
 class RatiometricSupply(CovariateLinearTerm):
     """Supply dependence of the gain: x (1 + gain_per_v dV), dV = vsupply - v0 [V]."""
 
     name = "ratiometric_supply"
     stage = "channel"
-    order = 22
     covariate, coef_key, ref_key, acts_on = "vsupply", "gain_per_v", "v0", "gain"
 
     def __init__(self, gain_per_v: Any = np.zeros(4), v0: Any = V_NOMINAL, **params: Any):

@@ -5,18 +5,16 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, Term, register
+from ..base import Context, Term
 from ..datasheet import RANGE_G
 from ..spec import TermSpec
 
 
-@register
 class Saturation(Term):
     """Output range: clip each channel to +-limit_g [g]. Samples at the rail get FLAG_SATURATED."""
 
     name = "saturation"
     stage = "channel"
-    order = 90
 
     def __init__(self, limit_g: Any = np.full(4, RANGE_G), **params: Any):
         super().__init__(limit_g=limit_g, **params)

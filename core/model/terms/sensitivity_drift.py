@@ -5,20 +5,18 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, register
+from ..base import Context
 from ..datasheet import SENS_RATE_PER_H, SENS_WALK_PER_SQRT_H
 from ..spec import CalibrationView, TermSpec, channels_from_axes, column, per_sensitivity, signed
 from .offset_drift import DRIFT_MIN_SPAN_H
 from .random_walk import RandomWalkTerm
 
 
-@register
 class SensitivityDrift(RandomWalkTerm):
     """Gain 1 + rate_per_h t + random walk (walk_per_sqrt_h) per channel; t in hours."""
 
     name = "sensitivity_drift"
     stage = "channel"
-    order = 24
     rate_key, walk_key = "rate_per_h", "walk_per_sqrt_h"
 
     def __init__(self, rate_per_h: Any = np.zeros(4), walk_per_sqrt_h: Any = np.zeros(4), **params: Any):
@@ -39,7 +37,7 @@ SPEC = TermSpec(
     plant=lambda rng, v, scale: SensitivityDrift(rate_per_h=v, walk_per_sqrt_h=np.zeros(4)),
     plant_scale=3.0e-3,  # 1/h = 0.3 %/h
     diagnosed_by="windows",
-    view=CalibrationView(prefix="sh", acts_on="sensitivity", covariate="time", unit="pct_per_h", rank=5,
+    view=CalibrationView(prefix="sh", acts_on="sensitivity", covariate="time", unit="pct_per_h",
                          report_factor=per_sensitivity(100.0), min_span=DRIFT_MIN_SPAN_H,
                          span_reason="a drift cannot be told from the sensitivities"),
     sensor_term=lambda v: {"name": "sensitivity_drift", "params": {"rate_per_h": channels_from_axes(v, 1e-2),

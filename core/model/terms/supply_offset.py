@@ -10,19 +10,16 @@ from typing import Any
 
 import numpy as np
 
-from ..base import register
 from ..datasheet import SUPPLY_OFFSET_G_PER_V, V_NOMINAL
 from ..spec import CalibrationView, TermSpec, channels_from_axes, per_sensitivity, signed
 from .linear import CovariateLinearTerm
 
 
-@register
 class SupplyOffset(CovariateLinearTerm):
     """Offset coef_g_per_v (vsupply - v0) per channel [g/V]."""
 
     name = "supply_offset"
     stage = "channel"
-    order = 34
     covariate, coef_key, ref_key, acts_on = "vsupply", "coef_g_per_v", "v0", "offset"
 
     def __init__(self, coef_g_per_v: Any = np.zeros(4), v0: Any = V_NOMINAL, **params: Any):
@@ -37,7 +34,7 @@ SPEC = TermSpec(
     diagnosed_by="windows",
     # 0.05 V: a logger's regulated supply ripples by a few mV; below 50 mV of spread the term's effect
     # (at the datasheet's 250 mg/V) stays within the quasi-static floor and cannot be told from the offsets
-    view=CalibrationView(prefix="oV", acts_on="offset", covariate="vsupply", unit="mg_per_V", rank=6,
+    view=CalibrationView(prefix="oV", acts_on="offset", covariate="vsupply", unit="mg_per_V",
                          report_factor=per_sensitivity(1e3), min_span=0.05,
                          span_reason="a supply term cannot be told from the offsets"),
     sensor_term=lambda v: {"name": "supply_offset",

@@ -5,19 +5,16 @@ from typing import Any
 
 import numpy as np
 
-from ..base import register
 from ..datasheet import TEMP_OFFSET_G_PER_C
 from ..spec import CalibrationView, TermSpec, channels_from_axes, per_sensitivity, signed
 from .linear import CovariateLinearTerm
 
 
-@register
 class TemperatureOffset(CovariateLinearTerm):
     """Offset coef_g_per_c (T - t0_c) per channel [g/°C]."""
 
     name = "temperature_offset"
     stage = "channel"
-    order = 30
     covariate, coef_key, ref_key, acts_on = "temp", "coef_g_per_c", "t0_c", "offset"
 
     def __init__(self, coef_g_per_c: Any = np.zeros(4), t0_c: Any = 25.0, **params: Any):
@@ -32,7 +29,7 @@ SPEC = TermSpec(
     diagnosed_by="windows",
     # 1 °C: below it c_T (T - T_ref) is a constant within the window noise, indistinguishable from the
     # offsets; whether a wider spread determines the term is the observability rule's call
-    view=CalibrationView(prefix="oT", acts_on="offset", covariate="temp", unit="mg_per_C", rank=2,
+    view=CalibrationView(prefix="oT", acts_on="offset", covariate="temp", unit="mg_per_C",
                          report_factor=per_sensitivity(1e3), min_span=1.0,
                          span_reason="a temperature term cannot be told from the offsets"),
     sensor_term=lambda v: {"name": "temperature_offset",

@@ -5,19 +5,16 @@ from typing import Any
 
 import numpy as np
 
-from ..base import register
 from ..datasheet import TEMP_SENS_PER_C
 from ..spec import CalibrationView, TermSpec, channels_from_axes, per_sensitivity, signed
 from .linear import CovariateLinearTerm
 
 
-@register
 class TemperatureSensitivity(CovariateLinearTerm):
     """Gain (1 + coef_per_c (T - t0_c)) per channel [1/°C]."""
 
     name = "temperature_sensitivity"
     stage = "channel"
-    order = 20
     covariate, coef_key, ref_key, acts_on = "temp", "coef_per_c", "t0_c", "gain"
 
     def __init__(self, coef_per_c: Any = np.zeros(4), t0_c: Any = 25.0, **params: Any):
@@ -30,7 +27,7 @@ SPEC = TermSpec(
     plant=lambda rng, v, scale: TemperatureSensitivity(coef_per_c=v, t0_c=25.0),
     plant_scale=5.0e-4,  # 1/°C = 0.05 %/°C (datasheet typ 0.01 %/°C: below an hour's floor)
     diagnosed_by="windows",
-    view=CalibrationView(prefix="sT", acts_on="sensitivity", covariate="temp", unit="pct_per_C", rank=3,
+    view=CalibrationView(prefix="sT", acts_on="sensitivity", covariate="temp", unit="pct_per_C",
                          report_factor=per_sensitivity(100.0), min_span=1.0,
                          span_reason="a temperature term cannot be told from the sensitivities"),
     sensor_term=lambda v: {"name": "temperature_sensitivity",

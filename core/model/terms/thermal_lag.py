@@ -13,22 +13,20 @@ from typing import Any
 
 import numpy as np
 
-from ..base import Context, register
+from ..base import Context
 from ..datasheet import THERMAL_LAG_TAU_S
 from ..filters import filter_sections, first_order_section, state_from
 from ..lag import first_order_lag
-from ..spec import CalibrationView, TermSpec, channels_from_axes, column, per_sensitivity
+from ..spec import LaggedView, TermSpec, channels_from_axes, column, per_sensitivity
 from ..stateful import StatefulTerm
 
 
-@register
 class ThermalLag(StatefulTerm):
     """Offset coef_g_per_c (T_lag - t0_c) per channel [g/°C], T_lag the temperature lagged by tau_s [s];
     state = the lag filter's delay (a T_lag) at the end of the last block (block-split invariant)."""
 
     name = "thermal_lag"
     stage = "channel"
-    order = 31
 
     def __init__(self, coef_g_per_c: Any = np.zeros(4), t0_c: Any = 25.0, tau_s: Any = THERMAL_LAG_TAU_S,
                  **params: Any):
@@ -65,14 +63,14 @@ SPEC = TermSpec(
     # the temperature offset, but without the held-sensitivity propagation that term's finding carries
     # (core/diagnosis/held.py); diagnose_windows tests it when asked (candidates)
     diagnosed_by=None,
-    # acts on the offsets through the lagged temperature ("lagged_offset"); the spread rule is the temperature
+    # acts on the offsets through the lagged temperature; the spread rule is the temperature
     # term's: below 1 °C the lag is a constant the offsets absorb
-    view=CalibrationView(prefix="oL", acts_on="lagged_offset", covariate="temp", unit="mg_per_C", rank=7,
-                         report_factor=per_sensitivity(1e3), min_span=1.0,
-                         span_reason="a lagged temperature term cannot be told from the offsets",
-                         convention="offset per °C of the die temperature, the recorded temperature through a "
-                                    "first-order lag of time constant tau_s (profiled)",
-                         profiled=THERMAL_LAG_TAU_S),
+    view=LaggedView(prefix="oL", covariate="temp", unit="mg_per_C",
+                    report_factor=per_sensitivity(1e3), min_span=1.0,
+                    span_reason="a lagged temperature term cannot be told from the offsets",
+                    convention="offset per °C of the die temperature, the recorded temperature through a "
+                               "first-order lag of time constant tau_s (profiled)",
+                    profiled=THERMAL_LAG_TAU_S),
     sensor_term=lambda v: {"name": "thermal_lag",
                            "params": {"coef_g_per_c": channels_from_axes(v, 1e-3), "t0_c": 25.0,
                                       "tau_s": float(v.get("tau_s") or THERMAL_LAG_TAU_S)}},

@@ -1,7 +1,7 @@
-"""Butterworth second-order sections for the streaming detector without importing scipy.signal
-(~76 MB resident and ~0.3 s at start): orders 1 and 2 in closed form, and the filter's rest state. Used by the
-streaming detector, core/fastdetect.py's block detector and the sensor model's analog filters (core/model/filters.py);
-tests check them against scipy.signal."""
+"""Butterworth second-order sections without importing scipy.signal (~76 MB resident and ~0.3 s at start):
+orders 1 and 2 in closed form, and the filter's rest state. Used by the streaming detector (core/detectors), the
+block detector (core/fastdetect.py), the sensor model's analog filters (core/model/filters.py) and the gyro's
+high-pass inverse (core/gyro/conditioning.py), so it imports none of them; tests check it against scipy.signal."""
 from __future__ import annotations
 
 import math
@@ -15,7 +15,7 @@ def butter_sos(order: int, corner_hz: float, kind: str, fs: float) -> np.ndarray
     if order == 1:
         return _butter_first_order(corner_hz, kind, fs)
     if order != 2:
-        from scipy import signal  # noqa: PLC0415 (only for a non-default filter order)
+        from scipy import signal  # noqa: PLC0415 (start-up cost: only a non-default filter order needs scipy.signal)
 
         return np.ascontiguousarray(signal.butter(order, corner_hz, kind, fs=fs, output="sos"))
     k = math.tan(math.pi * corner_hz / fs)

@@ -1,0 +1,225 @@
+"""One fuzz target per boundary where outside bytes enter gravcal: ``TARGETS[name](data)`` takes any bytes and
+raises only when gravcal is wrong (an exception it should have turned into a counted loss or a one-line error, a
+C kernel that disagrees with its Python reference, a request that ends the server).
+
+Run by the suite on a fixed seed corpus and a fixed number of Hypothesis examples (test_fuzz_short.py), and by
+``python tests/fuzz/run.py NAME`` under atheris for long coverage-guided runs (docs/daemon.md, Security).
+"""
+from __future__ import annotations
+
+import collections
+import json
+import os
+import queue
+import socket
+import tempfile
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from gravcal.core.samples import SAMPLE_DTYPE
+from gravcal.daemon.config import ConfigError, load_config
+from gravcal.daemon.persistence import StateStore, load_lab_calibration
+from gravcal.daemon.protocol import MAX_REQUEST_BYTES
+from gravcal.daemon.server import ServerConfig, SocketServer
+from gravcal.drivers._framekernel import frame_header, frame_to_row, slcan_samples
+from gravcal.drivers.base import Driver
+from gravcal.drivers.can import SampleAssembler, records_to_samples
+from gravcal.drivers.codec import FRAME_LEN, FrameDecoder, decode_frames, scan
+from gravcal.drivers.sequence import SeqUnwrapper
+from gravcal.drivers.slcan import BufferedSlcanBus
+from gravcal.errors import InputError
+from gravcal.io.formats.sniff import sniff
+from gravcal.io.recordings import read_recording
+
+import gravcal  # noqa: E402 - the API's Calibration, imported with the rest so that atheris instruments it
+from gravcal.api import Calibration as _ApiCalibration  # noqa: F401
+
+_TMP = Path(tempfile.mkdtemp(prefix="gravcal-fuzz-"))
+
+
+# -- the serial frame decoder and its C kernel -----------------------------------------------------------
+def frame_decoder(data: bytes) -> None:
+    """The streaming decoder in two reads equals the stateless decode of the whole (the same frames, CRC
+    collisions included); per 29-byte window, the C kernel's header and row equal the Python reference's."""
+    cut = data[0] % (len(data) + 1) if data else 0
+    dec = FrameDecoder()
+    got = np.concatenate([dec.feed(data[:cut]), dec.feed(data[cut:])])
+    want = decode_frames(data)
+    assert got.shape[0] <= want.shape[0]  # the unwrapper may drop strays and duplicates, never invent
+    assert set(got["tick"].tolist()) <= set(want["tick"].tolist())
+    for p in range(0, max(0, len(data) - FRAME_LEN + 1), 7):
+        frame = data[p:p + FRAME_LEN]
+        ref = scan(frame, final=True).starts == [0]
+        head = frame_header(frame)
+        assert (head is not None) == ref, (p, head)
+        if ref:
+            row = decode_frames(frame)
+            assert head == (int(row["seq"][0]), int(row["tick"][0]))
+            mine = np.empty(1, SAMPLE_DTYPE)
+            frame_to_row(frame, mine, int(row["seq"][0]), 0)
+            assert mine.tobytes() == row.tobytes()
+
+
+# -- slcan lines: python-can's parser at the CAN driver's boundary, and the C reader against it ---------------
+BASE = 0x100
+
+
+def _python_slcan(data: bytes, unwrapper: SeqUnwrapper) -> tuple[np.ndarray, int]:
+    """python-can's parse of every line (what it raises on a garbled one is counted, as CanDriver._recv does),
+    the assembler, the unwrapper, the driver's stamping at t=1000: (block, garbled lines)."""
+    bus = BufferedSlcanBus.__new__(BufferedSlcanBus)  # its line buffer and parser, without a port
+    bus._lines, bus._partial, bus._queue = collections.deque(), bytearray(), queue.Queue()
+    bus._split(data)
+    asm = SampleAssembler(BASE)
+    garbled = 0
+    while bus._lines:
+        try:
+            msg, _ = bus._recv_internal(0)
+        except Exception:  # noqa: BLE001 - the driver's rule: any parser exception is one garbled line
+            garbled += 1
+            continue
+        if msg is not None:
+            asm.on_message_received(msg)
+    asm.poll(float("inf"))
+    block = records_to_samples(asm.take(), unwrapper)
+    fake = SimpleNamespace(_last_t=0.0, tick_hz=1e6, _rate=SimpleNamespace(update=lambda *a: None))
+    if block.shape[0]:  # as read() does
+        Driver._stamp(fake, block, 1000.0)
+    return block, garbled
+
+
+def _primed(expect: int) -> SeqUnwrapper:
+    u = SeqUnwrapper()
+    u.unwrap((expect - np.array([2, 1])) & 0xFFFF, np.array([0, 5000]))
+    return u
+
+
+def slcan_lines(data: bytes) -> None:
+    """Any bytes as slcan lines: the Python path never raises beyond a counted garbled line; the C reader takes
+    either nothing or exactly the records the Python path gives, bit for bit."""
+    expect = int.from_bytes(data[:2].ljust(2, b"\0"), "little")
+    data = data[2:]
+    want, _ = _python_slcan(data, _primed(expect))
+    buf = np.zeros(65, SAMPLE_DTYPE)
+    buf.view(np.uint8)[:] = 0xA5
+    raw, seq0 = _primed(expect).next_frame()
+    k, _ = slcan_samples(data, BASE, raw, seq0, 1e6, 1000.0, 0.0, buf[:64])
+    assert buf[64:].view(np.uint8).tolist() == [0xA5] * SAMPLE_DTYPE.itemsize  # nothing past the rows given
+    if k:
+        assert buf[:k].tobytes() == want.tobytes(), (k, want.shape)
+
+
+# -- socket requests through the real server ----------------------------------------------------------
+_SERVER: SocketServer | None = None
+
+
+def _server() -> SocketServer:
+    global _SERVER
+    if _SERVER is None or not _SERVER.alive:
+        _SERVER = SocketServer(str(_TMP / "fuzz.sock"), config=ServerConfig(
+            request_rate_hz=1e6, request_burst=10**6, idle_timeout_s=60),  # the budget is tested elsewhere
+            status_provider=lambda: {"device": {"bus": "fuzz"}}).start()
+    return _SERVER
+
+
+def socket_request(data: bytes) -> None:
+    """Bytes a client sends (cut into lines as sent): every reply is one JSON line, the connection ends only by
+    the client's hang-up or the server's stated limit, and the server thread lives on."""
+    srv = _server()
+    c = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    c.settimeout(5)
+    c.connect(srv.address)
+    try:
+        c.sendall(data[: 4 * MAX_REQUEST_BYTES] + b'\n?WATCH={"enable":false};?VERSION;\n')
+        c.shutdown(socket.SHUT_WR)  # half-closed: the server answers what it got, then hangs up
+        out = b""
+        while chunk := c.recv(1 << 16):
+            out += chunk
+    finally:
+        c.close()
+    lines = out.split(b"\n")
+    assert lines[-1] == b"", out[-200:]
+    for line in lines[:-1]:
+        msg = json.loads(line)
+        assert isinstance(msg, dict) and isinstance(msg.get("class"), str), line[:200]
+    assert srv.alive
+    if not any(b"longer than" in x for x in lines):
+        assert json.loads(lines[-2])["class"] == "VERSION", lines[-3:]  # nothing lost the client its answer
+
+
+# -- files the daemon and the command line read ---------------------------------------------------------
+def _file(name: str, data: bytes) -> Path:
+    p = _TMP / name
+    p.write_bytes(data)
+    return p
+
+
+def config_file(data: bytes) -> None:
+    """gravcald.toml: a Config or one ConfigError line."""
+    try:
+        load_config(_file("gravcald.toml", data))
+    except ConfigError as exc:
+        assert "\n" not in str(exc) and len(str(exc)) < 2000, str(exc)[:300]
+
+
+def state_file(data: bytes) -> None:
+    """state.json: loaded, or moved aside with one note; never an exception."""
+    d = _TMP / "state"
+    d.mkdir(exist_ok=True)
+    for old in d.iterdir():
+        old.unlink()
+    (d / "state.json").write_bytes(data)
+    res = StateStore(d).load()
+    assert len(res.notes) == 1 and "\n" not in res.notes[0]
+    assert res.state is None or res.moved_to is None
+
+
+def calibration_json(data: bytes) -> None:
+    """A lab or --start calibration: a Calibration or one InputError line (the daemon's and the API's loaders)."""
+    p = _file("cal.json", data)
+    for load in (load_lab_calibration, lambda q: gravcal.Calibration.from_json(Path(q).read_bytes())):
+        try:
+            load(p)
+        except (InputError, ValueError) as exc:
+            assert "\n" not in str(exc).strip() and len(str(exc)) < 2000, str(exc)[:300]
+
+
+# -- recordings: sniffing and reading -----------------------------------------------------------------
+SUFFIXES = (".csv", ".csv.gz", ".npy", ".gt3x", ".agdc", ".cwa", ".bin")
+
+
+def recording(data: bytes) -> None:
+    """Any bytes under each recording suffix: sniffed by content, read or refused with one InputError line."""
+    suffix = SUFFIXES[data[0] % len(SUFFIXES)] if data else ".csv"
+    p = _file("rec" + suffix, data[1:])
+    sniff(p)
+    t0 = time.monotonic()
+    try:
+        read_recording(p, check_saturation=True)
+    except (InputError, ValueError) as exc:
+        text = str(exc)
+        assert "\n" not in text.strip() and len(text) < 2000 and "Traceback" not in text, text[:300]
+    assert time.monotonic() - t0 < 30.0
+
+
+TARGETS = {f.__name__: f for f in (frame_decoder, slcan_lines, socket_request, config_file, state_file,
+                                   calibration_json, recording)}
+
+
+def corpus(name: str) -> list[bytes]:
+    """The seed corpus of ``name``: tests/fuzz/corpus/NAME/* (each a file; crashes found become entries)."""
+    folder = Path(__file__).with_name("corpus") / name
+    return [p.read_bytes() for p in sorted(folder.iterdir())] if folder.is_dir() else []
+
+
+def cleanup() -> None:
+    if _SERVER is not None:
+        _SERVER.stop()
+    for root, dirs, files in os.walk(_TMP, topdown=False):
+        for f in files:
+            os.unlink(os.path.join(root, f))
+        for d in dirs:
+            os.rmdir(os.path.join(root, d))
