@@ -1,6 +1,6 @@
 """Week-long soak of the daemon's estimator path at accelerated time, not a test.
 
-    python bench/bench_soak.py [--days 7] [--seed 0] [--process-noise 3e-11] [--quick] [--json PATH]
+    python bench/bench_soak.py [--days 7] [--seed 0] [--process-noise 5e-12] [--quick] [--json PATH]
     python bench/bench_soak.py --controls 20        # false selection rate of the temperature term
     python bench/bench_soak.py --remount-seeds 10   # re-mount detection rate, delay, angle, false alarms
 
@@ -29,7 +29,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--days", type=float, default=7.0)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--process-noise", type=float, default=3e-11, help="[estimator] process_noise [raw²/s]")
+    ap.add_argument("--process-noise", type=float, default=5e-12,
+                    help="[estimator] process_noise [raw²/s] (5e-12: an offset walk of 3.5 mg/sqrt(h) at 0.04 raw/g)")
     ap.add_argument("--quick", action="store_true", help="2 days instead of --days")
     ap.add_argument("--controls", type=int, default=0, help="only: temperature-term false selections over N seeds")
     ap.add_argument("--remount-seeds", type=int, default=0, help="only: re-mount detection over N seeds")

@@ -45,13 +45,14 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..crlb import sphere_directions
+from ..model.datasheet import OFFSET_WALK_G_PER_SQRT_H, SENS_WALK_PER_SQRT_H
 from ..model.effect import needed_covariates, references
-from ..model.terms import COVARIATES
+from ..model.terms import COVARIATES, calibration_view
 from ..windows import Window, WindowSet, validate_windows
 from .inuse12 import with_frame
 from .consider import datasheet_held_uncertainty
-from .extended import extended_class, parameterization
-from .lotters import LottersBatch
+from .extended import EXTRA_TERMS, extended_class, model_name, parameterization
+from .lotters import LottersBatch, resolve_parameterization
 from .observability import N_PARAMS, ORDERS, POSTURE_CELLS, SIGMA_FLOOR_G, SYSTEMATIC_G, TOL_G, OrderDecision, held_note
 from .online_policy import OnlinePolicy, OnlineStep, PolicySettings, online_candidates
 from .order import (compare_extended, extended_base, extended_terms, fit_extended_floor, is_observable_extended,
@@ -64,6 +65,22 @@ STORE_CAPACITY = 4000  # window summaries kept (~0.4 MB); ~11 h of windows at on
 CHECK_EVERY = 10  # windows between order re-selections while the store is small ...
 CHECK_FRACTION = 0.02  # ... and at least this fraction of the store (bounds the amortised cost)
 COMPARE_EVERY = 2000  # windows between 6-vs-full comparisons (BIC + held-out: 12 batch fits)
+
+
+# The random walk of a sensitivity against an offset's, both in raw units (datasheet.py's assumed walks: 0.05 %/sqrt(h)
+# of the sensitivity against 2 mg/sqrt(h)): the configured process noise is the offsets' walk.
+SENS_WALK_RATIO2 = (SENS_WALK_PER_SQRT_H / OFFSET_WALK_G_PER_SQRT_H) ** 2
+
+
+def drift_walk(names: list[str], process_noise: float | np.ndarray | None) -> np.ndarray | float | None:
+    """Per-parameter random walk [raw²/s] from the configured ``process_noise``: a scalar q is the offsets' walk;
+    sensitivities (and cross-axis entries) walk SENS_WALK_RATIO2 q (the same q on them made their std grow
+    ~4x faster than any sensor drifts, so a day upright left them "not determined"); an extended term's
+    coefficient is a property of the part, not a drift: 0. A vector is taken as given."""
+    if process_noise is None or np.ndim(process_noise) > 0:
+        return process_noise
+    q = float(process_noise)
+    return np.array([q if n.startswith("o_") else q * SENS_WALK_RATIO2 if n.startswith("s_") else 0.0 for n in names])
 
 
 class WindowStore:
@@ -398,19 +415,24 @@ class OnlineCalibrator:
                 self._ext_verdict.pop(c, None)
                 continue
             if compare or c not in self._ext_verdict:
+                drift = self._drift_nuisance(c)
+                b_cmp, c_cmp = (model_name(base, drift), model_name(base, extended_terms(c) + drift)) if drift \
+                    else (base, c)
                 try:
-                    sc = compare_extended(ws, base, c, at, lab=self.lab,
+                    sc = compare_extended(ws, b_cmp, c_cmp, at, lab=self.lab,
                                           sigma_floor_g=self.sigma_floor_g if self.sigma_floor_g is not None
                                           else SIGMA_FLOOR_G)
                 except (ValueError, np.linalg.LinAlgError) as exc:
                     self.extended_status[c] = {"status": "not warranted", "reason": f"comparison failed ({exc})"}
                     self._ext_verdict[c] = False
                     continue
-                sb, se = sc[base], sc[c]
+                sb, se = sc[b_cmp], sc[c_cmp]
                 hb, he = sb["heldout_rms_mg"], se["heldout_rms_mg"]
                 better = se["bic"] < sb["bic"] and (hb is None or he is None or he < hb)
                 cmp = (f"BIC {c} {se['bic']:.1f} vs {base} {sb['bic']:.1f}" +
-                       ("" if hb is None or he is None else f", held-out {he:.4g} vs {hb:.4g} mg"))
+                       ("" if hb is None or he is None else f", held-out {he:.4g} vs {hb:.4g} mg") +
+                       (f" (both with {' and '.join(drift)}: the parameters drift (process noise), and a drift "
+                        "over the stored windows must not pass for the term)" if drift else ""))
                 self._ext_verdict[c] = better
                 self.extended_status[c] = {"status": "chosen" if better else "not warranted",
                                            "reason": cmp, "predicted_mg": obs.get("predicted_mg"), "comparison": sc}
@@ -423,6 +445,20 @@ class OnlineCalibrator:
                 self.extended_status[c] = {**self.extended_status[c], "status": "not warranted",
                                            "reason": self.extended_status[c]["reason"] + f"; {chosen} chosen first"}
         return chosen
+
+    def _drift_nuisance(self, candidate: str) -> tuple[str, ...]:
+        """The time-drift terms a covariate term's evidence is judged against: with a random walk configured the
+        parameters drift, the stored windows span days, and a drift that happens to follow the covariate (a daily
+        temperature cycle) would otherwise be named a temperature effect. The drift terms of what walks
+        (drift_walk: offsets and sensitivities; the registry's time terms acting on them), unless the candidate
+        itself is such a term."""
+        if self.process_noise is None or not np.any(np.asarray(self.process_noise, dtype=float) > 0):
+            return ()
+        terms = extended_terms(candidate)
+        if any(calibration_view(t).covariate == "time" for t in terms):
+            return ()
+        return tuple(t for t in EXTRA_TERMS if calibration_view(t).covariate == "time" and calibration_view(t).per_window
+                     and calibration_view(t).acts_on in ("offset", "sensitivity"))
 
     def _reseed(self, model: str, ws: WindowSet, here: Calibration, d: OrderDecision) -> None:
         """Batch fit of the stored windows (eq. 11a), then the recursion continues from it."""
@@ -473,16 +509,35 @@ class OnlineCalibrator:
         self.n_reseeds += 1
 
     def _drift_inflation(self, ws: WindowSet) -> None:
-        """With a random walk (``process_noise`` Q per second) a batch fit of windows spread over time estimates
-        the parameters at their (weighted) mean time, not now: the recursion starts with P + Q (t_last - t_mean),
-        the walk's variance since then, so a re-seed never states drifting parameters more precisely than the
-        drift allows (the recursion then tracks them from there)."""
+        """With a random walk (``process_noise``: Q per second) a batch fit of windows spread over time is not an
+        estimate of the parameters now: window i measured p(t_i) = p(now) - d_i, d_i the walk since t_i, so
+        p_fit - p(now) = H^-1 sum_i G_i (-d_i) + noise (G_i = B_i^T B_i / R_i, H = sum G_i). The walk's
+        increments are independent: over the stretch between consecutive window times (length dt, newest
+        first) the windows before it carry C = sum of their G, and the covariance of the batch estimate about
+        p(now) grows by H^-1 (sum C Q C^T dt) H^-1 -- through every coupling of the fit (an offset's drift
+        between a day upright and a night lying lands in the sensitivities). The recursion starts from that,
+        so a re-seed never states drifting parameters more precisely than the drift allows."""
         rec = self.recursive
         if rec is None or not rec._has_Q or not len(ws):
             return
-        w = ws.n / max(float(np.sum(ws.n)), 1e-300)
-        lag = max(float(np.max(ws.t)) - float(w @ ws.t), 0.0)
-        rec.P = rec.P + rec.Q * lag
+        par = rec.par.at_windows(ws) if rec.par.covariates else rec.par
+        try:
+            _, B, _, var = par.norm_jacobian_variance(rec.p, ws.mean, ws.cov_of_mean)
+        except (ValueError, np.linalg.LinAlgError):
+            return
+        w = 1.0 / np.maximum(var + rec.R_floor, 1e-14)
+        order = np.argsort(-ws.t, kind="stable")  # newest first
+        t = ws.t[order]
+        G = (B[order, :, None] * B[order, None, :]) * w[order, None, None]  # (M, P, P)
+        C = np.cumsum(G[::-1], axis=0)[::-1]  # C[k]: the windows at or before t[k]
+        dt = np.concatenate([[0.0], t[:-1] - t[1:]])  # stretch from t[k] to the next newer window
+        X = np.einsum("k,kij,klj->il", dt, C @ rec.Q, C)
+        try:
+            Hinv = np.linalg.inv(C[0])
+        except np.linalg.LinAlgError:
+            return
+        extra = Hinv @ X @ Hinv
+        rec.P = rec.P + 0.5 * (extra + extra.T)
         rec.t_last = float(np.max(ws.t))
 
     def _recursion(self, cal: Calibration, model: str) -> LottersRecursive:
@@ -490,7 +545,8 @@ class OnlineCalibrator:
         if floor is None:
             floor = float(cal.metadata.get("sigma_floor_g") or 0.0)
         if "+" not in model:
-            return LottersRecursive(cal, model, sigma_floor_g=floor, process_noise=self.process_noise,
+            par = resolve_parameterization(model, cal)
+            return LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=drift_walk(par.names, self.process_noise),
                                     gate_sigma=self.gate_sigma)
         # an extended model: the parameterization carries the fit's reference (T_ref, t0)
         ext = cal.metadata.get("extended") or {}
@@ -498,7 +554,7 @@ class OnlineCalibrator:
         par = parameterization(model, cal.sensitivity, cal.offset, t_ref_c=refs["temp"], t0_s=refs["time"],
                                v_ref=refs["vsupply"], temp_column=ext.get("temp_column", 0))
         # LottersRecursive starts the extra parameters from the fit's metadata["params"]
-        return LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=self.process_noise,
+        return LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=drift_walk(par.names, self.process_noise),
                                 gate_sigma=self.gate_sigma)
 
     def stats(self) -> dict[str, Any]:

@@ -44,20 +44,23 @@ def drifting_model(seed: int):
     return default_model(seed, offset_drift=True, sensitivity_drift=True)
 
 
-def run_soak(days: float, seed: int = 0, *, process_noise: float = 3e-11, check_every_s: float = 3600.0,
-             warmup_s: float = 86400.0, day_start_h: float = 8.0, progress: bool = False) -> dict[str, Any]:
-    """The soak (module docstring); returns the figures."""
+def run_soak(days: float, seed: int = 0, *, process_noise: float = 5e-12, check_every_s: float = 3600.0,
+             warmup_s: float = 86400.0, day_start_h: float = 8.0, progress: bool = False,
+             max_window_s: float = 10.0) -> dict[str, Any]:
+    """The soak (module docstring); returns the figures. ``max_window_s``: the longest quasi-static window
+    (longer: fewer windows per day, the same information, a faster run)."""
     from gravcal.core.estimators.remount import session_windows
 
     t0 = time.perf_counter()
     ws, info = session_windows("daily_living", seed=seed, duration=days * 86400.0, model=drifting_model(seed),
-                               day_start_h=day_start_h)
+                               day_start_h=day_start_h, max_window_s=max_window_s)
     t_gen = time.perf_counter() - t0
     gc.collect()
     p = processor(process_noise)
     z: list[list[float]] = []
     checks_t: list[float] = []
     mem: list[tuple[float, float, int, int]] = []  # (t [h], RSS [MB], live objects, stored windows)
+    hourly: list[dict[str, Any]] = []  # every check: the published order and whether it was accepted (and why not)
     next_check = check_every_s
     t1 = time.perf_counter()
     for i in range(len(ws)):
@@ -67,6 +70,8 @@ def run_soak(days: float, seed: int = 0, *, process_noise: float = 3e-11, check_
             continue
         next_check += check_every_s
         st = p.state
+        hourly.append({"t_h": round(t / 3600.0, 2), "model": st.model, "accepted": bool(st.accepted),
+                       **({} if st.accepted else {"why": _why_not(st.calibration, p)})})
         if st.accepted and set(PARAMS) <= set(st.calibration.std):
             tr = info["truth"](float(ws.aux[i, 0]) if ws.aux.shape[1] else 25.0, t)
             cal = st.calibration
@@ -90,11 +95,18 @@ def run_soak(days: float, seed: int = 0, *, process_noise: float = 3e-11, check_
         "days": days, "seed": seed, "process_noise": process_noise, "windows": len(ws),
         "generate_s": round(t_gen, 2), "run_s": round(t_run, 2),
         "windows_per_s": round(len(ws) / max(t_run, 1e-9), 1),
-        "checks": int(za.shape[0]), "check_values": int(za.size),
+        "checks": int(za.shape[0]), "check_values": int(za.size), "hourly_checks": len(hourly),
+        "accepted_share": sum(h["accepted"] for h in hourly) / max(len(hourly), 1),
+        # after the first acceptance (a datasheet start needs the first lying postures to determine order 6)
+        "accepted_share_after_first": _share_after_first(hourly),
+        "checks_after_first": len(hourly) - next((k for k, h in enumerate(hourly) if h["accepted"]), len(hourly)),
+        "not_accepted": [h for h in hourly if not h["accepted"]],
         "within_1sigma": float(np.mean(za <= 1)) if za.size else None,
         "within_2sigma": float(np.mean(za <= 2)) if za.size else None,
         "within_3sigma": float(np.mean(za <= 3)) if za.size else None,
         "max_abs_z": float(za.max()) if za.size else None,
+        "rms_z": float(np.sqrt(np.mean(za * za))) if za.size else None,  # ~1 for an honest std
+        "per_param_rms_z": dict(zip(PARAMS, np.sqrt(np.mean(za * za, axis=0)).round(3).tolist())) if za.size else {},
         "beyond_3sigma": ([{"t_h": round(checks_t[i] / 3600.0, 1), "param": PARAMS[j], "z": round(float(z[i][j]), 2)}
                            for i, j in zip(*np.nonzero(za > 3))] if za.size else []),
         "per_param_within_1sigma": dict(zip(PARAMS, np.mean(za <= 1, axis=0).round(3).tolist())) if za.size else {},
@@ -116,6 +128,27 @@ def run_soak(days: float, seed: int = 0, *, process_noise: float = 3e-11, check_
         out["memory_samples"] = len(mem)
     out["_processor"] = p  # for tests (bounded structures); main() drops it
     return out
+
+
+def _share_after_first(hourly: list[dict[str, Any]]) -> float | None:
+    first = next((k for k, h in enumerate(hourly) if h["accepted"]), None)
+    if first is None:
+        return None
+    rest = hourly[first:]
+    return sum(h["accepted"] for h in rest) / len(rest)
+
+
+def _why_not(cal, p) -> str:
+    """Why a published calibration is not accepted (the policy's criteria, in its order)."""
+    if not cal.converged:
+        return "not converged"
+    if not cal.observable:
+        return "not observable" + (" (provisional)" if p.online.provisional else "")
+    if p.policy.suspect():
+        return f"suspect ({sum(p.policy.recent_rejections)} of the last {len(p.policy.recent_rejections)} rejected)"
+    if p.policy.refitting:
+        return "refitting"
+    return "other: " + (cal.message or "")[:120]
 
 
 def run_controls(n: int) -> dict[str, Any]:
