@@ -16,7 +16,7 @@ from gravcal.core.samples import FLAG_SATURATED
 from gravcal.io.calibrated import read_parquet_metadata, sidecar, write_calibrated
 from gravcal.io.recordings import FLAG_FILLER, read_recording
 
-pytest.importorskip("pyarrow")
+import pyarrow  # noqa: E402,F401  (a dependency: its absence is a failure, not a skip)
 K_STD = 3.0  # each parameter of the identity within 3 of its stated std (all nine at once: P(false red) < 3 %)
 
 

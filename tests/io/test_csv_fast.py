@@ -14,7 +14,7 @@ from gravcal.io.formats import csvarrow, csvtext
 from gravcal.io.formats.csvtext import line_of_data_row, load_csv, data_lines
 from gravcal.io.recordings import read_recording
 
-pytest.importorskip("pyarrow")
+import pyarrow  # noqa: E402,F401  (a dependency: its absence is a failure, not a skip)
 
 
 def _layout(rng, n):
