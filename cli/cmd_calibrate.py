@@ -119,34 +119,37 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     return p
 
 
+def _read_json(path: Path, option: str):
+    """The JSON object a calibration option names, read with bounded nesting and size; one line when it is not."""
+    try:
+        return bounded_loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file ({option})") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot be read: {exc.strerror or exc} ({option})") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file, expected a calibration JSON ({option})") from None
+    except JSONInputError as exc:
+        raise InputError(f"{path}: {exc} ({option})") from None
+
+
 def _load_start(path: Path):
     from gravcal.core.calibration import Calibration
 
+    obj = _read_json(path, "--start")
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file (--start)") from None
-    try:
-        obj = bounded_loads(text)
         if not isinstance(obj, dict):
             raise ValueError("calibration JSON must be an object")
         return Calibration.from_dict(obj)
-    except ValueError as exc:  # JSONInputError is one
-        raise InputError(f"{path}: {exc}") from None
+    except ValueError as exc:
+        raise InputError(f"{path}: {exc} (--start)") from None
 
 
 def _load_lab(path: Path):
     """The lab calibration of --lab-calibration: a gravcal calibration JSON, or a `calibrate --lab --json` object."""
     from gravcal.core.calibration import Calibration
 
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file (--lab-calibration)") from None
-    try:
-        obj = bounded_loads(text)
-    except JSONInputError as exc:
-        raise InputError(f"{path}: {exc} (--lab-calibration)") from None
+    obj = _read_json(path, "--lab-calibration")
     try:
         cal = Calibration.from_dict(obj["calibration"] if isinstance(obj, dict) and "calibration" in obj else obj)
     except (ValueError, KeyError, TypeError) as exc:
