@@ -15,6 +15,7 @@ from gravcal.core.accelerator import is_native, kernels
 from gravcal.core.butterworth import butter_sos, sos_rest_state
 
 from filter_bounds import U, cascade_gains, sosfilt_difference_bound
+from test_jacobians import sensor_like as _sensor_like  # the same sensor-like inputs as the Jacobian tests
 
 OFFLINE = ("gravcal.core._fitsums", "gravcal.core._blockkernels", "gravcal.core._scankernel",
            "gravcal.core.detectors._movingstd", "gravcal.core.estimators._jacobians", "gravcal.io._pages")
@@ -268,17 +269,6 @@ def test_lotters_chain_is_its_reference_to_the_rounding_bound(blocks, order, cha
     clear = (np.abs(t_r[:chans, b0:] - 0.02) > bound).all(axis=0)  # decisions away from the threshold
     assert np.array_equal(s_c[b0:][clear], s_r[b0:][clear]) and clear.mean() > 0.99
     assert 0.1 < s_c.mean() < 0.95
-
-
-def _sensor_like(rng, M, P):
-    Kc = 0.04 * (np.eye(3) + 0.01 * rng.standard_normal((3, 3)))
-    oc = 0.5 + 0.01 * rng.standard_normal(3)
-    p = rng.standard_normal(P) * 10.0 ** rng.integers(-4, 0, size=P)
-    dK = rng.standard_normal((M, P, 3, 3)) * 10.0 ** rng.integers(-6, -1, size=(M, P, 1, 1))
-    do = rng.standard_normal((M, P, 3)) * 10.0 ** rng.integers(-6, -1, size=(M, P, 1))
-    u = rng.standard_normal((M, 3))
-    raw = (u / np.linalg.norm(u, axis=1, keepdims=True)) @ Kc.T + oc
-    return Kc, oc, p, dK, do, raw
 
 
 @pytest.mark.parametrize("M, P", [(0, 3), (5, 2), (1001, 9), (333, 15)])

@@ -31,37 +31,32 @@ def test_unreadable_state_is_moved_aside_with_the_reason(tmp_path):
     assert os.path.isdir(res.moved_to) and not os.path.exists(tmp_path / "state.json")
 
 
-def test_daemon_reports_an_unreadable_state_in_status_notes(tmp_path):
-    (tmp_path / "state").mkdir()
-    (tmp_path / "state" / "state.json").mkdir()
+def _notes_of_a_start(tmp_path):
+    """The STATUS notes of a gravcald started (and stopped) on the state directory tmp_path/state."""
     cfg = Config()
     cfg.socket.path = str(tmp_path / "g.sock")
     cfg.state.directory = str(tmp_path / "state")
     d = Gravcald(cfg, driver=SilentDriver(), environ={})
     d.start()
     try:
-        notes = d.status()["notes"]
+        return d.status()["notes"]
     finally:
         d.request_stop()
         d.shutdown()
+
+
+def test_daemon_reports_an_unreadable_state_in_status_notes(tmp_path):
+    (tmp_path / "state").mkdir()
+    (tmp_path / "state" / "state.json").mkdir()
+    notes = _notes_of_a_start(tmp_path)
     assert any("is unusable (Is a directory); moved it to" in n for n in notes), notes
     assert "starting from ADXL210 datasheet values (no saved state, no lab calibration)" in notes
-
 
 
 def test_daemon_moves_a_deeply_nested_state_aside_and_starts(tmp_path):
     (tmp_path / "state").mkdir()
     (tmp_path / "state" / "state.json").write_bytes(b"[" * 100_000)
-    cfg = Config()
-    cfg.socket.path = str(tmp_path / "g.sock")
-    cfg.state.directory = str(tmp_path / "state")
-    d = Gravcald(cfg, driver=SilentDriver(), environ={})
-    d.start()
-    try:
-        notes = d.status()["notes"]
-    finally:
-        d.request_stop()
-        d.shutdown()
+    notes = _notes_of_a_start(tmp_path)
     assert any("is unusable (JSON nested deeper than 64 levels); moved it to" in n for n in notes), notes
     assert [p.name[:19] for p in (tmp_path / "state").iterdir()] == ["state.json.corrupt-"]
 
