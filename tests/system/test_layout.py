@@ -171,6 +171,37 @@ def test_no_source_file_over_the_limit():
     assert not long, f"over {MAX_LINES} lines: {long}"
 
 
+def included_headers(source: Path) -> set[Path]:
+    """The project's headers a C file includes ("..." includes, resolved beside it), theirs included."""
+    found: set[Path] = set()
+    todo = [source]
+    while todo:
+        current = todo.pop()
+        for name in re.findall(r'^\s*#\s*include\s+"([^"]+)"', current.read_text(), re.MULTILINE):
+            header = (current.parent / name).resolve()
+            if header not in found and header.is_file():
+                found.add(header)
+                todo.append(header)
+    return found
+
+
+def test_every_c_file_is_built_and_its_headers_rebuild_it():
+    """Every C file of the package is a source of exactly one extension in pyproject.toml, and each
+    extension's depends list every header its sources include (a changed header rebuilds it)."""
+    extensions = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["ext-modules"]
+    listed = [s for ext in extensions for s in ext["sources"]]
+    found = [str(p.relative_to(ROOT)) for folder in LAYERS for p in (ROOT / folder).rglob("*.c")]
+    assert sorted(listed) == sorted(found), ("not built:", sorted(set(found) - set(listed)),
+                                             "listed twice or absent:", sorted(set(listed) - set(found)))
+    missing = {}
+    for ext in extensions:
+        needed = set().union(*(included_headers(ROOT / s) for s in ext["sources"]))
+        declared = {(ROOT / d).resolve() for d in ext.get("depends", [])}
+        if needed - declared:
+            missing[ext["name"]] = sorted(str(h.relative_to(ROOT)) for h in needed - declared)
+    assert not missing, missing
+
+
 def test_every_package_is_installed():
     """pyproject's package list holds every folder with an __init__.py (an editable install would hide
     a missing one; a wheel would not)."""
