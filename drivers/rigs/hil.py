@@ -24,6 +24,16 @@ from typing import Sequence
 EMULATOR_MODULE = f"{__package__}.emulate"  # the entry point beside this module
 
 
+def _child_env() -> dict[str, str]:
+    """The emulator's environment: this one's, without umockdev's preload (a host of the emulated I2C bus runs
+    under it; the emulator serves the bus and opens no emulated device)."""
+    env = {k: v for k, v in os.environ.items() if k != "UMOCKDEV_DIR"}
+    preloads = [p for p in env.pop("LD_PRELOAD", "").split(":") if p and "libumockdev-preload" not in p]
+    if preloads:
+        env["LD_PRELOAD"] = ":".join(preloads)
+    return {**env, "PYTHONUNBUFFERED": "1"}
+
+
 class EmulatorProcess:
     def __init__(self, args: Sequence[str], *, linger: float = 120.0, start_timeout: float = 30.0,
                  new_session: bool = False):
@@ -41,7 +51,7 @@ class EmulatorProcess:
     def __enter__(self) -> "EmulatorProcess":
         self.proc = subprocess.Popen(self.args, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                      text=True,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=self.new_session)
+                                     env=_child_env(), start_new_session=self.new_session)
         threading.Thread(target=self._pump, daemon=True).start()
         try:
             line = self._lines.get(timeout=self.start_timeout)
