@@ -23,9 +23,10 @@ from typing import Sequence
 
 import numpy as np
 
+from ..codec import FRAME_LEN
 from .can_links import SlcanPtyLink
 from .emulator import Emulator, Faults, PtyLink, SentLog
-from .fake_i2c import FakeI2CDevice, realtime_options
+from .fake_i2c import I2C_RDWR_MAX_LEN, FakeI2CDevice, realtime_options
 from .i2c_dev import I2CDevServer
 from .options import disconnect_arg, positive_arg, probability_arg, speed_arg
 from .sources import replay_source, scenario_source
@@ -115,8 +116,10 @@ def _run_i2c(args, source, faults, sent_log, stop) -> int:
                            log=sent_log)
     with I2CDevServer(device, bus=1, testbed=args.testbed) as server:
         # a time-lapse fills the FIFO faster than the driver's default poll assumes: poll at a quarter of its fill
+        # and drain it in one transfer
         poll = realtime_options(device).get("poll_s")
-        _say(f"i2c://{server.bus}/0x{device.address:02X}" + (f"?poll_s={poll:.4g}" if poll else ""))
+        burst = min(device.depth, I2C_RDWR_MAX_LEN // FRAME_LEN)
+        _say(f"i2c://{server.bus}/0x{device.address:02X}" + (f"?poll_s={poll:.4g}&burst_frames={burst}" if poll else ""))
         print(f"gravcal emulate: the logger is /dev/i2c-{server.bus} for a process started with "
               f"{' '.join(f'{k}={v}' for k, v in server.env({}).items())}", file=sys.stderr, flush=True)
         while not stop.wait(0.2):

@@ -33,10 +33,9 @@ def _children(pid: int) -> list[int]:
 @pytest.mark.parametrize("bus", ["serial", "i2c"])
 def test_serving_daemon_maps_no_heavy_scipy_module(bus):
     """After start, with samples flowing to a client through the detector and the estimator, no
-    extension module of scipy.signal/stats/optimize/spatial/linalg is mapped into gravcald (i2c: the
-    emulated device runs in the daemon, the sensor model behind it in a child process). The emulator's
-    child (serial: the emulated logger, i2c: the simulator) runs the sensor model without SciPy too: its
-    filters are the same compiled kernel."""
+    extension module of scipy.signal/stats/optimize/spatial/linalg is mapped into gravcald (the emulated
+    logger runs in a child process: on a pty, or behind /dev/i2c-1 through umockdev). The emulator's child
+    runs the sensor model without SciPy too: its filters are the same compiled kernel."""
     d = GravcaldProcess(None, "--bus", bus, "--scenario", "six_position", "--speed", "1", fs=200.0)
     try:
         d.wait_serving()
