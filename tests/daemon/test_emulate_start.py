@@ -8,6 +8,7 @@ import pytest
 
 from gravcal.daemon import gravcald
 from gravcal.daemon.emulation import discard_if_empty
+from support.umockdev import require_umockdev
 
 
 @pytest.mark.parametrize("argv", [["--fs", "-5"], ["--config", "/nonexistent/gravcald.toml"],
@@ -39,6 +40,7 @@ def test_the_scenario_help_names_every_scenario_the_emulator_takes():
 
 
 def test_a_bad_i2c_driver_option_is_refused_and_leaves_nothing_behind(tmp_path):
+    require_umockdev()
     # a subprocess: gravcald starts again under umockdev's preload library for the emulated I2C bus
     runtime, testbeds = tmp_path / "run", tmp_path / "tmp"
     runtime.mkdir()

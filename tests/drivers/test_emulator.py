@@ -17,12 +17,13 @@ import pytest
 from gravcal.drivers.rigs import emulate
 from gravcal.drivers.codec import decode_frames
 from gravcal.drivers.rigs.can_links import SlcanPtyLink
-from gravcal.drivers.rigs.hil import EmulatorProcess
-from gravcal.drivers.rigs.i2c_dev import preload_env, preload_library
 from gravcal.drivers.rigs.emulator import (
     DROPPED, SENT, Emulator, Faults, PtyLink, SentLog, load_sent_log,
 )
+from gravcal.drivers.rigs.hil import EmulatorProcess
+from gravcal.drivers.rigs.i2c_dev import preload_env
 from gravcal.drivers.rigs.sources import pattern_blocks, replay_source
+from support.umockdev import require_umockdev
 
 
 def read_until(fd: int, terminator_count: int, timeout: float = 5.0) -> bytes:
@@ -193,8 +194,8 @@ print(json.dumps({"received": got, "missing": st["missing"]}))
 """
 
 
-@pytest.mark.skipif(preload_library() is None, reason="umockdev's preload library is not installed")
 def test_cli_i2c_serves_the_device_node_to_another_process(tmp_path):
+    require_umockdev()
     rec = tmp_path / "i2c.npz"
     testbed = tempfile.mkdtemp(prefix="gravcal-i2c-")  # a short path: the socket's must fit sun_path
     try:

@@ -13,10 +13,15 @@ import pytest
 from gravcal.drivers.codec import FRAME_LEN
 from gravcal.drivers.rigs.emulator import Faults
 from gravcal.drivers.rigs.fake_i2c import FakeI2CDevice, ManualClock
-from gravcal.drivers.rigs.i2c_dev import I2CDevServer, preload_library
+from gravcal.drivers.rigs.i2c_dev import I2CDevServer
 from gravcal.drivers.rigs.sources import pattern_blocks
+from support.umockdev import require_umockdev
 
-pytestmark = pytest.mark.skipif(preload_library() is None, reason="umockdev's preload library is not installed")
+
+
+@pytest.fixture(autouse=True)
+def _umockdev():
+    require_umockdev()
 
 FS = 200.0
 
