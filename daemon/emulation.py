@@ -98,9 +98,9 @@ class EmulatedBus:
                 "--duration", repr(self.duration), *extra]
         for start, dur in self.disconnects:
             args += ["--disconnect-at", f"{start!r}:{dur!r}"]
-        # the device stays plugged in after the stream ends; its own session: a Ctrl-C at the terminal reaches only
-        # the daemon, which then saves its state and stops the emulator itself
-        proc = EmulatorProcess(args, linger=-1.0, new_session=True)
+        # the device stays plugged in after the stream ends; its own process group: a Ctrl-C at the terminal reaches
+        # only the daemon, which then saves its state and stops the emulator itself
+        proc = EmulatorProcess(args, linger=-1.0, own_process_group=True)
         try:
             proc.__enter__()
         except RuntimeError as exc:
