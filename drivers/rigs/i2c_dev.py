@@ -50,6 +50,7 @@ _ULONG_MASK = (1 << (8 * _WORDS.size // 3)) - 1
 _RDWR = struct.Struct("@PI")  # struct i2c_rdwr_ioctl_data: msgs, nmsgs
 _MSG = struct.Struct("@HHHP")  # struct i2c_msg: addr, flags, len, buf
 _SMBUS = struct.Struct("@BBIP")  # struct i2c_smbus_ioctl_data: read_write, command, size, data
+SUN_PATH_MAX = 108  # sys/un.h: sockaddr_un.sun_path
 
 
 def preload_library() -> str | None:
@@ -200,6 +201,9 @@ class I2CDevServer:
         self.dev_path = f"/dev/i2c-{self.bus}"
         self.node_path = os.path.join(self.testbed, "dev", f"i2c-{self.bus}")
         self.socket_path = os.path.join(self.testbed, "ioctl", "dev", f"i2c-{self.bus}")
+        if len(os.fsencode(self.socket_path)) >= SUN_PATH_MAX:  # a Unix socket's address holds 107 bytes
+            raise ValueError(f"the testbed path {self.testbed!r} is too long for its ioctl socket "
+                             f"(at most {SUN_PATH_MAX - 1 - len('/ioctl/dev/i2c-') - len(str(self.bus))} bytes)")
         os.makedirs(os.path.dirname(self.node_path), exist_ok=True)
         os.makedirs(os.path.dirname(self.socket_path), exist_ok=True)
         if os.path.exists(self.socket_path):

@@ -125,3 +125,10 @@ def test_a_host_cannot_open_the_node_once_the_server_is_closed():
     p = subprocess.run([sys.executable, "-c", "import os; os.open('/dev/i2c-1', os.O_RDWR)"], env=env,
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 1 and "FileNotFoundError" in p.stderr
+
+
+def test_a_testbed_path_too_long_for_the_socket_is_refused_by_name(tmp_path):
+    device = FakeI2CDevice([next(pattern_blocks(seed=0, fs=FS, duration=0.1, block=20))], FS)
+    with pytest.raises(ValueError, match="too long for its ioctl socket"):
+        I2CDevServer(device, testbed=str(tmp_path / ("x" * 100)))
+    assert list(tmp_path.iterdir()) == []  # nothing made
