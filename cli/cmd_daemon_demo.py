@@ -1,7 +1,7 @@
 """``gravcal daemon-demo``: the service end to end, in one command.
 
-Starts ``gravcald --emulate`` as a child process (the emulated logger on a real pty, an slcan
-pty or the fake I2C device, time-lapsed), connects to its socket as any client would, and
+Starts ``gravcald --emulate`` as a child process (the emulated logger, in a process of its own, on a real
+pty, an slcan pty or /dev/i2c-1 through umockdev; time-lapsed), connects to its socket as any client would, and
 prints the calibration converging from the datasheet start: revision, windows, the norm error
 of the calibrated static samples [mg] (|a| - 1 g, what a wrong calibration shows first), and
 the offsets [mg] and sensitivities [%] against the emulated sensor's truth. Then it stops the
