@@ -20,8 +20,10 @@ import traceback
 from pathlib import Path
 from typing import Sequence
 
+from .._version import __version__
 from ..closed_pipe import write_or_stop
 from ..errors import GravcalError, InputError
+from .launch import asks_version
 
 EXIT_OK = 0
 EXIT_INTERNAL = 1
@@ -50,21 +52,12 @@ def request_prompt_exit() -> None:
     _PROMPT_EXIT[0] = True
 
 
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version  # ~30 ms: only for --version
-
-    try:
-        return version("gravcal")
-    except PackageNotFoundError:  # pragma: no cover - running from a bare checkout
-        return "unknown"
-
-
 class _VersionAction(argparse.Action):
     def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, **kwargs: object) -> None:
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help="show the version and exit")
 
     def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
-        write_or_stop(f"gravcal {_version()}")
+        write_or_stop(f"gravcal {__version__}")
         parser.exit()
 
 
@@ -189,25 +182,15 @@ def pin_blas_threads(argv: Sequence[str]) -> bool:
     return True
 
 
-def asks_version(argv: Sequence[str]) -> bool:
-    """``--version`` among the options before any command word: answered before anything is imported."""
-    for a in argv:
-        if a == "--version":
-            return True
-        if not a.startswith("-") or a in ("-h", "--help"):
-            return False
-    return False
-
-
 def console() -> None:
     """The ``gravcal`` program: ``main()``, then the exit status; after a command that asked for it
     (request_prompt_exit), the standard streams and log handlers are flushed and the process ends
     at once (os._exit: no atexit handlers, no teardown). ``gravcal calibrate`` runs with one OpenBLAS
     thread (pin_blas_threads), and the memory of its file's block statistics is faulted in while the
-    imports run (io/prestart.py); ``main()`` called in-process does neither. ``gravcal --version``
-    prints the version without importing any command (their imports load numpy and the drivers)."""
+    imports run (io/prestart.py); ``main()`` called in-process does neither. The installed program
+    enters through cli/launch.py, which answers ``gravcal --version`` before this module is imported."""
     if asks_version(sys.argv[1:]):
-        write_or_stop(f"gravcal {_version()}")
+        write_or_stop(f"gravcal {__version__}")
         sys.exit(EXIT_OK)
     pin_blas_threads(sys.argv[1:])
     from ..io import prestart
