@@ -195,3 +195,62 @@ def test_a_rerun_retries_error_rows_keys_by_resolved_path_and_starts_nothing_whe
     assert main(["calibrate", str(d), "--out", str(out), "--workers", "2"]) == 0
     assert "0 file(s) calibrated (nothing new)" in capsys.readouterr().err
     assert len(rows_of(out)) == 2
+
+
+def test_dask_worker_threads_give_the_same_rows_and_leave_the_log_level(study, tmp_path, monkeypatch, capsys):
+    """The cluster up before the first file (its start run in this thread): both files on the two worker
+    threads, side by side; the rows are the in-process rows, and the gravcal logger's level, lowered while
+    any file runs, is what it was before, also when the first file to start ends first (a per-file save
+    and restore would leave it at the second file's saved ERROR)."""
+    import logging
+    import threading
+
+    from gravcal.io import study as study_mod
+    from gravcal.io import study_plan
+
+    seq, par = tmp_path / "seq.csv", tmp_path / "par.csv"
+    files = [str(study / "s0.npy"), str(study / "s1.npy")]
+    assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 0
+    real, entered, lock = study_mod._calibrate_file, [], threading.Lock()
+    both_in, first_out = threading.Barrier(2), threading.Event()
+
+    def overlapping(path, *args):  # in place of the part of calibrate_file inside its quiet logging
+        with lock:
+            entered.append(threading.get_ident())
+            k = len(entered)
+        if k <= 2:
+            both_in.wait(timeout=60)
+        if k == 2:
+            first_out.wait(timeout=60)
+            time.sleep(0.2)  # for the first file's calibrate_file to restore the level after this returned
+        try:
+            return real(path, *args)
+        finally:
+            if k == 1:
+                first_out.set()
+
+    monkeypatch.setattr(study_plan.ClusterStart, "start", study_plan.ClusterStart.run)
+    monkeypatch.setattr(study_mod, "_calibrate_file", overlapping)
+    gravcal_log = logging.getLogger("gravcal")
+    before = gravcal_log.level
+    assert main(["calibrate", *files, "--out", str(par), "--workers", "2"]) == 0
+    assert "0 in this process while Dask started, 2 on 2 Dask worker threads" in capsys.readouterr().err
+    assert len(set(entered)) == 2 and threading.get_ident() not in entered
+    assert gravcal_log.level == before
+    key = (lambda r: r["file"])
+    assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
+
+
+def test_a_small_study_runs_here_and_says_so(study, tmp_path, monkeypatch, capsys):
+    from gravcal.io import study_plan
+
+    files = [str(study / "s0.npy"), str(study / "s1.npy")]
+    assert main(["calibrate", files[0], "--out", str(tmp_path / "one.csv"), "--workers", "2"]) == 0
+    assert "1 file(s) calibrated (1 ok; all in this process: one file)" in capsys.readouterr().err
+    monkeypatch.setattr(study_plan.ClusterStart, "start", study_plan.ClusterStart.run)
+    monkeypatch.setitem(sys.modules, "dask.distributed", None)  # dask.distributed not installed
+    assert main(["calibrate", *files, "--out", str(tmp_path / "two.csv"), "--workers", "2"]) == 0
+    err = capsys.readouterr().err
+    assert "the study goes on in this process: no Dask: dask.distributed is not installed (pip install 'gravcal[study]')" in err
+    assert "2 file(s) calibrated (2 ok; all in this process: no Dask: " in err
+    assert [r["status"] for r in rows_of(tmp_path / "two.csv")] == ["ok", "ok"]
