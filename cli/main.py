@@ -23,7 +23,6 @@ from typing import Sequence
 from .._version import __version__
 from ..closed_pipe import write_or_stop
 from ..errors import GravcalError, InputError
-from .launch import asks_version
 
 EXIT_OK = 0
 EXIT_INTERNAL = 1
@@ -189,9 +188,6 @@ def console() -> None:
     thread (pin_blas_threads), and the memory of its file's block statistics is faulted in while the
     imports run (io/prestart.py); ``main()`` called in-process does neither. The installed program
     enters through cli/launch.py, which answers ``gravcal --version`` before this module is imported."""
-    if asks_version(sys.argv[1:]):
-        write_or_stop(f"gravcal {__version__}")
-        sys.exit(EXIT_OK)
     pin_blas_threads(sys.argv[1:])
     from ..io import prestart
 
