@@ -4,17 +4,28 @@ A calibration's heavy parts (the reading pass, detection, the fit's sums) run in
 released, so threads of one process calibrate files side by side as well as worker processes would,
 without their fixed cost: spawning two worker processes (each starting an interpreter and importing dask
 and numpy again) took 1.6 s here and closing them 0.8 s, against 0.01-0.1 s each for a cluster of
-threads. What stays fixed is importing dask.distributed (0.7-1.8 s on this machine). So a background
-thread imports it and starts a LocalCluster of threads while this process calibrates the first files one
-by one; once the cluster is up, the files left go to its threads. A study done before that never waits
-for a cluster, and one file or one worker runs here outright: ``Plan.summary`` says which plan ran.
+threads. What stays fixed is importing dask.distributed: 0.7 s of a core on this machine when it is
+quiet, more under load, taken from the calibrations running beside it (DASK_START_S).
+
+The plan is measured, not guessed. The first file is calibrated here (it pays the numerics' imports),
+the second here too, timed: its wall time, the CPU this process used (one calibration already keeps
+part of a second core busy) and the cores the machine left idle meanwhile (/proc/stat). Calibrating two
+files at a time can only use idle cores: the files left would take ``left`` here and about
+``left * u / (u + extra)`` on the threads (u: cores one calibration used, extra: the idle cores a second
+one could take, at most u). Only when that saving exceeds DASK_START_S does a background thread import
+dask.distributed and start a LocalCluster of threads, while this process goes on calibrating files one
+by one; once the cluster is up, the files left go to its threads, and a study done before that never
+waits for it. One file, two files or one worker run here outright. ``Plan.summary`` says which plan ran
+and why (-v logs the figures).
 A worker thread that runs out of memory takes this process with it; the rows written so far stay, and a
 re-run resumes from them (a cluster of worker processes: ``--scheduler``).
 """
 from __future__ import annotations
 
 import logging
+import os
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable, Iterator
@@ -22,6 +33,9 @@ from typing import Any, Callable, Iterator
 log = logging.getLogger(__name__)
 
 Item = tuple[str, "str | None"]  # a recording and where its calibrated samples go (None: not written)
+DASK_START_S = 1.0
+"""What starting the cluster costs the study [s]: importing dask.distributed (0.7 s of a core on this
+2-core machine, quiet; its bytecode holds the GIL the calibrations' Python parts need) and the threads."""
 
 
 @dataclass
@@ -36,8 +50,8 @@ class Plan:
     def summary(self) -> str:
         if not self.on_cluster:
             return f"all in this process: {self.reason}" if self.reason else "all in this process"
-        return (f"{self.in_process} in this process while Dask started, {self.on_cluster} on "
-                f"{self.threads} Dask worker threads")
+        return (f"{self.in_process} in this process (two to time the plan, then while Dask started), "
+                f"{self.on_cluster} on {self.threads} Dask worker threads")
 
 
 class ClusterStart(threading.Thread):
@@ -104,9 +118,31 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             yield here(f, w)
             plan.in_process += 1
         return
+    pending = deque(items)
+    yield here(*pending.popleft())  # the numerics' imports: not timed
+    plan.in_process += 1
+    if len(pending) < 2:
+        plan.reason = f"{len(items)} files"
+        while pending:
+            yield here(*pending.popleft())
+            plan.in_process += 1
+        return
+    timed = pending.popleft()
+    before = _usage()
+    row = here(*timed)
+    plan.in_process += 1
+    saving, figures = _threads_saving(before, _usage(), threads, _size_ratio(timed[0], [f for f, _ in pending]))
+    log.info("study plan: %s", figures)
+    yield row
+    if saving <= DASK_START_S:
+        plan.reason = (f"two files at a time would save ~{saving:.1f} s, less than starting Dask "
+                       f"(~{DASK_START_S:g} s; {figures})")
+        while pending:
+            yield here(*pending.popleft())
+            plan.in_process += 1
+        return
     start = ClusterStart(threads)
     start.start()
-    pending = deque(items)
     try:
         while pending and not start.ready.is_set():
             f, w = pending.popleft()
@@ -133,6 +169,51 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
                 yield row
     finally:
         start.cancel()
+
+
+def _usage() -> tuple[float, float, float, float]:
+    """(wall clock [s], this process's CPU [s], the machine's idle and total CPU time [jiffies]; both 0
+    where /proc/stat cannot be read)."""
+    idle = total = 0.0
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            fields = [float(x) for x in f.readline().split()[1:9]]  # user nice system idle iowait irq softirq steal
+        idle, total = fields[3] + fields[4], sum(fields)
+    except (OSError, ValueError, IndexError):
+        pass
+    return time.perf_counter(), time.process_time(), idle, total
+
+
+def _threads_saving(before: tuple[float, ...], after: tuple[float, ...], threads: int, left_files: float
+                    ) -> tuple[float, str]:
+    """The wall time [s] calibrating ``threads`` files at a time would save on the files left (``left_files``
+    of the timed one), from the timed file's usage; and the figures, as words."""
+    wall = max(after[0] - before[0], 1e-9)
+    used = max((after[1] - before[1]) / wall, 1e-3)  # cores this process kept busy
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    d_total = after[3] - before[3]
+    idle = ((after[2] - before[2]) / d_total * (os.cpu_count() or 1)) if d_total > 0 else cores - used
+    idle = min(max(idle, 0.0), max(cores - used, 0.0))
+    extra = min(idle, (threads - 1) * used)
+    left = wall * left_files
+    saving = left * extra / (used + extra)
+    return saving, (f"~{left:.1f} s left here, one file keeping {used:.1f} of {cores} cores busy, "
+                    f"{idle:.1f} idle")
+
+
+def _size_ratio(first: str, rest: list[str]) -> float:
+    """The files ``rest`` together over the file ``first``, in bytes (a file that cannot be sized counts as
+    one like the first): the calibrating time scales with the samples."""
+    def size(f: str) -> float:
+        try:
+            return float(os.path.getsize(f))
+        except OSError:
+            return -1.0
+
+    one = size(first)
+    if one <= 0:
+        return float(len(rest))
+    return sum(s / one if s >= 0 else 1.0 for s in map(size, rest))
 
 
 def _blas_one_thread() -> Any:
