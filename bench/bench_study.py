@@ -1,13 +1,14 @@
 """Benchmark: a study of N one-day recordings, files per second, for several N in one run.
 
-    python bench/bench_study.py [--files 8 20] [--hours 24] [--fs 100] [--workers 0 2] [--processes]
-                                [--repeat 2] [--cache DIR] [--json PATH]
+    python bench/bench_study.py [--files 8 20] [--hours 24] [--fs 100] [--workers 0 2] [--forced]
+                                [--processes] [--repeat 2] [--cache DIR] [--json PATH]
 
 Compares, on the same files (the first N of one cached set): a sequential loop over the Python API in
 this process (``gravcal.calibrate(gravcal.read(f))``, imports already paid: the in-process rate), and
 the whole ``gravcal calibrate FILES --out results.csv --workers W`` process for each W (0: in that
 process; 2: the study's plan, io/study_plan.py: Dask worker threads started while the first files
 calibrate there), interpreter start, imports and the cluster's start and close included. With
+``--forced`` also ``--workers 2`` with the plan's Dask threads started whatever its timing says. With
 ``--processes`` also ``run_study`` on a LocalCluster of two worker processes started and closed in
 this process (the plan before worker threads; dask.distributed already imported here). The runs are
 repeated in turn (``--repeat``) and each reports its fastest: on a shared machine other load only
@@ -97,12 +98,19 @@ def sequential_api(paths: list[Path]) -> dict:
     return {"how": "sequential Python API", "wall_s": wall, "files_per_s": len(paths) / wall, "ok": ok}
 
 
-def cli_study(paths: list[Path], workers: int) -> dict:
-    """The whole ``gravcal calibrate FILES --out R --workers W`` process, as a user runs it."""
+FORCED = ("import sys; import gravcal.io.study_plan as plan; plan.DASK_START_S = -1.0; "
+          "sys.argv = ['gravcal', *sys.argv[1:]]; from gravcal.cli.main import console; console()")
+
+
+def cli_study(paths: list[Path], workers: int, forced: bool = False) -> dict:
+    """The whole ``gravcal calibrate FILES --out R --workers W`` process, as a user runs it; ``forced``: the
+    plan's Dask threads started whatever the timed file says (io/study_plan.py DASK_START_S below 0)."""
     import subprocess
 
     script = Path(sys.executable).parent / "gravcal"
     cmd = [str(script)] if script.is_file() else [sys.executable, "-m", "gravcal.cli.main"]
+    if forced:
+        cmd = [sys.executable, "-c", FORCED]
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "results.csv"
         t0 = time.perf_counter()
@@ -111,7 +119,8 @@ def cli_study(paths: list[Path], workers: int) -> dict:
         wall = time.perf_counter() - t0
         ok = out.read_text().count(",ok,")
     plan = r.stderr.strip().splitlines()[-1] if r.stderr.strip() else ""
-    return {"how": f"gravcal calibrate --workers {workers}", "workers": workers, "wall_s": wall,
+    return {"how": f"gravcal calibrate --workers {workers}" + (", threads forced" if forced else ""),
+            "workers": workers, "wall_s": wall,
             "files_per_s": len(paths) / wall, "ok": ok, "status": r.returncode, "summary": plan}
 
 
@@ -148,6 +157,8 @@ def main() -> int:
     ap.add_argument("--fs", type=float, default=100.0)
     ap.add_argument("--workers", type=int, nargs="+", default=[0, 2], help="gravcal calibrate --workers W runs")
     ap.add_argument("--processes", action="store_true", help="also a LocalCluster of two worker processes")
+    ap.add_argument("--forced", action="store_true",
+                    help="also --workers 2 with the Dask threads started whatever the plan's timing says")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--cache")
     ap.add_argument("--json", type=Path)
@@ -161,6 +172,8 @@ def main() -> int:
     for n in sorted(a.files):
         paths = every[:n]
         runs = [lambda: sequential_api(paths)] + [lambda w=w: cli_study(paths, w) for w in a.workers]
+        if a.forced:
+            runs.append(lambda: cli_study(paths, 2, forced=True))
         if a.processes:
             runs.append(lambda: process_cluster_study(paths))
         best: list[dict] = [{}] * len(runs)
