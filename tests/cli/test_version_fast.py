@@ -46,3 +46,28 @@ finally:
 def test_version_after_a_command_word_is_that_commands_business():
     r = subprocess.run([sys.executable, "-c", AFTER], capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and r.stderr.split()[-1] == "True"  # not a calibrate option: argparse refuses it
+
+
+@pytest.mark.skipif(not SCRIPT.is_file(), reason="gravcal is not installed as a console script here")
+def test_help_lists_every_command_without_importing_one():
+    """`gravcal --help` lists each cli/cmd_*.py's command with the line its own parser gives (cli/summaries.py),
+    and imports no command module, numpy or python-can."""
+    import argparse
+    import importlib
+    import pkgutil
+
+    import gravcal.cli as cli
+
+    r, names = imported(str(SCRIPT), "--help")
+    assert r.returncode == 0
+    heavy = sorted(n for n in names if n.split(".")[0] in ("numpy", "scipy", "can", "serial")
+                   or n.startswith(("gravcal.cli.cmd_", "gravcal.core", "gravcal.drivers")))
+    assert heavy == [], heavy
+    listing = " ".join(r.stdout.split())
+    for m in pkgutil.iter_modules(cli.__path__):
+        if not m.name.startswith("cmd_"):
+            continue
+        sub = argparse.ArgumentParser().add_subparsers()
+        importlib.import_module(f"gravcal.cli.{m.name}").add_parser(sub)
+        (action,) = sub._choices_actions
+        assert action.help and f"{action.dest} {' '.join(action.help.split())}" in listing, (m.name, action.help)
