@@ -48,10 +48,12 @@ class Plan:
     reason: str = ""
 
     def summary(self) -> str:
-        if not self.on_cluster:
-            return f"all in this process: {self.reason}" if self.reason else "all in this process"
-        return (f"{self.in_process} in this process (two to time the plan, then while Dask started), "
-                f"{self.on_cluster} on {self.threads} Dask worker threads")
+        if self.threads:
+            return (f"{self.in_process} in this process (two to time the plan, then while Dask started), "
+                    f"{self.on_cluster} on {self.threads} Dask worker threads")
+        if self.on_cluster:
+            return f"{self.on_cluster} {self.reason}"  # an existing cluster: "on the scheduler at ADDRESS"
+        return f"all in this process: {self.reason}" if self.reason else "all in this process"
 
 
 class ClusterStart(threading.Thread):

@@ -138,13 +138,14 @@ def test_the_daemon_never_imports_dask():
     assert r.returncode == 0 and r.stdout.strip() == "[]", (r.stdout, r.stderr[-500:])
 
 
-def test_an_existing_scheduler_runs_the_study(study, tmp_path):
+def test_an_existing_scheduler_runs_the_study(study, tmp_path, capsys):
     import dask.distributed as distributed  # the [study] extra, which [test] installs
     seq, par = tmp_path / "seq.csv", tmp_path / "sched.csv"
     files = [str(study / "s0.npy"), str(study / "broken.csv")]
     assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 2
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
-        assert main(["calibrate", *files, "--out", str(par), "--scheduler", cluster.scheduler_address, "--quiet"]) == 2
+        assert main(["calibrate", *files, "--out", str(par), "--scheduler", cluster.scheduler_address]) == 2
+        assert f"(1 error, 1 ok; 2 on the scheduler at {cluster.scheduler_address})" in capsys.readouterr().err
     key = (lambda r: r["file"])
     assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
 
