@@ -134,7 +134,6 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
     row = here(*timed)
     plan.in_process += 1
     saving, figures = _threads_saving(before, _usage(), threads, _size_ratio(timed[0], [f for f, _ in pending]))
-    log.info("study plan: %s", figures)
     yield row
     if saving <= DASK_START_S:
         plan.reason = (f"two files at a time would save ~{saving:.1f} s, less than starting Dask "
@@ -143,6 +142,7 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             yield here(*pending.popleft())
             plan.in_process += 1
         return
+    log.info("study plan: Dask worker threads, two files at a time saving ~%.1f s (%s)", saving, figures)
     start = ClusterStart(threads)
     start.start()
     try:
