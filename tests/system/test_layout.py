@@ -134,8 +134,9 @@ def test_layers_point_one_way(graph):
     import their test rigs (drivers/rigs: emulator, fakes, HIL); daemon/ is gravcald alone: it imports
     none of the offline packages (io, cli, clients); io imports no daemon or command line; nothing
     below the Python API (api/, imported as gravcal) imports it, but for its shared errors, output
-    helpers and bounded JSON parsing (gravcal.errors, gravcal.closed_pipe, gravcal.jsonbounds)."""
-    shared = {"gravcal.errors", "gravcal.closed_pipe", "gravcal.jsonbounds"}
+    helpers, bounded JSON parsing and release number (gravcal.errors, gravcal.closed_pipe,
+    gravcal.jsonbounds, gravcal._version)."""
+    shared = {"gravcal.errors", "gravcal.closed_pipe", "gravcal.jsonbounds", "gravcal._version"}
     api = {"gravcal", *(m for m in graph if m.startswith("gravcal.") and not m.startswith(tuple(
         f"{p}." for p in LAYERS.values() if p != "gravcal")) and m not in LAYERS.values())} - shared
     bad = []
