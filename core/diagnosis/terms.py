@@ -373,7 +373,7 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
                         "held-out error not evaluated", round(d_bic, 2))
     ho_m = sel.heldout_mg(chosen, held, p_max)
     ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
-    mag = par_t.magnitudes(f_t.p, f_t.std)[term]
+    mag = par_t.magnitudes(f_t.p, cov=f_t.cov)[term]  # the full covariance: J C J^T through the conversion
     keys = calibration_view(term).keys
     k = par_t.base.n_params + 3 * list(par_t.terms).index(term)
     mag["raw_value"] = {key: (None if i in h else float(f_t.p[k + i])) for i, key in enumerate(keys)}
