@@ -375,6 +375,9 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     ho_m = sel.heldout_mg(chosen, held, p_max)
     ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
     cov_t = t_widened_cov(sel, chosen + (term,), hh, f_t)
+    if h:  # axes held at 0 are not 0 for being undetermined: the others' std as uncertain as freeing them makes it
+        cov_t = held_axes_considered(sel, chosen + (term,), held, f_t, cov_t, k=par_t.base.n_params
+                                     + 3 * list(par_t.terms).index(term), axes=h)
     mag = par_t.magnitudes(f_t.p, cov=cov_t)[term]  # the full covariance: J C J^T through the conversion
     keys = calibration_view(term).keys
     k = par_t.base.n_params + 3 * list(par_t.terms).index(term)
@@ -415,6 +418,27 @@ def t_widened_cov(sel: TermSelector, terms: tuple[str, ...], held: dict[str, lis
     t = np.ones(len(f.p))
     t[free] = floor_t_factor(B[:, free], sel.var, f.cov[np.ix_(free, free)], floor2, dof)
     return f.cov * np.outer(t, t)
+
+
+def held_axes_considered(sel: TermSelector, terms: tuple[str, ...], held: dict[str, list[int]], f, cov: np.ndarray,
+                         *, k: int, axes: list[int]) -> np.ndarray:
+    """``cov`` of the fit with the term's ``axes`` held at 0, where the parameters estimated beside them take the
+    covariance of the fit with those axes free (a consider analysis with the held axes' own std: their
+    uncertainty reaches what correlates with them). Unchanged when the free fit fails or does not converge."""
+    try:
+        _, f_free = sel.fit(terms, held)
+    except (ValueError, np.linalg.LinAlgError):
+        return cov
+    if not f_free.converged or not np.all(np.isfinite(f_free.cov)):
+        return cov
+    free_cov = t_widened_cov(sel, terms, held, f_free)
+    est = np.flatnonzero(np.diag(cov) > 0)  # the parameters this fit estimated
+    out = cov.copy()
+    out[np.ix_(est, est)] = free_cov[np.ix_(est, est)]
+    held_idx = [k + i for i in axes]
+    out[held_idx, :] = 0.0
+    out[:, held_idx] = 0.0
+    return out
 
 
 LAG_GRID_POINTS = 15  # log-spaced over datasheet.THERMAL_LAG_TAU_GRID_S: about 1.5 steps per factor 2

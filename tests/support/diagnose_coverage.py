@@ -11,6 +11,7 @@ on the z; bench/bench_coverage.py --diagnose prints the table.
 """
 from __future__ import annotations
 
+import numpy as np
 from gravcal.core.diagnosis import diagnose_windows
 from gravcal.core.estimators.lotters import LottersBatch
 
@@ -28,7 +29,11 @@ def session_z(kind: str, seed: int) -> dict[str, list[float]]:
     term = KIND_TERM[kind]
     try:
         start = LottersBatch("6").fit(s.windows)
-        d = diagnose_windows(s.windows, start, has_temp=True, candidates=(term,), simulate=False, nested=False)
+        idx = [start.param_names.index(f"s_{a}") for a in "xyz"]
+        held = {"names": [f"s_{a}" for a in "xyz"], "cov": start.covariance[np.ix_(idx, idx)].tolist(),
+                "source": "the 6-parameter start fit"}  # what an offsets-only baseline holds, as uncertain as stated
+        d = diagnose_windows(s.windows, start, has_temp=True, candidates=(term,), simulate=False, nested=False,
+                             held_uncertainty=held)
     except ValueError:
         return {"refused": [1.0]}
     tt = next(t for t in d.tests if t.effect == term)
@@ -37,7 +42,7 @@ def session_z(kind: str, seed: int) -> dict[str, list[float]]:
     mag = tt.magnitude  # the finding's (the same dict)
     # a baseline holding the sensitivities (offsets only) or a term holding an axis at 0 is another regime:
     # scored apart (what the fit holds is not in the statistical std)
-    regime = "" if d.base_model == "6" and not tt.undetermined_axes else "|held"
+    regime = "" if d.base_model == "6" and not tt.undetermined_axes else "|held"  # held sensitivities or an axis
     truth = s.truth.misalignment_deg() if term == "misalignment" else dict(zip("xyz", s.truth.term_magnitudes()[term]))
     return {term + regime: [(mag["value"][k] - v) / mag["std"][k] for k, v in truth.items()
                    if mag["value"].get(k) is not None and mag["std"].get(k)]}
