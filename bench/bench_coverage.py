@@ -2,6 +2,7 @@
 
     python bench/bench_coverage.py [--seeds 400] [--first 1000] [--workers 2] [--json PATH]
     python bench/bench_coverage.py --boundary 20 [--seeds 80] [--kind temperature_offset]
+    python bench/bench_coverage.py --diagnose [--seeds 100]
 
 Sessions from tests/support/independent_sessions.py (the physics written anew, its own random streams; the
 kinds are listed there), each fitted with the model it was made with (tests/support/coverage_runs.py, the same
@@ -13,6 +14,9 @@ Gaussian std) and the sessions refused or stated as not determined. ``--first``:
 ``--boundary LAMBDA``: instead, sessions of ``--kind`` with the planted term scaled to noncentrality LAMBDA
 against the 6-parameter baseline (tests/support/boundary_sessions.py), diagnosed at the ΔBIC threshold and at
 half of it: the share named at each, beside the share whose ΔBIC would exceed the threshold by theory.
+
+``--diagnose``: instead, the magnitudes diagnose states for a named term (tests/support/diagnose_coverage.py: one
+planted term, offered alone), per kind and regime.
 """
 from __future__ import annotations
 
@@ -52,9 +56,12 @@ def main(argv=None) -> int:
     ap.add_argument("--json", metavar="PATH")
     ap.add_argument("--boundary", type=float, metavar="LAMBDA")
     ap.add_argument("--kind", default="temperature_offset", help="--boundary: the session kind (a term kind)")
+    ap.add_argument("--diagnose", action="store_true", help="diagnose's named-term magnitudes instead of the batch fit")
     a = ap.parse_args(argv)
     if a.boundary is not None:
         return _boundary(a)
+    if a.diagnose:
+        return _diagnose(a)
     t0 = time.perf_counter()
     res = pooled(KINDS, range(a.first, a.first + a.seeds), mapper=_pmap(a.workers))
     wall = time.perf_counter() - t0
@@ -82,6 +89,34 @@ def main(argv=None) -> int:
                "pooled": {q: {"n": int(z.size), "rms_z": rms(z), "beyond_2sigma": float(np.mean(np.abs(z) > 2))}
                           for q, z in pooled_z.items()}}
         Path(a.json).write_text(json.dumps(out, indent=1))
+    return 0
+
+
+def _diagnose(a) -> int:
+    """diagnose's named term magnitudes (tests/support/diagnose_coverage.py): per kind and regime (the std purely
+    statistical, or with the baseline holding the sensitivities / the term holding an axis: ``|held``)."""
+    from support.diagnose_coverage import DIAGNOSE_KINDS, session_z  # noqa: PLC0415
+
+    args = [(k, s) for k in DIAGNOSE_KINDS for s in range(a.first, a.first + a.seeds)]
+    t0 = time.perf_counter()
+    mapper = _pmap(a.workers)
+    results = mapper(session_z, args) if mapper else [session_z(*x) for x in args]
+    by: dict[tuple[str, str], list[float]] = {}
+    for (kind, _), res in zip(args, results):
+        for q, zs in res.items():
+            by.setdefault((kind, q), []).extend(zs)
+    print(f"diagnose, term magnitudes named: RMS z (share beyond 2σ), {a.seeds} sessions per kind, seeds "
+          f"{a.first}-{a.first + a.seeds - 1}, {time.perf_counter() - t0:.0f} s\n")
+    print("| kind | statistical std: n, RMS z (beyond 2σ) | with something held: n, RMS z (beyond 2σ) | not named / refused |")
+    print("|---|---|---|---|")
+    for kind in DIAGNOSE_KINDS:
+        cells = []
+        for regime in ("", "|held"):
+            z = np.asarray(next((v for (k, q), v in by.items() if k == kind and q.endswith(regime) and
+                                 q not in ("refused", "not_found") and ("|" in q) == bool(regime)), []))
+            cells.append(f"{z.size}, {_cell(z)}" if z.size else "")
+        print(f"| {kind} | {cells[0]} | {cells[1]} | {len(by.get((kind, 'not_found'), []))} / "
+              f"{len(by.get((kind, 'refused'), []))} |")
     return 0
 
 

@@ -94,7 +94,7 @@ def _plots(d: Any, out: Path) -> list[tuple[str, str]]:
     if present and present[0]["covariate"] in (d.structure_curves or {}):
         x_s = present[0]
         c, fitted = d.structure_curves[x_s["covariate"]]
-        scale, unit = (1 / 60, "min") if x_s["covariate"] == "time" else (1.0, {"temperature": "°C", "supply": "V"}[
+        scale, unit = (1 / 60, "min") if x_s["covariate"] == "time" else (1.0, {"temperature": "°C", "temperature rate": "°C/h", "supply": "V"}[
             x_s["covariate"]])
         fig, ax = plt.subplots(figsize=(6, 3.4))
         ax.plot(c * scale, re_, ".", ms=3, color=EXTENDED_COLOR, label=f"residual, {ext_lab}")

@@ -36,6 +36,7 @@ from .compare import Comparison, simulate_compare
 from .noise import AllanResult, flat_stretches
 from .held import channel_slopes, held_contributions, one_posture_magnitude, one_posture_partner, scale_rel_std
 from .sample_tests import SAMPLE_TESTS
+from .standin import stand_ins
 from .structure import residual_structure
 from .terms import TermSelector, TermTest, evaluate_term, select_terms
 from .verdict import group_text, inseparable, unearned, unexplained
@@ -249,6 +250,10 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
                            spread_deg=cov["spread_deg"], folds=folds, held_base=sel.held_base,
                            lag_history=history) if nested else None
     withdrawn = unearned(outer, chosen)
+    a0 = base_cal.apply(ws.mean)
+    replaced, stood_in = stand_ins(sel, tuple(c for c in chosen if c not in withdrawn), held,
+                                   a0 / np.linalg.norm(a0, axis=1, keepdims=True))
+    withdrawn.update(stood_in)  # a shape outside the catalogue fits better in their place (standin.py)
     if withdrawn:  # named only what earns its place on folds the selection never saw (verdict.py, rule 1)
         chosen = tuple(c for c in chosen if c not in withdrawn)
         held = {k: v for k, v in held.items() if k in chosen}
@@ -278,8 +283,11 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
                                  seed=seed + 1, free=sel.free_mask(sel.par(chosen), held)) if chosen else cmp_b
     ext_cal = fit_e.calibration(len(ws))
     a = ext_cal.apply_reference(ws.mean)
-    structures, curves = residual_structure(ws, res_e, a / np.linalg.norm(a, axis=1, keepdims=True), sel.var,
-                                    has_temp=has_temp)
+    u = a / np.linalg.norm(a, axis=1, keepdims=True)
+    structures, curves = residual_structure(ws, res_e, u, sel.var, has_temp=has_temp)
+    for s in replaced[::-1]:
+        curves[s["covariate"]] = s.pop("curve")
+    structures = replaced + [s for s in structures if s["covariate"] not in {r["covariate"] for r in replaced}]
     rms_e = float(np.sqrt(np.mean(res_e**2)) * 1e3)
     ref_mg, ref_name = ((cmp_e.simulated_mean["rms_mg"], "simulated") if cmp_e is not None else
                         (float(np.sqrt(np.mean(sel.var0)) * 1e3), "window noise"))

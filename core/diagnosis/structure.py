@@ -111,6 +111,11 @@ def residual_structure(ws: WindowSet, resid_g: np.ndarray, u: np.ndarray, var_g2
 def describe(s: dict[str, Any]) -> str:
     """'residual vs temperature is curved' (or the structure's own words)."""
     shape = s["shape"]
-    if shape.startswith(("rises", "trends", "wanders", "follows")):
-        return f"residual {shape}"
-    return f"residual vs {s['covariate']} {shape}"
+    text = f"residual {shape}" if shape.startswith(("rises", "trends", "wanders", "follows")) else \
+        f"residual vs {s['covariate']} {shape}"
+    if s.get("replaces"):  # standin.py: the shape fits better in place of chosen terms
+        one = len(s["replaces"]) == 1
+        text += (f", better than {' and '.join(s['replaces'])} in {'its' if one else 'their'} place (ΔBIC "
+                 f"{s['delta_bic']:.0f}, held-out {s['heldout_with_term_mg']:.3g} -> {s['heldout_with_shape_mg']:.3g} "
+                 f"mg): {'a stand-in, not a cause' if one else 'stand-ins, not causes'}")
+    return text

@@ -29,6 +29,7 @@ from gravcal.core.calibration import Calibration
 from gravcal.core.crlb import h_variance
 from gravcal.core.estimators.extended import (EXTRA_TERMS, ExtendedParameterization, extended_class,
                                               extended_residuals_g, fit_extended, model_name)
+from gravcal.core.estimators.lotters import floor_t_factor
 from gravcal.core.estimators.observability import TOL_G
 from gravcal.core.estimators.order import term_testability
 from gravcal.core.model.datasheet import THERMAL_LAG_TAU_GRID_S
@@ -373,11 +374,16 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
                         "held-out error not evaluated", round(d_bic, 2))
     ho_m = sel.heldout_mg(chosen, held, p_max)
     ho_t = sel.heldout_mg(chosen + (term,), hh, p_max)
-    mag = par_t.magnitudes(f_t.p, f_t.std)[term]
+    cov_t = t_widened_cov(sel, chosen + (term,), hh, f_t)
+    if h:  # axes held at 0 are not 0 for being undetermined: the others' std as uncertain as freeing them makes it
+        cov_t = held_axes_considered(sel, chosen + (term,), held, f_t, cov_t, k=par_t.base.n_params
+                                     + 3 * list(par_t.terms).index(term), axes=h)
+    mag = par_t.magnitudes(f_t.p, cov=cov_t)[term]  # the full covariance: J C J^T through the conversion
     keys = calibration_view(term).keys
     k = par_t.base.n_params + 3 * list(par_t.terms).index(term)
     mag["raw_value"] = {key: (None if i in h else float(f_t.p[k + i])) for i, key in enumerate(keys)}
-    mag["raw_std"] = {key: (None if i in h else float(f_t.std[k + i])) for i, key in enumerate(keys)}
+    mag["raw_std"] = {key: (None if i in h else float(np.sqrt(max(cov_t[k + i, k + i], 0.0))))
+                      for i, key in enumerate(keys)}
     mag["raw_unit"] = _raw_unit(term)
     if calibration_view(term).convention:
         mag["convention"] = calibration_view(term).convention
@@ -399,6 +405,40 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     elif not ho_t < ho_m:
         tt.why = f"does not lower the held-out error{given} ({ho_m:.3f} -> {ho_t:.3f} mg)"
     return tt
+
+
+def t_widened_cov(sel: TermSelector, terms: tuple[str, ...], held: dict[str, list[int]], f) -> np.ndarray:
+    """The covariance of fit ``f`` of base + ``terms`` with each parameter's std widened for the quasi-static
+    floor estimated from ``sel.floor_dof`` residuals (Student t; lotters.floor_t_factor, as the batch fit)."""
+    floor2, dof = getattr(sel, "floor_g", 0.0) ** 2, getattr(sel, "floor_dof", 0)
+    if floor2 <= 0 or dof <= 2 or not np.all(np.isfinite(f.cov)):
+        return f.cov
+    free = sel.free_mask(sel.par(terms), held)
+    _, B, _ = sel.bound(terms).norm_and_jacobian(f.p, sel.ws.mean)
+    t = np.ones(len(f.p))
+    t[free] = floor_t_factor(B[:, free], sel.var, f.cov[np.ix_(free, free)], floor2, dof)
+    return f.cov * np.outer(t, t)
+
+
+def held_axes_considered(sel: TermSelector, terms: tuple[str, ...], held: dict[str, list[int]], f, cov: np.ndarray,
+                         *, k: int, axes: list[int]) -> np.ndarray:
+    """``cov`` of the fit with the term's ``axes`` held at 0, where the parameters estimated beside them take the
+    covariance of the fit with those axes free (a consider analysis with the held axes' own std: their
+    uncertainty reaches what correlates with them). Unchanged when the free fit fails or does not converge."""
+    try:
+        _, f_free = sel.fit(terms, held)
+    except (ValueError, np.linalg.LinAlgError):
+        return cov
+    if not f_free.converged or not np.all(np.isfinite(f_free.cov)):
+        return cov
+    free_cov = t_widened_cov(sel, terms, held, f_free)
+    est = np.flatnonzero(np.diag(cov) > 0)  # the parameters this fit estimated
+    out = cov.copy()
+    out[np.ix_(est, est)] = free_cov[np.ix_(est, est)]
+    held_idx = [k + i for i in axes]
+    out[held_idx, :] = 0.0
+    out[:, held_idx] = 0.0
+    return out
 
 
 LAG_GRID_POINTS = 15  # log-spaced over datasheet.THERMAL_LAG_TAU_GRID_S: about 1.5 steps per factor 2
@@ -508,12 +548,13 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
     linear = tuple(t for t in live if calibration_view(t).profiled is None)
     if linear:
         par, f = sel.fit(linear, held_all)
-        floor = floor_for(f.resid_g, sel.var0, sel.m - int(sel.free_mask(par, held_all).sum()))
+        dof = sel.m - int(sel.free_mask(par, held_all).sum())
     else:
         par, f = sel.fit((), {})
-        floor = floor_for(f.resid_g, sel.var0, sel.m - par.n_params)
+        dof = sel.m - par.n_params
+    floor = floor_for(f.resid_g, sel.var0, dof)
     sel.var = sel.var0 + floor**2
-    sel.floor_g = floor
+    sel.floor_g, sel.floor_dof = floor, dof
 
     chosen: tuple[str, ...] = ()
     held: dict[str, list[int]] = {}

@@ -126,8 +126,8 @@ def unexplained(structures: list[dict[str, Any]], resid_mg: float, reference_mg:
     RESIDUAL_FRACTION of the residual's RMS is a remainder of an explained residual (said, with its size), not a
     verdict against them."""
     present = [s for s in structures if s["present"]]
-    material = [s for s in present if not (gain_mg and gain_mg > 0) or s["heldout_gain_mg"] >= REMAINDER_FRACTION * gain_mg
-                or s["heldout_gain_mg"] >= RESIDUAL_FRACTION * resid_mg]
+    material = [s for s in present if s.get("replaces") or not (gain_mg and gain_mg > 0)
+                or s["heldout_gain_mg"] >= REMAINDER_FRACTION * gain_mg or s["heldout_gain_mg"] >= RESIDUAL_FRACTION * resid_mg]
     worse = outer is not None and had_findings and outer.extended_mg > (1 + WORSE_FRACTION) * outer.baseline_mg
     ratio = None if not reference_mg else resid_mg / reference_mg
     out: dict[str, Any] = {"structure": structures, "residual_rms_mg": round(resid_mg, 4),
