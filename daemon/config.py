@@ -66,7 +66,7 @@ class DeviceConfig:
 class EstimatorConfig:
     model: str = field(default="6", metadata=_meta("model order", choices=tuple(ORDER_LADDER)))
     min_windows: int = field(default=6, metadata=_meta("windows before a calibration may be accepted (the first batch fit also waits for 2 per parameter)", min=0))
-    process_noise: float = field(default=0.0, metadata=_meta("random-walk variance of each offset per second of sensor time added to P [raw²/s], the start of each parameter's walk, which the recursion then adapts to the drift its windows show (core/estimators/adaptive_walk.py); sensitivities start at 1/16 of it, extended-term coefficients never walk (0: none; a drifting sensor: 3e-12, bench/bench_soak.py)", min=0.0))
+    process_noise: float = field(default=0.0, metadata=_meta("random-walk variance of each offset per second of sensor time added to P [raw²/s]; sensitivities walk 1/16 of it, extended-term coefficients not at all (0: none; a drifting sensor: 3e-12 to 1e-11, measured by bench/bench_soak.py)", min=0.0))
     extended_terms: str = field(default=DEFAULT_ONLINE_TERMS, metadata=_meta(
         f"extended terms the online estimator may add to orders >= 6, comma-separated ({', '.join(ONLINE_TERMS)}; "
         "\"\" for none); each is used only when the windows can test it (its covariate channel with a spread), "

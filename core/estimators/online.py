@@ -157,9 +157,7 @@ class OnlineCalibrator:
         self.store = WindowStore(capacity)
         self.every, self.compare_every = max(1, int(every)), max(1, int(compare_every))
         self.sigma_floor_g, self.process_noise, self.gate_sigma = sigma_floor_g, process_noise, float(gate_sigma)
-        # a scalar walk is each parameter's start; adapted until its std covers what the windows show
-        self.walk = (AdaptiveWalk(float(process_noise)) if process_noise is not None and np.ndim(process_noise) == 0
-                     and float(process_noise) > 0 else None)
+        self.walk: AdaptiveWalk | None = None  # adapt_walk(): each parameter's walk adapted (adaptive_walk.py)
         full = "12" if lab is not None else "9"
         cands = tuple(candidates) if candidates is not None else ("offsets", "6", full)
         self.candidates = tuple(c for c in cands if "+" not in c)  # the orders select_order chooses among
@@ -212,6 +210,16 @@ class OnlineCalibrator:
                  process_noise=process_noise, sigma_floor_g=SIGMA_FLOOR_G)
         oc.policy = OnlinePolicy(oc, settings, start, lab)  # the seed fit starts from the given values
         return oc
+
+    def adapt_walk(self) -> None:
+        """Adapt each parameter's walk from the configured scalar ``process_noise`` (adaptive_walk.py) from now on.
+        Not the service's default: with 10 s windows it over-states the std and withholds acceptance
+        (docs/daemon.md, "Soak")."""
+        if self.process_noise is None or np.ndim(self.process_noise) > 0 or not float(self.process_noise) > 0:
+            raise ValueError("adapting the walk needs a positive scalar process_noise to start from")
+        self.walk = AdaptiveWalk(float(self.process_noise))
+        if self.recursive is not None:
+            self.walk.attach(self.recursive)
 
     def feed(self, window: Window) -> OnlineStep:
         """Every decision from one window to an accepted calibration (core/estimators/online_policy.py):

@@ -40,8 +40,8 @@ def test_two_drifting_days_are_accepted_and_the_published_std_covers_the_truth()
     first night's postures to determine order 6) >= 95 % of the half-hourly checks accepted, and the stated std
     of every accepted parameter covering the truth: within 1σ 68.3 % and within 2σ 95.4 % with the tolerance
     of the number of checks (module docstring), two-sided for 1σ. A std scaled by 0.7 leaves 82 % within 2σ."""
-    # the walk starts near the datasheet's assumed 2 mg/sqrt(h) (2.6 mg/sqrt(h) at 0.04 raw/g) and each parameter's is
-    # then adapted (core/estimators/adaptive_walk.py; its own coverage test is tests/core/test_adaptive_walk.py)
+    # the offsets' random walk near the datasheet's assumed 2 mg/sqrt(h) (2.6 mg/sqrt(h) at 0.04 raw/g): a walk much
+    # larger states every std larger than the drift makes it (conservative), and a std x0.7 would pass unseen
     out = soak.run_soak(2.0, seed=0, warmup_s=4 * 3600.0, day_start_h=20.0, check_every_s=1800.0, max_window_s=60.0,
                         process_noise=3e-12)
     n = out["checks"]
