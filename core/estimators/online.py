@@ -45,11 +45,11 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..crlb import sphere_directions
-from ..model.datasheet import OFFSET_WALK_G_PER_SQRT_H, SENS_WALK_PER_SQRT_H
 from ..model.effect import needed_covariates, references
 from ..model.terms import COVARIATES, calibration_view
 from ..windows import Window, WindowSet, validate_windows
 from .inuse12 import with_frame
+from .adaptive_walk import AdaptiveWalk, drift_walk
 from .consider import datasheet_held_uncertainty
 from .extended import EXTRA_TERMS, extended_class, model_name, parameterization
 from .lotters import LottersBatch, resolve_parameterization
@@ -65,22 +65,6 @@ STORE_CAPACITY = 4000  # window summaries kept (~0.4 MB); ~11 h of windows at on
 CHECK_EVERY = 10  # windows between order re-selections while the store is small ...
 CHECK_FRACTION = 0.02  # ... and at least this fraction of the store (bounds the amortised cost)
 COMPARE_EVERY = 2000  # windows between 6-vs-full comparisons (BIC + held-out: 12 batch fits)
-
-
-# The random walk of a sensitivity against an offset's, both in raw units (datasheet.py's assumed walks: 0.05 %/sqrt(h)
-# of the sensitivity against 2 mg/sqrt(h)): the configured process noise is the offsets' walk.
-SENS_WALK_RATIO2 = (SENS_WALK_PER_SQRT_H / OFFSET_WALK_G_PER_SQRT_H) ** 2
-
-
-def drift_walk(names: list[str], process_noise: float | np.ndarray | None) -> np.ndarray | float | None:
-    """Per-parameter random walk [raw²/s] from the configured ``process_noise``: a scalar q is the offsets' walk;
-    sensitivities (and cross-axis entries) walk SENS_WALK_RATIO2 q (the same q on them made their std grow
-    ~4x faster than any sensor drifts, so a day upright left them "not determined"); an extended term's
-    coefficient is a property of the part, not a drift: 0. A vector is taken as given."""
-    if process_noise is None or np.ndim(process_noise) > 0:
-        return process_noise
-    q = float(process_noise)
-    return np.array([q if n.startswith("o_") else q * SENS_WALK_RATIO2 if n.startswith("s_") else 0.0 for n in names])
 
 
 class WindowStore:
@@ -173,6 +157,7 @@ class OnlineCalibrator:
         self.store = WindowStore(capacity)
         self.every, self.compare_every = max(1, int(every)), max(1, int(compare_every))
         self.sigma_floor_g, self.process_noise, self.gate_sigma = sigma_floor_g, process_noise, float(gate_sigma)
+        self.walk: AdaptiveWalk | None = None  # adapt_walk(): each parameter's walk adapted (adaptive_walk.py)
         full = "12" if lab is not None else "9"
         cands = tuple(candidates) if candidates is not None else ("offsets", "6", full)
         self.candidates = tuple(c for c in cands if "+" not in c)  # the orders select_order chooses among
@@ -225,6 +210,16 @@ class OnlineCalibrator:
                  process_noise=process_noise, sigma_floor_g=SIGMA_FLOOR_G)
         oc.policy = OnlinePolicy(oc, settings, start, lab)  # the seed fit starts from the given values
         return oc
+
+    def adapt_walk(self) -> None:
+        """Adapt each parameter's walk from the configured scalar ``process_noise`` (adaptive_walk.py) from now on.
+        Not the service's default: with 10 s windows it over-states the std and withholds acceptance
+        (docs/daemon.md, "Soak")."""
+        if self.process_noise is None or np.ndim(self.process_noise) > 0 or not float(self.process_noise) > 0:
+            raise ValueError("adapting the walk needs a positive scalar process_noise to start from")
+        self.walk = AdaptiveWalk(float(self.process_noise))
+        if self.recursive is not None:
+            self.walk.attach(self.recursive)
 
     def feed(self, window: Window) -> OnlineStep:
         """Every decision from one window to an accepted calibration (core/estimators/online_policy.py):
@@ -323,6 +318,8 @@ class OnlineCalibrator:
         if self.recursive is not None and usable:
             if not self.recursive.step(mean, cov / n, t, aux):
                 self.n_rejected += 1
+            elif self.walk is not None:
+                self.walk.observe(self.recursive, mean, cov / n)
         self._since_check += 1
         self._since_compare += 1
         self._since_seed += 1
@@ -546,16 +543,22 @@ class OnlineCalibrator:
             floor = float(cal.metadata.get("sigma_floor_g") or 0.0)
         if "+" not in model:
             par = resolve_parameterization(model, cal)
-            return LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=drift_walk(par.names, self.process_noise),
-                                    gate_sigma=self.gate_sigma)
+            return self._walking(LottersRecursive(cal, par, sigma_floor_g=floor, gate_sigma=self.gate_sigma,
+                                                  process_noise=drift_walk(par.names, self.process_noise)))
         # an extended model: the parameterization carries the fit's reference (T_ref, t0)
         ext = cal.metadata.get("extended") or {}
         refs = references(ext)
         par = parameterization(model, cal.sensitivity, cal.offset, t_ref_c=refs["temp"], t0_s=refs["time"],
                                v_ref=refs["vsupply"], temp_column=ext.get("temp_column", 0))
         # LottersRecursive starts the extra parameters from the fit's metadata["params"]
-        return LottersRecursive(cal, par, sigma_floor_g=floor, process_noise=drift_walk(par.names, self.process_noise),
-                                gate_sigma=self.gate_sigma)
+        return self._walking(LottersRecursive(cal, par, sigma_floor_g=floor, gate_sigma=self.gate_sigma,
+                                              process_noise=drift_walk(par.names, self.process_noise)))
+
+    def _walking(self, rec: LottersRecursive) -> LottersRecursive:
+        """``rec`` with the walk estimated so far (adaptive_walk.py), its blocks starting now."""
+        if self.walk is not None:
+            self.walk.attach(rec)
+        return rec
 
     def stats(self) -> dict[str, Any]:
         """Counters for logs and the socket's status."""

@@ -458,5 +458,5 @@ class LottersRecursive:
             metadata={"estimator": "lotters_recursive", "n_rejected": self.n_rejected,
                       "mean_nis": self.nis_sum / self.n_updates if self.n_updates else float("nan"),
                       "std_g": dict(zip(self.names, std_g.tolist())),
-                      **extended_metadata(par, self.p, np.sqrt(np.maximum(np.diagonal(cov), 0.0))), **extra},
+                      **extended_metadata(par, self.p, cov=cov), **extra},  # magnitudes' std: J cov J^T
         )
