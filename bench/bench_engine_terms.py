@@ -1,0 +1,96 @@
+"""gravcald's CPU per sample with an extended calibration against a plain one (not a test).
+
+    python bench/bench_engine_terms.py [--bus serial] [--clients 1] [--seconds 20] [--repeats 3] [--json PATH]
+
+The same measurement as bench/bench_latency.py (``gravcald --emulate --bus BUS --fs 200``, one raw watcher and
+N - 1 more, the process's CPU over the run), with gravcald started from a lab calibration of each model in turn:
+plain "6", "6+temperature_offset+supply_offset" (gravcald's default extended terms) and "6" with every term the
+online calibrator can publish (daemon/config.py ONLINE_TERMS). The estimator is held from accepting another
+calibration ([estimator] min_windows very large), so the start's model corrects every sample; STATUS's model
+at the end says it did. Runs interleave (plain, default terms, all terms, plain, ...) so that the machine's
+load drifts over all of them alike. Reported per model: the median over the repeats of CPU [% of one core],
+µs of CPU per published sample, the share of the samples the C step delivered, and the ratio to plain "6"
+(the target: within 1.10 for the default terms).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+
+import numpy as np
+
+from bench_latency import run
+from gravcal.core.calibration import Calibration
+from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
+from gravcal.daemon.config import ONLINE_TERMS
+
+# a parameter size [raw units per covariate unit] per (acts_on, covariate): effects of a few mg
+SIZE = {("offset", "temp"): 4e-5, ("sensitivity", "temp"): 4e-6, ("offset", "vsupply"): 4e-3,
+        ("offset", "time"): 4e-5, ("sensitivity", "time"): 4e-6, ("offset", "accel"): 4e-3}
+
+
+def calibration(terms: tuple[str, ...]) -> Calibration:
+    """The emulator's nominal sensor (ADXL210 datasheet) with ``terms`` at small values."""
+    terms = tuple(t for t in CALIBRATION_TERMS if t in terms)
+    model = "+".join(("6",) + terms)
+    if not terms:
+        return Calibration(model, np.full(3, 0.5), 0.04 * np.eye(3))
+    rng = np.random.default_rng(1)
+    params = {}
+    for t in terms:
+        view = calibration_view(t)
+        params.update({n: float(SIZE[(view.acts_on, view.covariate)] * rng.normal()) for n in view.param_names()})
+    meta = {"extended": {"terms": list(terms), "t_ref_c": 25.0, "v_ref": 3.3, "t0_s": 0.0}, "params": params}
+    return Calibration(model, np.full(3, 0.5), 0.04 * np.eye(3), metadata=meta)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--bus", default="serial")
+    ap.add_argument("--clients", type=int, default=1)
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--json", metavar="PATH")
+    args = ap.parse_args(argv)
+    tmp = tempfile.mkdtemp(prefix="bench-engine-terms-")
+    conf = os.path.join(tmp, "gravcald.toml")
+    with open(conf, "w", encoding="utf-8") as fh:
+        fh.write("[estimator]\nmin_windows = 1000000\n")
+    cases = {"6": (), "6+temperature_offset+supply_offset": ("temperature_offset", "supply_offset"),
+             "6+all online terms": ONLINE_TERMS}
+    files = {}
+    for name, terms in cases.items():
+        files[name] = os.path.join(tmp, f"{len(files)}.json")
+        with open(files[name], "w", encoding="utf-8") as fh:
+            fh.write(calibration(terms).to_json())
+    got: dict[str, list[dict]] = {name: [] for name in cases}
+    for k in range(args.repeats):
+        for name in cases:
+            r = run(args.bus, args.clients, args.seconds, None,
+                    extra_args=("--model", "6", "--lab-calibration", files[name], "--config", conf))
+            r["us_per_sample"] = r["cpu_percent"] / 100 * 1e6 / r["samples_per_s"]
+            got[name].append(r)
+            print(f"run {k + 1} {name:36s} model {r['model']:40s} cpu {r['cpu_percent']:5.2f} %  "
+                  f"{r['us_per_sample']:6.1f} µs/sample  in C {r['share_in_c']:.3f}", flush=True)
+    base = statistics.median(r["us_per_sample"] for r in got["6"])
+    summary = {}
+    for name, runs in got.items():
+        us = statistics.median(r["us_per_sample"] for r in runs)
+        summary[name] = {"us_per_sample": us, "cpu_percent": statistics.median(r["cpu_percent"] for r in runs),
+                         "share_in_c": statistics.median(r["share_in_c"] for r in runs), "ratio_to_6": us / base,
+                         "models": sorted({r["model"] for r in runs})}
+        print(f"{name:36s} {us:6.1f} µs/sample (median of {len(runs)})  x{us / base:.3f} of plain 6  "
+              f"in C {summary[name]['share_in_c']:.3f}")
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump({"bus": args.bus, "clients": args.clients, "seconds": args.seconds, "summary": summary,
+                       "runs": got}, fh, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
