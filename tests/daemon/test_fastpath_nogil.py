@@ -22,6 +22,7 @@ from gravcal.daemon.protocol import STANDARD_GRAVITY, ImuBlock
 from gravcal.daemon.server import ServerConfig, SocketServer
 
 from support.correction_reference import extended_model, plain_block
+from support.line_reference import imu_lines
 from test_fastpath_step import FS, PLAIN, Rig, frames
 from test_fastpath import EXTENDED
 from test_server import block, wait_until
@@ -52,7 +53,7 @@ def _expected_lines(rig: Rig) -> bytes:
     acc = rig.processor.acc(rows)
     gyro = (rows["gyro"].astype(float) - 2048.0) / 357.36
     static = np.where(rows["seq"] - 900 <= 400.0, 1, -1).astype(np.int8)
-    return ImuBlock(rows, acc, gyro, static).joined(True)
+    return imu_lines(rows, acc, gyro, static, raw=True)
 
 
 def test_wake_ups_take_no_gil_and_send_the_python_paths_bytes(rig):

@@ -20,10 +20,11 @@ from gravcal.daemon.client_limits import ClientState
 from gravcal.daemon.fanout import fast_snapshot
 from gravcal.daemon.output_queue import OutputQueue
 from gravcal.daemon.processing import engine_params
-from gravcal.daemon.protocol import STANDARD_GRAVITY, ImuBlock, WatchPolicy
+from gravcal.daemon.protocol import STANDARD_GRAVITY, WatchPolicy
 from gravcal.drivers.codec import FrameDecoder, encode_frames
 from gravcal.drivers.rigs.sources import pattern_blocks
 from support.correction_reference import plain_block
+from support.line_reference import imu_lines
 
 MAX = 16
 FS = 200.0
@@ -131,9 +132,8 @@ def test_lines_and_records_are_the_python_paths(rig):
     acc = rig.processor.acc(rows)
     gyro = (rows["gyro"].astype(float) - 2048.0) / 357.36
     static = np.where(rows["seq"] - 900 <= 400.0, 1, -1).astype(np.int8)
-    want = ImuBlock(rows[:3], acc[:3], gyro[:3], static[:3]).joined(True) + \
-        ImuBlock(rows[3:], acc[3:], gyro[3:], static[3:]).joined(True)
-    assert rig.received() == want  # bit for bit: the numpy reference's correction and the block encoder
+    want = imu_lines(rows, acc, gyro, static, raw=True)
+    assert rig.received() == want  # bit for bit: the numpy references' correction and lines
     assert rig.client.sent_messages == 0  # counted in the C record until folded
     rig.client.fold()
     assert rig.client.sent_messages == 4 and rig.client.sent_bytes == len(want)
@@ -361,7 +361,7 @@ def test_a_calibration_swapped_mid_step_applies_from_the_next_wake_up(rig):
     assert rows.shape[0] == 2
     second = rows[1:]
     gyro = (second["gyro"].astype(float) - 2000.0) / 350.0
-    want = ImuBlock(second, rig.processor.acc(second), gyro, np.array([-1], np.int8)).joined(True)
+    want = imu_lines(second, rig.processor.acc(second), gyro, np.array([-1], np.int8), raw=True)
     assert rig.received() == want
 
 
