@@ -9,42 +9,15 @@ import math
 import numpy as np
 import pytest
 
-from support.correction_reference import extended_bound, extended_model, plain_block
+from support.correction_reference import (calibration, extended_bound, extended_model, plain_block,
+                                          samples_with_covariates)
 from gravcal.core._correctkernel import correct_rows
-from gravcal.core.calibration import Calibration
 from gravcal.core.correction import CP_N, UncorrectableTerm, correct, correction_params
-from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
-from gravcal.core.simulate import simulate
+from gravcal.core.model.terms import CALIBRATION_TERMS
 from gravcal.daemon.config import ONLINE_TERMS
 
 G = 9.80665
-FS = 100.0
-# per term, a parameter size [raw units per covariate unit] giving effects of a few % of g over the samples' spread
-SIZE = {("offset", "temp"): 2e-4, ("sensitivity", "temp"): 4e-5, ("offset", "vsupply"): 4e-3,
-        ("offset", "time"): 4e-3, ("sensitivity", "time"): 1e-3, ("offset", "accel"): 0.02}
-
-
-def samples_with_covariates(seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    s = simulate("daily_living", seed=seed, duration=6.0, fs=FS).samples.copy()
-    n = s.shape[0]
-    s["temp"] = 25.0 + rng.uniform(-15, 15, n)
-    s["vsupply"] = 3.3 + rng.uniform(-0.2, 0.2, n)
-    s["seq"] += int(rng.integers(0, 10_000_000))  # hours into the session: the time terms act
-    s["t2"][rng.integers(0, n, 5), rng.integers(0, 2, 5)] = 0  # missing periods -> NaN
-    return s
-
-
-def calibration(rng: np.random.Generator, terms: tuple[str, ...], cross: bool = True) -> Calibration:
-    k = 0.04 * np.eye(3) + (rng.normal(0, 0.002, (3, 3)) if cross else 0.0)
-    params = {}
-    for t in terms:
-        view = calibration_view(t)
-        size = SIZE.get((view.acts_on, view.covariate), 1e-3)
-        params.update({n: float(size * rng.normal()) for n in view.param_names()})
-    meta = {"extended": {"terms": list(terms), "t_ref_c": 25.0 + rng.normal(), "v_ref": 3.3 + 0.05 * rng.normal(),
-                         "t0_s": float(rng.uniform(0, 3600))}, "params": params}
-    return Calibration("+".join(("6",) + terms), 0.5 + rng.normal(0, 0.02, 3), k, metadata=meta if terms else {})
+FS = 100.0  # samples_with_covariates' rate
 
 
 @pytest.mark.parametrize("seed", range(3))
