@@ -27,8 +27,8 @@ from ..core.estimators.online import OnlineCalibrator
 from ..core.estimators.online_policy import OnlineStep
 from ..core.correction import CP_N, correction_params
 from ..core.samples import raw_triad
-from ._fastpath import EP_N, Engine
 from ..core.windows import Window
+from ._fastpath import EP_N, Engine
 from .config import Config
 from .persistence import CalibrationState
 from .protocol import STANDARD_GRAVITY
