@@ -1,6 +1,7 @@
 """gravcald's CPU per sample with an extended calibration against a plain one (not a test).
 
     python bench/bench_engine_terms.py [--bus serial] [--clients 1] [--seconds 20] [--repeats 3] [--json PATH]
+                                       [--baseline-src DIR]
 
 The same measurement as bench/bench_latency.py (``gravcald --emulate --bus BUS --fs 200``, one raw watcher and
 N - 1 more, the process's CPU over the run), with gravcald started from a lab calibration of each model in turn:
@@ -11,6 +12,12 @@ at the end says it did. Runs interleave (plain, default terms, all terms, plain,
 load drifts over all of them alike. Reported per model: the median over the repeats of CPU [% of one core],
 µs of CPU per published sample, the share of the samples the C step delivered, and the ratio to plain "6"
 (the target: within 1.10 for the default terms).
+
+``--baseline-src DIR``: each case is also run with that tree's gravcald (DIR as for bench_latency.py, e.g. an
+installed `git archive` of main), interleaved with this tree's, and reported with its ratio to its own plain "6".
+
+First, the engine alone (``--kernel-samples``, 0: skip): Engine.correct on a block of simulated samples per
+model, thread CPU per sample [ns], the median of 7 interleaved rounds: what the terms themselves cost.
 """
 from __future__ import annotations
 
@@ -20,13 +27,17 @@ import os
 import statistics
 import sys
 import tempfile
+import time
 
 import numpy as np
 
 from bench_latency import run
 from gravcal.core.calibration import Calibration
 from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
+from gravcal.core.simulate import simulate
+from gravcal.daemon._fastpath import Engine
 from gravcal.daemon.config import ONLINE_TERMS
+from gravcal.daemon.processing import engine_params
 
 # a parameter size [raw units per covariate unit] per (acts_on, covariate): effects of a few mg
 SIZE = {("offset", "temp"): 4e-5, ("sensitivity", "temp"): 4e-6, ("offset", "vsupply"): 4e-3,
@@ -48,6 +59,24 @@ def calibration(terms: tuple[str, ...]) -> Calibration:
     return Calibration(model, np.full(3, 0.5), 0.04 * np.eye(3), metadata=meta)
 
 
+def kernel_ns(cals: dict[str, Calibration], n: int, rounds: int = 7) -> dict[str, float]:
+    """Engine.correct's thread CPU per sample [ns] for each calibration, the median over interleaved rounds."""
+    s = simulate("daily_living", seed=1, duration=n / 200.0, fs=200.0).samples
+    s["seq"] += 10_000_000  # hours into the session
+    acc, gyro, codes = np.empty((s.shape[0], 3)), np.empty(s.shape[0]), np.empty(s.shape[0], np.int8)
+    engines = {}
+    for name, cal in cals.items():
+        engines[name] = Engine()
+        engines[name].set_params(engine_params(cal, 200.0, (2048.0, 357.0), (0, True)))
+    got: dict[str, list[float]] = {name: [] for name in cals}
+    for _ in range(rounds):
+        for name, e in engines.items():
+            t0 = time.thread_time()
+            e.correct(s, acc, gyro, codes)
+            got[name].append((time.thread_time() - t0) / s.shape[0] * 1e9)
+    return {name: statistics.median(v) for name, v in got.items()}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--bus", default="serial")
@@ -55,6 +84,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", metavar="PATH")
+    ap.add_argument("--kernel-samples", type=int, default=400_000)
+    ap.add_argument("--no-daemon", action="store_true", help="the engine alone")
+    ap.add_argument("--baseline-src", metavar="DIR", help="also run each case with this source tree's gravcald")
     args = ap.parse_args(argv)
     tmp = tempfile.mkdtemp(prefix="bench-engine-terms-")
     conf = os.path.join(tmp, "gravcald.toml")
@@ -67,28 +99,43 @@ def main(argv=None) -> int:
         files[name] = os.path.join(tmp, f"{len(files)}.json")
         with open(files[name], "w", encoding="utf-8") as fh:
             fh.write(calibration(terms).to_json())
-    got: dict[str, list[dict]] = {name: [] for name in cases}
+    kernel = kernel_ns({name: calibration(terms) for name, terms in cases.items()}, args.kernel_samples) \
+        if args.kernel_samples > 0 else {}
+    for name, ns in kernel.items():
+        print(f"engine alone {name:36s} {ns:6.1f} ns/sample  x{ns / kernel['6']:.3f} of plain 6", flush=True)
+    if args.no_daemon:
+        return 0
+    trees = {"this tree": None, **({"baseline": args.baseline_src} if args.baseline_src else {})}
+    got: dict[tuple[str, str], list[dict]] = {(tree, name): [] for tree in trees for name in cases}
     for k in range(args.repeats):
         for name in cases:
-            r = run(args.bus, args.clients, args.seconds, None,
-                    extra_args=("--model", "6", "--lab-calibration", files[name], "--config", conf))
-            r["us_per_sample"] = r["cpu_percent"] / 100 * 1e6 / r["samples_per_s"]
-            got[name].append(r)
-            print(f"run {k + 1} {name:36s} model {r['model']:40s} cpu {r['cpu_percent']:5.2f} %  "
-                  f"{r['us_per_sample']:6.1f} µs/sample  in C {r['share_in_c']:.3f}", flush=True)
-    base = statistics.median(r["us_per_sample"] for r in got["6"])
+            for tree, src in trees.items():
+                r = run(args.bus, args.clients, args.seconds, src,
+                        extra_args=("--model", "6", "--lab-calibration", files[name], "--config", conf))
+                r["us_per_sample"] = r["cpu_percent"] / 100 * 1e6 / r["samples_per_s"]
+                got[tree, name].append(r)
+                in_c = "-" if r["share_in_c"] is None else f"{r['share_in_c']:.3f}"
+                print(f"run {k + 1} {tree:9s} {name:36s} model {r['model']}: cpu {r['cpu_percent']:5.2f} %  "
+                      f"{r['us_per_sample']:6.1f} µs/sample  in C {in_c}", flush=True)
     summary = {}
-    for name, runs in got.items():
-        us = statistics.median(r["us_per_sample"] for r in runs)
-        summary[name] = {"us_per_sample": us, "cpu_percent": statistics.median(r["cpu_percent"] for r in runs),
-                         "share_in_c": statistics.median(r["share_in_c"] for r in runs), "ratio_to_6": us / base,
-                         "models": sorted({r["model"] for r in runs})}
-        print(f"{name:36s} {us:6.1f} µs/sample (median of {len(runs)})  x{us / base:.3f} of plain 6  "
-              f"in C {summary[name]['share_in_c']:.3f}")
+    for tree in trees:
+        base = statistics.median(r["us_per_sample"] for r in got[tree, "6"])
+        for name in cases:
+            runs = got[tree, name]
+            us = statistics.median(r["us_per_sample"] for r in runs)
+            share = [r["share_in_c"] for r in runs if r["share_in_c"] is not None]
+            summary[f"{tree}: {name}"] = {
+                "us_per_sample": us, "cpu_percent": statistics.median(r["cpu_percent"] for r in runs),
+                "share_in_c": statistics.median(share) if share else None, "ratio_to_6": us / base,
+                "models": sorted({str(r["model"]) for r in runs})}
+            in_c = "-" if not share else f"{statistics.median(share):.3f}"
+            print(f"{tree:9s} {name:36s} {us:6.1f} µs/sample (median of {len(runs)})  x{us / base:.3f} of its "
+                  f"plain 6  in C {in_c}")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump({"bus": args.bus, "clients": args.clients, "seconds": args.seconds, "summary": summary,
-                       "runs": got}, fh, indent=1)
+                       "engine_ns_per_sample": kernel, "runs": {f"{t}: {n}": v for (t, n), v in got.items()}},
+                      fh, indent=1)
     return 0
 
 
