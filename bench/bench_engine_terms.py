@@ -10,8 +10,9 @@ online calibrator can publish (daemon/config.py ONLINE_TERMS). The estimator is 
 calibration ([estimator] min_windows very large), so the start's model corrects every sample; STATUS's model
 at the end says it did. Runs interleave (plain, default terms, all terms, plain, ...) so that the machine's
 load drifts over all of them alike. Reported per model: the median over the repeats of CPU [% of one core],
-µs of CPU per published sample, the share of the samples the C step delivered, and the ratio to plain "6"
-(the target: within 1.10 for the default terms).
+µs of CPU per published sample of the whole process and of its acquisition thread (the per-sample path: bus
+to sockets; the processing thread's detector and estimator run per window, not per sample), the share of the
+samples the C step delivered, and the ratios to plain "6" (the target: within 1.10 for the default terms).
 
 ``--baseline-src DIR``: each case is also run with that tree's gravcald (DIR as for bench_latency.py, e.g. an
 installed `git archive` of main), interleaved with this tree's, and reported with its ratio to its own plain "6".
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import statistics
 import sys
@@ -39,6 +41,7 @@ from gravcal.daemon._fastpath import Engine
 from gravcal.daemon.config import ONLINE_TERMS
 from gravcal.daemon.processing import engine_params
 
+ACQUISITION = "gravcal-acquisition"  # the per-sample path's thread (daemon/service.py)
 # a parameter size [raw units per covariate unit] per (acts_on, covariate): effects of a few mg
 SIZE = {("offset", "temp"): 4e-5, ("sensitivity", "temp"): 4e-6, ("offset", "vsupply"): 4e-3,
         ("offset", "time"): 4e-5, ("sensitivity", "time"): 4e-6, ("offset", "accel"): 4e-3}
@@ -113,24 +116,30 @@ def main(argv=None) -> int:
                 r = run(args.bus, args.clients, args.seconds, src,
                         extra_args=("--model", "6", "--lab-calibration", files[name], "--config", conf))
                 r["us_per_sample"] = r["cpu_percent"] / 100 * 1e6 / r["samples_per_s"]
+                r["us_per_sample_acquisition"] = \
+                    r["cpu_percent_by_thread"].get(ACQUISITION, math.nan) / 100 * 1e6 / r["samples_per_s"]
                 got[tree, name].append(r)
                 in_c = "-" if r["share_in_c"] is None else f"{r['share_in_c']:.3f}"
                 print(f"run {k + 1} {tree:9s} {name:36s} model {r['model']}: cpu {r['cpu_percent']:5.2f} %  "
-                      f"{r['us_per_sample']:6.1f} µs/sample  in C {in_c}", flush=True)
+                      f"{r['us_per_sample']:6.1f} µs/sample, acquisition {r['us_per_sample_acquisition']:6.1f}  "
+                      f"in C {in_c}", flush=True)
     summary = {}
     for tree in trees:
         base = statistics.median(r["us_per_sample"] for r in got[tree, "6"])
+        base_acq = statistics.median(r["us_per_sample_acquisition"] for r in got[tree, "6"])
         for name in cases:
             runs = got[tree, name]
             us = statistics.median(r["us_per_sample"] for r in runs)
+            acq = statistics.median(r["us_per_sample_acquisition"] for r in runs)
             share = [r["share_in_c"] for r in runs if r["share_in_c"] is not None]
             summary[f"{tree}: {name}"] = {
-                "us_per_sample": us, "cpu_percent": statistics.median(r["cpu_percent"] for r in runs),
+                "us_per_sample": us, "us_per_sample_acquisition": acq,
+                "cpu_percent": statistics.median(r["cpu_percent"] for r in runs),
                 "share_in_c": statistics.median(share) if share else None, "ratio_to_6": us / base,
-                "models": sorted({str(r["model"]) for r in runs})}
+                "acquisition_ratio_to_6": acq / base_acq, "models": sorted({str(r["model"]) for r in runs})}
             in_c = "-" if not share else f"{statistics.median(share):.3f}"
-            print(f"{tree:9s} {name:36s} {us:6.1f} µs/sample (median of {len(runs)})  x{us / base:.3f} of its "
-                  f"plain 6  in C {in_c}")
+            print(f"{tree:9s} {name:36s} process {us:6.1f} µs/sample x{us / base:.3f}, acquisition {acq:6.1f} "
+                  f"x{acq / base_acq:.3f} of its plain 6 (medians of {len(runs)})  in C {in_c}")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump({"bus": args.bus, "clients": args.clients, "seconds": args.seconds, "summary": summary,
