@@ -94,7 +94,8 @@ static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double 
    parameters and labelled with the detector's decision (gravcal_engine_sample), the records appended to the
    staging area. No Python: runs with or without the GIL, under gravcal_latest_mu (the arrays ?POLL reads). */
 static void correct_batch(State *S, long long *live_ist, Py_ssize_t k, const uint32_t *ticks, const EngineParams *P,
-                          double t_recv, unsigned char *rows, double *acc, double *gyro, signed char *codes, Bytes *stage)
+                          double t_recv, unsigned char *rows, double *acc, double *gyro, signed char *codes,
+                          Bytes *stage)
 {
     for (Py_ssize_t i = 0; i < k; i++) {
         gravcal_engine_sample(P, rows + i * GRAVCAL_SAMPLE_SIZE, acc + 3 * i, gyro + i, codes + i);
@@ -239,12 +240,12 @@ static Py_ssize_t call_frames(Call *C, const unsigned char *buf, Py_ssize_t n, d
     long long can_base = S->ist[IST_CAN] - 1;
     gravcal_engine_current(C->engine, &C->P, &C->generation); /* the parameters as of this read */
     pthread_mutex_lock(&gravcal_latest_mu); /* held by no thread that waits for the GIL: a plain wait */
-    Py_ssize_t k = can_base < 0 ? gravcal_frame_api->continuing(buf, n, S->ist[IST_EXPECT], C->max_frames, S->ist[IST_SEQ],
-                                                        S->fst[FST_TICK_HZ], t_recv, &S->fst[FST_LAST_T],
-                                                        C->rows.buf, C->ticks)
-                                : gravcal_frame_api->slcan_continuing(buf, n, can_base, S->ist[IST_EXPECT], C->max_frames,
-                                                              S->ist[IST_SEQ], S->fst[FST_TICK_HZ], t_recv,
-                                                              &S->fst[FST_LAST_T], C->rows.buf, C->ticks);
+    const GravcalFrameAPI *f = gravcal_frame_api;
+    Py_ssize_t k = can_base < 0 ? f->continuing(buf, n, S->ist[IST_EXPECT], C->max_frames, S->ist[IST_SEQ],
+                                                S->fst[FST_TICK_HZ], t_recv, &S->fst[FST_LAST_T], C->rows.buf, C->ticks)
+                                : f->slcan_continuing(buf, n, can_base, S->ist[IST_EXPECT], C->max_frames,
+                                                      S->ist[IST_SEQ], S->fst[FST_TICK_HZ], t_recv,
+                                                      &S->fst[FST_LAST_T], C->rows.buf, C->ticks);
     if (k > 0)
         correct_batch(S, C->ist.buf, k, C->ticks, &C->P, t_recv, C->rows.buf, C->acc.buf, C->gyro.buf, C->codes.buf,
                       &C->stage);

@@ -15,7 +15,7 @@
  * Numbers below 2^53 (x 10^N below 2^64) are written in integer arithmetic (put_f_exact), the rest by
  * PyOS_double_to_string, which allocates with PyMem: the GIL is kept. A raw line takes ~0.7 µs warm
  * (1.2-1.9 µs with dtoa for every number).
- * The same writer is exported to other kernels as a capsule (_linekernel.h; daemon/_fastpath.c).
+ * The same writer is exported to other kernels as a capsule (_linekernel.h; daemon/_fastcall.c).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>

@@ -12,7 +12,7 @@
  * Built with -ffp-contract=off so each operation rounds as numpy's elementwise ops do.
  * One sample is well under a microsecond of work: the GIL is kept (dropping and retaking it costs more).
  * The record writer, and a whole read's records when it only continues the stream (stamped as the driver
- * stamps them), are exported to other kernels as a capsule (_framekernel.h; daemon/_fastpath.c).
+ * stamps them), are exported to other kernels as a capsule (_framekernel.h; daemon/_fastcall.c).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
