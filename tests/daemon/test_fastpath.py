@@ -109,12 +109,16 @@ def settle(d: Gravcald, reader: Reader, timeout: float = 20.0) -> None:
     raise AssertionError(f"the daemon did not settle: published {d.server.published_samples}")
 
 
-def start_daemon(tmp_path, fast: bool, driver) -> Gravcald:
+def start_daemon(tmp_path, fast: bool, driver, calibration: Calibration | None = None) -> Gravcald:
     """gravcald on ``driver`` without windows to analyse, its socket and state under ``tmp_path``, with
-    (``fast``) or without the C step."""
+    (``fast``) or without the C step, started from ``calibration`` (a lab calibration file) when given."""
     cfg = Config()
     cfg.socket.path = str(tmp_path / f"g-{fast}.sock")
     cfg.state.directory = str(tmp_path / f"state-{fast}")
+    if calibration is not None:
+        path = tmp_path / f"lab-{fast}.json"
+        path.write_text(calibration.to_json())
+        cfg.state.lab_calibration = str(path)
     d = Gravcald(cfg, driver=driver, environ={}, detector=NoWindows())
     d.fast_path = fast
     d.start()
