@@ -21,12 +21,9 @@ _API = {"read", "calibrate", "write_calibrated", "Calibration", "Recording"}
 
 def __getattr__(name: str) -> Any:
     if name == "__version__":
-        from importlib.metadata import PackageNotFoundError, version
+        from ._version import __version__
 
-        try:
-            return version("gravcal")
-        except PackageNotFoundError:  # pragma: no cover - a bare checkout, not installed
-            return "unknown"
+        return __version__
     if name in _API:
         from . import api
 

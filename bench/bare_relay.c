@@ -4,6 +4,7 @@
  * wake-up, the read and the send() calls (each waking a client process), which no daemon design avoids.
  *
  *     bare_relay [--uring] TTY SOCKET NCLIENTS LINE_BYTES FRAME_BYTES [OPEN_COMMAND]
+ *     bare_relay [--uring] i2c:DEVICE:POLL_US SOCKET NCLIENTS LINE_BYTES 29
  *
  * --uring: the clients' sends go as one batch through io_uring (one io_uring_enter per wake-up instead of one
  * send() per client), to tell the system calls' own cost from the kernel's work per send (the socket buffer and
@@ -14,6 +15,10 @@
  * Each line is JSON, {"class":"IMU","seq":N,"pad":"xx..."} of LINE_BYTES (at least 64): N is the frame's 16-bit
  * sequence number for serial frames (FRAME_BYTES 29; the wire format's bytes 3-4, little-endian), so a client can
  * time it as it times gravcald's lines; -1 for slcan, whose number is not parsed here.
+ * i2c:DEVICE:POLL_US: the logger's FIFO on an I2C bus (drivers/i2c.py's register map) read as gravcald's I2C driver
+ * reads it without a DRDY line: one I2C_RDWR of STATUS and FIFO_COUNT, then the frames in I2C_RDWR bursts of up to
+ * 16, and a sleep of POLL_US when the FIFO was empty (bench_latency.py runs it under umockdev's preload library
+ * against the emulated device, as gravcald).
  * It prints "listening" once the socket is bound, "ready" once NCLIENTS are connected, and on SIGTERM the
  * wake-ups, lines and bytes sent.
  */
@@ -23,6 +28,8 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <linux/i2c-dev.h>
+#include <linux/i2c.h>
 #include <linux/io_uring.h>
 #include <sys/epoll.h>
 #include <sys/ioctl.h>
@@ -31,6 +38,7 @@
 #include <sys/syscall.h>
 #include <sys/un.h>
 #include <termios.h>
+#include <time.h>
 #include <unistd.h>
 
 #define READ_BYTES 65536
@@ -116,6 +124,56 @@ static long long send_ring_batch(struct send_ring *ring, const int *fds, int ncl
     return (long long)nclients * (long long)len - failed;
 }
 
+#define I2C_ADDRESS 0x42
+#define REG_STATUS 0x02
+#define REG_CTRL 0x06
+#define REG_FIFO_DATA 0x10
+#define CTRL_FIFO_RESET_ENABLE 0x03
+#define I2C_BURST_FRAMES 16
+
+/* One I2C_RDWR: a write of the register number, then a read of len bytes from it (repeated start). */
+static int i2c_read_register(int fd, unsigned char reg, unsigned char *out, unsigned short len)
+{
+    struct i2c_msg msgs[2] = {{.addr = I2C_ADDRESS, .flags = 0, .len = 1, .buf = &reg},
+                              {.addr = I2C_ADDRESS, .flags = I2C_M_RD, .len = len, .buf = out}};
+    struct i2c_rdwr_ioctl_data data = {.msgs = msgs, .nmsgs = 2};
+    return ioctl(fd, I2C_RDWR, &data) < 0 ? -1 : 0;
+}
+
+/* The logger started as the I2C driver starts it: its FIFO emptied, sampling enabled. */
+static int i2c_enable(int fd)
+{
+    unsigned char cmd[2] = {REG_CTRL, CTRL_FIFO_RESET_ENABLE};
+    struct i2c_msg msg = {.addr = I2C_ADDRESS, .flags = 0, .len = 2, .buf = cmd};
+    struct i2c_rdwr_ioctl_data data = {.msgs = &msg, .nmsgs = 1};
+    return ioctl(fd, I2C_RDWR, &data) < 0 ? -1 : 0;
+}
+
+/* The frames the FIFO holds, read as the I2C driver reads them; waits POLL_US while it is empty. Returns the bytes
+   read into buf (whole frames), 0 when none came, -1 on a bus error. */
+static ssize_t i2c_read_fifo(int fd, long poll_us, unsigned char *buf, size_t cap, int frame_bytes)
+{
+    unsigned char st[2];
+    if (i2c_read_register(fd, REG_STATUS, st, 2) < 0)
+        return -1;
+    size_t count = st[1], n = 0;
+    if (count == 0) {
+        struct timespec ts = {.tv_sec = poll_us / 1000000, .tv_nsec = (poll_us % 1000000) * 1000};
+        nanosleep(&ts, NULL);
+        return 0;
+    }
+    while (count > 0 && n + (size_t)frame_bytes <= cap) {
+        size_t k = count < I2C_BURST_FRAMES ? count : I2C_BURST_FRAMES;
+        if (n + k * (size_t)frame_bytes > cap)
+            k = (cap - n) / (size_t)frame_bytes;
+        if (i2c_read_register(fd, REG_FIFO_DATA, buf + n, (unsigned short)(k * (size_t)frame_bytes)) < 0)
+            return -1;
+        n += k * (size_t)frame_bytes;
+        count -= k;
+    }
+    return (ssize_t)n;
+}
+
 static void on_term(int sig)
 {
     (void)sig;
@@ -136,18 +194,38 @@ int main(int argc, char **argv)
         fprintf(stderr, "bare_relay: bad NCLIENTS, LINE_BYTES or FRAME_BYTES\n");
         return 2;
     }
-    int tty = open(argv[1], O_RDWR | O_NOCTTY | O_NONBLOCK); /* as gravcald's drivers: a read never waits */
-    struct termios tio;
-    if (tty < 0 || tcgetattr(tty, &tio) < 0) {
-        perror("bare_relay: tty");
-        return 1;
+    long poll_us = -1; /* >= 0: an I2C bus, polled */
+    char *i2c_dev = NULL;
+    if (strncmp(argv[1], "i2c:", 4) == 0) {
+        i2c_dev = strdup(argv[1] + 4);
+        char *colon = strrchr(i2c_dev, ':');
+        if (colon == NULL || frame_bytes != 29) {
+            fprintf(stderr, "bare_relay: i2c:DEVICE:POLL_US with FRAME_BYTES 29\n");
+            return 2;
+        }
+        *colon = '\0';
+        poll_us = atol(colon + 1);
     }
-    cfmakeraw(&tio);
-    tio.c_cc[VMIN] = (cc_t)frame_bytes;
-    tio.c_cc[VTIME] = 0;
-    if (tcsetattr(tty, TCSANOW, &tio) < 0) {
-        perror("bare_relay: tcsetattr");
-        return 1;
+    int tty = open(i2c_dev ? i2c_dev : argv[1], i2c_dev ? O_RDWR : O_RDWR | O_NOCTTY | O_NONBLOCK);
+    struct termios tio;
+    if (i2c_dev) {
+        if (tty < 0) {
+            perror("bare_relay: i2c");
+            return 1;
+        }
+    } else {
+        /* as gravcald's drivers: a read never waits */
+        if (tty < 0 || tcgetattr(tty, &tio) < 0) {
+            perror("bare_relay: tty");
+            return 1;
+        }
+        cfmakeraw(&tio);
+        tio.c_cc[VMIN] = (cc_t)frame_bytes;
+        tio.c_cc[VTIME] = 0;
+        if (tcsetattr(tty, TCSANOW, &tio) < 0) {
+            perror("bare_relay: tcsetattr");
+            return 1;
+        }
     }
     int lst = socket(AF_UNIX, SOCK_STREAM, 0);
     struct sockaddr_un addr = {.sun_family = AF_UNIX};
@@ -182,7 +260,12 @@ int main(int argc, char **argv)
             return 1;
         }
     }
-    tcflush(tty, TCIFLUSH);
+    if (!i2c_dev)
+        tcflush(tty, TCIFLUSH);
+    else if (i2c_enable(tty) < 0) {
+        perror("bare_relay: I2C enable");
+        return 1;
+    }
     printf("ready\n");
     fflush(stdout);
     static char buf[READ_BYTES];
@@ -192,27 +275,39 @@ int main(int argc, char **argv)
     int carry = 0; /* bytes of a frame not yet complete */
     /* the same wait as gravcald's C step (daemon/_fastpath.c): edge-triggered epoll, so the tty is asked only
        when a frame came in (poll() asks it on every entry and may wait there for the tty's flush work) */
-    int ep = epoll_create1(0);
+    int ep = i2c_dev ? -1 : epoll_create1(0);
     struct epoll_event ev = {.events = EPOLLIN | EPOLLET, .data.fd = tty};
-    if (ep < 0 || epoll_ctl(ep, EPOLL_CTL_ADD, tty, &ev) < 0) {
+    if (!i2c_dev && (ep < 0 || epoll_ctl(ep, EPOLL_CTL_ADD, tty, &ev) < 0)) {
         perror("bare_relay: epoll");
         return 1;
     }
     while (!stop) {
-        int r = epoll_wait(ep, &ev, 1, 250);
-        if (r <= 0)
-            continue;
-        size_t ask = TTY_CHUNK; /* the same reads as gravcald's C step: never more than the tty holds */
-        ssize_t n = read(tty, buf, ask), last = n;
-        if (n <= 0)
-            continue;
-        int avail;
-        while ((size_t)last == ask && n < READ_BYTES && ioctl(tty, FIONREAD, &avail) == 0 && avail > 0) {
-            ask = (size_t)avail < (size_t)(READ_BYTES - n) ? (size_t)avail : (size_t)(READ_BYTES - n);
-            last = read(tty, buf + n, ask);
-            if (last <= 0)
-                break;
-            n += last;
+        ssize_t n;
+        if (i2c_dev) {
+            n = i2c_read_fifo(tty, poll_us, (unsigned char *)buf, READ_BYTES, frame_bytes);
+            if (n < 0) {
+                perror("bare_relay: I2C_RDWR");
+                return 1;
+            }
+            if (n == 0)
+                continue;
+        } else {
+            int r = epoll_wait(ep, &ev, 1, 250);
+            if (r <= 0)
+                continue;
+            size_t ask = TTY_CHUNK; /* the same reads as gravcald's C step: never more than the tty holds */
+            ssize_t last;
+            n = last = read(tty, buf, ask);
+            if (n <= 0)
+                continue;
+            int avail;
+            while ((size_t)last == ask && n < READ_BYTES && ioctl(tty, FIONREAD, &avail) == 0 && avail > 0) {
+                ask = (size_t)avail < (size_t)(READ_BYTES - n) ? (size_t)avail : (size_t)(READ_BYTES - n);
+                last = read(tty, buf + n, ask);
+                if (last <= 0)
+                    break;
+                n += last;
+            }
         }
         wakeups++;
         int carry_before = carry;

@@ -1,6 +1,7 @@
 """Accuracy side by side: gravcal and the peer calibrators on the SAME held-out quasi-static windows.
 
     python bench/bench_accuracy.py [--quick] [--json PATH] [--recordings NAME ...] [--folds 5]
+                                   [--peer-input samples|windows]
 
 Evaluation windows. gravcal's detector (the `gravcal calibrate` pipeline: bootstrap start,
 Lötters detector, per-axis screening, re-detection) defines the quasi-static windows of each
@@ -20,7 +21,10 @@ Methods. gravcal "6", "auto" (order selection: offsets / 6 / 9 where the windows
 "6+temperature_offset", "9+temperature_offset" (+ temperature_sensitivity) where the recording has a
 temperature; the peers
 through bench/peers.py (skdh, actipy, imucal), fed the acceleration in nominal g (the recording's raw
-units through its datasheet scale). A method that declines a fold (too few still points, sphere not
+units through its datasheet scale). With ``--peer-input windows`` the peers instead get the same windows
+as gravcal (the fit part's evaluation windows, in nominal g, with their temperatures) and their own full
+model is fitted on them and applied (bench/peers_windows.py): skdh's closest-point fit (GGIR's
+g.calibrate as skdh ports it) and actipy's calibrate_gravity. A method that declines a fold (too few still points, sphere not
 populated, too little data, an order the windows cannot determine) is counted as declined with its reason,
 and scored "as used" with the data it hands back unchanged (nominal g) — both are reported.
 
@@ -242,6 +246,15 @@ def fit_peer(rec: Rec, name: str, idx: np.ndarray) -> Fitted:
     return Fitted(r.ok, r.message, r.seconds, (lambda y, T, r=r: r.apply(y, T)) if r.ok else None)
 
 
+def fit_peer_windows(rec: Rec, name: str, ws_fit: WindowSet) -> Fitted:
+    """The peer's own model fitted on the fit part's evaluation windows (bench/peers_windows.py)."""
+    import peers_windows
+
+    T = ws_fit.aux[:, 0] if (rec.temp is not None and ws_fit.aux.shape[1]) else None
+    r = peers_windows.fit(name, rec.to_g(ws_fit.mean), T)
+    return Fitted(r.ok, r.message, r.seconds, (lambda y, T, r=r: r.apply(y, T)) if r.ok else None)
+
+
 def window_errors_mg(rec: Rec, fitted: Fitted | None, ws: WindowSet) -> np.ndarray:
     y = rec.to_g(ws.mean)
     T = ws.aux[:, 0] if (rec.temp is not None and ws.aux.shape[1]) else None
@@ -254,12 +267,21 @@ def _rms(e: list[np.ndarray]) -> float | None:
     return float(np.sqrt(np.mean(x * x))) if x.size else None
 
 
+PEER_INPUT = ["samples"]  # "windows": the peers fitted on the evaluation windows (--peer-input)
+
+
 def methods_for(rec: Rec, peer_names: list[str]) -> list[tuple[str, Callable[[np.ndarray, WindowSet], Fitted]]]:
     out: list[tuple[str, Callable[[np.ndarray, WindowSet], Fitted]]] = [
         ("nominal (no calibration)", lambda idx, wsf: Fitted(True, "identity", 0.0, lambda y, T: y))]
     for m in gravcal_methods(rec):
         out.append((f"gravcal {m}", lambda idx, wsf, m=m: fit_gravcal(rec, m, idx, wsf)))
     for p in peer_names:
+        if PEER_INPUT[0] == "windows":
+            import peers_windows
+
+            if p in peers_windows.WINDOWS_PEERS:
+                out.append((f"{p} (same windows)", lambda idx, wsf, p=p: fit_peer_windows(rec, p, wsf)))
+            continue
         out.append((p, lambda idx, wsf, p=p: fit_peer(rec, p, idx)))
     return out
 
@@ -340,6 +362,7 @@ def run(quick: bool = False, names: list[str] | None = None, k: int = 5, sim_hou
             log(f"peer {p} skipped: {why}")
     hours = sim_hours if sim_hours is not None else (6.0 if quick else 26.0)
     result: dict[str, Any] = {"peers_available": avail, "peer_versions": peers.versions(), "schemes": list(SCHEMES),
+                              "peer_input": PEER_INPUT[0],
                               "blocks": k, "sim_hours": hours, "recordings": {}}
     todo: list[Callable[[], list[Rec]]] = []
     for name in (names or list(MEASURED) + ["sim"]):
@@ -414,7 +437,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--recordings", nargs="*", help=f"subset of {', '.join(MEASURED)}, sim")
     ap.add_argument("--folds", type=int, default=5, help="time blocks for the 'blocks' scheme (default 5)")
     ap.add_argument("--sim-hours", type=float, help="length of the simulated recording [h] (default 26; quick 6)")
+    ap.add_argument("--peer-input", choices=("samples", "windows"), default="samples",
+                    help="samples: each peer on the fit part's raw samples, its own detection and gates (as its users "
+                         "run it); windows: each peer's own model fitted on the same evaluation windows as gravcal "
+                         "(bench/peers_windows.py)")
     args = ap.parse_args(argv)
+    PEER_INPUT[0] = args.peer_input
     res = run(args.quick, args.recordings, args.folds, args.sim_hours)
     if args.json:
         Path(args.json).write_text(json.dumps(jsonable(res), indent=1), encoding="utf-8")

@@ -3,20 +3,19 @@
     python bench/bench_latency.py [--buses serial,can,i2c] [--clients 1,32] [--seconds 20] [--json PATH]
                                   [--baseline-src DIR] [--latency-budget S]
 
-Each run starts ``gravcald --emulate --bus BUS --fs 200 --speed 1 --scenario six_position`` (serial/can:
-the emulator in its own process on a pty / slcan pty; i2c: the fake device in the daemon's process, so
-its sampling thread counts in the daemon's CPU, and the sensor model behind it in a child process). One client watches every sample with raw fields; with
-N clients, N - 1 more processes watch every sample and discard it.
+Each run starts ``gravcald --emulate --bus BUS --fs 200 --speed 1 --scenario six_position``: the emulator in its
+own process on a pty (serial), an slcan pty (can) or behind /dev/i2c-1 of a umockdev testbed (i2c: gravcald runs
+under umockdev's preload library, its I2C driver's ioctls are answered by the emulator's process, and without a
+DRDY line it polls the FIFO). One client watches every sample with raw fields; with N clients, N - 1 more
+processes watch every sample and discard it.
 
 Latency: the emulator sends sample ``seq`` at t0 + seq / fs (CLOCK_MONOTONIC, shared by the processes),
 so recv - seq / fs is the frame-in -> line-out delay plus a constant; reported as the spread above the
 run's best case (which holds the wire time, 0.63 ms for a 29-byte frame at 460800 baud): p50, p99, p99.9.
 CPU: the gravcald process's run time over the measurement (/proc schedstat, ns; utime + stime where the
 kernel keeps no schedstats), % of one core, and per thread
-(/proc/PID/task/TID; gravcald's ?STATUS names its threads' ids). For i2c the emulated device's own cost
-(its sampling thread, and its bus transactions timed in the driver's thread, which a real I2C device
-would not cost the host) is reported apart from gravcald's own. RSS: VmRSS of gravcald at the end and
-its peak (VmHWM).
+(/proc/PID/task/TID; gravcald's ?STATUS names its threads' ids); the emulator's process is reported apart
+(a real device costs the host nothing). RSS: VmRSS of gravcald at the end and its peak (VmHWM).
 Wake-ups: per thread, the voluntary context switches (the thread slept and was woken) and the involuntary
 ones (preempted) per sample over the measurement (/proc/PID/task/TID/status), and the bare relay's below.
 
@@ -24,14 +23,14 @@ ones (preempted) per sample over the measurement (/proc/PID/task/TID/status), an
 gravcal/core, gravcal/drivers, gravcal/daemon, e.g. an unpacked `git archive` of an older commit, put
 first on PYTHONPATH) and report the ratios, measured in the same session on the same loaded machine.
 
-The floor (serial, can; after each run unless ``--no-floor``): bench/bare_relay.c, built with the system
-compiler ``cc`` into a temporary directory, relays the same emulator's tty (or slcan pty) to the same
-number of client processes: one poll(), the reads, and one send() per client of one line per frame, of the
-length gravcald's lines had in the run just before. On serial its lines carry the frame's number, so its latency
-is timed as gravcald's (the floor for latency too; slcan's lines are not numbered). Its CPU is what the wake-ups
-and the send() calls (each waking a client process) cost on this machine with no daemon work at all. I2C has no
-floor here (no kernel bus: the fake device runs in gravcald's process). ``--floor-uring`` runs the relay a second
-time with each wake-up's sends submitted as one io_uring batch: what batching the system calls would save.
+The floor (after each run unless ``--no-floor``): bench/bare_relay.c, built with the system compiler ``cc`` into a
+temporary directory, relays the same emulator's tty (or slcan pty, or /dev/i2c-1 under the same preload library,
+polled as gravcald's I2C driver polls it) to the same number of client processes: one poll(), the reads, and one
+send() per client of one line per frame, of the length gravcald's lines had in the run just before. On serial and
+i2c its lines carry the frame's number, so its latency is timed as gravcald's (the floor for latency too; slcan's
+lines are not numbered). Its CPU is what the wake-ups, the bus transfers and the send() calls (each waking a client
+process) cost on this machine with no daemon work at all. ``--floor-uring`` runs the relay a second time with each
+wake-up's sends submitted as one io_uring batch: what batching the system calls would save.
 """
 from __future__ import annotations
 
@@ -53,7 +52,13 @@ from bench_daemon import _extra_watcher  # a raw watcher taking every sample
 FS = 200.0
 RELAY_SOURCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "bare_relay.c")
 # per bus: the bytes of one sample on the wire (VMIN) and the command that starts the stream (slcan: open)
-RELAY_BUS = {"serial": (29, None), "can": (78, "O")}
+RELAY_BUS = {"serial": (29, None), "can": (78, "O"), "i2c": (29, None)}
+I2C_FIFO_DEPTH = 255  # gravcald --emulate's
+
+
+def i2c_poll_s(budget_s: float | None) -> float:
+    """The poll interval gravcald's I2C driver chooses without a DRDY line (drivers/i2c.py ``_connect``)."""
+    return max(0.001, min(I2C_FIFO_DEPTH / FS / 4, max(budget_s or 0.0, 0.5 / FS)))
 
 
 def _cpu_s(pid: int) -> float:
@@ -235,12 +240,15 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
         s.sendall(b'?WATCH={"enable":true,"raw":true};\n')
         _lines(s, 8.0)  # warm-up: imports, the emulator's start-up backlog, first windows
         status0 = _status(path)
+        emulators = [int(c) for c in open(f"/proc/{proc.pid}/task/{proc.pid}/children").read().split()]
+        emu0 = sum(_cpu_s(c) for c in emulators)
         cpu0, task0, t0 = _cpu_s(proc.pid), _task_cpu_s(proc.pid), time.monotonic()
         sw0 = _task_switches(proc.pid)
         sizes: list[int] = []
         rows = _lines(s, seconds, sizes)
         wall = time.monotonic() - t0
         cpu, task1, sw1 = _cpu_s(proc.pid) - cpu0, _task_cpu_s(proc.pid), _task_switches(proc.pid)
+        emu_cpu = sum(_cpu_s(c) for c in emulators) - emu0
         status1 = _status(path)
         names = {tid: name for name, tid in status1.get("threads", {}).items()}
         wakeups = _wakeups(names, sw0, sw1, wall, max(len(rows), 1) / wall)
@@ -271,7 +279,7 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
             "nogil_batches_per_sample": nogil,
             "samples_per_s": a.shape[0] / wall, "latency_ms": pct, "cpu_percent": cpu / wall * 100,
             "cpu_percent_daemon": None if device is None else cpu / wall * 100 - device,
-            "cpu_percent_emulated_device": device,
+            "cpu_percent_emulated_device": device, "cpu_percent_emulator_process": emu_cpu / wall * 100,
             "cpu_percent_by_thread": threads, "wakeups_by_thread": wakeups,
             "rss_mb": rss, "rss_peak_mb": hwm, "src": src or "this tree", "latency_budget_s": budget_s,
             "line_bytes": float(np.mean(sizes)) if sizes else None,
@@ -294,7 +302,8 @@ def build_relay(tmp: str) -> str | None:
     return exe
 
 
-def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int, uring: bool = False) -> dict:
+def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int, uring: bool = False,
+          budget_s: float | None = None) -> dict:
     """CPU of the bare C relay for the same traffic as gravcald's run: the emulator's stream, ``clients``
     processes each taking one line of ``line_bytes`` per sample; ``uring``: the sends of a wake-up as one
     io_uring batch."""
@@ -303,8 +312,10 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int, u
     frame_bytes, open_cmd = RELAY_BUS[bus]
     tmp = tempfile.mkdtemp(prefix="bench-floor-")
     path = os.path.join(tmp, "relay.sock")
+    testbed = os.path.join(tmp, "testbed")  # i2c: the umockdev testbed the emulator serves /dev/i2c-1 in
+    i2c = ["--testbed", testbed, "--fifo-depth", str(I2C_FIFO_DEPTH)] if bus == "i2c" else []
     emu = subprocess.Popen([sys.executable, "-m", "gravcal.drivers.rigs.emulate", "--bus", bus, "--fs", str(FS),
-                            "--speed", "1", "--scenario", "six_position", "--duration", str(seconds + 120)],
+                            "--speed", "1", "--scenario", "six_position", "--duration", str(seconds + 120), *i2c],
                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     ctx = mp.get_context("fork")
     stop = ctx.Event()
@@ -313,10 +324,16 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int, u
         spec = emu.stdout.readline().strip()  # serial:///.../ttyGRAVCAL0 or can://slcan/.../ttyGRAVCAN0?bitrate=...
         if not spec:
             raise SystemExit(f"the {bus} emulator did not start")
-        tty = spec.split("://", 1)[1].split("?", 1)[0].removeprefix("slcan")
+        env = None
+        if bus == "i2c":  # i2c://1/0x42: the device node, polled as gravcald's driver polls it, under the preload
+            from gravcal.drivers.rigs.i2c_dev import preload_env
+
+            tty, env = f"i2c:/dev/i2c-1:{round(i2c_poll_s(budget_s) * 1e6)}", preload_env(testbed)
+        else:
+            tty = spec.split("://", 1)[1].split("?", 1)[0].removeprefix("slcan")
         relay_proc = subprocess.Popen([relay, *(["--uring"] if uring else []), tty, path, str(clients),
                                        str(line_bytes), str(frame_bytes),
-                                       *([open_cmd] if open_cmd else [])], stdout=subprocess.PIPE, text=True)
+                                       *([open_cmd] if open_cmd else [])], stdout=subprocess.PIPE, text=True, env=env)
         if relay_proc.stdout.readline().strip() != "listening":
             raise SystemExit("the bare relay did not start")
         probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)  # its first client: the lines timed here
@@ -390,7 +407,8 @@ def _show(r: dict) -> str:
             + (f"\n{'':9s}CPU of the process {r['cpu_percent']:.2f} % = gravcald's own {r['cpu_percent_daemon']:.2f} % "
                f"+ the emulated I2C device in its process {r['cpu_percent_emulated_device']:.2f} % (its sampling "
                f"thread and its bus accesses from the driver's thread)"
-               if r["bus"] == "i2c" and r["cpu_percent_emulated_device"] is not None else ""))
+               if r["bus"] == "i2c" and r["cpu_percent_emulated_device"] else "")
+            + f"\n{'':9s}the emulator's own process (not gravcald's): CPU {r['cpu_percent_emulator_process']:.2f} %")
 
 
 def main(argv=None) -> int:
@@ -430,7 +448,8 @@ def main(argv=None) -> int:
             floors = [False, True] if args.floor_uring else [False]
             for uring in floors if relay is not None and bus in RELAY_BUS and t["line_bytes"] else []:
                 pair["floor_uring" if uring else "floor"] = f = floor(relay, bus, n, args.seconds,
-                                                                      round(t["line_bytes"]), uring)
+                                                                      round(t["line_bytes"]), uring,
+                                                                      args.latency_budget)
                 print(f"{'floor':8s} {bus:6s} {n:3d} client(s)  a bare C relay of the same traffic, {f['sends']} "
                       f"({f['line_bytes']} bytes per line, "
                       f"{f['bytes_per_s_per_client'] / f['line_bytes']:.1f} lines/s sent per client, "

@@ -1,15 +1,18 @@
-"""Benchmark: a study of N one-day recordings, files per second.
+"""Benchmark: a study of N one-day recordings, files per second, for several N in one run.
 
-    python bench/bench_study.py [--files 4] [--hours 24] [--fs 100] [--workers 1 2] [--repeat 2] [--cache DIR]
-                                [--json PATH]
+    python bench/bench_study.py [--files 8 20] [--hours 24] [--fs 100] [--workers 0 2] [--forced]
+                                [--processes] [--repeat 2] [--cache DIR] [--json PATH]
 
-Compares, on the same files: a sequential loop over the Python API in this process
-(``gravcal.calibrate(gravcal.read(f))``, imports already paid), and ``run_study`` (what
-``gravcal calibrate DIR --out results.csv --workers N`` runs) on a local dask.distributed
-cluster with 1 and 2 workers, whole run including the cluster's start and stop. On this 2-core
-machine 2 workers can at most double the rate; the cluster's start-up is a fixed cost that a
-longer study amortises. The three runs are repeated in turn (``--repeat``) and each reports its
-fastest: on a shared machine other load only ever slows a run down. The load average is printed.
+Compares, on the same files (the first N of one cached set): a sequential loop over the Python API in
+this process (``gravcal.calibrate(gravcal.read(f))``, imports already paid: the in-process rate), and
+the whole ``gravcal calibrate FILES --out results.csv --workers W`` process for each W (0: in that
+process; 2: the study's plan, io/study_plan.py: Dask worker threads started while the first files
+calibrate there), interpreter start, imports and the cluster's start and close included. With
+``--forced`` also ``--workers 2`` with the plan's Dask threads started whatever its timing says. With
+``--processes`` also ``run_study`` on a LocalCluster of two worker processes started and closed in
+this process (the plan before worker threads; dask.distributed already imported here). The runs are
+repeated in turn (``--repeat``) and each reports its fastest: on a shared machine other load only
+ever slows a run down. The load average is printed; *x* is a row's files/s over the in-process rate.
 
 Input: N consecutive days of one simulated daily-living recording (core.simulate.simulate_blocks,
 seed 0, default sensor), one structured .npy per day (t float64, ax/ay/az float32 duty cycles),
@@ -95,48 +98,104 @@ def sequential_api(paths: list[Path]) -> dict:
     return {"how": "sequential Python API", "wall_s": wall, "files_per_s": len(paths) / wall, "ok": ok}
 
 
-def dask_study(paths: list[Path], workers: int) -> dict:
+FORCED = ("import sys; import gravcal.io.study_plan as plan; plan.DASK_START_S = -1.0; "
+          "sys.argv = ['gravcal', *sys.argv[1:]]; from gravcal.cli.main import console; console()")
+
+
+def cli_study(paths: list[Path], workers: int, forced: bool = False) -> dict:
+    """The whole ``gravcal calibrate FILES --out R --workers W`` process, as a user runs it; ``forced``: the
+    plan's Dask threads started whatever the timed file says (io/study_plan.py DASK_START_S below 0)."""
+    import subprocess
+
+    script = Path(sys.executable).parent / "gravcal"
+    cmd = [str(script)] if script.is_file() else [sys.executable, "-m", "gravcal.cli.main"]
+    if forced:
+        cmd = [sys.executable, "-c", FORCED]
+    with tempfile.TemporaryDirectory() as d:
+        out = Path(d) / "results.csv"
+        t0 = time.perf_counter()
+        r = subprocess.run([*cmd, "calibrate", *map(str, paths), "--out", str(out), "--workers", str(workers)],
+                           capture_output=True, text=True, timeout=3600)
+        wall = time.perf_counter() - t0
+        ok = out.read_text().count(",ok,")
+    plan = r.stderr.strip().splitlines()[-1] if r.stderr.strip() else ""
+    return {"how": f"gravcal calibrate --workers {workers}" + (", threads forced" if forced else ""),
+            "workers": workers, "wall_s": wall,
+            "files_per_s": len(paths) / wall, "ok": ok, "status": r.returncode, "summary": plan}
+
+
+def process_cluster_study(paths: list[Path]) -> dict:
+    """run_study on a LocalCluster of two worker processes (spawned, one thread each), started and closed
+    inside the clock."""
+    import dask
+    from dask.distributed import LocalCluster
+
     from gravcal.io.offline import Options
     from gravcal.io.study import run_study
 
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "results.csv"
         t0 = time.perf_counter()
-        run_study(paths, out, Options(), workers=workers, quiet=True)
+        environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", default={}).items()
+                   if k != "MALLOC_TRIM_THRESHOLD_"}  # with it every large numpy temporary is a fresh mmap
+        with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+            cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
+        try:
+            run_study(paths, out, Options(), scheduler=cluster.scheduler_address, quiet=True)
+        finally:
+            cluster.close()
         wall = time.perf_counter() - t0
         ok = out.read_text().count(",ok,")
-    return {"how": f"run_study, dask LocalCluster, {workers} worker(s)", "workers": workers, "wall_s": wall,
+    return {"how": "run_study, LocalCluster of 2 worker processes", "workers": 2, "wall_s": wall,
             "files_per_s": len(paths) / wall, "ok": ok}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--files", type=int, default=4)
+    ap.add_argument("--files", type=int, nargs="+", default=[8, 20], help="study sizes (the first N of one set)")
     ap.add_argument("--hours", type=float, default=24.0, help="length of each file [h] (default 24: one day)")
     ap.add_argument("--fs", type=float, default=100.0)
-    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--workers", type=int, nargs="+", default=[0, 2], help="gravcal calibrate --workers W runs")
+    ap.add_argument("--processes", action="store_true", help="also a LocalCluster of two worker processes")
+    ap.add_argument("--forced", action="store_true",
+                    help="also --workers 2 with the Dask threads started whatever the plan's timing says")
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--cache")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args()
-    folder = cache_dir(a.cache) / f"bench_study_{a.files}x{a.hours:g}h_{a.fs:g}hz_seed{SEED}"
+    most = max(a.files)
+    folder = cache_dir(a.cache) / f"bench_study_{most}x{a.hours:g}h_{a.fs:g}hz_seed{SEED}"
     folder.mkdir(parents=True, exist_ok=True)
-    paths = generate(folder, a.files, a.hours, a.fs)
-    runs = [lambda: sequential_api(paths)] + [lambda w=w: dask_study(paths, w) for w in a.workers]
-    best: list[dict] = [{}] * len(runs)
-    for _ in range(a.repeat):
-        for i, run in enumerate(runs):
-            r = run()
-            if not best[i] or r["wall_s"] < best[i]["wall_s"]:
-                best[i] = r
-    rows = best
-    n = a.files
-    print(f"{n} files of {a.hours:g} h at {a.fs:g} Hz ({os.cpu_count()} CPUs, load average "
-          f"{', '.join(f'{x:.1f}' for x in os.getloadavg())}), fastest of {a.repeat}")
-    for r in rows:
-        print(f"  {r['how']:<45} {r['wall_s']:7.1f} s  {r['files_per_s']:.3f} files/s  ({r['ok']} of {n} ok)")
+    every = generate(folder, most, a.hours, a.fs)
+    load = [os.getloadavg()]
+    results = []
+    for n in sorted(a.files):
+        paths = every[:n]
+        runs = [lambda: sequential_api(paths)] + [lambda w=w: cli_study(paths, w) for w in a.workers]
+        if a.forced:
+            runs.append(lambda: cli_study(paths, 2, forced=True))
+        if a.processes:
+            runs.append(lambda: process_cluster_study(paths))
+        best: list[dict] = [{}] * len(runs)
+        for _ in range(a.repeat):
+            for i, run in enumerate(runs):
+                r = run()
+                if not best[i] or r["wall_s"] < best[i]["wall_s"]:
+                    best[i] = r
+        results.append({"files": n, "runs": best})
+        load.append(os.getloadavg())
+    print(f"{a.hours:g} h files at {a.fs:g} Hz ({os.cpu_count()} CPUs, load average (1, 5, 15 min) "
+          f"{' -> '.join(', '.join(f'{x:.1f}' for x in l) for l in (load[0], load[-1]))}), fastest of {a.repeat}")
+    for res in results:
+        base = res["runs"][0]["files_per_s"]
+        print(f"{res['files']} files")
+        for r in res["runs"]:
+            print(f"  {r['how']:<48} {r['wall_s']:7.2f} s  {r['files_per_s']:6.3f} files/s  "
+                  f"{r['files_per_s'] / base:5.2f}x  ({r['ok']} of {res['files']} ok)")
+            if r.get("summary"):
+                print(f"      {r['summary']}")
     if a.json:
-        a.json.write_text(json.dumps({"files": n, "hours": a.hours, "fs": a.fs, "runs": rows}, indent=2) + "\n")
+        a.json.write_text(json.dumps({"hours": a.hours, "fs": a.fs, "load": load, "studies": results}, indent=2) + "\n")
     return 0
 
 

@@ -35,6 +35,16 @@ def render_accuracy(d: dict[str, Any]) -> list[str]:
                "test second and the reverse; *insample*: fit and score on everything (not held out). A method that "
                "declines a fold (its own criteria) is marked; *as used* scores it with the data it hands back "
                "(uncalibrated). Lower is better.")
+    if d.get("peer_input") == "windows":
+        out.append("")
+        out.append("The peers here get the SAME windows as gravcal (the fit part's evaluation windows: means in nominal g "
+                   "and their temperatures), and their own full model is fitted on them and applied to the held-out "
+                   "windows (bench/peers_windows.py): *skdh* is scikit-digital-health's closest-point fit, GGIR's "
+                   "g.calibrate (van Hees 2014) as skdh ports it: the GGIR-style fit, offset, scale and temperature "
+                   "per axis; *actipy* is actipy's calibrate_gravity on those windows (its minimum-count and cube gates "
+                   "opened, its fixed 10 mg post-fit gate kept). A gate of the tool that cannot be opened still "
+                   "declines: skdh's ±0.3 g sphere test inside its fit, actipy's 10 mg. imucal needs its annotated "
+                   "Ferraris sections, not windows: it is in the run on the raw samples only.")
     for name, e in recs.items():
         out.append("")
         if "error" in e and "heldout" not in e:
@@ -316,7 +326,10 @@ def render_part(name: str, part: dict[str, Any]) -> list[str]:
     out.append("")
     try:
         if name == "accuracy":
-            out += render_accuracy(ok[0]["json"])
+            for s in ok:
+                if len(ok) > 1:
+                    out += [f"*{s['label']}*", ""]
+                out += render_accuracy(s["json"]) + [""]
         elif name == "daemon":
             out += render_daemon(ok)
         elif name == "efficiency":

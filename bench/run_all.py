@@ -6,7 +6,9 @@
 Parts (each a script of its own, run as a child process with --json, so one failing part is reported
 in the page with its error and the others still run):
 
-    accuracy    bench_accuracy.py     held-out static-window error, gravcal vs the peers, measured + simulated
+    accuracy    bench_accuracy.py     held-out static-window error, gravcal vs the peers, measured + simulated:
+                                      the peers on the raw samples as their users run them, and (--peer-input
+                                      windows) their own models fitted on the same windows as gravcal
     speed       bench_calibrate.py    `gravcal calibrate` on 1..7 simulated days at 100 Hz vs the peers
     daemon      bench_daemon.py       latency frame-in -> socket-out and CPU at 200 Hz (1 and 32 clients),
                                       RSS over >= 2e7 samples extrapolated to 1e8;
@@ -58,7 +60,9 @@ def _script_accepts(script: Path, flag: str) -> bool:
 Step = tuple[str, str, Callable[[bool, str], list[str]]]  # (label, script, argv builder)
 
 PARTS: dict[str, list[Step]] = {
-    "accuracy": [("accuracy", "bench_accuracy.py", lambda q, j: (["--quick"] if q else []) + ["--json", j])],
+    "accuracy": [("accuracy", "bench_accuracy.py", lambda q, j: (["--quick"] if q else []) + ["--json", j]),
+                 ("accuracy, the peers' models on the same windows", "bench_accuracy.py",
+                  lambda q, j: (["--quick"] if q else []) + ["--peer-input", "windows", "--json", j])],
     "speed": [("speed", "bench_calibrate.py", lambda q, j: (["--days", "1"] if q else []) + ["--json", j])],
     "daemon": [
         ("latency, 1 client", "bench_daemon.py",

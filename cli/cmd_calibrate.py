@@ -28,6 +28,7 @@ from ..errors import InputError
 from ..jsonbounds import JSONInputError
 from ..jsonbounds import loads as bounded_loads
 from ..io.report import unit_text
+from .summaries import SUMMARIES
 
 TRUSTED = ("ok", "partial")  # statuses that exit 0 (gravcal.core.verdict.TRUSTED; not imported: --help stays light)
 
@@ -60,7 +61,7 @@ def detector_choices() -> list[str]:
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "calibrate", help="calibrate a recording or a whole study from its quasi-static moments",
+        "calibrate", help=SUMMARIES["calibrate"],
         description="Offline in-use calibration of recordings. CSV (or .csv.gz): header row; columns t [s], ax, ay, "
                     "az (raw units of any scale), optional gx, gy, gz, temp [°C], vsupply [V]; other columns ignored "
                     "(or mapped with --columns). .npy: a structured array with the same field names; .parquet: the same "

@@ -1,7 +1,7 @@
 """``gravcal daemon-demo``: the service end to end, in one command.
 
-Starts ``gravcald --emulate`` as a child process (the emulated logger on a real pty, an slcan
-pty or the fake I2C device, time-lapsed), connects to its socket as any client would, and
+Starts ``gravcald --emulate`` as a child process (the emulated logger, in a process of its own, on a real
+pty, an slcan pty or /dev/i2c-1 through umockdev; time-lapsed), connects to its socket as any client would, and
 prints the calibration converging from the datasheet start: revision, windows, the norm error
 of the calibrated static samples [mg] (|a| - 1 g, what a wrong calibration shows first), and
 the offsets [mg] and sensitivities [%] against the emulated sensor's truth. Then it stops the
@@ -23,6 +23,7 @@ from typing import Any, TextIO
 import numpy as np
 
 from ..errors import InputError
+from .summaries import SUMMARIES
 
 G = 9.80665  # m/s² per g (protocol.STANDARD_GRAVITY)
 DEFAULT_SPEED = {"serial": 50.0, "can": 10.0, "i2c": 50.0}  # slcan's ASCII framing is the slowest link
@@ -33,7 +34,7 @@ HEADER = (" sensor time  rev  win  calibration    static |a|-1g [mg]   offset er
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "daemon-demo",
-        help="run gravcald on the emulated logger and watch its calibration converge (one command)",
+        help=SUMMARIES["daemon-demo"],
         description="Start `gravcald --emulate` (the logger emulator on a pty, time-lapsed), connect to its socket "
                     "and print the calibration converging from the deliberately wrong datasheet start, against the "
                     "emulated sensor's truth; then stop the daemon (state saved) and the emulator.",

@@ -36,6 +36,7 @@ import numpy as np
 
 from ..core.estimators.observability import ORDER_LADDER
 from ..errors import InputError
+from .summaries import SUMMARIES
 
 SOURCE_BLOCK_S = 60.0  # the simulator is cheapest in large blocks (its per-block overhead is ~ms)
 AXES = ("x", "y", "z")
@@ -49,7 +50,7 @@ HEADER = ("   sim time   win order    offset x y z [duty]        sensitivity x y
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "demo", help="simulated wearer -> ring buffer -> detector -> online estimator, converging live",
+        "demo", help=SUMMARIES["demo"],
         description="Stream a simulated daily-living session through the quasi-static detector and the online "
                     "Lötters estimator (order by observability) from a deliberately wrong (datasheet nominal) "
                     "start and print the calibration converging, with the held-out norm error of the next windows.",

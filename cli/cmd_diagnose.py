@@ -17,11 +17,12 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
+from .summaries import SUMMARIES
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "diagnose", help="what the baseline simulation gets wrong on a recording, the cause, the held-out gain",
+        "diagnose", help=SUMMARIES["diagnose"],
         description="Fit the baseline model, re-simulate the session with it, compare measured vs simulated "
                     "statistics, test the catalogue of sensor-model terms (held-out error and BIC), extend "
                     "the model with the terms found and measure the held-out gain.")

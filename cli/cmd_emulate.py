@@ -8,10 +8,11 @@ from __future__ import annotations
 import argparse
 
 from ..drivers.rigs import emulate
+from .summaries import SUMMARIES
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser("emulate", help=emulate.DESCRIPTION, description=emulate.DESCRIPTION)
+    p = subparsers.add_parser("emulate", help=SUMMARIES["emulate"], description=emulate.DESCRIPTION)
     return emulate.configure_parser(p)
 
 

@@ -17,6 +17,7 @@ from typing import Any
 
 from ..errors import InputError
 from ..io.recordings import jsonable
+from .summaries import SUMMARIES
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +38,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
     d = ReproduceConfig()
     p = subparsers.add_parser(
-        "reproduce", help="re-run a paper's experiment (loetters: error vs θ, Sections 3-4)",
+        "reproduce", help=SUMMARIES["reproduce"],
         description="Lötters et al. 1998, Sections 3-4: sensitivity/offset error (eq. 15-16, % of 1 g) against θ "
                     "for orientations 1 and 2, all parameters vs offsets only, Monte-Carlo over seeds. "
                     "docs/loetters.md explains every option.",

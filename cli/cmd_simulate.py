@@ -21,6 +21,7 @@ import numpy as np
 from gravcal.core.model.terms import GROUPS, REGISTRY
 
 from ..errors import InputError
+from .summaries import SUMMARIES
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +47,7 @@ def _kv(text: str) -> tuple[str, Any]:
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "simulate", help="write a simulated recording (CSV or .npy) and its true parameters (JSON)",
+        "simulate", help=SUMMARIES["simulate"],
         description="Simulate the IMU worn through a motion scenario; write the samples in the format "
                     "`gravcal calibrate` reads and the true parameters beside them as FILE.truth.json.",
     )

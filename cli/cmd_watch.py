@@ -12,6 +12,7 @@ from ..clients.client import Client, ClientError, ProtocolMismatchError, default
 from ..closed_pipe import write_or_stop
 from ..errors import InputError
 from ..daemon.protocol import STANDARD_GRAVITY
+from .summaries import SUMMARIES
 
 RECONNECT_S = 1.0  # between attempts to reach gravcald again (--reconnect)
 STATIC_WORDS = {True: "static", False: "moving"}  # null: the detector had no decision recent enough
@@ -20,7 +21,7 @@ STATIC_WORDS = {True: "static", False: "moving"}  # null: the detector had no de
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "watch",
-        help="print calibrated samples and calibration changes from gravcald",
+        help=SUMMARIES["watch"],
         description="Connect to gravcald's socket and print calibrated samples (m/s²) and calibration changes.",
     )
     p.add_argument("--socket", metavar="PATH", default=None,

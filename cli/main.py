@@ -1,8 +1,8 @@
 """The ``gravcal`` command line: argparse with one module per subcommand.
 
 Each subcommand lives in ``cli/cmd_<name>.py`` and exposes ``add_parser(subparsers)``
-and ``run(args) -> int``. Modules import their numerics lazily inside ``run`` so that
-``gravcal --help`` works even while a part of core is missing.
+and ``run(args) -> int``; only the command named is imported. ``gravcal --help`` lists them
+with their lines from cli/summaries.py and imports none.
 
 Exit status: 0 ok, 1 internal error, 2 bad input (one line ``gravcal: error: ...`` on
 stderr), 3 calibration computed but not trustworthy (not converged / not observable),
@@ -20,8 +20,10 @@ import traceback
 from pathlib import Path
 from typing import Sequence
 
+from .._version import __version__
 from ..closed_pipe import write_or_stop
 from ..errors import GravcalError, InputError
+from .summaries import SUMMARIES
 
 EXIT_OK = 0
 EXIT_INTERNAL = 1
@@ -50,27 +52,20 @@ def request_prompt_exit() -> None:
     _PROMPT_EXIT[0] = True
 
 
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version  # ~30 ms: only for --version
-
-    try:
-        return version("gravcal")
-    except PackageNotFoundError:  # pragma: no cover - running from a bare checkout
-        return "unknown"
-
-
 class _VersionAction(argparse.Action):
     def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, **kwargs: object) -> None:
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help="show the version and exit")
 
     def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
-        write_or_stop(f"gravcal {_version()}")
+        write_or_stop(f"gravcal {__version__}")
         parser.exit()
 
 
 def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
-    """The parser; with ``argv`` naming a subcommand, only that subcommand's module is imported
-    (importing all of them costs the numerics' imports of every command; --help imports all)."""
+    """The parser; with ``argv`` naming a subcommand, only that subcommand's module is imported. A command
+    line without one (``gravcal --help``, no command, a typo) lists every subcommand with its line from
+    cli/summaries.py and imports none: their imports load numpy, python-can and the emulator rigs (~1 s).
+    Without ``argv``: the whole parser, every subcommand's module imported."""
     parser = argparse.ArgumentParser(
         prog="gravcal",
         description="In-use calibration of body-worn accelerometers from quasi-static moments (Lötters et al. 1998).",
@@ -80,11 +75,17 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-v info, -vv debug)")
     parser.add_argument("--debug", action="store_true", help="show the traceback of any error")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in _command_names(argv):
+    names = _command_names(argv)
+    if argv is not None and (len(names) != 1 or names[0] != _first_word(argv)):
+        for name in names:  # a listing: nothing imported
+            sub.add_parser(name, help=SUMMARIES.get(name, ""))
+        return parser
+    for name in names:
+        module_name = f"gravcal.cli.cmd_{name.replace('-', '_')}"
         try:
-            module = importlib.import_module(f"gravcal.cli.cmd_{name}")
+            module = importlib.import_module(module_name)
         except ImportError as exc:
-            if getattr(exc, "name", "") != f"gravcal.cli.cmd_{name}":
+            if getattr(exc, "name", "") != module_name:
                 # present but broken (e.g. an optional dependency missing): the other
                 # subcommands must keep working; say why this one is absent.
                 _UNAVAILABLE[name] = f"{type(exc).__name__}: {exc}"
@@ -94,25 +95,30 @@ def build_parser(argv: Sequence[str] | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _first_word(argv: Sequence[str] | None) -> str | None:
+    words = [a for a in (argv or ()) if not a.startswith("-")]
+    return words[0] if words else None
+
+
 def _commands_dir() -> Path:
     return Path(__file__).resolve().parent
 
 
 def _command_names(argv: Sequence[str] | None = None) -> list[str]:
     here = _commands_dir()
-    words = [a for a in (argv or ()) if not a.startswith("-")]
-    if words and (here / f"cmd_{words[0]}.py").is_file() and not {"-h", "--help"} & set(argv or ()):
-        return [words[0]]  # listing the package (pkgutil, inspect: ~15 ms) only for help or a typo
-    found = sorted(m.name[4:] for m in pkgutil.iter_modules([str(here)]) if m.name.startswith("cmd_"))
+    word = _first_word(argv)
+    if word and (here / f"cmd_{word.replace('-', '_')}.py").is_file():
+        return [word]  # listing the package (pkgutil, inspect: ~15 ms) only for a listing or a typo
+    # cmd_daemon_demo.py is the command daemon-demo
+    found = sorted(m.name[4:].replace("_", "-") for m in pkgutil.iter_modules([str(here)]) if m.name.startswith("cmd_"))
     if not found:  # argparse would say "invalid choice (choose from )": say what is wrong instead
         unreadable = not os.access(here, os.R_OK | os.X_OK)
         raise GravcalError(f"no gravcal commands found in {here}" + (
             f": the directory is not readable by this user (uid {os.getuid()}); install gravcal where it can read it"
             if unreadable else ""))
     names = [c for c in COMMANDS if c in found] + [c for c in found if c not in COMMANDS]
-    words = [a for a in (argv or ()) if not a.startswith("-")]
-    if words and words[0] in names and not {"-h", "--help"} & set(argv or ()):
-        return [words[0]]
+    if word in names:
+        return [word]
     return names
 
 
@@ -189,26 +195,13 @@ def pin_blas_threads(argv: Sequence[str]) -> bool:
     return True
 
 
-def asks_version(argv: Sequence[str]) -> bool:
-    """``--version`` among the options before any command word: answered before anything is imported."""
-    for a in argv:
-        if a == "--version":
-            return True
-        if not a.startswith("-") or a in ("-h", "--help"):
-            return False
-    return False
-
-
 def console() -> None:
     """The ``gravcal`` program: ``main()``, then the exit status; after a command that asked for it
     (request_prompt_exit), the standard streams and log handlers are flushed and the process ends
     at once (os._exit: no atexit handlers, no teardown). ``gravcal calibrate`` runs with one OpenBLAS
     thread (pin_blas_threads), and the memory of its file's block statistics is faulted in while the
-    imports run (io/prestart.py); ``main()`` called in-process does neither. ``gravcal --version``
-    prints the version without importing any command (their imports load numpy and the drivers)."""
-    if asks_version(sys.argv[1:]):
-        write_or_stop(f"gravcal {_version()}")
-        sys.exit(EXIT_OK)
+    imports run (io/prestart.py); ``main()`` called in-process does neither. The installed program
+    enters through cli/launch.py, which answers ``gravcal --version`` before this module is imported."""
     pin_blas_threads(sys.argv[1:])
     from ..io import prestart
 

@@ -76,16 +76,23 @@ class Calibration:
         return np.linalg.solve(self.sensitivity, (raw - self.offset).T).T
 
     @property
-    def extended_terms(self) -> tuple[str, ...]:
-        """The terms an extended calibration carries (empty for a plain one); a calibration named after an
-        extended model without its terms' parameters is refused."""
+    def extended_metadata(self) -> dict[str, Any] | None:
+        """``metadata['extended']`` of an extended calibration (its terms, references), None for a plain one;
+        a calibration named after an extended model without it is refused."""
         ext = self.metadata.get("extended") if isinstance(self.metadata, dict) else None
         if not ext:
             if "+" in str(self.model):
                 raise ValueError(f"calibration of extended model {self.model!r} carries no metadata['extended'] "
                                  f"(its terms' parameters are unknown): re-fit it")
-            return ()
-        return tuple(ext.get("terms", ()))
+            return None
+        return ext
+
+    @property
+    def extended_terms(self) -> tuple[str, ...]:
+        """The terms an extended calibration carries (empty for a plain one); a calibration named after an
+        extended model without its terms' parameters is refused."""
+        ext = self.extended_metadata
+        return tuple(ext.get("terms", ())) if ext else ()
 
     @property
     def extended_param_names(self) -> list[str]:

@@ -12,7 +12,7 @@ import numpy as np
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.lotters import LottersBatch
 from gravcal.core.estimators.start import ellipsoid_fit
-from gravcal.core.heldout import HeldoutResult, fold_indices, norm_error_mg, rms_mg
+from gravcal.core.heldout import HeldoutResult, fold_indices, score_folds, train_test_splits
 from gravcal.core.windows import WindowSet
 
 
@@ -33,9 +33,8 @@ def fold_fits_own_start(ws: WindowSet, estimator: LottersBatch, folds: int) -> l
     started from, and holding what it does not fit at, ``fold_bootstrap`` of its own training windows: the
     held-out windows shape nothing the fold's fit uses."""
     out: list[tuple[np.ndarray, Calibration | str]] = []
-    all_idx = np.arange(len(ws))
-    for test in fold_indices(ws.t, "contiguous", folds):
-        train = ws.subset(np.setdiff1d(all_idx, test, assume_unique=True))
+    for test, train_idx in train_test_splits(len(ws), fold_indices(ws.t, "contiguous", folds)):
+        train = ws.subset(train_idx)
         try:
             out.append((test, estimator.fit_fold(train, fold_bootstrap(train))))
         except (ValueError, np.linalg.LinAlgError) as exc:
@@ -47,21 +46,7 @@ def heldout_own_start(ws: WindowSet, estimator: LottersBatch, folds: int, full_f
     """The held-out error of a fit whose start (and held sensitivities) the bootstrap drew from these same
     windows: each fold bootstraps its own start from its training windows (``fold_fits_own_start``), as the
     procedure the user gets did from all of them."""
-    per_window = np.full(len(ws), np.nan)
-    fold_rms, sizes, notes = [], [], []
-    for k, (test, cal) in enumerate(fold_fits_own_start(ws, estimator, folds)):
-        if isinstance(cal, str):
-            notes.append(f"fold {k}: not fitted ({cal})")
-            continue
-        if not cal.converged:
-            notes.append(f"fold {k}: fit did not converge")
-        e = norm_error_mg(cal, ws.subset(test))
-        per_window[test] = e
-        fold_rms.append(float(np.sqrt(np.mean(e ** 2))))
-        sizes.append(int(test.size))
-    done = per_window[np.isfinite(per_window)]
-    held = float(np.sqrt(np.mean(done ** 2))) if done.size else float("nan")
-    notes.append("held-out of the offsets-only fit: each fold's held sensitivities bootstrapped from its training "
-                 "windows only")
-    return HeldoutResult(held, rms_mg(full_fit, ws), "contiguous", folds, fold_rms, sizes, notes,
-                         window_errors_mg=per_window)
+    result = score_folds(ws, fold_fits_own_start(ws, estimator, folds), "contiguous", folds, full_fit)
+    result.notes.append("held-out of the offsets-only fit: each fold's held sensitivities bootstrapped from its "
+                        "training windows only")
+    return result

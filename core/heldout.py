@@ -10,6 +10,7 @@ Folds are CONSECUTIVE in time by default: neighbouring windows of a recording ar
 """
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -96,20 +97,38 @@ def heldout_error(
     est = estimator if estimator is not None else LottersBatch(model)
     if full_fit is None:
         full_fit = est.fit(ws, start)
-    insample = rms_mg(full_fit, ws)
     held = fold_indices(ws.t, scheme, folds)
-    all_idx = np.arange(len(ws))
+
+    def fits() -> Iterable[tuple[np.ndarray, Calibration | str]]:
+        for test, train in train_test_splits(len(ws), held):
+            try:
+                yield test, est.fit_fold(ws.subset(train), start)
+            except ValueError as exc:
+                yield test, str(exc)
+
+    return score_folds(ws, fits(), scheme, len(held), full_fit)
+
+
+def train_test_splits(m: int, held: list[np.ndarray]) -> Iterable[tuple[np.ndarray, np.ndarray]]:
+    """(held-out, training) indices of each fold: the training windows are all the others."""
+    all_idx = np.arange(m)
+    for test in held:
+        yield test, np.setdiff1d(all_idx, test, assume_unique=True)
+
+
+def score_folds(ws: WindowSet, fold_fits: Iterable[tuple[np.ndarray, Calibration | str]], scheme: str, folds: int,
+                full_fit: Calibration) -> HeldoutResult:
+    """Score each fold's fit on its held-out windows: ``fold_fits`` gives (held-out indices, the fit of the
+    other windows, or why it failed) per fold. The held-out RMS pools every fitted fold's windows; a fold
+    not fitted or not converged is noted; ``full_fit`` gives the in-sample RMS."""
     errors: list[np.ndarray] = []
     fold_rms: list[float] = []
     sizes: list[int] = []
     notes: list[str] = []
     per_window = np.full(len(ws), np.nan)
-    for k, test in enumerate(held):
-        train = np.setdiff1d(all_idx, test, assume_unique=True)
-        try:
-            cal = est.fit_fold(ws.subset(train), start)
-        except ValueError as exc:
-            notes.append(f"fold {k}: not fitted ({exc})")
+    for k, (test, cal) in enumerate(fold_fits):
+        if isinstance(cal, str):
+            notes.append(f"fold {k}: not fitted ({cal})")
             continue
         if not cal.converged:
             notes.append(f"fold {k}: fit did not converge")
@@ -122,4 +141,4 @@ def heldout_error(
     heldout = float(np.sqrt(np.mean(pooled**2))) if pooled.size else float("nan")
     if not errors:
         notes.append("no fold could be fitted: held-out error unavailable")
-    return HeldoutResult(heldout, insample, scheme, len(held), fold_rms, sizes, notes, per_window)
+    return HeldoutResult(heldout, rms_mg(full_fit, ws), scheme, folds, fold_rms, sizes, notes, per_window)

@@ -5,6 +5,8 @@ import argparse
 import logging
 import math
 import os
+import shutil
+import sys
 import tempfile
 from typing import Any, Sequence
 
@@ -32,14 +34,38 @@ def emulated_truth(scenario: str, seed: int) -> Calibration | None:
     return triad_truth(default_model(seed_streams(seed)[1]))
 
 
+PRELOAD_NOTE = "umockdev's preload library (Debian: apt-get install umockdev)"
+
+
+def exec_under_i2c_preload() -> str | None:
+    """``--emulate --bus i2c``: the emulated device answers this process's /dev/i2c-N ioctls from its own process
+    through umockdev's preload library, which the dynamic linker loads only at a program's start: start again
+    (the same process id and arguments) with it. Returns only when already under it (None) or when the library
+    is missing (the reason)."""
+    from ..drivers.rigs.i2c_dev import preload_library, preloaded
+
+    if preloaded():
+        return None
+    if preload_library() is None:
+        return f"--emulate --bus i2c needs {PRELOAD_NOTE}"
+    from ..drivers.rigs.i2c_dev import PRELOAD_LIBRARY
+
+    env = dict(os.environ)
+    env["LD_PRELOAD"] = ":".join(p for p in (PRELOAD_LIBRARY, env.get("LD_PRELOAD", "")) if p)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execve(sys.executable, list(sys.orig_argv), env)
+    return None  # not reached
+
+
 class EmulatedBus:
     """``gravcald --emulate``: the logger emulator stands in for the hardware.
 
-    serial/can: the emulator runs in a child process (drivers/rigs/hil.py) on a real pty (serial
-    frames) or an slcan pty (python-can's slcan interface opens it); the daemon opens the device
-    path like a USB adapter. i2c: the fake I2C device runs in this process behind the real
-    I2CDriver (there is no kernel I2C to share). The sensor is drawn off-nominal from ``seed``;
-    the daemon starts from the datasheet values as usual, i.e. deliberately wrong.
+    The emulator runs in a child process (drivers/rigs/hil.py) on a real pty (serial frames), an slcan pty
+    (python-can's slcan interface opens it), or (i2c) behind ``/dev/i2c-N`` in a umockdev testbed (this
+    process runs under umockdev's preload library and its ioctls are answered by the emulator's process:
+    drivers/rigs/i2c_dev.py); the daemon opens the device like hardware. The sensor is drawn off-nominal from
+    ``seed``; the daemon starts from the datasheet values as usual, i.e. deliberately wrong.
 
     With a time-lapse ``speed`` the device ticks run ``speed`` times faster than the host clock,
     so the drivers' host time stamps (``tick_hz`` scaled by ``speed``) stay monotonic; the
@@ -53,15 +79,11 @@ class EmulatedBus:
             raise ValueError(f"--bus must be serial, can or i2c, got {bus!r}")
         if not speed > 0:
             raise ValueError(f"--speed must be > 0, got {speed}")
-        if bus == "i2c" and driver_options.strip("&?"):
-            raise ValueError("--driver-options applies to the serial and can buses (i2c: [device] latency_budget_s "
-                             "in a --config file sets its FIFO watermark)")
         self.bus, self.scenario, self.seed, self.speed, self.fs = bus, scenario, int(seed), float(speed), float(fs)
         self.duration, self.disconnects = float(duration), tuple(disconnects)
         self.driver_options = driver_options.strip("&?")
-        self.process: Any = None  # EmulatorProcess (serial/can)
-        self.device: Any = None  # FakeI2CDevice (i2c)
-        self.piped: Any = None  # the i2c device's scenario blocks, made in a child process (PipedBlocks)
+        self.process: Any = None  # EmulatorProcess
+        self.testbed: str | None = None  # i2c: the umockdev testbed directory holding /dev/i2c-N
         self.spec = ""
         self.truth: Calibration | None = None  # set by open() (imports the simulator: not before the socket is bound)
 
@@ -70,28 +92,33 @@ class EmulatedBus:
 
         return TICK_HZ * self.speed if math.isfinite(self.speed) else 0.0  # 0: stamp blocks at reception
 
-    def open(self, *, latency_budget_s: float = 0.0) -> Any:
-        """Start the emulator and return the opened driver (``latency_budget_s``: the driver's)."""
-        self.truth = emulated_truth(self.scenario, self.seed)
-        if self.speed > 1:
-            latency_budget_s = max(latency_budget_s, TIME_LAPSE_LATENCY_BUDGET_S)
-        if self.bus == "i2c":
-            return self._open_i2c(latency_budget_s)
-        from ..drivers.base import open_driver
-
+    def _start_emulator(self, extra: list[str]) -> None:
         args = ["--bus", self.bus, "--scenario", self.scenario, "--seed", str(self.seed),
                 "--speed", "max" if math.isinf(self.speed) else repr(self.speed), "--fs", repr(self.fs),
-                "--duration", repr(self.duration)]
+                "--duration", repr(self.duration), *extra]
         for start, dur in self.disconnects:
             args += ["--disconnect-at", f"{start!r}:{dur!r}"]
-        # the device stays plugged in after the stream ends; its own session: a Ctrl-C at the terminal reaches only
-        # the daemon, which then saves its state and stops the emulator itself
-        proc = EmulatorProcess(args, linger=-1.0, new_session=True)
+        # the device stays plugged in after the stream ends; its own process group: a Ctrl-C at the terminal reaches
+        # only the daemon, which then saves its state and stops the emulator itself
+        proc = EmulatorProcess(args, linger=-1.0, own_process_group=True)
         try:
             proc.__enter__()
         except RuntimeError as exc:
             raise ValueError(f"--emulate: {exc}") from None
         self.process = proc
+
+    def open(self, *, latency_budget_s: float = 0.0) -> Any:
+        """Start the emulator and return the opened driver (``latency_budget_s``: the driver's)."""
+        from ..drivers.base import open_driver
+
+        self.truth = emulated_truth(self.scenario, self.seed)
+        if self.speed > 1:
+            latency_budget_s = max(latency_budget_s, TIME_LAPSE_LATENCY_BUDGET_S)
+        if self.bus == "i2c":
+            self._start_i2c()
+        else:
+            self._start_emulator([])
+        proc = self.process
         self.spec = proc.spec + ("&" if "?" in proc.spec else "?") + f"tick_hz={self._tick_hz():.0f}"
         if self.driver_options:
             self.spec += "&" + self.driver_options
@@ -100,30 +127,21 @@ class EmulatedBus:
             driver.latency_budget_s = latency_budget_s
         return driver.open()
 
-    def _open_i2c(self, latency_budget_s: float) -> Any:
-        from ..drivers.rigs.emulator import Faults
-        from ..drivers.rigs.fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec, realtime_options
-        from ..drivers.rigs.sources import PATTERN, scenario_source
+    def _start_i2c(self) -> None:
+        """The emulator serves /dev/i2c-N in a umockdev testbed; this process, under the preload library
+        (:func:`exec_under_i2c_preload`), opens it there once UMOCKDEV_DIR names the testbed."""
+        from ..drivers.rigs.i2c_dev import preloaded
 
-        speed = self.speed if math.isfinite(self.speed) else 100.0  # a FIFO fills at a finite pace
-        if self.scenario == PATTERN:
-            blocks = scenario_source(self.scenario, seed=self.seed, fs=self.fs, duration=self.duration).blocks
-        else:  # the sensor model (scipy.signal) runs in a child process, not in the daemon
-            from ..drivers.rigs.block_pipe import PipedBlocks
-
-            blocks = self.piped = PipedBlocks(self.scenario, seed=self.seed, fs=self.fs, duration=self.duration)
-        depth = 255  # the deepest FIFO the register map allows: room for the host's scheduling jitter
-        self.device = device = FakeI2CDevice(blocks, self.fs, speed=speed, fifo_depth=depth,
-                                             faults=Faults(disconnects=self.disconnects, seed=self.seed))
-        # the device samples in real time and raises DRDY; the driver sleeps on that line
-        driver = FakeI2CDriver(device, tick_hz=self._tick_hz(), latency_budget_s=latency_budget_s,
-                               **realtime_options(device))
-        self.spec = fake_i2c_spec(device, scenario=self.scenario, seed=self.seed, fs=self.fs)
-        return driver.open()
+        if not preloaded():
+            raise ValueError(f"--bus i2c: gravcald did not start under {PRELOAD_NOTE}")
+        self.testbed = tempfile.mkdtemp(prefix="gravcal-i2c-")
+        # the deepest FIFO the register map allows: room for the host's scheduling jitter
+        self._start_emulator(["--fifo-depth", "255", "--testbed", self.testbed])
+        os.environ["UMOCKDEV_DIR"] = self.testbed  # the preload reads it at each open (and putenv sets it)
 
     def describe(self) -> str:
         where = {"serial": "a pty", "can": "an slcan pty",
-                 "i2c": "a fake I2C device (in process; its samples from a child process)"}[self.bus]
+                 "i2c": f"/dev/i2c-N of the umockdev testbed {self.testbed}"}[self.bus]
         pid = f", emulator pid {self.process.proc.pid}" if self.process is not None else ""
         return (f"emulated {self.bus} logger on {where}{pid}: scenario {self.scenario}, seed {self.seed}, "
                 f"{self.fs:g} Hz, speed {self.speed:g}x; device {self.spec}")
@@ -134,22 +152,20 @@ class EmulatedBus:
         if self.process is not None:
             out["events"] = list(self.process.events)
             out["stream_done"] = self.process.done_line
-        if self.device is not None:  # the fake device's CPU in the driver's thread (a real I2C device costs none)
-            out["bus_access_cpu_s"] = self.device.bus_cpu_s
         if self.truth is not None:  # what the estimate should converge to (raw = K a + o)
             out["truth"] = {"offset": self.truth.offset.tolist(), "sensitivity": self.truth.sensitivity.tolist()}
         return out
 
     def close(self) -> None:
-        if self.piped is not None:
-            self.piped.close()
-            self.piped = None
         if self.process is not None:
             self.process.__exit__(None, None, None)
             err = (getattr(self.process, "stderr", "") or "").strip()
             if err:
                 log.debug("emulator stderr: %s", err[-2000:])
             self.process = None
+        if self.testbed is not None:
+            shutil.rmtree(self.testbed, ignore_errors=True)
+            self.testbed = None
 
 
 

@@ -35,7 +35,7 @@ from . import memory_probe, privileges
 from ..closed_pipe import write_or_stop
 from .config import ConfigError
 from ..errors import InputError
-from .emulation import EmulatedBus, announce_emulation, discard_if_empty, emulation_defaults
+from .emulation import EmulatedBus, announce_emulation, discard_if_empty, emulation_defaults, exec_under_i2c_preload
 from .socket_activation import SocketPathError
 from .service import Gravcald
 
@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
         "a fresh temporary directory (printed at start); /etc/gravcal/gravcald.toml is not read (use --config).")
     e.add_argument("--emulate", action="store_true", help="use the emulator as the device")
     e.add_argument("--bus", choices=("serial", "can", "i2c"), default="serial",
-                   help="emulated bus: serial (pty), can (slcan on a pty) or i2c (fake device) (default serial)")
+                   help="emulated bus: serial (pty), can (slcan on a pty) or i2c (/dev/i2c-N through umockdev) (default serial)")
     e.add_argument("--speed", type=speed_arg, default=1.0, metavar="X",
                    help="time-lapse factor of the emulated logger (1 = real time, default; 'max' = no pacing)")
     e.add_argument("--seed", type=int, default=0, help="seed of the emulated sensor and wearer (default 0)")
@@ -127,6 +127,11 @@ def main(argv: Sequence[str] | None = None, *, driver: Any = None, environ: dict
     elif not (args.duration > 0 and math.isfinite(args.duration)):
         print(f"gravcald: error: --duration must be a positive number of seconds, got {args.duration}", file=sys.stderr)
         return 2
+    if args.emulate and args.bus == "i2c" and argv is None and driver is None and not args.print_config:
+        problem = exec_under_i2c_preload()  # returns only when already under the preload, or without it
+        if problem:
+            print(f"gravcald: error: {problem}", file=sys.stderr)
+            return 2
     overrides = overrides_from_args(args)
     emulate_dirs = emulation_defaults(args, overrides) if args.emulate and not args.print_config else []
     try:

@@ -3,9 +3,10 @@
 Rows are appended and flushed as files finish, so an interrupted run (Ctrl-C) leaves a valid results
 file holding the files done so far, and a re-run skips them (resume). Rows are keyed by the file's
 resolved path, so a re-run from another folder finds them; an error row is not done: a re-run
-replaces it with a new attempt. The work runs on a
-dask.distributed cluster: a local one (``workers``) or an existing one (``scheduler``); with
-``workers=0`` in this process. Dask and tqdm are imported here only (the ``study`` extra).
+replaces it with a new attempt. The work runs on an existing dask.distributed cluster (``scheduler``),
+on local Dask worker threads started while this process calibrates the first files (``workers``;
+io/study_plan.py), or with ``workers=0`` in this process. Dask and tqdm are imported here and in
+io/study_plan.py only (the ``study`` extra).
 """
 from __future__ import annotations
 
@@ -13,10 +14,13 @@ import csv
 import logging
 import os
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 from ..errors import InputError
+from . import study_plan
 from .offline import Options
 
 log = logging.getLogger(__name__)
@@ -79,12 +83,30 @@ def calibrate_file(path: str, opts: Options, write_to: str | None = None) -> dic
     """One results row; never raises (a broken file is a row with its error). ``write_to``: where its
     calibrated samples go (io.calibrated; only for status ok or partial)."""
     row: dict[str, Any] = {"file": path}
-    quiet = logging.getLogger("gravcal")
-    level, quiet.level = quiet.level, logging.ERROR  # the row carries the warnings; no interleaved log lines
-    try:
+    with _rows_carry_the_warnings():
         return _calibrate_file(path, opts, row, write_to)
+
+
+_quiet = threading.Lock()
+_quiet_state = [0, logging.NOTSET]  # files being calibrated in this process, the gravcal logger's level before
+
+
+@contextmanager
+def _rows_carry_the_warnings() -> Iterator[None]:
+    """The gravcal logger at ERROR while any file of the study is being calibrated in this process (worker
+    threads overlap): the row carries the warnings; no interleaved log lines."""
+    quiet = logging.getLogger("gravcal")
+    with _quiet:
+        if _quiet_state[0] == 0:
+            _quiet_state[1], quiet.level = quiet.level, logging.ERROR
+        _quiet_state[0] += 1
+    try:
+        yield
     finally:
-        quiet.setLevel(level)
+        with _quiet:
+            _quiet_state[0] -= 1
+            if _quiet_state[0] == 0:
+                quiet.setLevel(_quiet_state[1])
 
 
 def _calibrate_file(path: str, opts: Options, row: dict[str, Any], write_to: str | None = None) -> dict[str, Any]:
@@ -132,59 +154,60 @@ def _one_line(msg: Any, limit: int = 300) -> str:
 
 
 def _results(files: list[str], opts: Options, workers: int | None, scheduler: str | None,
-             targets: list[str | None]) -> Iterator[dict[str, Any]]:
-    if workers == 0 and not scheduler:
-        for f, w in zip(files, targets):
-            yield calibrate_file(f, opts, w) if w else calibrate_file(f, opts)
-        return
-    try:
-        from dask.distributed import Client, LocalCluster, as_completed
-    except ImportError:
-        raise InputError("a study on Dask needs dask.distributed: pip install 'gravcal[study]' "
-                         "(or --workers 0 to run in this process)") from None
-    if logging.getLogger().level > logging.INFO:  # the cluster's start/stop chatter only with -v
-        logging.getLogger("distributed").setLevel(logging.WARNING)
-    cluster = None
-    if scheduler:
-        try:
-            client = Client(scheduler, timeout="15s")
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise InputError(f"--scheduler {scheduler}: cannot reach a dask scheduler there "
-                             f"({type(exc).__name__}: {_one_line(exc, 120)})") from None
-    else:
-        import dask
+             targets: list[str | None], plan: study_plan.Plan | None = None) -> Iterator[dict[str, Any]]:
+    plan = plan if plan is not None else study_plan.Plan()
 
-        n = min(workers or os.cpu_count() or 1, len(files))  # no worker started for no file
-        # Dask's default MALLOC_TRIM_THRESHOLD_ fixes glibc's mmap threshold, so each large numpy
-        # temporary becomes a fresh mmap with its page faults: measured 2x the CPU per recording
-        environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", default={}).items()
-                   if k != "MALLOC_TRIM_THRESHOLD_"}
-        # the nannies set these in this process's environment to pass them on, and leave them: a calibration
-        # here afterwards would read OPENBLAS_NUM_THREADS=1 as "BLAS started single-threaded" and not limit it
-        kept = {k: os.environ.get(k) for k in environ}
-        try:
-            with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
-                cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0")
-        finally:
-            for k, v in kept.items():
-                if v is None:
-                    os.environ.pop(k, None)
-                else:
-                    os.environ[k] = v
-        client = Client(cluster)
+    def here(f: str, w: str | None) -> dict[str, Any]:
+        return calibrate_file(f, opts, w) if w else calibrate_file(f, opts)
+
+    if scheduler:
+        yield from _on_scheduler(scheduler, files, targets, opts, plan)
+        return
+    if workers == 0:
+        plan.reason = "--workers 0"
+        for f, w in zip(files, targets):
+            yield here(f, w)
+            plan.in_process += 1
+        return
+    yield from study_plan.local_rows(list(zip(files, targets)), here, lambda client, items: _cluster_rows(
+        client, [f for f, _ in items], [w for _, w in items], opts), workers or os.cpu_count() or 1, plan)
+
+
+def _on_scheduler(scheduler: str, files: list[str], targets: list[str | None], opts: Options,
+                  plan: study_plan.Plan) -> Iterator[dict[str, Any]]:
     try:
-        futures = (client.map(calibrate_file, files, targets, opts=opts, pure=False) if any(targets)
-                   else client.map(calibrate_file, files, opts=opts, pure=False))
-        file_of = {fut.key: f for fut, f in zip(futures, files)}
-        for fut in as_completed(futures):
-            try:
-                yield fut.result()
-            except Exception as exc:  # noqa: BLE001 - a worker killed (e.g. out of memory) on one file
-                yield {"file": file_of[fut.key], "status": "error", "message": _one_line(f"{type(exc).__name__}: {exc}")}
+        from dask.distributed import Client
+    except ImportError:
+        raise InputError("--scheduler needs dask.distributed: pip install 'gravcal[study]'") from None
+    if logging.getLogger().level > logging.INFO:  # the client's chatter only with -v
+        logging.getLogger("distributed").setLevel(logging.WARNING)
+    try:
+        client = Client(scheduler, timeout="15s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise InputError(f"--scheduler {scheduler}: cannot reach a dask scheduler there "
+                         f"({type(exc).__name__}: {_one_line(exc, 120)})") from None
+    plan.reason = f"on the scheduler at {scheduler}"
+    try:
+        for row in _cluster_rows(client, files, targets, opts):
+            plan.on_cluster += 1
+            yield row
     finally:
         client.close()
-        if cluster is not None:
-            cluster.close()
+
+
+def _cluster_rows(client: Any, files: list[str], targets: list[str | None], opts: Options) -> Iterator[dict[str, Any]]:
+    """The rows of ``files`` calibrated on ``client``'s cluster, as they finish; a task that dies (a
+    worker killed, e.g. out of memory) is an error row."""
+    from dask.distributed import as_completed
+
+    futures = (client.map(calibrate_file, files, targets, opts=opts, pure=False) if any(targets)
+               else client.map(calibrate_file, files, opts=opts, pure=False))
+    file_of = {fut.key: f for fut, f in zip(futures, files)}
+    for fut in as_completed(futures):
+        try:
+            yield fut.result()
+        except Exception as exc:  # noqa: BLE001
+            yield {"file": file_of[fut.key], "status": "error", "message": _one_line(f"{type(exc).__name__}: {exc}")}
 
 
 def _progress(total: int, off: bool) -> Any:
@@ -239,20 +262,24 @@ def run_study(paths: list[Path], out: Path, opts: Options, *, workers: int | Non
         log.warning("%s: %d of %d files already done, skipped", out, len(files) - len(todo), len(files))
     new = not out.exists() or out.stat().st_size == 0
     counts: dict[str, int] = {}
+    plan = study_plan.Plan()
     with open(out, "a", newline="", encoding="utf-8") as f, \
             _progress(len(todo), quiet or not sys.stderr.isatty()) as bar:
         writer = csv.DictWriter(f, fieldnames=FIELDS, extrasaction="ignore")
         if new:
             writer.writeheader()
             f.flush()
-        for row in (_results(todo, opts, workers, scheduler, targets) if todo else ()):  # no cluster for nothing
+        for row in (_results(todo, opts, workers, scheduler, targets, plan) if todo else ()):  # no cluster for nothing
             writer.writerow(row)
             f.flush()
             counts[row["status"]] = counts.get(row["status"], 0) + 1
             bar.update(1)
     summary = ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) or "nothing new"
+    where = f"; {plan.summary()}" if todo else ""
+    if todo:
+        log.info("study plan: %s", plan.summary())
     if not quiet:
-        print(f"gravcal: {len(todo)} file(s) calibrated ({summary}); results in {out}", file=sys.stderr)
+        print(f"gravcal: {len(todo)} file(s) calibrated ({summary}{where}); results in {out}", file=sys.stderr)
     if counts.get("error"):
         print(f"gravcal: error: {counts['error']} file(s) could not be calibrated (status error in {out}; "
               f"a re-run tries them again)", file=sys.stderr)

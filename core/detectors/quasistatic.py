@@ -12,12 +12,10 @@ from .windowing import (
     _THREAD_MIN_BLOCK,
     ToG,
     _as_to_g,
-    _channel_major,
     _diagonal_affine,
     _filter_rows,
     _forward_fill,
     settle_samples,
-    _unsettled,
     _Windower,
 )
 
@@ -128,15 +126,12 @@ class QuasiStaticDetector(_Windower):
         t, raw, aux, ok = self._check_block(t, raw, aux)
         n = raw.shape[0]
         j0 = self.n_seen
-        self.counts["samples"] += n
         u = self._channels_of(raw)  # (channels, n): the norm (eq. 1), then the axes (per_axis)
         with np.errstate(invalid="ignore", over="ignore"):
             if ok is not None or not np.isfinite(np.add.reduce(u[0])):  # a norm may overflow, or to_g give NaN
                 fin = np.isfinite(u[0])
                 ok = fin if ok is None else ok & fin
-        if ok is not None:
-            self.counts["nonfinite"] += int(n - np.count_nonzero(ok))
-        gap = self._gaps(t, ok)
+        gap = self._count_block(t, ok)
 
         det = np.empty(n)
         begin = 0
@@ -158,14 +153,7 @@ class QuasiStaticDetector(_Windower):
         else:
             det[begin:] = np.inf
         self.last_detection = det
-
-        still = det < self.threshold_g
-        if ok is not None:
-            still &= ok
-        if gap is not None:
-            still &= ~gap
-        _unsettled(still, j0, self._start, self.settle_n)
-        return self._windows_from_still(t, *_channel_major(raw, aux), still)
+        return self._still_windows(t, raw, aux, det < self.threshold_g, ok, gap, j0, self._start, self.settle_n)
 
     def _filter(self, v: np.ndarray) -> None:
         """HPF -> rectifier -> LPF (eq. 2) of every channel of v (channels, n), in place. With

@@ -8,10 +8,8 @@ from ..accelerator import kernels
 from .quasistatic import QuasiStaticDetector
 from .windowing import (
     ToG,
-    _channel_major,
     _finite_rows,
     _forward_fill,
-    _unsettled,
     _Windower,
 )
 
@@ -65,15 +63,12 @@ class MovingVarianceDetector(_Windower):
         t, raw, aux, ok = self._check_block(t, raw, aux)
         n = raw.shape[0]
         j0 = self.n_seen
-        self.counts["samples"] += n
         x = self._to_g(raw)
         with np.errstate(invalid="ignore", over="ignore"):
             if ok is not None or not np.isfinite(np.add.reduce(x, axis=None)):  # to_g may give NaN/inf
                 fin = _finite_rows(x)
                 ok = fin if ok is None else ok & fin
-        if ok is not None:
-            self.counts["nonfinite"] += int(n - np.count_nonzero(ok))
-        gap = self._gaps(t, ok)
+        gap = self._count_block(t, ok)
         if self._ref is None and n and (ok is None or ok.any()):
             first = 0 if ok is None else int(np.flatnonzero(ok)[0])
             self._ref, self._start = x[first].copy(), j0 + first
@@ -97,12 +92,6 @@ class MovingVarianceDetector(_Windower):
         moving_std(ext, self.w, self._sum, det)
         self._hist = ext[:, n:].copy()
         self.last_detection = det
-        still = det < self.threshold_g
-        if ok is not None:
-            still &= ok
-        if gap is not None:
-            still &= ~gap
-        _unsettled(still, j0, self._start, self.w - 1)
-        return self._windows_from_still(t, *_channel_major(raw, aux), still)
+        return self._still_windows(t, raw, aux, det < self.threshold_g, ok, gap, j0, self._start, self.w - 1)
 
     flush = QuasiStaticDetector.flush

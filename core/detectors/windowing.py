@@ -368,6 +368,28 @@ class _Windower:
             return t, raw, aux, None  # ok = None: every sample is finite
         return t, raw, aux, _finite_rows(raw) & np.isfinite(t)
 
+    def _count_block(self, t: np.ndarray, ok: np.ndarray | None) -> np.ndarray | None:
+        """Count the block's samples and those not usable (``ok`` False); the gap before each sample
+        (``_gaps``)."""
+        n = t.shape[0]
+        self.counts["samples"] += n
+        if ok is not None:
+            self.counts["nonfinite"] += int(n - np.count_nonzero(ok))
+        return self._gaps(t, ok)
+
+    def _still_windows(self, t: np.ndarray, raw: np.ndarray, aux: np.ndarray, still: np.ndarray,
+                       ok: np.ndarray | None, gap: np.ndarray | None, j0: int, start: int | None,
+                       settle_n: int) -> list[Window]:
+        """The windows a block (first sample j0) completes: ``still``, the detector's verdict per sample
+        (cleared in place), holds only at usable samples with no gap before them, from ``settle_n`` samples
+        after the detector's first usable sample ``start`` on."""
+        if ok is not None:
+            still &= ok
+        if gap is not None:
+            still &= ~gap
+        _unsettled(still, j0, start, settle_n)
+        return self._windows_from_still(t, *_channel_major(raw, aux), still)
+
     def _gaps(self, t: np.ndarray, ok: np.ndarray | None) -> np.ndarray | None:
         """gap_before[i]: time jumped by more than 1.5/fs (a dropout) or did not increase.
         None when there is no gap (the common case: one diff, one min and one max)."""

@@ -480,13 +480,10 @@ def _extended_parameters(cal: Calibration) -> tuple[ExtendedParameterization, np
     """The parameterization and parameter vector of an extended calibration; None for a plain one.
     Raises ValueError for a calibration named after an extended model that lacks what apply needs
     (applying its reference K, o alone would silently drop the terms)."""
-    ext = cal.metadata.get("extended") if isinstance(cal.metadata, dict) else None
-    params = cal.metadata.get("params") if isinstance(cal.metadata, dict) else None
-    if not ext:
-        if "+" in str(cal.model):
-            raise ValueError(f"calibration of extended model {cal.model!r} carries no metadata['extended'] (its "
-                             f"terms' parameters are unknown): re-fit it")
+    ext = cal.extended_metadata
+    if ext is None:
         return None
+    params = cal.metadata.get("params")
     refs = references(ext)
     par = extended_class(cal.model)(cal.sensitivity, cal.offset, t_ref_c=refs["temp"], t0_s=refs["time"],
                                     v_ref=refs["vsupply"], temp_column=ext.get("temp_column", 0),

@@ -196,15 +196,22 @@ def _raw_parameter_covariance(coef, design, w, full, c0, r0) -> tuple[list[str],
         o_u, K_u = _quadric_to_ellipsoid(c, full)
         return np.concatenate([[r0 * K_u[i, j] for i, j in pairs], c0 + r0 * o_u])
 
-    jac = np.empty((len(names), n_p))
-    for j in range(n_p):
+    jac = _central_jacobian(raw_params, coef)
+    cov = jac @ cov_coef @ jac.T
+    return names, 0.5 * (cov + cov.T)
+
+
+def _central_jacobian(f, coef: np.ndarray) -> np.ndarray:
+    """d f(coef) / d coef by central differences, one column per coefficient (step 1e-6 of its size, at
+    least 1e-9): how the quadric's covariance reaches the parameters derived from it."""
+    jac = []
+    for j in range(coef.shape[0]):
         h = 1e-6 * max(abs(coef[j]), 1e-3)
         cp, cm = coef.copy(), coef.copy()
         cp[j] += h
         cm[j] -= h
-        jac[:, j] = (raw_params(cp) - raw_params(cm)) / (2 * h)
-    cov = jac @ cov_coef @ jac.T
-    return names, 0.5 * (cov + cov.T)
+        jac.append((f(cp) - f(cm)) / (2 * h))
+    return np.column_stack(jac)
 
 
 def _parameter_std(coef, design, w, sigma_g, full) -> tuple[np.ndarray, dict[str, float]]:
@@ -218,15 +225,7 @@ def _parameter_std(coef, design, w, sigma_g, full) -> tuple[np.ndarray, dict[str
     cov = (2.0 * sigma_g) ** 2 * np.linalg.pinv(dw.T @ dw)
     o0, K0 = _quadric_to_ellipsoid(coef, full)
     scale = float(np.mean(np.diag(K0)))
-    jac = np.empty((12, coef.shape[0]))
-    for j in range(coef.shape[0]):
-        h = 1e-6 * max(abs(coef[j]), 1e-3)
-        cp, cm = coef.copy(), coef.copy()
-        cp[j] += h
-        cm[j] -= h
-        (op, Kp), (om, Km) = _quadric_to_ellipsoid(cp, full), _quadric_to_ellipsoid(cm, full)
-        jac[:3, j] = (op - om) / (2 * h) / scale
-        jac[3:, j] = (Kp - Km).ravel() / (2 * h) / scale
+    jac = _central_jacobian(lambda c: np.concatenate(_quadric_to_ellipsoid(c, full), axis=None), coef) / scale
     sd = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", jac, cov, jac), 0.0, None))
     names = [(i, j) for i in range(3) for j in range(3) if (full and j >= i) or i == j]
     return sd[:3], {("xyz"[i] + "xyz"[j] if i != j else "xyz"[i]): float(sd[3 + 3 * i + j]) for i, j in names}

@@ -4,12 +4,11 @@
     python -m gravcal.drivers.rigs.emulate --bus can --replay walk.csv --drop 0.01
     python -m gravcal.drivers.rigs.emulate --bus i2c --scenario static --fifo-depth 8
 
-(``gravcal emulate`` is the same command.) serial/can: prints the driver spec to use (first line
-of stdout; a stable symlink to a pty, e.g. ``serial:///tmp/gravcal-emu-x/ttyGRAVCAL0``), then
-streams until the source ends (or Ctrl-C), printing ``event:`` lines for disconnects and a
-final ``done:`` line. i2c: smbus2 has no kernel I2C here, so the fake device runs in this
-process and the I2C driver reads it (a loopback of the register map and FIFO); the spec
-printed, ``fake-i2c://...``, gives the same fake to any other program in-process.
+(``gravcal emulate`` is the same command.) Prints the driver spec to use (first line of stdout: serial/can a
+stable symlink to a pty, e.g. ``serial:///tmp/gravcal-emu-x/ttyGRAVCAL0``; i2c ``i2c://1/0x42``, the
+logger behind ``/dev/i2c-1`` of a umockdev testbed, for a host started with the environment printed on
+stderr: ``LD_PRELOAD=libumockdev-preload.so.0 UMOCKDEV_DIR=...``), then streams until the source ends (or
+Ctrl-C), printing ``event:`` lines for disconnects and a final ``done:`` line.
 ``--record FILE.npz`` writes every sample sent and its fate (sent, dropped, corrupted,
 offline, ...) to compare with what the host got.
 """
@@ -24,13 +23,15 @@ from typing import Sequence
 
 import numpy as np
 
+from ..codec import FRAME_LEN
 from .can_links import SlcanPtyLink
 from .emulator import Emulator, Faults, PtyLink, SentLog
-from .fake_i2c import FakeI2CDevice, FakeI2CDriver, fake_i2c_spec, realtime_options
+from .fake_i2c import I2C_RDWR_MAX_LEN, FakeI2CDevice, realtime_options
+from .i2c_dev import I2CDevServer
 from .options import disconnect_arg, positive_arg, probability_arg, speed_arg
 from .sources import replay_source, scenario_source
 
-DESCRIPTION = "emulate the logger on a serial pty, slcan pty, or fake I2C device"
+DESCRIPTION = "emulate the logger on a serial pty, slcan pty, or /dev/i2c-N (umockdev)"
 STREAM_LINKS = {"serial": PtyLink, "can": SlcanPtyLink}
 """--bus -> the link the emulator pushes frames onto (i2c is pulled: see _run_i2c)."""
 
@@ -51,6 +52,8 @@ def configure_parser(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--disconnect-at", type=disconnect_arg, action="append", default=[], metavar="T:DUR",
                    help="unplug the device at stream time T for DUR seconds (repeatable)")
     p.add_argument("--fifo-depth", type=int, default=32, help="i2c: FIFO depth in frames (small values provoke overflows)")
+    p.add_argument("--testbed", metavar="DIR",
+                   help="i2c: the umockdev testbed directory to serve /dev/i2c-1 in (default a temporary one)")
     p.add_argument("--record", metavar="FILE.npz", help="write every sample sent and its fate")
     p.add_argument("--linger", type=float, default=0.0, metavar="S",
                    help="keep the device open S seconds after the stream ends (-1: until interrupted)")
@@ -107,24 +110,28 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_i2c(args, source, faults, sent_log, stop) -> int:
+    """Serve the device at /dev/i2c-1 of a umockdev testbed until stopped; the host reads it (i2c_dev.py)."""
     speed = args.speed if math.isfinite(args.speed) else 100.0  # a FIFO needs a finite pace
     device = FakeI2CDevice(source.blocks, source.fs, speed=speed, fifo_depth=args.fifo_depth, faults=faults,
                            log=sent_log)
-    _say(fake_i2c_spec(device, scenario=args.scenario, seed=args.seed, fs=source.fs))
-    driver = FakeI2CDriver(device, **realtime_options(device))
-    received = 0
-    with driver:
-        while not stop.is_set():
-            got = driver.read(max_samples=4096, timeout=0.2)
-            received += got.shape[0]
-            if device.exhausted and got.shape[0] == 0:
+    with I2CDevServer(device, bus=1, testbed=args.testbed) as server:
+        # a time-lapse fills the FIFO faster than the driver's default poll assumes: poll at a quarter of its fill
+        # and drain it in one transfer
+        poll = realtime_options(device).get("poll_s")
+        burst = min(device.depth, I2C_RDWR_MAX_LEN // FRAME_LEN)
+        _say(f"i2c://{server.bus}/0x{device.address:02X}" + (f"?poll_s={poll:.4g}&burst_frames={burst}" if poll else ""))
+        print(f"gravcal emulate: the logger is /dev/i2c-{server.bus} for a process started with "
+              f"{' '.join(f'{k}={v}' for k, v in server.env({}).items())}", file=sys.stderr, flush=True)
+        while not stop.wait(0.2):
+            with device._lock:
+                device._advance()  # the FIFO fills with time whether or not the host reads
+            if device.exhausted:
                 break
-        st = driver.stats()
-    if sent_log is not None:
-        fates = device.fates()
-        np.savez(args.record, **fates)
-    _say(f"done: received={received} gaps={st['gaps']} missing={st['missing']} crc_errors={st['crc_errors']} "
-         f"fifo_overflows={st['fifo_overflows']} reconnects={st['reconnects']}")
+        if sent_log is not None:
+            np.savez(args.record, **device.fates())
+        _say(f"done: samples={device._produced} accesses={device.accesses}")
+        if args.linger and not stop.is_set():
+            stop.wait(None if args.linger < 0 else args.linger)
     return 0
 
 

@@ -5,7 +5,8 @@ fills with time (``clock``, ``speed``) from a sample source, overflows when the 
 slowly, and injects faults (drops, bit errors in bursts, NACKs while "disconnected").
 :class:`FakeSMBus` has the methods of ``smbus2.SMBus`` the driver uses and fills real
 ``smbus2.i2c_msg`` buffers, so the driver's code path is the production one.
-:class:`FakeI2CDriver` is the real I2C driver on such a device, the ``fake-i2c://`` scheme.
+:class:`FakeI2CDriver` is the real I2C driver on such a device, the ``fake-i2c://`` scheme, in one process (tests
+with a manual clock); ``i2c_dev`` serves such a device at ``/dev/i2c-N`` to another process.
 """
 from __future__ import annotations
 
@@ -149,7 +150,6 @@ class FakeI2CDevice:
         self._lock = threading.Lock()
         self.corrupted: list[int] = []  # sample indices hit by a bit error in a burst
         self.accesses = 0
-        self.bus_cpu_s = 0.0  # thread CPU spent in this device's bus transactions (i2c_rdwr), in the caller's thread
         self.watermark = 1
         self.data_ready = DataReadyLine()
         self._line_deferred = False  # inside the sampling thread's locked section: a raise waits for its end
@@ -387,15 +387,6 @@ class FakeSMBus:
     def i2c_rdwr(self, *i2c_msgs) -> None:
         """Combined transaction: a write sets the register pointer (and writes the rest); a read
         reads from the pointer into the message's ctypes buffer."""
-        c0 = time.thread_time()
-        try:
-            self._rdwr(i2c_msgs)
-        finally:
-            dev = self.devices.get(i2c_msgs[0].addr) if i2c_msgs else None
-            if dev is not None:
-                dev.bus_cpu_s += time.thread_time() - c0
-
-    def _rdwr(self, i2c_msgs) -> None:
         # i2c-dev's I2C_RDWR refuses, before any transfer, more than I2C_RDWR_IOCTL_MAX_MSGS messages or a message
         # longer than 8192 bytes (EINVAL)
         if len(i2c_msgs) > I2C_RDWR_IOCTL_MAX_MSGS or any(m.len > I2C_RDWR_MAX_LEN for m in i2c_msgs):
@@ -490,9 +481,3 @@ def realtime_options(device: FakeI2CDevice) -> dict:
     if fill >= REALTIME_MIN_FILL_S:
         return {}
     return {"realtime": False, "poll_s": max(0.001, fill / 4)}
-
-
-def fake_i2c_spec(device: FakeI2CDevice, *, scenario: str, seed: int, fs: float) -> str:
-    """The ``fake-i2c://`` spec that makes another such device (same source, FIFO and pace)."""
-    return (f"fake-i2c://0x{device.address:02X}?scenario={scenario}&seed={seed}&fs={fs:g}"
-            f"&speed={device.speed:g}&fifo_depth={device.depth}")

@@ -136,11 +136,13 @@ def test_recursive_calibration_carries_the_terms_and_resumes_from_them():
 
 
 def test_an_extended_calibration_without_its_terms_is_refused():
-    _, _, cal = planted(0)
+    ws, _, cal = planted(0)
     stripped = Calibration(cal.model, cal.offset, cal.sensitivity, covariance=cal.covariance,
                            param_names=list(cal.param_names), metadata={"estimator": "old"})
     with pytest.raises(ValueError, match="carries no metadata"):
         apply_extended(stripped, cal.offset[None], temp=np.array([30.0]))
+    with pytest.raises(ValueError, match="carries no metadata"):  # the window means too, not K, o alone
+        apply_windows(stripped, ws)
     with pytest.raises(ValueError, match="needs the temperature"):
         apply_extended(cal, cal.offset[None])
 

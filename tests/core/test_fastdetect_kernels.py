@@ -254,15 +254,20 @@ def daily_blocks():
     return bs, Calibration.from_dict(sim.truth["calibration"])
 
 
+def frame_and_threshold(truth: Calibration, frame: str) -> tuple[Calibration | None, float]:
+    """The detector's frame (the true calibration, one with skewed axes, or raw units) and its 0.02 g
+    threshold in that frame's units."""
+    skew = np.array([[1, 0.02, 0], [0, 1, -0.03], [0.01, 0, 1]])
+    to_g = {"truth": truth, "raw": None, "skewed": Calibration("skewed", truth.offset, truth.sensitivity @ skew)}[frame]
+    return to_g, 0.02 if to_g is not None else 0.02 * float(np.mean(np.diag(truth.sensitivity)))
+
+
 @pytest.mark.parametrize("per_axis", [True, False])
 @pytest.mark.parametrize("order", [2, 4])
 @pytest.mark.parametrize("frame", ["truth", "skewed", "raw"])
 def test_lotters_chain_is_the_numpy_scipy_form_within_rounding(daily_blocks, per_axis, order, frame):
     bs, truth = daily_blocks
-    to_g = {"truth": truth, "raw": None,
-            "skewed": Calibration("skewed", truth.offset, truth.sensitivity @ np.array([[1, 0.02, 0], [0, 1, -0.03],
-                                                                                      [0.01, 0, 1]]))}[frame]
-    thr = 0.02 if to_g is not None else 0.02 * float(np.mean(np.diag(truth.sensitivity)))
+    to_g, thr = frame_and_threshold(truth, frame)
     still, y, var, b0 = lotters_oracle(bs, to_g, threshold_g=thr, order=order, per_axis=per_axis)
     o, kinv = fastdetect._to_g_affine(to_g)
     fs_b = bs.fs / bs.block_n
@@ -325,10 +330,7 @@ def test_lotters_chain_refuses_bad_buffers_by_name(daily_blocks):
 @pytest.mark.parametrize("frame", ["truth", "skewed", "raw"])
 def test_variance_chain_is_the_numpy_form_bit_for_bit(daily_blocks, window_s, frame):
     bs, truth = daily_blocks
-    to_g = {"truth": truth, "raw": None,
-            "skewed": Calibration("skewed", truth.offset, truth.sensitivity @ np.array([[1, 0.02, 0], [0, 1, -0.03],
-                                                                                      [0.01, 0, 1]]))}[frame]
-    thr = 0.02 if to_g is not None else 0.02 * float(np.mean(np.diag(truth.sensitivity)))
+    to_g, thr = frame_and_threshold(truth, frame)
     still, var, wb = variance_oracle(bs, to_g, window_s=window_s, threshold_g=thr)
     _, kinv = fastdetect._to_g_affine(to_g)
     got, trace = np.zeros(len(bs), dtype=bool), np.full((3, len(bs)), np.nan)

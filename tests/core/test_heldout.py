@@ -6,7 +6,8 @@ import pytest
 
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.lotters import LottersBatch
-from gravcal.core.heldout import fold_indices, heldout_error, rms_mg
+from gravcal.core.fold_bootstrap import fold_fits_own_start, heldout_own_start
+from gravcal.core.heldout import fold_indices, heldout_error, norm_error_mg, rms_mg, score_folds
 from gravcal.core.windows import WindowSet
 
 K = np.diag([0.125, 0.118, 0.131])
@@ -79,3 +80,30 @@ def test_folds_too_small_are_skipped_with_a_note():
     assert sum("not fitted" in n for n in res.notes) == 2 and "unavailable" in res.notes[-1]
     res3 = heldout_error(windows(rng, 12), "offsets", folds=2, start=Calibration("s", O, K))
     assert np.isfinite(res3.heldout_rms_mg) and len(res3.fold_rms_mg) == 2
+
+
+def test_each_window_is_scored_by_its_own_folds_fit_in_both_procedures():
+    """heldout_error and heldout_own_start (each fold bootstraps its own start) score alike: a window's
+    held-out error is |a| - 1 g under the fit of the other folds, the pooled RMS is over every scored
+    window, and a fold that could not be fitted leaves its windows unscored and says why."""
+    rng = np.random.default_rng(3)
+    ws = windows(rng, 30)
+    est = LottersBatch("offsets")
+    full = est.fit(ws, Calibration("s", O, K))
+    fits = fold_fits_own_start(ws, est, 3)
+    own = heldout_own_start(ws, est, 3, full_fit=full)
+    for test, cal in fits:
+        np.testing.assert_array_equal(own.window_errors_mg[test], norm_error_mg(cal, ws.subset(test)))
+    assert own.heldout_rms_mg == pytest.approx(np.sqrt(np.mean(own.window_errors_mg ** 2)), rel=1e-12)
+    assert own.insample_rms_mg == rms_mg(full, ws) and own.fold_sizes == [10, 10, 10]
+    start = Calibration("s", O, K)
+    fixed = heldout_error(ws, "offsets", folds=3, start=start, full_fit=full, estimator=est)
+    for test in fold_indices(ws.t, "contiguous", 3):
+        train = np.setdiff1d(np.arange(30), test)
+        cal = est.fit_fold(ws.subset(train), start)
+        np.testing.assert_array_equal(fixed.window_errors_mg[test], norm_error_mg(cal, ws.subset(test)))
+    failed = score_folds(ws, [fits[0], (fits[1][0], "too few windows"), fits[2]], "contiguous", 3, full)
+    assert np.isnan(failed.window_errors_mg[fits[1][0]]).all()
+    assert "fold 1: not fitted (too few windows)" in failed.notes
+    scored = np.concatenate([own.window_errors_mg[fits[0][0]], own.window_errors_mg[fits[2][0]]])
+    assert failed.heldout_rms_mg == pytest.approx(np.sqrt(np.mean(scored ** 2)), rel=1e-12)

@@ -8,6 +8,7 @@ import pytest
 
 from gravcal.daemon import gravcald
 from gravcal.daemon.emulation import discard_if_empty
+from support.umockdev import require_umockdev
 
 
 @pytest.mark.parametrize("argv", [["--fs", "-5"], ["--config", "/nonexistent/gravcald.toml"],
@@ -38,10 +39,24 @@ def test_the_scenario_help_names_every_scenario_the_emulator_takes():
     assert all(name in help_text for name in [*SCENARIOS, PATTERN]), help_text
 
 
-def test_driver_options_for_the_in_process_i2c_device_are_refused(tmp_path):
-    # a subprocess: were the option ignored, gravcald would start and serve (the timeout ends it, red)
+def test_a_bad_i2c_driver_option_is_refused_and_leaves_nothing_behind(tmp_path):
+    require_umockdev()
+    # a subprocess: gravcald starts again under umockdev's preload library for the emulated I2C bus
+    runtime, testbeds = tmp_path / "run", tmp_path / "tmp"
+    runtime.mkdir()
+    testbeds.mkdir()
     p = subprocess.run([sys.executable, "-m", "gravcal.daemon.gravcald", "--emulate", "--allow-root", "--bus", "i2c",
-                        "--driver-options", "latency_budget_s=0.02"], capture_output=True, text=True, timeout=60,
-                       env={**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)})
-    assert p.returncode == 2 and "--driver-options applies to the serial and can buses" in p.stderr, p.stderr
+                        "--driver-options", "burst_frames=many"], capture_output=True, text=True, timeout=60,
+                       env={**os.environ, "XDG_RUNTIME_DIR": str(runtime), "TMPDIR": str(testbeds)})
+    assert p.returncode != 0 and "gravcald: error:" in p.stderr and "burst_frames" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr
+    assert list(runtime.iterdir()) == [] and list(testbeds.iterdir()) == []  # no state dir, no umockdev testbed
+
+
+def test_the_emulated_i2c_bus_is_refused_without_the_preload_library(capsys, monkeypatch, tmp_path):
+    monkeypatch.delenv("LD_PRELOAD", raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    code = gravcald.main(["--emulate", "--allow-root", "--bus", "i2c"])  # in process: no start again
+    err = capsys.readouterr().err
+    assert code == 2 and "umockdev's preload library" in err and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []

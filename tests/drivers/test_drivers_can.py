@@ -21,6 +21,8 @@ from gravcal.drivers.rigs.emulator import (
 from gravcal.drivers.rigs.hil import EmulatorProcess
 from gravcal.drivers.rigs.sources import pattern_blocks
 
+from tests.support.hil_reads import read_all
+
 # which sample fields travel in which frame (docs/protocol.md, CAN layout)
 FIELDS_OF_FRAME = {
     gcan.CHIP_A: [("t1", 0), ("t1", 1), ("t2", 0)],
@@ -129,16 +131,6 @@ def test_virtual_bus_in_process_with_drops():
     gap = np.r_[False, np.diff(seq) > 1]
     np.testing.assert_array_equal((got["flags"] & FLAG_GAP_BEFORE) != 0, gap)
     assert st["partial"] == (status == PARTIAL).sum()
-
-
-def read_all(drv, emu, deadline_s=45.0):
-    got, end = [], time.monotonic() + deadline_s
-    while time.monotonic() < end:
-        b = drv.read(max_samples=512, timeout=0.3)
-        got.append(b)
-        if emu.wait_done(0) and b.shape[0] == 0:
-            break
-    return np.concatenate(got)
 
 
 def test_slcan_cross_process_with_dropped_frames(tmp_path):

@@ -15,18 +15,9 @@ from gravcal.drivers.rigs.emulator import OFFLINE, SENT, CORRUPTED, DROPPED, Pty
 from gravcal.drivers.rigs.hil import EmulatorProcess
 from gravcal.drivers.rigs.sources import pattern_blocks
 
+from tests.support.hil_reads import read_all
+
 PAYLOAD = ("tick", "t1", "t2", "gyro", "temp", "vsupply")
-
-
-def read_all(drv, emu: EmulatorProcess, deadline_s: float = 45.0) -> np.ndarray:
-    """Read until the emulator's stream has ended and the port has gone quiet."""
-    got, end = [], time.monotonic() + deadline_s
-    while time.monotonic() < end:
-        b = drv.read(max_samples=512, timeout=0.3)
-        got.append(b)
-        if emu.wait_done(0) and b.shape[0] == 0:
-            break
-    return np.concatenate(got)
 
 
 def check_against_log(got: np.ndarray, log: dict) -> tuple[np.ndarray, np.ndarray]:

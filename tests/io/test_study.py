@@ -138,13 +138,14 @@ def test_the_daemon_never_imports_dask():
     assert r.returncode == 0 and r.stdout.strip() == "[]", (r.stdout, r.stderr[-500:])
 
 
-def test_an_existing_scheduler_runs_the_study(study, tmp_path):
+def test_an_existing_scheduler_runs_the_study(study, tmp_path, capsys):
     import dask.distributed as distributed  # the [study] extra, which [test] installs
     seq, par = tmp_path / "seq.csv", tmp_path / "sched.csv"
     files = [str(study / "s0.npy"), str(study / "broken.csv")]
     assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 2
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster:
-        assert main(["calibrate", *files, "--out", str(par), "--scheduler", cluster.scheduler_address, "--quiet"]) == 2
+        assert main(["calibrate", *files, "--out", str(par), "--scheduler", cluster.scheduler_address]) == 2
+        assert f"(1 error, 1 ok; 2 on the scheduler at {cluster.scheduler_address})" in capsys.readouterr().err
     key = (lambda r: r["file"])
     assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
 
@@ -195,3 +196,90 @@ def test_a_rerun_retries_error_rows_keys_by_resolved_path_and_starts_nothing_whe
     assert main(["calibrate", str(d), "--out", str(out), "--workers", "2"]) == 0
     assert "0 file(s) calibrated (nothing new)" in capsys.readouterr().err
     assert len(rows_of(out)) == 2
+
+
+def test_dask_worker_threads_give_the_same_rows_and_leave_the_log_level(study, tmp_path, monkeypatch, capsys):
+    """Two files here (the plan's timing), then (any saving worth a cluster; its start run in this thread)
+    the other two on the two worker threads, side by side: the rows are the in-process rows, and the gravcal logger's
+    level, lowered while any file runs, is what it was before, also when the first of the two to start
+    ends first (a per-file save and restore would leave it at the second one's saved ERROR)."""
+    import logging
+    import threading
+
+    from gravcal.io import study as study_mod
+    from gravcal.io import study_plan
+
+    seq, par = tmp_path / "seq.csv", tmp_path / "par.csv"
+    files = [str(study / f"s{i}.npy") for i in range(3)] + [str(study / "site2" / "s3.npy")]
+    assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 0
+    main_thread, real, entered, lock = threading.get_ident(), study_mod._calibrate_file, [], threading.Lock()
+    both_in, first_out = threading.Barrier(2), threading.Event()
+
+    def overlapping(path, *args):  # in place of the part of calibrate_file inside its quiet logging
+        if threading.get_ident() == main_thread:
+            return real(path, *args)
+        with lock:
+            entered.append(threading.get_ident())
+            k = len(entered)
+        if k <= 2:
+            both_in.wait(timeout=60)
+        if k == 2:
+            first_out.wait(timeout=60)
+            time.sleep(0.2)  # for the first file's calibrate_file to restore the level after this returned
+        try:
+            return real(path, *args)
+        finally:
+            if k == 1:
+                first_out.set()
+
+    monkeypatch.setattr(study_plan.ClusterStart, "start", study_plan.ClusterStart.run)
+    monkeypatch.setattr(study_plan, "DASK_START_S", -1.0)
+    monkeypatch.setattr(study_mod, "_calibrate_file", overlapping)
+    gravcal_log = logging.getLogger("gravcal")
+    before = gravcal_log.level
+    assert main(["calibrate", *files, "--out", str(par), "--workers", "2"]) == 0
+    assert "2 in this process (two to time the plan, then while Dask started), 2 on 2 Dask worker threads" in \
+        capsys.readouterr().err
+    assert len(set(entered)) == 2 and main_thread not in entered
+    assert gravcal_log.level == before
+    key = (lambda r: r["file"])
+    assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
+
+
+def test_a_small_study_runs_here_and_says_so(study, tmp_path, monkeypatch, capsys):
+    from gravcal.io import study_plan
+
+    files = [str(study / f"s{i}.npy") for i in range(3)]
+    assert main(["calibrate", files[0], "--out", str(tmp_path / "one.csv"), "--workers", "2"]) == 0
+    assert "1 file(s) calibrated (1 ok; all in this process: one file)" in capsys.readouterr().err
+    monkeypatch.setattr(study_plan.ClusterStart, "start", lambda self: pytest.fail("a cluster for 0.1 s of work"))
+    assert main(["calibrate", *files, "--out", str(tmp_path / "small.csv"), "--workers", "2"]) == 0
+    err = capsys.readouterr().err
+    saving = float(err.split("all in this process: two files at a time would save ~")[1].split(" s, ")[0])
+    assert 0 <= saving < study_plan.DASK_START_S and " s left here, one file keeping " in err
+    monkeypatch.setattr(study_plan, "DASK_START_S", -1.0)
+    monkeypatch.setattr(study_plan.ClusterStart, "start", study_plan.ClusterStart.run)
+    monkeypatch.setitem(sys.modules, "dask.distributed", None)  # dask.distributed not installed
+    assert main(["calibrate", *files, "--out", str(tmp_path / "three.csv"), "--workers", "2"]) == 0
+    err = capsys.readouterr().err
+    assert "the study goes on in this process: no Dask: dask.distributed is not installed (pip install 'gravcal[study]')" in err
+    assert "3 file(s) calibrated (3 ok; all in this process: no Dask: " in err
+    assert [r["status"] for r in rows_of(tmp_path / "three.csv")] == ["ok", "ok", "ok"]
+
+
+def test_the_plan_counts_only_idle_cores():
+    """Two cores, one calibration keeping 1.2 busy: with the other 0.8 idle, a second file at a time takes
+    them (4 s left -> 4 * 1.2 / 2.0 = 2.4 s, saving 1.6 s); with none idle it saves nothing; with a
+    quiet machine and 0.5 core busy, the second thread can add 0.5 at most (saving half)."""
+    from gravcal.io import study_plan
+
+    cores = len(os.sched_getaffinity(0))
+    if cores != 2 or os.cpu_count() != 2:
+        pytest.skip("the figures are for two cores")
+    jiffies = 1000.0  # the interval's CPU time over both cores, in jiffies
+    saving, words = study_plan._threads_saving((0.0, 0.0, 0.0, 0.0), (1.0, 1.2, 0.4 * jiffies, jiffies), 2, 4.0)
+    assert saving == pytest.approx(1.6) and "~4.0 s left here, one file keeping 1.2 of 2 cores busy, 0.8 idle" == words
+    saving, _ = study_plan._threads_saving((0.0, 0.0, 0.0, 0.0), (1.0, 1.2, 0.0, jiffies), 2, 4.0)
+    assert saving == 0.0
+    saving, _ = study_plan._threads_saving((0.0, 0.0, 0.0, 0.0), (2.0, 1.0, 0.75 * 2 * jiffies, 2 * jiffies), 2, 3.0)
+    assert saving == pytest.approx(3.0)  # 6 s left, used 0.5, extra 0.5: half saved

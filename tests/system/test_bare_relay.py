@@ -1,6 +1,6 @@
 """bench/bare_relay.c, the floor under gravcald's CPU in bench/bench_latency.py: both ways of sending (a send()
 per client, one io_uring batch) must deliver every client the same lines, numbered as the frames, or the two
-floors would not measure the same work."""
+floors would not measure the same work; on the emulated I2C bus it must relay every frame of the FIFO."""
 from __future__ import annotations
 
 import json
@@ -12,8 +12,13 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from gravcal.drivers.rigs.fake_i2c import FakeI2CDevice
+from gravcal.drivers.rigs.i2c_dev import I2CDevServer
+from gravcal.drivers.rigs.sources import pattern_blocks
+from support.umockdev import require_umockdev
 from tests.support.bench_c import build_bench_program
 
 FRAME_BYTES, LINE_BYTES, CLIENTS = 29, 96, 3
@@ -76,3 +81,34 @@ def test_every_client_gets_one_numbered_line_per_frame(relay, tmp_path, extra):
         assert [json.loads(line)["seq"] for line in lines] == seqs
     assert counts["lines"] == CLIENTS * len(seqs)
     assert counts["bytes"] == CLIENTS * len(seqs) * LINE_BYTES
+
+
+def test_the_i2c_relay_numbers_every_frame_it_polls_from_the_device_node(relay, tmp_path):
+    """i2c:DEVICE:POLL_US under umockdev's preload: the relay enables the emulated logger and relays each frame of
+    its FIFO, in order, as gravcald's driver would read them."""
+    require_umockdev()
+    fs = 200.0
+    samples = next(pattern_blocks(seed=1, fs=fs, duration=1.0, block=200)).copy()
+    samples["seq"] = (np.arange(200) + 65436) & 0xFFFF  # through the 16-bit wrap
+    device = FakeI2CDevice([samples], fs, speed=2.0, fifo_depth=64)
+    path = str(tmp_path / "relay-i2c.sock")
+    with I2CDevServer(device) as server:
+        proc = subprocess.Popen([relay, "i2c:/dev/i2c-1:2000", path, "1", str(LINE_BYTES), str(FRAME_BYTES)],
+                                stdout=subprocess.PIPE, text=True, env=server.env())
+        c = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            assert proc.stdout.readline().strip() == "listening"
+            c.connect(path)
+            c.settimeout(10.0)
+            assert proc.stdout.readline().strip() == "ready"
+            data = b""
+            while data.count(b"\n") < samples.shape[0]:
+                chunk = c.recv(1 << 16)
+                assert chunk, "the relay closed its client early"
+                data += chunk
+        finally:
+            c.close()
+            proc.send_signal(signal.SIGTERM)
+            proc.communicate(timeout=10)
+    lines = data.split(b"\n")[:-1]
+    assert [json.loads(line)["seq"] for line in lines] == samples["seq"].tolist()

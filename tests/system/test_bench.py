@@ -193,3 +193,27 @@ def test_the_speed_table_puts_each_peer_beside_gravcal():
     assert len(rows) == 2 and "| gravcal |" in rows[0] and "| 1024 |" in rows[0]
     assert "skdh (nominal)" in rows[1] and "DECLINED: too few still" in rows[1] and "| 2048 |" in rows[1]
     assert any("imucal" in ln and "lab session" in ln for ln in lines)
+
+
+@pytest.mark.parametrize("name", ["skdh", "actipy"])
+def test_peers_fit_their_own_model_on_given_windows(name):
+    """bench/peers_windows.py: each peer's own fit on window means it did not detect (200 poses, 0.4 mg of
+    noise on each mean: the fit lands within 1 mg / 0.1 % of the truth, its temperature term within
+    0.1 mg/°C of the truth's -2 mg/°C / 1.02 on x and 0 on y, z); a sphere not populated (all windows within 60° of +z) is declined, with why."""
+    import peers_windows
+
+    _need(name)
+    rng = np.random.default_rng(7)
+    a = _poses(200, 7)
+    T = rng.uniform(15, 35, len(a))
+    slope = np.array([0.002, 0.0, 0.0])  # [nominal g / °C]
+    y = a * SENS + OFFSET_G + (T - 25)[:, None] * slope + rng.normal(0, 0.0004, a.shape)
+    r = peers_windows.fit(name, y, T)
+    assert r.ok, r.message
+    cal = r.apply(y, T)
+    assert np.sqrt(np.mean((np.linalg.norm(cal, axis=1) - 1) ** 2)) < 1e-3
+    assert np.max(np.abs(np.diag(r.sensitivity_g) / SENS - 1)) < 1e-3
+    assert np.max(np.abs(r.temp_coef + slope / SENS)) < 1e-4, r.temp_coef  # a = S^-1 (y - o) - S^-1 slope (T - T0)
+    cap = a[a[:, 2] > 0.5]
+    low = peers_windows.fit(name, cap * SENS + OFFSET_G, None)
+    assert not low.ok and ("sphere" in low.message or "10 mg" in low.message), low.message

@@ -11,10 +11,13 @@ import time
 import pytest
 from gravcal.core.samples import FLAG_RECONNECT
 from support.gravcald_process import GravcaldProcess
+from support.umockdev import require_umockdev
 
 
 @pytest.mark.parametrize("bus", ["serial", "can", "i2c"])
 def test_watchers_see_the_unplug_and_the_replug(tmp_path, bus):
+    if bus == "i2c":
+        require_umockdev()
     d = GravcaldProcess(tmp_path, "--bus", bus, "--speed", "2", "--disconnect-at", "6:6", fs=100.0)
     events, spec = [], None
     try:

@@ -39,6 +39,7 @@ from gravcal.core.simulate import (
 )
 from gravcal.clients.client import Client
 from support.gravcald_process import GravcaldProcess, poll
+from support.umockdev import require_umockdev
 
 G = 9.80665
 SEED = 0
@@ -318,6 +319,8 @@ def test_sigterm_saves_the_state_and_a_restart_resumes_it(serial_daemon):
 
 @pytest.mark.parametrize("bus,speed", [("i2c", 50.0), ("can", 15.0)])
 def test_calibration_converges_over_can_and_i2c(tmp_path, bus, speed):
+    if bus == "i2c":
+        require_umockdev()
     # CAN: 4 frames per sample in slcan ASCII through a pty and python-can is the slowest link,
     # hence the lower time-lapse (1500 samples/s = 6000 CAN frames/s at 15x).
     d = Daemon(tmp_path, "--bus", bus, "--scenario", "six_position", "--speed", str(speed), "--duration", "600")

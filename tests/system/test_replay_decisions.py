@@ -20,6 +20,7 @@ from gravcal.clients.client import Client, ClientError
 from gravcal.daemon.config import load_config
 from gravcal.daemon.processing import nominal_calibration
 from gravcal.daemon.window_log import WindowRecorder, read_windows
+from support.umockdev import require_umockdev
 
 # sagittal_postures (stand, sit, bend, kneel, lie, ...) from the datasheet start: provisional offsets that are
 # published but not accepted, the bootstrap seed fit, windows the 5 sigma gate rejects, then order 6 accepted
@@ -42,6 +43,7 @@ def replay(cfg, windows: list[Window]) -> list[tuple]:
 
 
 def test_gravcald_and_an_offline_replay_make_the_same_decisions(tmp_path: Path):
+    require_umockdev()  # the session runs on the emulated I2C bus
     sock, windows_file = str(tmp_path / "g.sock"), tmp_path / "windows.jsonl"
     argv = [sys.executable, "-m", "gravcal.daemon.gravcald", "--emulate", "--bus", "i2c", "--speed", "max",
             "--scenario", SCENARIO, "--duration", str(DURATION_S), "--seed", "0", "--socket", sock,
