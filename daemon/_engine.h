@@ -9,6 +9,9 @@
 
 #include "../core/_correctkernel.h"
 
+/* internal to gravcal.daemon._fastpath: hidden from other shared objects */
+#define GRAVCAL_ENGINE_INTERNAL __attribute__((visibility("hidden")))
+
 /* Engine.set_params' vector: the correction's CP_N slots (core/correction.py correction_params), then these
    (daemon/processing.py writes them; the names are its EP_* constants) */
 enum {
@@ -40,16 +43,16 @@ typedef struct {
     EngineParams p;
 } Engine;
 
-extern PyTypeObject GravcalEngineType;
+GRAVCAL_ENGINE_INTERNAL extern PyTypeObject GravcalEngineType;
 
 /* the correction kernel's capsule, imported once (with the GIL): 0, or -1 with an exception */
-int gravcal_engine_init(void);
+GRAVCAL_ENGINE_INTERNAL int gravcal_engine_init(void);
 
 /* ``*out`` made the engine's current parameters when ``*generation`` is not theirs; no Python, no GIL needed */
-void gravcal_engine_current(Engine *e, EngineParams *out, long long *generation);
+GRAVCAL_ENGINE_INTERNAL void gravcal_engine_current(Engine *e, EngineParams *out, long long *generation);
 
 /* one record corrected into acc[3], *gyro, *code (static: 1 still, 0 moving, -1 unknown); returns its seq */
-long long gravcal_engine_sample(const EngineParams *p, const unsigned char *row, double *acc, double *gyro,
-                                signed char *code);
+GRAVCAL_ENGINE_INTERNAL long long gravcal_engine_sample(const EngineParams *p, const unsigned char *row, double *acc,
+                                                        double *gyro, signed char *code);
 
 #endif

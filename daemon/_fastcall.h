@@ -21,8 +21,8 @@ enum { FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_TICK_PERIOD, FST_N };
    (decimated: fanout's), end of file, a read error */
 enum { R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR };
 
-extern const GravcalFrameAPI *gravcal_frame_api;
-extern const GravcalLineAPI *gravcal_line_api;
+GRAVCAL_ENGINE_INTERNAL extern const GravcalFrameAPI *gravcal_frame_api;
+GRAVCAL_ENGINE_INTERNAL extern const GravcalLineAPI *gravcal_line_api;
 
 typedef struct {
     char *buf;
@@ -51,20 +51,20 @@ typedef struct {
     int started;            /* S holds the caller's state (copied back at the end) */
 } Call;
 
-double gravcal_now_s(void);
+GRAVCAL_ENGINE_INTERNAL double gravcal_now_s(void);
 /* room for ``more`` bytes: 0, or -1 out of memory (no exception set: callable without the GIL) */
-int gravcal_reserve(Bytes *b, Py_ssize_t more);
-void gravcal_take_gil(PyThreadState **ts);
+GRAVCAL_ENGINE_INTERNAL int gravcal_reserve(Bytes *b, Py_ssize_t more);
+GRAVCAL_ENGINE_INTERNAL void gravcal_take_gil(PyThreadState **ts);
 /* C's arguments checked and its scratch made, with the GIL (box, engine, staged, buffers set by the caller):
    0, or -1 with an exception; call_close in either case */
-int call_open(Call *C, Py_ssize_t batch_frames);
+GRAVCAL_ENGINE_INTERNAL int call_open(Call *C, Py_ssize_t batch_frames);
 /* the watcher snapshot for the next bytes, with the GIL: 1 (*snapshot set), 0 none (R_NOT_PLAIN), -1 error */
-int call_prepare(Call *C, PyObject **snapshot);
+GRAVCAL_ENGINE_INTERNAL int call_prepare(Call *C, PyObject **snapshot);
 /* one read's bytes with the GIL: 1 taken and delivered, 0 stopped, -1 error; consumes ``snapshot`` */
-int call_process(Call *C, const unsigned char *buf, Py_ssize_t n, PyObject *snapshot);
+GRAVCAL_ENGINE_INTERNAL int call_process(Call *C, const unsigned char *buf, Py_ssize_t n, PyObject *snapshot);
 /* as call_process without the GIL, holding the box's mutex (released here); the GIL is held on return unless 1 */
-int call_process_nogil(Call *C, const unsigned char *buf, Py_ssize_t n, PyThreadState **ts);
+GRAVCAL_ENGINE_INTERNAL int call_process_nogil(Call *C, const unsigned char *buf, Py_ssize_t n, PyThreadState **ts);
 /* (leftover, stopped) or NULL; staged and the state copied back either way */
-PyObject *call_close(Call *C, int ok);
+GRAVCAL_ENGINE_INTERNAL PyObject *call_close(Call *C, int ok);
 
 #endif
