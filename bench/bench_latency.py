@@ -204,7 +204,9 @@ def _lines(sock: socket.socket, seconds: float, sizes: list | None = None):
     return rows
 
 
-def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float | None = None) -> dict:
+def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float | None = None,
+        extra_args: tuple[str, ...] = ()) -> dict:
+    """One measurement; ``extra_args``: more gravcald options (bench/bench_engine_terms.py: its calibration)."""
     import multiprocessing as mp
 
     tmp = tempfile.mkdtemp(prefix="bench-latency-")
@@ -219,7 +221,7 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
         env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
     cmd = [sys.executable, "-m", "gravcal.daemon.gravcald", "--emulate", "--bus", bus, "--fs", str(FS), "--speed", "1",
            "--scenario", "six_position", "--duration", str(seconds + 300), "--socket", path,
-           "--state-dir", os.path.join(tmp, "state"), "--log-level", "warning", *config]
+           "--state-dir", os.path.join(tmp, "state"), "--log-level", "warning", *config, *extra_args]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     ctx = mp.get_context("fork")
     stop = ctx.Event()
@@ -280,7 +282,8 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
             "cpu_percent_emulated_device": device, "cpu_percent_emulator_process": emu_cpu / wall * 100,
             "cpu_percent_by_thread": threads, "wakeups_by_thread": wakeups,
             "rss_mb": rss, "rss_peak_mb": hwm, "src": src or "this tree", "latency_budget_s": budget_s,
-            "line_bytes": float(np.mean(sizes)) if sizes else None}
+            "line_bytes": float(np.mean(sizes)) if sizes else None,
+            "model": status1.get("calibration", {}).get("model")}
 
 
 def build_relay(tmp: str) -> str | None:

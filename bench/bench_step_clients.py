@@ -17,15 +17,14 @@ import sys
 import tempfile
 import threading
 import time
-from types import SimpleNamespace
 
 import numpy as np
 
-from gravcal.core.correction import PlainCorrection
+from gravcal.core.calibration import Calibration
 from gravcal.core.samples import SAMPLE_DTYPE
 from gravcal.daemon import fastpath as fp
-from gravcal.daemon._fastpath import step
-from gravcal.daemon.protocol import STANDARD_GRAVITY
+from gravcal.daemon._fastpath import Engine, step
+from gravcal.daemon.processing import engine_params
 from gravcal.daemon.server import SocketServer
 from gravcal.drivers.codec import encode_frames
 from gravcal.drivers.rigs.sources import pattern_blocks
@@ -71,18 +70,18 @@ def per_sample_us(clients: int, samples: int) -> float:
         threads = [threading.Thread(target=drain, daemon=True), threading.Thread(target=write, daemon=True)]
         for t in threads:
             t.start()
-        plain = PlainCorrection(np.array([0.5, 0.51, 0.49]), np.diag([0.04, 0.041, 0.039]), STANDARD_GRAVITY)
-        proc = SimpleNamespace(correction=(plain, None), gyro_correction=(2048.0, 357.36), analysed=(0, True),
-                               params_generation=np.zeros(1, np.int64))
+        engine = Engine()
+        engine.set_params(engine_params(Calibration("6", np.array([0.5, 0.51, 0.49]), np.diag([0.04, 0.041, 0.039])),
+                                        200.0, (2048.0, 357.36), (0, True)))
         ist, fst = np.zeros(fp.IST_N, np.int64), np.zeros(fp.FST_N)
         ist[fp.IST_STAGE_LIMIT] = 1 << 30
-        fst[fp.FST_TICK_HZ], fst[fp.FST_MAX_AGE] = 1e6, 400.0
+        fst[fp.FST_TICK_HZ] = 1e6
         rows, acc = np.zeros(MAX_FRAMES, SAMPLE_DTYPE), np.zeros((MAX_FRAMES, 3))
         gyro, codes, staged = np.zeros(MAX_FRAMES), np.zeros(MAX_FRAMES, np.int8), bytearray()
         t0, n = time.thread_time(), 0
         while n < samples:
             ist[fp.IST_FRAMES] = 0
-            _, stopped = step(r, 0.25, MAX_FRAMES, ist, fst, staged, srv, proc, rows, acc, gyro, codes)
+            _, stopped = step(r, 0.25, MAX_FRAMES, ist, fst, staged, srv.fast_box, engine, rows, acc, gyro, codes)
             if stopped is not None:
                 raise SystemExit("a client's socket was full: the step stopped (drain faster)")
             n += int(ist[fp.IST_FRAMES])

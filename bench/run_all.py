@@ -87,6 +87,8 @@ PARTS: dict[str, list[Step]] = {
     "faults": [("faults", "bench_faults.py", lambda q, j: ([] if q else ["--long"]) + ["--json", j])],
     "soak": [("soak", "bench_soak.py", lambda q, j: ["--json", j])],
     "gyro": [("gyro", "bench_gyro.py", lambda q, j: ["--json", j])],
+    "engine": [("CPU per sample by calibration model", "bench_engine_terms.py",
+                lambda q, j: ["--seconds", "5" if q else "20", "--repeats", "1" if q else "5", "--json", j])],
 }
 QUICK_FLAG_PARTS = ("soak", "gyro", "faults")  # other helpers' scripts: pass --quick when they accept it
 

@@ -9,13 +9,16 @@
 /* a watcher entry of server.fast_watchers (daemon/fanout.py fast_snapshot) */
 enum { ENTRY_CLIENT, ENTRY_RECORD, ENTRY_FD, ENTRY_RAW, ENTRY_WATCH, ENTRY_ACQUIRE, ENTRY_RELEASE, ENTRY_N };
 
-/* Locks. The step delivers, corrects and stages without the GIL; three C mutexes guard what it shares:
+/* Locks. The step delivers, corrects and stages without the GIL; four C mutexes guard what it shares:
  *   WatcherBox.mu    the watcher table (server.fast_box), held by the step from its check through the sends;
  *   ClientRecord.mu  one client's socket and gate (ClientState.lock), tried (never waited for) under the box's;
- *   gravcal_latest_mu  the batch arrays ?POLL reads (FastPath.latest), held around writing or copying them only.
- * Order: box -> record (trylock); box -> latest. Deadlock freedom rests on two rules: a thread holding the GIL
- * never blocks on a box or record mutex (gravcal_lock_with_gil: trylock, else release the GIL and wait), so the step may
- * take the GIL while holding them; and no thread waits for the GIL while holding gravcal_latest_mu. */
+ *   gravcal_latest_mu  the batch arrays ?POLL reads (FastPath.latest), held around writing or copying them only;
+ *   Engine.mu        the engine's parameters (_engine.h), held only to copy them in (set_params) or out.
+ * Order: box -> record (trylock); box -> latest; box -> engine. Deadlock freedom rests on three rules: a thread
+ * holding the GIL never blocks on a box or record mutex (gravcal_lock_with_gil: trylock, else release the GIL and
+ * wait), so the step may take the GIL while holding them; no thread waits for the GIL while holding
+ * gravcal_latest_mu; and Engine.mu is a leaf: nothing is taken or waited for while holding it, so the setter may
+ * take it holding the GIL and the step holding the box's. tests/daemon/test_fastpath_nogil.py churns all four. */
 extern pthread_mutex_t gravcal_latest_mu;
 
 /* take ``m`` from a thread holding the GIL: 1, or 0 when not taken (not blocking, or ``timeout`` s passed) */

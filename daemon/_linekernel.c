@@ -1,18 +1,21 @@
-/* The IMU line of one sample (daemon/protocol.py encode_imu_joined's per-sample path).
+/* The IMU lines of gravcald's samples (daemon/protocol.py encode_imu_joined; the C step's, daemon/_fastcall.c).
  *
  * imu_line(row, acc, gyro, static, raw) -> bytes
  *   row     one SAMPLE_DTYPE record (56 bytes, core/samples.py); acc 3 float64 [m/s²]; gyro float [rad/s]
  *   static  a bool or an int code: 1 still, 0 moving, <= -1 unknown (protocol.static_words, clipped to -1..1)
  *   raw     add the driver's raw fields
  *
- * The bytes are those of the block encoder's %-templates (protocol._HEAD_FIELDS / _RAW_FIELDS): each %.Nf
+ * The bytes are those of the %-templates (protocol._HEAD_FIELDS / _RAW_FIELDS; their numpy form, the oracle, is
+ * tests/support/line_reference.py): each %.Nf
  * is PyOS_double_to_string(x, 'f', N, 0) as Python's % does, each %d the integer, and a number that is
  * not finite is the word null (what the block encoder's replacement of nan/inf/-inf gives). The duty cycles
  * are core.samples.duty_ratios: T1 / T2 of the channel's chip, NaN where T2 = 0.
+ * imu_lines(rows, acc, gyro, static, raw) -> the lines of a block, joined (every block gravcald publishes).
+ *
  * Numbers below 2^53 (x 10^N below 2^64) are written in integer arithmetic (put_f_exact), the rest by
  * PyOS_double_to_string, which allocates with PyMem: the GIL is kept. A raw line takes ~0.7 µs warm
  * (1.2-1.9 µs with dtoa for every number).
- * The same writer is exported to other kernels as a capsule (_linekernel.h; daemon/_fastpath.c).
+ * The same writer is exported to other kernels as a capsule (_linekernel.h; daemon/_fastcall.c).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -313,7 +316,57 @@ static PyObject *imu_line(PyObject *self, PyObject *args)
     return out;
 }
 
+/* imu_lines(rows, acc, gyro, codes, raw) -> the joined lines of N records: rows N SAMPLE_DTYPE records, acc 3N
+   float64, gyro N float64, codes N int8 static codes (1 still, 0 moving, <= -1 unknown) */
+static PyObject *imu_lines(PyObject *self, PyObject *args)
+{
+    Py_buffer rows, acc, gyro, codes;
+    int raw;
+    if (!PyArg_ParseTuple(args, "y*y*y*y*p:imu_lines", &rows, &acc, &gyro, &codes, &raw))
+        return NULL;
+    Py_ssize_t n = rows.len / SAMPLE_SIZE, used = 0, cap = 0;
+    char *buf = NULL;
+    const char *why = rows.len % SAMPLE_SIZE ? "imu_lines: rows must be whole 56-byte SAMPLE_DTYPE records"
+                      : acc.len != 24 * n    ? "imu_lines: acc must be 3 float64 per record"
+                      : gyro.len != 8 * n    ? "imu_lines: gyro must be 1 float64 per record"
+                      : codes.len != n       ? "imu_lines: static must be 1 int8 code per record"
+                                             : NULL;
+    if (why != NULL)
+        PyErr_SetString(PyExc_ValueError, why);
+    for (Py_ssize_t i = 0; why == NULL && i < n; i++) {
+        if (cap - used < IMU_LINE_MAX) {
+            Py_ssize_t grown = cap ? 2 * cap : (n < 16 ? n : 16) * 512 + IMU_LINE_MAX;
+            char *p = PyMem_Realloc(buf, (size_t)grown);
+            if (p == NULL) {
+                PyErr_NoMemory();
+                why = "";
+                break;
+            }
+            buf = p;
+            cap = grown;
+        }
+        double g;
+        memcpy(&g, (const char *)gyro.buf + 8 * i, 8);
+        Py_ssize_t m = line_c((const unsigned char *)rows.buf + SAMPLE_SIZE * i, (const double *)acc.buf + 3 * i, g,
+                              ((const signed char *)codes.buf)[i], raw, buf + used, cap - used);
+        if (m < 0)
+            why = "";
+        else
+            used += m;
+    }
+    PyObject *out = why == NULL ? PyBytes_FromStringAndSize(buf, used) : NULL;
+    PyMem_Free(buf);
+    PyBuffer_Release(&rows);
+    PyBuffer_Release(&acc);
+    PyBuffer_Release(&gyro);
+    PyBuffer_Release(&codes);
+    return out;
+}
+
 static PyMethodDef methods[] = {
+    {"imu_lines", imu_lines, METH_VARARGS,
+     "imu_lines(rows, acc, gyro, static, raw) -> the IMU lines (bytes, joined) of N SAMPLE_DTYPE records, each "
+     "imu_line's."},
     {"imu_line", imu_line, METH_VARARGS,
      "imu_line(row, acc, gyro, static, raw) -> the IMU line (bytes) of one SAMPLE_DTYPE record, byte for byte "
      "the block encoder's."},

@@ -1,5 +1,6 @@
 /* The line kernel's C interface for other kernels (daemon/_linekernel.c exports it as the capsule
- * gravcal.daemon._linekernel._C_API; daemon/_fastpath.c imports it with PyCapsule_Import). */
+ * gravcal.daemon._linekernel._C_API; daemon/_fastpath.c imports it with PyCapsule_Import for
+ * daemon/_fastcall.c). */
 #ifndef GRAVCAL_LINEKERNEL_H
 #define GRAVCAL_LINEKERNEL_H
 

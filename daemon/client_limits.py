@@ -106,7 +106,7 @@ class ClientState:
     closed: bool = False  # set under ``lock`` before the socket closes: no send after it
     # the acquisition thread sends to this client too (fanout.py, the C step): both writers hold this lock
     lock: ClientLock = field(init=False, repr=False)
-    # the C step's view of this client: its gate and the counters it adds (daemon/_fastpath.c ClientRecord)
+    # the C step's view of this client: its gate and the counters it adds (daemon/_clienttable.c ClientRecord)
     record: ClientRecord = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

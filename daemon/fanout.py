@@ -63,7 +63,7 @@ def deliver_line(watchers: Iterable[ClientState], line: bytes, now: float) -> tu
 
 
 def fast_snapshot(watchers: tuple[ClientState, ...]) -> tuple[tuple[Any, ...], ...] | None:
-    """The watchers as the latency path's C step sends to them (daemon/_fastpath.c): (client, its record, fd,
+    """The watchers as the latency path's C step sends to them (daemon/_fastcall.c): (client, its record, fd,
     raw, watch policy, lock.acquire, lock.release_unchanged) each, in order (the bound methods: no lookup per
     sample); None while one of them is decimated (the Python path serves it)."""
     if any(w.watch.rate > 0 for w in watchers):

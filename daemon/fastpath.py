@@ -1,4 +1,4 @@
-"""The latency path's common case in one C call per wake-up (daemon/_fastpath.c), and the Python around it.
+"""The per-sample engine's common case in one C call per wake-up (daemon/_fastpath.c), and the Python around it.
 
 At 200 Hz the per-sample cost of gravcald is its Python calls (driver.read, decoder, unwrapper, stamp,
 correction, publish, fanout), each several µs once other processes have evicted the interpreter's caches
@@ -12,8 +12,10 @@ bytes of any read that is not such frames (a gap, a stray, a restart, a CRC erro
 driver decodes them in its next read; on CAN over slcan a "frame" is a sample's four slcan lines, and
 python-can parses what is handed back), is not called while the driver has a question open (a reconnect,
 a partial frame, samples waiting, a latency budget, a pyserial URL) or while a watcher is decimated
-(``server.fast_watchers`` is None) or the calibration is extended, and a delivery it cannot finish
-(output queued for a client, a full socket, a changed policy) is finished by the server's fanout.
+(``server.fast_watchers`` is None), and a delivery it cannot finish (output queued for a client, a full
+socket, a changed policy) is finished by the server's fanout. Every calibration is corrected in C: the step
+and the Python path's blocks (Processor.correct) use the same engine and its parameters (processor.engine,
+set by the processor through Engine.set_params).
 """
 from __future__ import annotations
 
@@ -25,7 +27,6 @@ import numpy as np
 
 from ..core.samples import SAMPLE_DTYPE
 from ._fastpath import latest, step, take
-from .processing import STATIC_MAX_AGE_S
 from .protocol import ImuBlock
 
 HOUSEKEEPING_S = 0.25  # the longest the C step runs before the Python loop's housekeeping
@@ -33,14 +34,14 @@ HOUSEKEEPING_S = 0.25  # the longest the C step runs before the Python loop's ho
 # The state arrays shared with the C step (the slot names are its enums)
 IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, IST_SENT, IST_BATCH, \
     IST_STAGE_LIMIT, IST_CAN, IST_NOGIL, IST_N = range(13)
-FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_MAX_AGE, FST_TICK_PERIOD, FST_N = range(6)
+FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_TICK_PERIOD, FST_N = range(5)
 R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR = range(6)
 
 
 class FastPath:
     """The C step for one driver, processor and server. ``taken``: samples it has delivered."""
 
-    def __init__(self, driver: Any, processor: Any, server: Any, *, max_frames: int, stage_bytes: int, fs_hz: float):
+    def __init__(self, driver: Any, processor: Any, server: Any, *, max_frames: int, stage_bytes: int):
         self.driver, self.processor, self.server = driver, processor, server
         self.max_frames = int(max_frames)
         self.ist = np.zeros(IST_N, dtype=np.int64)
@@ -49,7 +50,6 @@ class FastPath:
         # the bytes' records: the serial frame codec's (0), or CAN samples in slcan lines (1 + their base id)
         can_base = getattr(driver, "fast_can_base_id", None)
         self.ist[IST_CAN] = 0 if can_base is None else 1 + can_base
-        self.fst[FST_MAX_AGE] = STATIC_MAX_AGE_S * fs_hz
         # the newest batch, as the step wrote it (rows, acc [m/s²], gyro [rad/s], static codes)
         self.rows = np.zeros(self.max_frames, dtype=SAMPLE_DTYPE)
         self.acc = np.zeros((self.max_frames, 3))
@@ -69,7 +69,7 @@ class FastPath:
     def run(self, staged: bytearray, seconds: float = HOUSEKEEPING_S) -> tuple[int, bool]:
         """Run the C step for up to ``seconds``, appending the records to ``staged``: (samples taken, whether
         the Python path reads next: bytes or a case the step does not take are waiting)."""
-        if self.server.fast_watchers is None or self.processor.correction[1] is not None:
+        if self.server.fast_watchers is None:
             return 0, True
         if hasattr(self.driver, "fast_ready"):
             return self._run_fed(staged, seconds)
@@ -80,8 +80,8 @@ class FastPath:
         self._start(raw, seq, last_t)
         stopped = None
         try:
-            leftover, stopped = step(fd, seconds, self.max_frames, self.ist, self.fst, staged, self.server,
-                                     self.processor, self.rows, self.acc, self.gyro, self.codes)
+            leftover, stopped = step(fd, seconds, self.max_frames, self.ist, self.fst, staged, self.server.fast_box,
+                                     self.processor.engine, self.rows, self.acc, self.gyro, self.codes)
         finally:
             self.nogil += int(self.ist[IST_NOGIL])
             try:
@@ -103,6 +103,7 @@ class FastPath:
         end = time.monotonic() + seconds
         ist, n, unknown, read_next = self.ist, 0, 0, False
         limit, item, monotonic, fast_read = int(ist[IST_STAGE_LIMIT]), ist.item, time.monotonic, drv.fast_read
+        box, engine = self.server.fast_box, self.processor.engine
         try:
             while len(staged) < limit and monotonic() < end:
                 bursts = fast_read(end)
@@ -115,7 +116,7 @@ class FastPath:
                 stopped = None
                 try:
                     leftover, stopped = take(bursts[0] if len(bursts) == 1 else b"".join(bursts), self.max_frames,
-                                             ist, self.fst, staged, self.server, self.processor, self.rows,
+                                             ist, self.fst, staged, box, engine, self.rows,
                                              self.acc, self.gyro, self.codes)
                 finally:
                     n, unknown = n + item(IST_FRAMES), unknown + item(IST_UNKNOWN)

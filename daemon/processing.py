@@ -5,6 +5,11 @@ Wiring only: the quasi-static detector cuts windows from the sample blocks, the 
 calibration (core/estimators/online_policy.py), and this module publishes what comes back (a new
 revision of the calibration state, CALIB fields) and corrects the published samples with the accepted
 calibration. The gyro's own online calibration (core.gyro) runs beside it on the same windows.
+
+The published samples are corrected by the per-sample engine (daemon/_engine.c, in C), for the C step and for
+the blocks the Python path publishes alike; this module is its control plane: every change of what corrects
+and labels a sample (the accepted calibration, the gyro's correction, the detector's latest decision) is one
+call of the engine's one setter, Engine.set_params, with the whole parameter vector.
 """
 from __future__ import annotations
 
@@ -20,12 +25,13 @@ import numpy as np
 from ..core.calibration import Calibration
 from ..core.estimators.online import OnlineCalibrator
 from ..core.estimators.online_policy import OnlineStep
-from ..core.correction import PlainCorrection
+from ..core.correction import CP_N, correction_params
 from ..core.samples import raw_triad
 from ..core.windows import Window
+from ._fastpath import EP_N, Engine
 from .config import Config
 from .persistence import CalibrationState
-from .protocol import STANDARD_GRAVITY, STATIC_UNKNOWN
+from .protocol import STANDARD_GRAVITY
 
 log = logging.getLogger("gravcal.gravcald")
 
@@ -38,14 +44,26 @@ NOMINAL_SENSITIVITY = 0.04
 # up, and the detection signal is itself a 0.5 Hz low-pass; a starved processing thread (a loaded host, a
 # time-lapse emulator) would otherwise label seconds of later motion with an old "still".
 STATIC_MAX_AGE_S = 2.0
-# The one-sample `static` arrays by code (unknown, moving, still), shared and read-only: made once, not per sample
-def _frozen_code(code: int) -> np.ndarray:
-    a = np.array([code], dtype=np.int8)
-    a.flags.writeable = False
-    return a
+# The engine's parameter vector (daemon/_engine.h): the correction's CP_N slots (core/correction.py), then these
+EP_GYRO_BIAS, EP_GYRO_SENS, EP_LAST_SEQ, EP_HAVE_LAST, EP_STILL, EP_MAX_AGE = range(CP_N, CP_N + 6)
+assert EP_MAX_AGE + 1 == EP_N, "daemon/_engine.h and processing.py disagree on the engine's parameters"
 
 
-_STATIC_ONE = {code: _frozen_code(code) for code in (STATIC_UNKNOWN, 0, 1)}
+def engine_params(cal: Calibration, fs_hz: float, gyro: tuple[float, float] = (math.nan, math.nan),
+                  analysed: tuple[int | None, bool] = (None, False)) -> np.ndarray:
+    """The engine's whole parameter vector: ``cal`` corrected in m/s² (every term it carries), the gyro's (bias
+    [counts], sensitivity [counts per rad/s]), the detector's latest decision (seq or None, still)."""
+    v = np.zeros(EP_N)
+    v[:CP_N] = correction_params(cal, STANDARD_GRAVITY, fs_hz)
+    v[EP_GYRO_BIAS:EP_GYRO_SENS + 1] = gyro
+    v[EP_LAST_SEQ:EP_STILL + 1] = _decision_slots(analysed)
+    v[EP_MAX_AGE] = STATIC_MAX_AGE_S * fs_hz
+    return v
+
+
+def _decision_slots(analysed: tuple[int | None, bool]) -> tuple[float, float, float]:
+    last, still = analysed
+    return 0.0 if last is None else float(last), float(last is not None), float(still)
 
 # The emulated/reference board's gyro path (docs/gyro.md, core/model/enc03j.py): ENC-03J on the
 # board's y axis, 0.3 Hz high-pass conditioning, ±300 °/s, 12-bit ADC. The start sensitivity is
@@ -79,9 +97,12 @@ class Processor:
         self.state = start
         self.lab = lab
         self.window_sink = window_sink
-        # bumped after each swap of correction, gyro_correction or analysed: the C step (daemon/_fastpath.c) reads
-        # the three again only when it changed
-        self.params_generation = np.zeros(1, dtype=np.int64)
+        # the per-sample engine and its parameters: written whole (under the lock) at each swap of correction,
+        # gyro_correction or analysed; the engine copies them (Engine.set_params)
+        self.engine = Engine()
+        self._params = np.zeros(EP_N)
+        self._params[EP_MAX_AGE] = STATIC_MAX_AGE_S * cfg.device.fs_hz
+        self._params_lock = threading.Lock()
         # (seq of the last analysed sample, the detector's decision there): one tuple, swapped atomically, read by
         # correct() in the acquisition thread; seq None before any analysis
         self.analysed: tuple[int | None, bool] = (None, False)
@@ -211,7 +232,12 @@ class Processor:
             self.gyro_start = (float(g.zero_counts), float(g.counts_per_rad_s))
             self._gyro_apply()
 
-    # the tuples the acquisition thread reads (each swapped whole, then the generation bumped) -------------------
+    # what the engine corrects and labels the samples with (each swapped whole, then handed to the engine) ------
+    def _set_params(self, at: int, values: Any) -> None:
+        with self._params_lock:
+            self._params[at:at + np.size(values)] = values
+            self.engine.set_params(self._params)
+
     @property
     def analysed(self) -> tuple[int | None, bool]:
         return self._analysed
@@ -219,16 +245,17 @@ class Processor:
     @analysed.setter
     def analysed(self, value: tuple[int | None, bool]) -> None:
         self._analysed = value
-        self.params_generation[0] += 1
+        self._set_params(EP_LAST_SEQ, _decision_slots(value))
 
     @property
-    def correction(self) -> tuple[PlainCorrection, Calibration | None]:
+    def correction(self) -> np.ndarray:
+        """The accepted calibration as the engine's correction vector (core/correction.py correction_params)."""
         return self._correction
 
     @correction.setter
-    def correction(self, value: tuple[PlainCorrection, Calibration | None]) -> None:
+    def correction(self, value: np.ndarray) -> None:
         self._correction = value
-        self.params_generation[0] += 1
+        self._set_params(0, value)
 
     @property
     def gyro_correction(self) -> tuple[float, float]:
@@ -237,7 +264,7 @@ class Processor:
     @gyro_correction.setter
     def gyro_correction(self, value: tuple[float, float]) -> None:
         self._gyro_correction = value
-        self.params_generation[0] += 1
+        self._set_params(EP_GYRO_BIAS, value)
 
     # per block ------------------------------------------------------------------------
     @property
@@ -248,64 +275,27 @@ class Processor:
     @applied.setter
     def applied(self, cal: Calibration) -> None:
         self._applied = cal
-        # A plain calibration: a = K^-1 (raw - o) (core/correction.py). An extended one applies its terms at each
-        # sample's covariates (Calibration.apply). One tuple, swapped atomically: correct() and the C step
-        # (daemon/fastpath.py) read it in the acquisition thread.
-        plain = PlainCorrection(cal.offset, cal.sensitivity, STANDARD_GRAVITY)
-        self._swap("correction", (plain, cal if cal.extended_terms else None))
+        # every term the calibration carries, at each sample's covariates, in the engine (a calibration whose terms
+        # need the samples' history is refused here: UncorrectableTerm names it)
+        self._swap("correction", correction_params(cal, STANDARD_GRAVITY, self.cfg.device.fs_hz))
 
     @property
     def static_now(self) -> bool:
         """The detector's latest per-sample decision."""
         return self.analysed[1]
 
-    def static_codes(self, seq: np.ndarray) -> np.ndarray:
-        """Each sample's ``static`` code (protocol.static_words): the detector's latest decision while it is at
-        most STATIC_MAX_AGE_S of sensor time older than the sample, else STATIC_UNKNOWN (null)."""
-        last, static = self.analysed
-        if seq.shape[0] == 1:  # the per-sample path, in Python scalars
-            return _STATIC_ONE[self._static_code(int(seq[0]))]
-        codes = np.full(seq.shape[0], STATIC_UNKNOWN, dtype=np.int8)
-        if last is not None:
-            fresh = (seq.astype(np.int64) - last) <= STATIC_MAX_AGE_S * self.cfg.device.fs_hz
-            codes[fresh] = int(static)
-        return codes
-
-    def _static_code(self, seq: int) -> int:
-        last, static = self.analysed
-        fresh = last is not None and seq - last <= STATIC_MAX_AGE_S * self.cfg.device.fs_hz
-        return int(static) if fresh else STATIC_UNKNOWN
-
     def correct(self, block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The fast path, per block as it arrives: (acc [m/s²] (N, 3) corrected with the accepted
-        calibration, gyro [rad/s] (N,) NaN when not configured, static (N,) codes: the detector's
-        latest decision, or unknown when that is more than STATIC_MAX_AGE_S of data old)."""
-        plain, extended = self.correction
-        if block.shape[0] == 1 and extended is None:
-            return self._correct_one(block, plain)
-        if extended is not None:  # a sample without a covariate its terms need (NaN) gets NaN
-            acc = extended.apply(raw_triad(block), temp=block["temp"].astype(float),
-                                 vsupply=block["vsupply"].astype(float),
-                                 t=block["seq"].astype(float) / self.cfg.device.fs_hz) * STANDARD_GRAVITY
-        else:
-            acc = plain.block(block)
-        bias, sens = self.gyro_correction
-        gyro = (block["gyro"].astype(float) - bias) / sens  # NaN while either is unknown
-        static = self.static_codes(block["seq"])
-        self.static_unknown += int(np.count_nonzero(static == STATIC_UNKNOWN))
-        if block.shape[0]:
+        """The Python path's blocks, corrected by the engine as the C step corrects its own: (acc [m/s²] (N, 3)
+        with the accepted calibration and its terms at each sample's covariates, gyro [rad/s] (N,) NaN when not
+        configured, static (N,) codes: the detector's latest decision, or unknown when that is more than
+        STATIC_MAX_AGE_S of data old)."""
+        block = np.ascontiguousarray(block)
+        n = block.shape[0]
+        acc, gyro, static = np.empty((n, 3)), np.empty(n), np.empty(n, dtype=np.int8)
+        self.static_unknown += self.engine.correct(block, acc, gyro, static)
+        if n:
             self.corrected_seq = int(block["seq"][-1])
         return acc, gyro, static
-
-    def _correct_one(self, block: np.ndarray, plain: PlainCorrection):
-        """correct() of a one-sample block with a plain calibration (PlainCorrection.one, in C: the same bits as
-        the block path, without numpy's per-call overhead on 1-row arrays)."""
-        acc, gyro = np.empty((1, 3)), np.empty(1)
-        self.corrected_seq = seq = plain.one(block, acc, gyro, *self.gyro_correction)
-        code = self._static_code(seq)
-        if code == STATIC_UNKNOWN:
-            self.static_unknown += 1
-        return acc, gyro, _STATIC_ONE[code]
 
     def analyse(self, block: np.ndarray) -> np.ndarray:
         """Detector and estimator over a block (in arrival order, any split); returns the

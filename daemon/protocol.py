@@ -20,8 +20,7 @@ from typing import Any
 import numpy as np
 
 from ..jsonbounds import MAX_DEPTH, JSONInputError, raw_decode
-from ..core.samples import duty_ratios
-from ._linekernel import imu_line
+from ._linekernel import imu_line, imu_lines
 
 PROTOCOL_MAJOR = 1
 PROTOCOL_MINOR = 1  # additions only; docs/socket-protocol.md lists what each minor version brings
@@ -254,22 +253,13 @@ def calib_message(
 STATIC_UNKNOWN = -1  # a static code: the detector has no decision recent enough for this sample (JSON null)
 
 
-def static_words(static: np.ndarray, n: int) -> np.ndarray:
-    """The JSON words of the per-sample ``static`` field: a bool array, or int codes 1 (still),
-    0 (moving) and STATIC_UNKNOWN (null: no decision recent enough, see daemon/processing.Processor.correct)."""
+def static_codes(static: np.ndarray, n: int) -> np.ndarray:
+    """The per-sample ``static`` as int8 codes: a bool array (true, false), or int codes 1 (still), 0 (moving) and
+    STATIC_UNKNOWN (null: no decision recent enough, see daemon/processing.Processor.correct), clipped to -1..1."""
     st = np.asarray(static).reshape(n)
     if st.dtype == bool:
-        return np.where(st, "true", "false")
-    return np.array(["null", "false", "true"])[np.clip(st.astype(np.int64), -1, 1) + 1]
-
-
-# IMU lines are formatted with %-templates: the hot path of the server (one line per sample
-# per encoding), and several times faster than json.dumps on a dict.
-_HEAD_FIELDS = '{"class":"IMU","seq":%d,"t":%.6f,"acc":[%.5f,%.5f,%.5f],"gyro":{gyro},"static":%s,"temp":%.2f,"vsupply":%.3f'
-_RAW_FIELDS = ',"duty":[%.6f,%.6f,%.6f,%.6f],"t1":[%d,%d,%d,%d],"t2":[%d,%d],"gyro_counts":%d,"tick":%d,"flags":%d}\n'
-# How % writes non-finite floats; JSON has no such numbers, so they become null. No key or
-# word of an IMU line contains these letters, so replacing them touches only numbers.
-_NON_FINITE_WORDS = (b"-inf", b"inf", b"nan")
+        return st.astype(np.int8)
+    return np.clip(st.astype(np.int64), -1, 1).astype(np.int8)
 
 
 def encode_imu_joined(
@@ -280,45 +270,20 @@ def encode_imu_joined(
     *,
     raw: bool = False,
 ) -> bytes:
-    """The IMU lines of a block of samples (SAMPLE_DTYPE) as one byte string.
+    """The IMU lines of a block of samples (SAMPLE_DTYPE) as one byte string, by the line kernel
+    (daemon/_linekernel.c, the C step's own writer: both paths send the same bytes). Its fields and their
+    formats, as %-templates, and their numpy form (the kernel's oracle) are in tests/support/line_reference.py.
 
     acc_ms2 (N, 3) calibrated specific force [m/s²]; gyro_rads (N,) rate [rad/s] (NaN: not
-    calibrated -> null); static (N,) bool or codes (:func:`static_words`). ``raw`` adds the
+    calibrated -> null); static (N,) bool or codes (:func:`static_codes`). ``raw`` adds the
     driver's raw fields. Missing values (NaN, e.g. a channel with T2 = 0) are null.
-
-    The whole block is formatted by ONE ``%`` operation over a template repeated N times and a
-    flat tuple of the values, built column-wise by numpy (no Python step per sample).
     """
     n = samples.shape[0]
-    if n == 1:  # the per-sample latency path, in C (_linekernel.c): the same bytes without numpy's per-call costs
+    if n == 1:  # one sample: the static code as a Python scalar, without the block's array conversions
         return imu_line(samples, np.ascontiguousarray(acc_ms2, dtype=float), np.asarray(gyro_rads).item(),
                         np.asarray(static).item(), raw)
-    acc = np.asarray(acc_ms2, dtype=float).reshape(n, 3)
-    gyro = np.asarray(gyro_rads, dtype=float).reshape(n)
-    gyro_null = bool(np.isnan(gyro).all())  # the usual uncalibrated gyro: a literal null, no scan
-    cols: list[Any] = [samples["seq"], samples["t"], acc[:, 0], acc[:, 1], acc[:, 2]]
-    if not gyro_null:
-        cols.append(gyro)
-    cols += [static_words(static, n), samples["temp"], samples["vsupply"]]
-    template = _HEAD_FIELDS.replace("{gyro}", "null" if gyro_null else "%.6f")
-    finite = bool(np.isfinite(acc).all() and np.isfinite(samples["t"]).all() and np.isfinite(samples["temp"]).all()
-                  and np.isfinite(samples["vsupply"]).all() and (gyro_null or np.isfinite(gyro).all()))
-    if raw:
-        duty = duty_ratios(samples)
-        finite = finite and bool(np.isfinite(duty).all())
-        cols += [duty[:, 0], duty[:, 1], duty[:, 2], duty[:, 3], *samples["t1"].T, *samples["t2"].T,
-                 samples["gyro"], samples["tick"], samples["flags"]]
-        template += _RAW_FIELDS
-    else:
-        template += "}\n"
-    table = np.empty((n, len(cols)), dtype=object)
-    for j, c in enumerate(cols):
-        table[:, j] = c  # numpy converts to Python int/float/str, in C
-    text = ((template * n) % tuple(table.ravel().tolist())).encode()
-    if not finite:
-        for word in _NON_FINITE_WORDS:
-            text = text.replace(word, b"null")
-    return text
+    return imu_lines(np.ascontiguousarray(samples), np.ascontiguousarray(acc_ms2, dtype=float).reshape(n, 3),
+                     np.ascontiguousarray(gyro_rads, dtype=float).reshape(n), static_codes(static, n), raw)
 
 
 def encode_imu(

@@ -198,8 +198,8 @@ class Gravcald:
         # ANALYSIS_BLOCK_S instead of a structured-array copy per sample (the analysis runs no sooner)
         staged = bytearray()
         stage_bytes = analysis_n * SAMPLE_DTYPE.itemsize
-        fast = self._fast = FastPath.for_driver(self.driver, p, self.server, max_frames=d.read_block, stage_bytes=stage_bytes,
-                                   fs_hz=d.fs_hz) if self.fast_path else None
+        fast = self._fast = FastPath.for_driver(self.driver, p, self.server, max_frames=d.read_block,
+                                                stage_bytes=stage_bytes) if self.fast_path else None
         while not self._acq_stop.is_set():
             if p.has_pending:
                 self._take_calibration()

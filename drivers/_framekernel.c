@@ -4,6 +4,7 @@
  * frame_to_row(frame, row, seq, flags)   writes one SAMPLE_DTYPE row (core/samples.py) for it
  * sample_to_row(row, seq, tick, ...)       the same row from one sample's raw fields (drivers/can.py)
  * slcan_samples(data, base_id, ...)       the rows of slcan bytes that are whole CAN samples continuing the stream
+ * stamp_rows(rows, tick_hz, t_recv, last_t)  the host times of a read's records (drivers/base.py Driver._stamp)
  *
  * The values are those of codec.wire_to_samples followed by the decoder's unwrapping: the wire
  * layout and the CRC are codec.py's (CRC-16/CCITT-FALSE over the whole frame is 0 when intact),
@@ -11,7 +12,7 @@
  * Built with -ffp-contract=off so each operation rounds as numpy's elementwise ops do.
  * One sample is well under a microsecond of work: the GIL is kept (dropping and retaking it costs more).
  * The record writer, and a whole read's records when it only continues the stream (stamped as the driver
- * stamps them), are exported to other kernels as a capsule (_framekernel.h; daemon/_fastpath.c).
+ * stamps them), are exported to other kernels as a capsule (_framekernel.h; daemon/_fastcall.c).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -283,6 +284,36 @@ static PyObject *sample_to_row(PyObject *self, PyObject *args)
     Py_RETURN_NONE;
 }
 
+/* stamp_rows(rows, tick_hz, t_recv, last_t) -> last_t: Driver._stamp of a read's records (every bus's), their t
+   written as ``stamp`` writes the C step's */
+static PyObject *stamp_rows(PyObject *self, PyObject *args)
+{
+    Py_buffer rows;
+    double tick_hz, t_recv, last_t;
+    if (!PyArg_ParseTuple(args, "w*ddd:stamp_rows", &rows, &tick_hz, &t_recv, &last_t))
+        return NULL;
+    Py_ssize_t k = rows.len / SAMPLE_SIZE;
+    uint32_t *ticks = NULL;
+    const char *why = !PyBuffer_IsContiguous(&rows, 'C') || rows.len % SAMPLE_SIZE != 0
+                          ? "stamp_rows: rows must be contiguous whole 56-byte SAMPLE_DTYPE records"
+                          : NULL;
+    if (why == NULL && k > 0 && (ticks = PyMem_Malloc(sizeof(uint32_t) * (size_t)k)) == NULL) {
+        PyBuffer_Release(&rows);
+        return PyErr_NoMemory();
+    }
+    for (Py_ssize_t i = 0; why == NULL && i < k; i++)
+        memcpy(&ticks[i], (const unsigned char *)rows.buf + i * SAMPLE_SIZE + 16, 4);
+    if (why == NULL)
+        stamp(rows.buf, ticks, k, tick_hz, t_recv, &last_t);
+    PyMem_Free(ticks);
+    PyBuffer_Release(&rows);
+    if (why != NULL) {
+        PyErr_SetString(PyExc_ValueError, why);
+        return NULL;
+    }
+    return PyFloat_FromDouble(last_t);
+}
+
 /* slcan_samples(data, base_id, expect, seq0, tick_hz, t_recv, last_t, rows) -> (k, last_t): the capsule's
    slcan_continuing for tests and tools; rows a writable buffer of whole 56-byte records (k <= their count) */
 static PyObject *slcan_samples(PyObject *self, PyObject *args)
@@ -327,6 +358,9 @@ static PyMethodDef methods[] = {
     {"slcan_samples", slcan_samples, METH_VARARGS,
      "slcan_samples(data, base_id, expect, seq0, tick_hz, t_recv, last_t, rows) -> (k, last_t): the records of "
      "slcan bytes that are exactly k whole CAN samples continuing the stream from raw seq ``expect``, else k 0."},
+    {"stamp_rows", stamp_rows, METH_VARARGS,
+     "stamp_rows(rows, tick_hz, t_recv, last_t) -> last_t: host times of a read's records: the newest at t_recv, "
+     "earlier ones back by their tick distance / tick_hz (0: all at t_recv), never before last_t nor each other."},
     {"frame_header", frame_header, METH_VARARGS,
      "frame_header(frame) -> (seq, tick) of an intact 29-byte frame (sync, length, CRC), else None."},
     {"frame_to_row", frame_to_row, METH_VARARGS,

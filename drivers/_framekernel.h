@@ -1,5 +1,6 @@
 /* The frame kernel's C interface for other kernels (drivers/_framekernel.c exports it as the capsule
- * gravcal.drivers._framekernel._C_API; daemon/_fastpath.c imports it with PyCapsule_Import). */
+ * gravcal.drivers._framekernel._C_API; daemon/_fastpath.c imports it with PyCapsule_Import for
+ * daemon/_fastcall.c). */
 #ifndef GRAVCAL_FRAMEKERNEL_H
 #define GRAVCAL_FRAMEKERNEL_H
 

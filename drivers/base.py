@@ -36,6 +36,7 @@ from urllib.parse import parse_qsl
 import numpy as np
 
 from ..core.samples import FLAG_GAP_BEFORE, FLAG_RECONNECT, SAMPLE_DTYPE
+from ._framekernel import stamp_rows
 from .codec import TICK_HZ
 from .ordering import InOrder
 
@@ -326,21 +327,9 @@ class Driver(ABC):
     def _stamp(self, block: np.ndarray, t_recv: float) -> None:
         """Host time [s, time.monotonic]: the newest sample at reception, earlier ones by tick,
         never before a sample stamped earlier (reception jitter, a device reset or a wrong tick
-        rate must not make ``t`` run backwards)."""
-        if block.shape[0] == 1:  # the event-driven common case, without array arithmetic
-            self._last_t = t = max(t_recv, self._last_t)
-            block["t"] = t  # one field assignment
-            self._rate.update(block, t_recv)
-            return
-        if self.tick_hz:
-            back = (int(block["tick"][-1]) - block["tick"].astype(np.int64)) & 0xFFFFFFFF
-            back = np.where(back > 0x7FFFFFFF, 0, back)  # ticks going backwards: device reset
-            t = t_recv - back / float(self.tick_hz)
-        else:
-            t = np.full(block.shape[0], t_recv)
-        t[0] = max(t[0], self._last_t)
-        block["t"] = np.maximum.accumulate(t)
-        self._last_t = float(block["t"][-1])
+        rate must not make ``t`` run backwards). In C (_framekernel.c ``stamp_rows``), the stamps the C step
+        writes for its own reads; the numpy form is the test oracle (tests/support/stamp_reference.py)."""
+        self._last_t = stamp_rows(block, float(self.tick_hz or 0.0), t_recv, self._last_t)
         self._rate.update(block, t_recv)
 
 

@@ -5,7 +5,9 @@ client must receive the same bytes (sample time ``t`` apart: it is the host's re
 never run backwards). The stream holds the cases the C step hands to the Python path: a 16-bit wrap,
 a gap, a CRC error, garbage, a frame split across writes, several frames in one read, a device restart,
 a reconnect, a calibration change, a decimated watcher (its samples are chosen by reception time:
-checked apart) and a raw one joining and leaving mid-stream.
+checked apart) and a raw one joining and leaving mid-stream. The calibration change is to an extended
+calibration (temperature and supply terms, gravcald's default): the C step corrects it, and the samples after
+it are the model's (Calibration.apply) at their temperature and supply.
 """
 from __future__ import annotations
 
@@ -22,11 +24,20 @@ from gravcal.clients.client import Client
 from gravcal.daemon.config import Config
 from gravcal.daemon.service import Gravcald
 from gravcal.drivers import open_driver
-from gravcal.drivers.codec import encode_frames
+from gravcal.core.samples import raw_triad
+from gravcal.daemon.protocol import STANDARD_GRAVITY
+from gravcal.drivers.codec import FrameDecoder, encode_frames
+from support.correction_reference import extended_model
 from gravcal.drivers.rigs.emulator import PtyLink
 from gravcal.drivers.rigs.sources import pattern_blocks
 
 TICKS_PER_SAMPLE = 5000  # 200 Hz at the driver's 1 MHz tick
+# temperature and supply terms, their references away from the pattern's 25 °C and 3.3 V so that they act
+EXTENDED = Calibration("6+temperature_offset+supply_offset", np.array([0.49, 0.51, 0.5]), np.diag([0.041] * 3),
+                       metadata={"extended": {"terms": ["temperature_offset", "supply_offset"], "t_ref_c": 5.0,
+                                              "v_ref": 3.0, "t0_s": 0.0},
+                                 "params": {"oT_x": 4e-4, "oT_y": -3e-4, "oT_z": 2e-4,
+                                            "oV_x": 0.02, "oV_y": -0.01, "oV_z": 0.015}})
 
 
 class NoWindows:
@@ -98,12 +109,16 @@ def settle(d: Gravcald, reader: Reader, timeout: float = 20.0) -> None:
     raise AssertionError(f"the daemon did not settle: published {d.server.published_samples}")
 
 
-def start_daemon(tmp_path, fast: bool, driver) -> Gravcald:
+def start_daemon(tmp_path, fast: bool, driver, calibration: Calibration | None = None) -> Gravcald:
     """gravcald on ``driver`` without windows to analyse, its socket and state under ``tmp_path``, with
-    (``fast``) or without the C step."""
+    (``fast``) or without the C step, started from ``calibration`` (a lab calibration file) when given."""
     cfg = Config()
     cfg.socket.path = str(tmp_path / f"g-{fast}.sock")
     cfg.state.directory = str(tmp_path / f"state-{fast}")
+    if calibration is not None:
+        path = tmp_path / f"lab-{fast}.json"
+        path.write_text(calibration.to_json())
+        cfg.state.lab_calibration = str(path)
     d = Gravcald(cfg, driver=driver, environ={}, detector=NoWindows())
     d.fast_path = fast
     d.start()
@@ -169,16 +184,18 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
         write(frames(range(seq, seq + 40)))
         seq += 40
         settle(d, a)
-        cal = Calibration.nominal(np.array([0.49, 0.51, 0.5]), 0.041, model="6")
+        cal = EXTENDED
         # a calibration accepted by the processing thread and its CALIB: the acquisition thread takes both
         d.processor.applied = cal
-        d.processor.stage_message({"revision": 7, "model": "6", "accepted": True, "offset": cal.offset.tolist()})
+        d.processor.stage_message({"revision": 7, "model": cal.model, "accepted": True, "offset": cal.offset.tolist()})
         deadline = time.monotonic() + 10
         while d.processor.has_pending and time.monotonic() < deadline:  # taken before the next frames, on both paths
             time.sleep(0.01)
+        taken_before = d._fast.taken if d._fast is not None else 0
         write(frames(range(seq, seq + 40)))
         seq += 40
         settle(d, a)
+        taken_extended = (d._fast.taken if d._fast is not None else 0) - taken_before
         readers["decimated"] = Reader(cfg.socket.path, '?WATCH={"enable":true,"rate":20};')
         write(frames(range(seq, seq + 40)))
         seq += 40
@@ -207,6 +224,7 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
             polled = c.poll()["imu"][0]["seq"]
         ids["late"] = len(ids) + 2  # after the decimated watcher
         stats = {**d.driver.stats(), "taken_by_c": taken, "published": d.server.published_samples, "polled": polled,
+                 "taken_extended": taken_extended, "fs": cfg.device.fs_hz,
                  "nogil": d._fast.nogil if d._fast is not None else 0,
                  "sent_and_received": sent_and_received(cfg.socket.path, readers, ids)}
     finally:
@@ -295,6 +313,16 @@ def test_clients_receive_the_same_bytes_with_and_without_the_c_step(tmp_path):
     assert np.all(np.diff(seqs) >= 1)
     assert any(m["flags"] & 1 for m in imu)  # a gap flagged (FLAG_GAP_BEFORE)
     assert sum(m["class"] == "CALIB" for m in lines) == 2  # at WATCH, and the change
+    # the extended calibration: corrected in C, each sample the model's at its temperature and supply
+    assert slow_stats["taken_extended"] == 0 and fast_stats["taken_extended"] == 40, fast_stats
+    after = next(i for i, m in enumerate(lines) if m["class"] == "CALIB" and m.get("revision") == 7)
+    got = [m for m in lines[after:] if m["class"] == "IMU"][:40]
+    rows = FrameDecoder().feed(frames(range(got[0]["seq"], got[0]["seq"] + 40)))
+    rows["seq"] = [m["seq"] for m in got]
+    want = extended_model(EXTENDED, rows, fast_stats["fs"], STANDARD_GRAVITY)
+    acc = np.array([m["acc"] for m in got])
+    np.testing.assert_allclose(acc, want, rtol=0, atol=6e-6)  # the line's 5 decimals
+    assert np.abs(EXTENDED.apply_reference(raw_triad(rows)) * STANDARD_GRAVITY - want).min() > 0.05  # terms act
 
 
 def test_a_slow_reader_beside_the_c_step_loses_only_whole_counted_lines(tmp_path):

@@ -3,7 +3,8 @@ python-can's path: the same byte stream, on a pty, through gravcald with and wit
 the same bytes (``t`` apart, never running backwards), the driver's counters agree. The stream holds what the
 C step hands back to python-can: a 16-bit wrap, several samples per read, a gap, a garbled line, a BELL, a
 sample split across reads, a sample missing a frame, a frame of another id, an extended frame, a device
-restart and a reconnect."""
+restart and a reconnect; gravcald corrects all of it with an extended calibration (temperature and supply
+terms), which the C step takes as any other."""
 from __future__ import annotations
 
 import json
@@ -15,7 +16,7 @@ from gravcal.drivers import open_driver
 from gravcal.drivers.can import DEFAULT_BASE_ID, pack_frames
 from gravcal.drivers.rigs.can_links import SlcanPtyLink
 from gravcal.drivers.rigs.sources import pattern_blocks
-from test_fastpath import (TICKS_PER_SAMPLE, Reader, assert_same_counts, assert_same_streams, settle,
+from test_fastpath import (EXTENDED, TICKS_PER_SAMPLE, Reader, assert_same_counts, assert_same_streams, settle,
                            start_daemon, stop_all)
 
 
@@ -36,7 +37,7 @@ def sample_lines(seqs, ticks=None, seed=0, drop_frame: int | None = None) -> lis
 def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
     link = SlcanPtyLink(tmp_path / f"tty-{fast}" / "ttyGRAVCAN0")
     link.connect()
-    d = start_daemon(tmp_path, fast, open_driver(link.spec + "&tick_hz=1000000"))
+    d = start_daemon(tmp_path, fast, open_driver(link.spec + "&tick_hz=1000000"), calibration=EXTENDED)
     cfg = d.cfg
     readers: dict[str, Reader] = {}
 
@@ -95,7 +96,7 @@ def run_stream(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
             time.sleep(0.01)
         stats = {**d.driver.stats(), "taken_by_c": d._fast.taken if d._fast is not None else 0,
                  "nogil": d._fast.nogil if d._fast is not None else 0,
-                 "published": d.server.published_samples}
+                 "published": d.server.published_samples, "model": d.processor.applied.model}
     finally:
         out = stop_all(d, readers, link)
     return out, stats
@@ -108,6 +109,8 @@ COUNTERS = ("can_frames", "orphan_frames", "bad_frames", "partial", "error_frame
 def test_can_clients_receive_the_same_bytes_with_and_without_the_c_step(tmp_path):
     slow, slow_stats = run_stream(tmp_path, fast=False)
     fast, fast_stats = run_stream(tmp_path, fast=True)
+    # an extended calibration (temperature and supply terms) throughout: the C step takes it as any other
+    assert slow_stats["model"] == fast_stats["model"] == EXTENDED.model
     assert_same_counts(slow_stats, fast_stats, COUNTERS, min_share=0.6)  # the cases C does not take: python-can
     assert slow_stats["gaps"] >= 1 and slow_stats["garbled_lines"] >= 1 and slow_stats["partial"] == 2
     assert slow_stats["restarts"] >= 1 and slow_stats["reconnects"] == 1

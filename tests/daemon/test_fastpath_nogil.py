@@ -17,10 +17,14 @@ from gravcal.core.samples import SAMPLE_DTYPE
 from gravcal.daemon import fastpath as fp
 from gravcal.daemon._fastpath import ClientRecord, step
 from gravcal.daemon.fanout import fast_snapshot, finish_delivery
-from gravcal.daemon.protocol import ImuBlock
+from gravcal.daemon.processing import engine_params
+from gravcal.daemon.protocol import STANDARD_GRAVITY, ImuBlock
 from gravcal.daemon.server import ServerConfig, SocketServer
 
-from test_fastpath_step import Rig, frames
+from support.correction_reference import extended_model, plain_block
+from support.line_reference import imu_lines
+from test_fastpath_step import FS, PLAIN, Rig, frames
+from test_fastpath import EXTENDED
 from test_server import block, wait_until
 
 
@@ -46,10 +50,10 @@ def _feed(rig: Rig, seqs, pause_s: float, between=None) -> threading.Thread:
 
 def _expected_lines(rig: Rig) -> bytes:
     rows = np.frombuffer(bytes(rig.staged), SAMPLE_DTYPE)
-    acc = rig.processor.correction[0].block(rows)
+    acc = rig.processor.acc(rows)
     gyro = (rows["gyro"].astype(float) - 2048.0) / 357.36
     static = np.where(rows["seq"] - 900 <= 400.0, 1, -1).astype(np.int8)
-    return ImuBlock(rows, acc, gyro, static).joined(True)
+    return imu_lines(rows, acc, gyro, static, raw=True)
 
 
 def test_wake_ups_take_no_gil_and_send_the_python_paths_bytes(rig):
@@ -207,9 +211,11 @@ def test_the_table_follows_connect_watch_pending_output_disconnect_and_reload(tm
 
 
 def test_every_record_is_staged_once_and_in_order_under_load(rig):
-    """Frames in bursts while another thread churns the box and the client's lock: every call adds exactly the
-    records it counts, all in order, and the client gets each line once, in order (stopped deliveries finished
-    by fanout, as FastPath does)."""
+    """Frames in bursts while another thread churns the box, the client's lock and the engine's parameters
+    (a plain and an extended calibration, each with its own gyro bias, swapped through Engine.set_params): every
+    call adds exactly the records it counts, all in order, the client gets each line once, in order (stopped
+    deliveries finished by fanout, as FastPath does), and each line is corrected wholly with one of the two
+    parameter sets, never a mix."""
     total, limit, most = 3000, 64, 4096  # a read holds at most 65536 bytes: whole frames, none handed back
     rig.ist[fp.IST_STAGE_LIMIT] = limit * SAMPLE_DTYPE.itemsize
     rig.rows, rig.acc = np.zeros(most, SAMPLE_DTYPE), np.zeros((most, 3))
@@ -238,10 +244,16 @@ def test_every_record_is_staged_once_and_in_order_under_load(rig):
             s += k
             time.sleep(0.0005)
 
+    params = (engine_params(PLAIN, FS, (2048.0, 357.36), (900, True)),
+              engine_params(EXTENDED, FS, (2000.0, 350.0), (900, True)))
+
     def churn():
         c = rig.client
+        k = 0
         while not done.is_set():
             rig.server.fast_box[0] = fast_snapshot((c,))
+            rig.processor.engine.set_params(params[k % 2])
+            k += 1
             with c.lock:
                 time.sleep(0.0002)
 
@@ -253,8 +265,8 @@ def test_every_record_is_staged_once_and_in_order_under_load(rig):
         while seq < total and calls < 10000:
             had = len(rig.staged)
             rig.ist[fp.IST_EXPECT], rig.ist[fp.IST_SEQ] = expect & 0xFFFF, seq
-            leftover, stopped = step(rig.r, 0.2, most, rig.ist, rig.fst, rig.staged, rig.server, rig.processor,
-                                     rig.rows, rig.acc, rig.gyro, rig.codes)
+            leftover, stopped = step(rig.r, 0.2, most, rig.ist, rig.fst, rig.staged, rig.server.fast_box,
+                                     rig.processor.engine, rig.rows, rig.acc, rig.gyro, rig.codes)
             calls += 1
             assert leftover == b""
             n, nogil = int(rig.ist[fp.IST_FRAMES]), nogil + int(rig.ist[fp.IST_NOGIL])
@@ -276,9 +288,16 @@ def test_every_record_is_staged_once_and_in_order_under_load(rig):
     assert all(len(h) >= limit * SAMPLE_DTYPE.itemsize for h in handed)
     rows = np.frombuffer(b"".join(handed) + bytes(rig.staged), SAMPLE_DTYPE)
     assert rows["seq"].tolist() == list(range(total))
-    seqs = [json.loads(x)["seq"] for x in bytes(got).splitlines() if b'"IMU"' in x]
-    assert seqs == list(range(total))
+    lines = [json.loads(x) for x in bytes(got).splitlines() if b'"IMU"' in x]
+    assert [m["seq"] for m in lines] == list(range(total))
     assert stopped_n >= 1 and nogil >= 1  # both: batches without the GIL, deliveries the churn sent to fanout
+    acc, gyro = np.array([m["acc"] for m in lines]), np.array([m["gyro"] for m in lines], dtype=float)
+    sets = [(plain_block(rows, PLAIN.offset, PLAIN.sensitivity, STANDARD_GRAVITY),
+             (rows["gyro"].astype(float) - 2048.0) / 357.36),
+            (extended_model(EXTENDED, rows, FS, STANDARD_GRAVITY), (rows["gyro"].astype(float) - 2000.0) / 350.0)]
+    which = [(np.abs(acc - a).max(axis=1) < 1e-4) & (np.abs(gyro - g) < 1e-5) for a, g in sets]
+    assert (which[0] ^ which[1]).all()  # each line one set's, wholly: never the acc of one and the gyro of the other
+    assert which[0].sum() > 0 and which[1].sum() > 0, (which[0].sum(), which[1].sum())
 
 
 def test_poll_copies_the_newest_batchs_last_sample_and_refuses_bad_buffers(rig):
@@ -306,10 +325,9 @@ def test_poll_copies_the_newest_batchs_last_sample_and_refuses_bad_buffers(rig):
 def test_a_number_beyond_the_integer_formatting_takes_the_gil_for_its_line(rig):
     """acc ~1e300: the line kernel's integer path cannot write it, so that batch's lines are written with the
     GIL (PyOS_double_to_string), the same bytes as the Python encoder's, and the wake-ups still deliver."""
-    from gravcal.core.correction import PlainCorrection
-    from gravcal.daemon.protocol import STANDARD_GRAVITY
-    rig.processor.correction = (PlainCorrection(np.array([0.5, 0.51, 0.49]), np.diag([1e-302, 0.041, 0.039]),
-                                                STANDARD_GRAVITY), None)
+    from gravcal.core.calibration import Calibration
+    rig.processor.set(Calibration("6", np.array([0.5, 0.51, 0.49]), np.diag([1e-302, 0.041, 0.039])),
+                      (2048.0, 357.36), (900, True))
     n = 4
     rig.ist[fp.IST_STAGE_LIMIT] = n * SAMPLE_DTYPE.itemsize
     t = _feed(rig, range(5, 5 + n), 0.004)

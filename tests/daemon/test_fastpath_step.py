@@ -12,18 +12,23 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from gravcal.core.correction import PlainCorrection
+from gravcal.core.calibration import Calibration
 from gravcal.core.samples import SAMPLE_DTYPE
 from gravcal.daemon import fastpath as fp
-from gravcal.daemon._fastpath import WatcherBox, step
+from gravcal.daemon._fastpath import EP_N, Engine, WatcherBox, step
 from gravcal.daemon.client_limits import ClientState
 from gravcal.daemon.fanout import fast_snapshot
 from gravcal.daemon.output_queue import OutputQueue
-from gravcal.daemon.protocol import STANDARD_GRAVITY, ImuBlock, WatchPolicy
+from gravcal.daemon.processing import engine_params
+from gravcal.daemon.protocol import STANDARD_GRAVITY, WatchPolicy
 from gravcal.drivers.codec import FrameDecoder, encode_frames
 from gravcal.drivers.rigs.sources import pattern_blocks
+from support.correction_reference import plain_block
+from support.line_reference import imu_lines
 
 MAX = 16
+FS = 200.0
+PLAIN = Calibration("6", np.array([0.5, 0.51, 0.49]), np.diag([0.04, 0.041, 0.039]))
 
 
 def frames(seqs) -> bytes:
@@ -43,6 +48,23 @@ class RigServer:
     fast_watchers = property(lambda self: self.fast_box[0], lambda self, value: self.fast_box.__setitem__(0, value))
 
 
+class RigProcessor:
+    """What the step takes of daemon/processing.py's Processor: its engine, whose parameters are set whole
+    (Engine.set_params) as the processor sets them; ``cal`` the calibration they correct with."""
+
+    def __init__(self, cal: Calibration = PLAIN, gyro=(2048.0, 357.36), analysed=(900, True)):
+        self.engine = Engine()
+        self.set(cal, gyro, analysed)
+
+    def set(self, cal: Calibration, gyro, analysed) -> None:
+        self.cal = cal
+        self.engine.set_params(engine_params(cal, FS, gyro, analysed))
+
+    def acc(self, rows: np.ndarray) -> np.ndarray:
+        """The reference correction of a plain calibration (tests/support/correction_reference.py)."""
+        return plain_block(rows, self.cal.offset, self.cal.sensitivity, STANDARD_GRAVITY)
+
+
 class Rig:
     """A pipe as the bus, a socketpair as one plain watcher, a processor with a plain calibration."""
 
@@ -54,21 +76,19 @@ class Rig:
         self.client = ClientState(id=1, sock=self.mine, queue=OutputQueue(100), connected=0.0,
                                   watch=WatchPolicy(True, raw, 0.0))
         self.server = RigServer(fast_snapshot((self.client,)))
-        plain = PlainCorrection(np.array([0.5, 0.51, 0.49]), np.diag([0.04, 0.041, 0.039]), STANDARD_GRAVITY)
-        self.processor = SimpleNamespace(correction=(plain, None), gyro_correction=(2048.0, 357.36),
-                                         analysed=(900, True), params_generation=np.zeros(1, np.int64))
+        self.processor = RigProcessor()
         self.ist = np.zeros(fp.IST_N, np.int64)
         self.fst = np.zeros(fp.FST_N)
         self.ist[fp.IST_STAGE_LIMIT] = 1 << 30
-        self.fst[fp.FST_TICK_HZ], self.fst[fp.FST_MAX_AGE] = 1e6, 400.0
+        self.fst[fp.FST_TICK_HZ] = 1e6
         self.rows, self.acc = np.zeros(MAX, SAMPLE_DTYPE), np.zeros((MAX, 3))
         self.gyro, self.codes = np.zeros(MAX), np.zeros(MAX, np.int8)
         self.staged = bytearray()
 
     def step(self, expect: int, seq: int, seconds: float = 0.05):
         self.ist[fp.IST_EXPECT], self.ist[fp.IST_SEQ] = expect, seq
-        return step(self.r, seconds, MAX, self.ist, self.fst, self.staged, self.server, self.processor,
-                    self.rows, self.acc, self.gyro, self.codes)
+        return step(self.r, seconds, MAX, self.ist, self.fst, self.staged, self.server.fast_box,
+                    self.processor.engine, self.rows, self.acc, self.gyro, self.codes)
 
     def received(self) -> bytes:
         self.peer.setblocking(False)
@@ -109,13 +129,11 @@ def test_lines_and_records_are_the_python_paths(rig):
     t = rows["t"]
     assert t[1] - t[0] == pytest.approx(5e-3, abs=1e-9) and t[2] - t[1] == pytest.approx(5e-3, abs=1e-9)
     assert t[3] >= t[2]
-    plain = rig.processor.correction[0]
-    acc = plain.block(rows)
+    acc = rig.processor.acc(rows)
     gyro = (rows["gyro"].astype(float) - 2048.0) / 357.36
     static = np.where(rows["seq"] - 900 <= 400.0, 1, -1).astype(np.int8)
-    want = ImuBlock(rows[:3], acc[:3], gyro[:3], static[:3]).joined(True) + \
-        ImuBlock(rows[3:], acc[3:], gyro[3:], static[3:]).joined(True)
-    assert rig.received() == want  # bit for bit: numpy's correction and the block encoder
+    want = imu_lines(rows, acc, gyro, static, raw=True)
+    assert rig.received() == want  # bit for bit: the numpy references' correction and lines
     assert rig.client.sent_messages == 0  # counted in the C record until folded
     rig.client.fold()
     assert rig.client.sent_messages == 4 and rig.client.sent_bytes == len(want)
@@ -139,10 +157,6 @@ def test_whatever_is_not_the_common_case_is_handed_back_unconsumed(rig):
         assert not rig.staged and rig.received() == b"", name
     rig.server.fast_watchers = None  # a decimated watcher: nothing is read
     os.write(rig.w, frames([5]))
-    assert rig.step(5, 100) == (b"", None) and rig.ist[fp.IST_REASON] == fp.R_NOT_PLAIN
-    rig.server.fast_watchers = ()
-    rig.processor.correction = (rig.processor.correction[0], object())  # an extended calibration
-    rig.processor.params_generation[0] += 1
     assert rig.step(5, 100) == (b"", None) and rig.ist[fp.IST_REASON] == fp.R_NOT_PLAIN
     assert os.read(rig.r, 100) == frames([5])
 
@@ -209,8 +223,8 @@ def test_arbitrary_bytes_are_handed_back_or_taken_whole(rig, seed):
 
 
 def test_bad_arguments_are_refused_with_a_message(rig):
-    args = [rig.r, 0.01, MAX, rig.ist, rig.fst, rig.staged, rig.server, rig.processor, rig.rows, rig.acc, rig.gyro,
-            rig.codes]
+    args = [rig.r, 0.01, MAX, rig.ist, rig.fst, rig.staged, rig.server.fast_box, rig.processor.engine, rig.rows,
+            rig.acc, rig.gyro, rig.codes]
     for i, bad, exc, words in [
         (8, np.zeros(MAX - 1, SAMPLE_DTYPE), ValueError, "rows holds"),
         (9, np.zeros((MAX - 1, 3)), ValueError, "acc holds"),
@@ -228,7 +242,7 @@ def test_bad_arguments_are_refused_with_a_message(rig):
             step(*a)
     os.write(rig.w, frames([5]))
     rig.server.fast_watchers = "not a tuple"
-    with pytest.raises(TypeError, match="fast_watchers"):
+    with pytest.raises(TypeError, match="watcher snapshot"):
         rig.step(5, 0)
     rig.server.fast_watchers = ((1, 2),)
     with pytest.raises(TypeError, match="watcher entry"):
@@ -240,13 +254,21 @@ def test_bad_arguments_are_refused_with_a_message(rig):
     with pytest.raises(TypeError, match="watcher entry"):
         rig.step(6, 1)
     rig.server.fast_watchers = ()
-    rig.processor.correction = (SimpleNamespace(offset=np.zeros(2), kinv_t=np.eye(3)), None)
     os.write(rig.w, frames([5]))
-    with pytest.raises(TypeError, match="offset must hold 3 float64"):
-        rig.step(5, 0)
-    rig.processor.params_generation = np.zeros(2, np.int64)
-    with pytest.raises(TypeError, match="params_generation must be one aligned int64"):
-        rig.step(5, 0)
+    with pytest.raises(ValueError, match="the engine has no parameters"):
+        step(rig.r, 0, MAX, rig.ist, rig.fst, rig.staged, rig.server.fast_box, Engine(), rig.rows, rig.acc,
+             rig.gyro, rig.codes)
+    with pytest.raises(TypeError, match="Engine"):
+        step(rig.r, 0, MAX, rig.ist, rig.fst, rig.staged, rig.server.fast_box, rig.processor, rig.rows, rig.acc,
+             rig.gyro, rig.codes)
+    for bad, words in ((np.zeros(5), "EP_N float64"), (np.zeros(EP_N, np.float32), "EP_N float64")):
+        with pytest.raises(ValueError, match=words):
+            rig.processor.engine.set_params(bad)
+    v = engine_params(PLAIN, FS)
+    v[-3] = 0.5  # the decision's "still" flag
+    with pytest.raises(ValueError, match="decision flags"):
+        rig.processor.engine.set_params(v)
+    assert rig.step(5, 0) == (b"", None) and rig.ist[fp.IST_FRAMES] == 1  # the refused vectors changed nothing
 
 
 def test_a_stopped_delivery_is_finished_even_when_the_accounting_fails(rig):
@@ -261,7 +283,7 @@ def test_a_stopped_delivery_is_finished_even_when_the_accounting_fails(rig):
 
     driver = SimpleNamespace(fast_entry=lambda: (rig.r, 5, 100, 0.0), fast_consumed=fail, tick_hz=1e6,
                              unread=lambda data: None)
-    path = fp.FastPath(driver, rig.processor, rig.server, max_frames=MAX, stage_bytes=1 << 30, fs_hz=200.0)
+    path = fp.FastPath(driver, rig.processor, rig.server, max_frames=MAX, stage_bytes=1 << 30)
     with rig.client.lock:
         rig.client.queue.put([b"queued\n"])  # something queued goes first: the step stops at this client
     os.write(rig.w, frames([5]))
@@ -317,32 +339,29 @@ def test_counters_stay_in_the_record_until_folded(rig):
 
 
 def test_a_calibration_swapped_mid_step_applies_from_the_next_wake_up(rig):
-    """The step reads the processor's tuples again only when params_generation changed: a swap followed by
-    the processor's bump corrects the next sample with the new calibration, within the same call."""
-    new = PlainCorrection(np.array([0.47, 0.52, 0.5]), np.diag([0.042, 0.04, 0.038]), STANDARD_GRAVITY)
+    """The step copies the engine's parameters again whenever Engine.set_params swapped them: a swap corrects the
+    next sample with the new calibration, within the same call."""
+    new = Calibration("6", np.array([0.47, 0.52, 0.5]), np.diag([0.042, 0.04, 0.038]))
     got = []
 
     def feed():
         os.write(rig.w, frames([5]))
         while not got:
             got.append(rig.received()) if rig.peer.recv(1, socket.MSG_PEEK) else None
-        rig.processor.correction = (new, None)
-        rig.processor.gyro_correction = (2000.0, 350.0)
-        rig.processor.analysed = (None, False)
-        rig.processor.params_generation[0] += 1
+        rig.processor.set(new, (2000.0, 350.0), (None, False))
         os.write(rig.w, frames([6]))
 
     t = threading.Thread(target=feed)
     t.start()
     rig.ist[fp.IST_EXPECT], rig.ist[fp.IST_SEQ] = 5, 100
-    step(rig.r, 0.5, MAX, rig.ist, rig.fst, rig.staged, rig.server, rig.processor, rig.rows, rig.acc, rig.gyro,
-         rig.codes)
+    step(rig.r, 0.5, MAX, rig.ist, rig.fst, rig.staged, rig.server.fast_box, rig.processor.engine, rig.rows,
+         rig.acc, rig.gyro, rig.codes)
     t.join()
     rows = np.frombuffer(bytes(rig.staged), SAMPLE_DTYPE)
     assert rows.shape[0] == 2
     second = rows[1:]
     gyro = (second["gyro"].astype(float) - 2000.0) / 350.0
-    want = ImuBlock(second, new.block(second), gyro, np.array([-1], np.int8)).joined(True)
+    want = imu_lines(second, rig.processor.acc(second), gyro, np.array([-1], np.int8), raw=True)
     assert rig.received() == want
 
 
@@ -387,8 +406,8 @@ def test_on_a_tty_every_frame_is_taken_as_it_arrives(rig):
         t.start()
         rig.ist[fp.IST_EXPECT], rig.ist[fp.IST_SEQ] = 5, 100
         t0 = time.monotonic()
-        leftover, stopped = step(slave, 10.0, MAX, rig.ist, rig.fst, rig.staged, rig.server, rig.processor,
-                                 rig.rows, rig.acc, rig.gyro, rig.codes)
+        leftover, stopped = step(slave, 10.0, MAX, rig.ist, rig.fst, rig.staged, rig.server.fast_box,
+                                 rig.processor.engine, rig.rows, rig.acc, rig.gyro, rig.codes)
         elapsed = time.monotonic() - t0
         t.join()
     finally:
@@ -424,7 +443,7 @@ def test_the_servers_snapshot_box_is_read_at_every_wake_up(rig):
     assert got[0].count(b"\n") == 1 and rig.received() == b""
     for bad in ([], [()], ((),), None):
         rig.server = SimpleNamespace(fast_box=bad)
-        with pytest.raises(TypeError, match="fast_box"):
+        with pytest.raises(TypeError, match="WatcherBox"):
             rig.step(7, 102)
 
 

@@ -1,4 +1,5 @@
-"""The single-sample IMU line (the per-sample latency path) is byte for byte the block encoder's line."""
+"""The IMU lines of the line kernel (daemon/_linekernel.c), one sample or a block, are byte for byte those of its
+numpy reference (tests/support/line_reference.py: Python's %-formatting)."""
 from __future__ import annotations
 
 import json
@@ -8,6 +9,14 @@ import pytest
 
 from gravcal.core.samples import empty
 from gravcal.daemon.protocol import encode_imu_joined
+from support.line_reference import imu_lines as reference
+
+
+def reference_lines(s, acc, gyro, static, *, raw):
+    """The reference's lines of a block, once the kernel's block is checked to be the same bytes."""
+    want = reference(s, acc, gyro, static, raw=raw)
+    assert encode_imu_joined(s, acc, gyro, static, raw=raw) == want
+    return want.splitlines(keepends=True)
 
 
 def _block(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -44,7 +53,7 @@ def test_one_sample_line_equals_block_line(case, raw):
             s["temp"] = -np.inf
         elif case == "codes":
             static = rng.integers(-3, 4, 3)
-        block = encode_imu_joined(s, acc, gyro, static, raw=raw).splitlines(keepends=True)
+        block = reference_lines(s, acc, gyro, static, raw=raw)
         for i in range(3):
             one = encode_imu_joined(s[i:i + 1], acc[i:i + 1], gyro[i:i + 1], static[i:i + 1], raw=raw)
             assert one == block[i]
@@ -58,7 +67,7 @@ EDGE_FLOATS = [0.0, -0.0, -1e-9, 0.5e-5, -0.5e-5, 1e300, -1.7976931348623157e308
 @pytest.mark.parametrize("raw", [False, True])
 def test_one_sample_line_equals_block_line_on_edge_values(raw):
     """Every float field on extreme, signed-zero, rounding-tie and non-finite values, integer fields at their
-    limits and static codes far outside -1..1: the C line is the block encoder's, byte for byte."""
+    limits and static codes far outside -1..1: the C line is the reference's, byte for byte."""
     rng = np.random.default_rng(7)
     n = 400
     s = _block(rng, n)
@@ -76,7 +85,7 @@ def test_one_sample_line_equals_block_line_on_edge_values(raw):
     gyro = rng.choice(EDGE_FLOATS, n)
     for static in (rng.choice([-2**62, -300, -1, 0, 1, 2, 300, 2**62], n), rng.integers(0, 2, n).astype(bool),
                    rng.integers(-1, 2, n).astype(np.int8)):
-        block = encode_imu_joined(s, acc, gyro, static, raw=raw).splitlines(keepends=True)
+        block = reference_lines(s, acc, gyro, static, raw=raw)
         for i in range(n):
             one = encode_imu_joined(s[i:i + 1], acc[i:i + 1], gyro[i:i + 1], static[i:i + 1], raw=raw)
             assert one == block[i]
@@ -110,7 +119,7 @@ def _random_doubles(rng: np.random.Generator, n: int) -> np.ndarray:
 
 def test_fixed_decimals_are_pythons_on_every_exponent_and_tie():
     """The line's %.Nf numbers, written in integer arithmetic where they fit, are Python's %-formatting's (the
-    block encoder's) digit for digit on random bit patterns, dyadic ties and values up to 1e19 and beyond."""
+    reference's) digit for digit on random bit patterns, dyadic ties and values up to 1e19 and beyond."""
     rng = np.random.default_rng(11)
     x = _random_doubles(rng, 3000)
     n = x.size // 3 * 3
@@ -122,6 +131,6 @@ def test_fixed_decimals_are_pythons_on_every_exponent_and_tie():
     acc = rng.permutation(x)[:n].reshape(-1, 3).repeat(3, axis=0)[:n]
     gyro = rng.permutation(x)[:n]
     static = rng.integers(0, 2, n).astype(bool)
-    block = encode_imu_joined(s, acc, gyro, static, raw=True).splitlines(keepends=True)
+    block = reference_lines(s, acc, gyro, static, raw=True)
     for i in range(n):
         assert encode_imu_joined(s[i:i + 1], acc[i:i + 1], gyro[i:i + 1], static[i:i + 1], raw=True) == block[i]

@@ -13,6 +13,7 @@ from gravcal.drivers.base import Driver
 from gravcal.drivers.codec import TICK_HZ, encode_frames
 from gravcal.drivers.rigs.emulator import PtyLink
 from gravcal.drivers.rigs.sources import pattern_blocks, scenario_source
+from support.stamp_reference import stamp
 
 
 @pytest.mark.parametrize("scenario", ["daily_living", "six_position", "pattern"])
@@ -63,6 +64,28 @@ def test_host_time_never_runs_backwards():
     assert np.all(np.diff(stamped) >= 0), np.diff(stamped)
     # in order reception keeps the tick spacing
     np.testing.assert_allclose(np.diff(a["t"]), 1 / 200)
+
+
+
+def test_the_stamps_are_the_references_bit_for_bit():
+    """Driver._stamp (in C, the C step's own stamping) writes the numpy reference's stamps
+    (tests/support/stamp_reference.py) bit for bit: random reads of 1 to 40 samples, jittered reception,
+    tick wraps, backwards ticks (device resets), no tick rate."""
+    rng = np.random.default_rng(4)
+    for tick_hz in (TICK_HZ, 0.0, 32768.0):
+        drv, last = _Scripted(tick_hz=tick_hz or None), -np.inf
+        tick, t_recv = int(rng.integers(0, 1 << 32)), 100.0
+        for _ in range(300):
+            n = int(rng.integers(1, 41))
+            steps = rng.choice([5000, 5000, 5000, 4999, 5001, -70000, 1 << 31], n)
+            ticks = tick + np.cumsum(steps)
+            tick = int(ticks[-1])
+            t_recv += n / 200 + rng.normal(0, 0.004)
+            got, want = _block(ticks), _block(ticks)
+            drv._stamp(got, t_recv)
+            last = stamp(want, tick_hz, t_recv, last)
+            np.testing.assert_array_equal(got["t"], want["t"])
+            assert drv._last_t == last
 
 
 def _frames(n, start=0):
