@@ -149,8 +149,8 @@ def offsets_observability(ws: WindowSet, start: Calibration) -> dict[str, Any]:
     if not ok:
         pred = "unbounded" if obs["predicted_mg"] is None else f"{obs['predicted_mg']:.3g} mg"
         out["reason"] = (f"the absolute offsets are not determined (predicted error {pred} > "
-                         f"{TOL_G * 1e3:.0f} mg; {held_note(obs) or 'too few postures'}): `gravcal calibrate` refuses "
-                         f"this recording for that reason; given the held sensitivities the offsets are determined to "
+                         f"{TOL_G * 1e3:.0f} mg; {held_note(obs) or 'too few postures'}): `gravcal calibrate` does not "
+                         f"fit them (in one pose it returns each channel's temperature slope, else it refuses); given the held sensitivities the offsets are determined to "
                          f"{obs['predicted_given_held_mg']} mg, and the terms here are judged relative to them")
     return out
 

@@ -268,13 +268,14 @@ def single_pose(ws: WindowSet, start: Calibration, *, folds: int = FOLDS, why_no
         if with_mg < without_mg:
             determined["temperature_slopes"] = magnitude
             names = view.param_names()
-            cal.model = f"{start.model}+{TERM}"
+            cal.model = f"offsets+{TERM}"  # the extended family whose K is held (here o too: named undetermined)
             cal.param_names = list(names)
             cal.covariance = np.diag(raw_sd ** 2)
             cal.metadata.update({"extended": {"terms": [TERM], "t_ref_c": t_ref,
                                               "magnitudes": {TERM: {"unit": view.unit, "value": magnitude["value"],
                                                                     "std": magnitude["std"]}}},
-                                 "params": dict(zip(names, raw.tolist())), "t_ref_c": t_ref})
+                                 "params": {**{f"o_{a}": float(o[i]) for i, a in enumerate("xyz")},  # held
+                                            **dict(zip(names, raw.tolist()))}, "t_ref_c": t_ref})
             g = "xyz"[axis]
             undetermined[f"temperature slope along gravity ({g}): offset or gain"] = (
                 f"one pose: a temperature change of the offset and of the gain along gravity read alike; the "

@@ -330,8 +330,8 @@ def bootstrap(t, raw, fs: float | None = None, *, noise_factor: float = 4.0, per
         )
         sd = ISOTROPIC_SENS_REL_STD * scale
         return with_held_uncertainty(iso, {f"s_{a}": sd for a in "xyz"},
-                                     source=f"isotropic fallback: per-axis sensitivities assumed equal "
-                                            f"(±{100 * ISOTROPIC_SENS_REL_STD:.0f} %, a MEMS part's gain spread)")
+                                     source=f"a sensor of unknown make, its per-axis gains assumed equal "
+                                            f"within ±{100 * ISOTROPIC_SENS_REL_STD:.0f} %")
     cal.metadata = {**meta, **cal.metadata, "method": "bootstrap+ellipsoid_fit"}
     cal.message = f"bootstrap from {len(ws)} still segments; " + cal.message
     return cal
