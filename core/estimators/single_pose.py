@@ -24,7 +24,6 @@ from ..calibration import Calibration
 from ..heldout import HeldoutResult
 from ..model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from ..windows import WindowSet
-from .observability import TOL_G
 
 POSE_TOL_DEG = 10.0  # windows within this angle of the dominant direction hold the pose (the chamber's: < 1°;
 # 2 mg/°C across gravity over 45 °C turns the apparent direction by 5°)
@@ -138,6 +137,28 @@ def dominant_pose(ws: WindowSet, start: Calibration, tol_deg: float = POSE_TOL_D
     return idx, d / np.linalg.norm(d)
 
 
+def _mean_and_std(pose: WindowSet, v: np.ndarray) -> tuple[float, float]:
+    """``v`` (one value per window) at the pose's mean temperature (a line in it where there is one) and that
+    value's std: the larger of the white one and a 10-block contiguous jackknife (a wander is shared by
+    neighbouring windows)."""
+    temp = pose.covariate("temp")
+    x = temp - np.mean(temp) if temp is not None and np.all(np.isfinite(temp)) and np.ptp(temp) > 0 else None
+    A = np.ones((len(v), 1)) if x is None else np.column_stack([np.ones(len(v)), x])
+
+    def at_mean(idx: np.ndarray) -> float:
+        return float(np.linalg.lstsq(A[idx], v[idx], rcond=None)[0][0])
+
+    order = np.argsort(pose.t, kind="stable")
+    value = at_mean(order)
+    resid = v - A @ np.linalg.lstsq(A, v, rcond=None)[0]
+    sd = float(np.sqrt(np.sum(resid ** 2) / max(len(v) - A.shape[1], 1) / len(v)))
+    blocks = min(JACKKNIFE_BLOCKS, len(v) // 5)
+    if blocks >= 5:
+        parts = np.array([at_mean(np.setdiff1d(order, b, assume_unique=True)) for b in np.array_split(order, blocks)])
+        sd = max(sd, float(np.sqrt((blocks - 1) / blocks * np.sum((parts - parts.mean()) ** 2))))
+    return value, sd
+
+
 def _contiguous_heldout(ws: WindowSet, x: np.ndarray | None, K: np.ndarray, folds: int) -> tuple[float, list[float], list[int]]:
     """RMS [mg] of each channel's reading in held-out contiguous folds, predicted by a constant (``x`` None) or a
     line in ``x`` fitted on the other folds; the raw residual taken to g through K^-1."""
@@ -206,27 +227,23 @@ def single_pose(ws: WindowSet, start: Calibration, *, folds: int = FOLDS, why_no
     determined: dict[str, Any] = {}
 
     # along gravity: |a| - 1 g under the held calibration is the sum of an offset error and a gain error there
-    a_pose = start.apply_reference(pose.mean)
-    norm_mg = (np.linalg.norm(a_pose, axis=1) - 1.0) * 1e3
+    norm_mg = (np.linalg.norm(start.apply_reference(pose.mean), axis=1) - 1.0) * 1e3
+    err_mg, noise_mg = _mean_and_std(pose, norm_mg)
     rel_g = float(np.sqrt(np.sum((g_dir * rel) ** 2)))  # the held gains' relative std along gravity
-    noise_mg = float(np.std(norm_mg, ddof=1) / np.sqrt(len(norm_mg))) if len(norm_mg) > 1 else float("nan")
     off_g_std = float(np.hypot(noise_mg, rel_g * 1e3))
-    determined["norm_along_gravity_mg"] = {
-        "value": float(np.mean(norm_mg)), "std": noise_mg,
-        "meaning": "|a| - 1 g of the pose under the held calibration, averaged over the windows: the offset error "
-                   "along gravity plus the gain error there (one pose cannot split them)"}
-    if off_g_std <= TOL_G * 1e3 and rel_g > 0:
-        determined["offset_along_gravity_mg"] = {"value": -float(np.mean(norm_mg)), "std": off_g_std,
-                                                 "meaning": "the correction of the offset along gravity, given the "
-                                                            "held gains"}
-    else:
-        gain = f"±{100 * rel_g:.3g} %" if rel_g > 0 else "of unstated uncertainty"
-        undetermined["offset along gravity"] = (
-            f"one pose reads |a| - 1 g = {np.mean(norm_mg):.3g} mg along gravity: an offset there and a gain error "
-            f"there read alike; with the held gains {gain} the offset would be known to "
-            f"{off_g_std:.3g} mg > {TOL_G * 1e3:.3g} mg; held at {who}")
+    determined["norm_along_gravity_mg"] = {  # a measurement of the held calibration, not a parameter
+        "value": err_mg, "std": noise_mg,
+        "meaning": "|a| - 1 g of the pose under the held calibration at the pose's mean temperature: the offset "
+                   "error along gravity plus the gain error there (one pose cannot split them)"}
+    # the offset along gravity is not applied even when the held gains are tight: the norm also carries the
+    # undetermined offsets across gravity to second order (50 mg across: 1.25 mg along), which no std here covers
+    gain = f"±{100 * rel_g:.3g} %" if rel_g > 0 else "of unstated uncertainty"
+    undetermined["offset along gravity"] = (
+        f"one pose reads |a| - 1 g = {err_mg:.3g} mg along gravity: an offset there and a gain error there read "
+        f"alike (with the held gains {gain}: {off_g_std:.3g} mg), and the undetermined offsets across gravity add "
+        f"to the norm at second order; held at {who}")
 
-    cal = Calibration(start.model, o.copy(), K.copy(), n_windows=len(pose), converged=True, observable=False,
+    cal = Calibration(start.model, np.array(o, dtype=float), K.copy(), n_windows=len(pose), converged=True, observable=False,
                       message=f"one pose: offsets and sensitivities held at {who}",
                       metadata={k: v for k, v in start.metadata.items() if k != HELD_KEY})
     temp = pose.covariate("temp")
@@ -263,8 +280,8 @@ def single_pose(ws: WindowSet, start: Calibration, *, folds: int = FOLDS, why_no
                      "std_gain": dict(zip("xyz", (np.abs(value) * rel).tolist())),
                      "raw_channel_slopes": slopes,
                      "method": "per-channel least squares of the pose's window means on the temperature; std: the "
-                               "larger of least squares and a contiguous-block jackknife, with the held gains' "
-                               "relative std"}
+                               "largest of least squares, a contiguous-block jackknife and the slope's variance under "
+                               "a white-plus-wander covariance (REML), with the held gains' relative std"}
         if with_mg < without_mg:
             determined["temperature_slopes"] = magnitude
             names = view.param_names()
