@@ -33,7 +33,7 @@ FOLDS = 5  # contiguous folds of the held-out check
 JACKKNIFE_BLOCKS = 10  # contiguous time blocks of the slope's std (neighbouring windows share slow errors)
 REML_TAUS = 10  # wander time constants tried, log-spaced from the windows' spacing to the session
 REML_SHARES = np.linspace(0.0, 0.99, 34)  # the wander's share of the windows' variance tried
-REML_MAX_WINDOWS = 400  # the covariance fit's windows (evenly thinned beyond: its cost grows as m^3)
+REML_MAX_WINDOWS = 250  # the covariance fit's windows (evenly thinned beyond: its cost grows as m^3)
 # the registered term a channel's slope on the temperature is held as: the zero-g level's, unlagged
 TERM = next(t for t in CALIBRATION_TERMS if calibration_view(t).acts_on == "offset"
             and calibration_view(t).covariate == "temp" and not calibration_view(t).lagged)
@@ -100,8 +100,10 @@ def channel_slopes(ws: WindowSet, covariate: str) -> dict[str, Any] | None:
         jk = np.sqrt((blocks - 1) / blocks * np.sum((np.array(parts) - np.mean(parts, axis=0)) ** 2, axis=0))
         sd = np.maximum(sd, jk)
     sub = order if len(order) <= REML_MAX_WINDOWS else order[np.linspace(0, len(order) - 1, REML_MAX_WINDOWS).astype(int)]
-    sd = np.fmax(sd, correlated_slope_std(ws.t[sub], x[sub], ws.mean[sub]))  # thinned: not scaled down (a wander
-    # does not average out over more windows)
+    from gravcal.core.pipeline import _blas_single_threaded  # noqa: PLC0415 - the calibration's BLAS rule (small products)
+
+    # thinned: not scaled down (a wander does not average out over more windows)
+    sd = np.fmax(sd, _blas_single_threaded(correlated_slope_std)(ws.t[sub], x[sub], ws.mean[sub]))
     unit = COVARIATES[covariate].unit
     return {"unit": f"raw/{unit}", "value": dict(zip("xyz", slope.tolist())), "std": dict(zip("xyz", sd.tolist()))}
 
