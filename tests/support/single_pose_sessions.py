@@ -122,15 +122,20 @@ def window_session(seed: int, *, kind: str = "offset", m: int = 200, duration_s:
 def sample_session(seed: int, *, duration_s: float = 5400.0, fs: float = 16.0, noise_g: float = 0.004,
                    held_rel_std: float = 0.03):
     """One chamber session as samples for the file-level paths: (t [s], raw (N, 3) counts, temp [°C], PoseSession
-    without windows). Still throughout, with a short handling at either end."""
+    without windows). Still throughout, with a minute of handling at either end (three 6 s still moments in other
+    postures each, as a chamber's loading and unloading leave)."""
     rng, s, o, c_o, c_s, g, held_K, held_o = pose_parameters("samples", seed, held_rel_std)
     t = np.arange(0.0, duration_s, 1.0 / fs)
     temp = _chamber(rng, t, duration_s)
     a = np.repeat(g[None], t.size, axis=0)
-    for lo, hi in ((0.0, 60.0), (duration_s - 60.0, duration_s)):  # handling: turned over and about
-        sel = (t >= lo) & (t < hi)
+    for lo, hi in ((0.0, 60.0), (duration_s - 60.0, duration_s)):  # handling: turned over and about, with still
+        sel = (t >= lo) & (t < hi)                                    # moments of 6 s in other postures between
         ph = 2 * np.pi * (t[sel] - lo) / 20.0
         a[sel] = np.column_stack([np.sin(ph), np.cos(ph) * 0.6, np.cos(ph) * 0.8])
+        for k in range(3):
+            still = (t >= lo + 10.0 + 15.0 * k) & (t < lo + 16.0 + 15.0 * k)
+            d = rng.normal(size=3)
+            a[still] = d / np.linalg.norm(d)
     dT = temp - T_REF_C
     raw = s * a + o + c_o * dT[:, None] + rng.normal(0, noise_g, a.shape) * s
     raw = np.round(raw)  # counts
