@@ -444,6 +444,9 @@ def calibrate_recording(
         sp = single_pose(ws, start, folds=folds, why_not_norm=" ".join(str(exc).split()))
         if sp is None:
             raise
+        if sp.status != "partial":  # nothing to apply: the refusal, with what the one pose showed
+            why = "; ".join(f"{k}: {v}" for k, v in sp.undetermined.items() if k == "temperature slopes")
+            raise OrderNotDetermined(f"{exc}; {sp.reason}" + (f" ({why})" if why else "")) from None
         ho = sp.heldout
         return CalibrationReport(sp.calibration, sp.windows, np.nan if ho is None else ho.heldout_rms_mg,
                                  np.nan if ho is None else ho.insample_rms_mg, len(sp.windows), notes, ho, start,

@@ -25,8 +25,8 @@ from ..heldout import HeldoutResult
 from ..model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from ..windows import WindowSet
 
-POSE_TOL_DEG = 10.0  # windows within this angle of the dominant direction hold the pose (the chamber's: < 1°;
-# 2 mg/°C across gravity over 45 °C turns the apparent direction by 5°)
+POSE_TOL_DEG = 10.0  # first cut: 2 mg/°C across gravity over 45 °C turns the apparent direction by 5°
+POSE_HOLD_DEG = 0.5  # the pose once each channel's temperature line is out (9 mg across gravity; the chamber: < 0.6°)
 MIN_POSE_WINDOWS = 6  # a line and its scatter need a few windows; fewer determine nothing
 MIN_POSE_SHARE = 0.5  # the pose holds most windows (a chamber's handling is brief): else it is a wearer's day
 FOLDS = 5  # contiguous folds of the held-out check
@@ -34,6 +34,7 @@ JACKKNIFE_BLOCKS = 10  # contiguous time blocks of the slope's std (neighbouring
 REML_TAUS = 10  # wander time constants tried, log-spaced from the windows' spacing to the session
 REML_SHARES = np.linspace(0.0, 0.99, 34)  # the wander's share of the windows' variance tried
 REML_MAX_WINDOWS = 250  # the covariance fit's windows (evenly thinned beyond: its cost grows as m^3)
+SLOPES_CHI2 = 16.27  # chi²(3) at 0.999: the slopes applied only when they are not noise (and hold out better)
 # the registered term a channel's slope on the temperature is held as: the zero-g level's, unlagged
 TERM = next(t for t in CALIBRATION_TERMS if calibration_view(t).acts_on == "offset"
             and calibration_view(t).covariate == "temp" and not calibration_view(t).lagged)
@@ -125,17 +126,30 @@ def held_gain_rel_std(start: Calibration, held: dict[str, Any] | None = None) ->
     return out
 
 
-def dominant_pose(ws: WindowSet, start: Calibration, tol_deg: float = POSE_TOL_DEG) -> tuple[np.ndarray, np.ndarray]:
-    """(indices of the windows within ``tol_deg`` of the dominant direction, that unit direction in g under the
-    start). The dominant direction is the one with the most windows within ``tol_deg`` (each window's own
-    direction tried), so handling moments before and after a chamber run do not pull it."""
-    a = start.apply_reference(ws.mean)
-    u = a / np.linalg.norm(a, axis=1, keepdims=True)
-    cos_tol = np.cos(np.radians(tol_deg))
-    near = (u @ u.T) >= cos_tol  # (M, M): fine for the few hundred windows a pose gives
-    best = int(np.argmax(near.sum(axis=1)))
-    idx = np.flatnonzero(near[best])
-    d = u[idx].mean(axis=0)
+def dominant_pose(ws: WindowSet, start: Calibration, tol_deg: float = POSE_TOL_DEG,
+                  hold_deg: float = POSE_HOLD_DEG) -> tuple[np.ndarray, np.ndarray]:
+    """(indices of the windows that hold one pose, its unit direction in g under the start). First the windows
+    within ``tol_deg`` of the direction with the most windows that near (each window's own direction tried, so
+    handling moments do not pull it); then each channel's line in the temperature over them is taken out of
+    every window (a drift of the zero-g levels turns the apparent direction, not the sensor) and the pose is
+    the windows within ``hold_deg`` of the same direction: a sensor that moved within a few degrees (a wearer
+    standing) is not one pose."""
+    def near(mean: np.ndarray, deg: float) -> np.ndarray:
+        a = start.apply_reference(mean)
+        u = a / np.linalg.norm(a, axis=1, keepdims=True)
+        close = (u @ u.T) >= np.cos(np.radians(deg))  # (M, M): fine for the few hundred windows a pose gives
+        return np.flatnonzero(close[int(np.argmax(close.sum(axis=1)))])
+
+    idx = near(ws.mean, tol_deg)
+    temp = ws.covariate("temp")
+    mean = ws.mean
+    if temp is not None and np.all(np.isfinite(temp[idx])) and len(idx) >= 3 and np.ptp(temp[idx]) > 0:
+        x = temp - np.mean(temp[idx])
+        slope = np.linalg.lstsq(np.column_stack([np.ones(len(idx)), x[idx]]), mean[idx], rcond=None)[0][1]
+        mean = mean - np.outer(np.where(np.isfinite(x), x, 0.0), slope)
+    idx = near(mean, hold_deg)
+    a = start.apply_reference(mean[idx])
+    d = (a / np.linalg.norm(a, axis=1, keepdims=True)).mean(axis=0)
     return idx, d / np.linalg.norm(d)
 
 
@@ -284,7 +298,8 @@ def single_pose(ws: WindowSet, start: Calibration, *, folds: int = FOLDS, why_no
                      "method": "per-channel least squares of the pose's window means on the temperature; std: the "
                                "largest of least squares, a contiguous-block jackknife and the slope's variance under "
                                "a white-plus-wander covariance (REML), with the held gains' relative std"}
-        if with_mg < without_mg:
+        chi2 = float(np.sum((raw / raw_sd) ** 2))  # the three slopes against none, in their own std
+        if with_mg < without_mg and chi2 > SLOPES_CHI2:
             determined["temperature_slopes"] = magnitude
             names = view.param_names()
             cal.model = f"offsets+{TERM}"  # the extended family whose K is held (here o too: named undetermined)
@@ -301,14 +316,15 @@ def single_pose(ws: WindowSet, start: Calibration, *, folds: int = FOLDS, why_no
                 f"{g} slope is stated as an offset slope and corrects this pose either way")
             status = "partial"
             cal.observable = True  # what is fitted (the slopes) is determined; K and o are held, and named so
-            reason = (f"one pose ({len(pose)} windows within {POSE_TOL_DEG:g}° of one direction"
+            reason = (f"one pose ({len(pose)} windows within {POSE_HOLD_DEG:g}° of one direction once the temperature is out"
                       + (f", {others} in other postures not used" if others else "")
                       + f"): each channel's temperature slope determined over {span:.3g} °C (held-out "
                         f"{with_mg:.3g} mg per channel, against {without_mg:.3g} mg without); the offsets across "
                         f"gravity and the sensitivities are not determined and stay at {who}")
         else:
-            undetermined["temperature slopes"] = (f"the per-channel slopes do not predict held-out windows better than "
-                                                  f"a constant ({with_mg:.3g} vs {without_mg:.3g} mg)")
+            undetermined["temperature slopes"] = (f"the per-channel slopes are not told from none: held-out {with_mg:.3g} "
+                                                  f"vs {without_mg:.3g} mg with a constant, chi² {chi2:.3g} "
+                                                  f"(need < the constant's and > {SLOPES_CHI2:g})")
             status = "refused"
             reason = f"one pose ({len(pose)} windows): nothing the data determine improves on {who}"
     if why_not_norm:

@@ -80,8 +80,8 @@ def test_what_one_pose_does_not_determine_is_named_not_printed():
 
 
 def test_slopes_that_do_not_hold_out_are_not_applied():
-    """No temperature effect at all: the slopes are noise, a constant predicts held-out windows as well, and
-    nothing is applied (refused, the reason says why) in most sessions; never a slope beyond its std's reach."""
+    """No temperature effect at all: the slopes are noise (their chi² against none below chi²(3) at 0.999, or a
+    constant holds out as well) and nothing is applied: refused, the reason says why."""
     statuses = []
     for seed in range(6):
         S = window_session(seed, kind="offset", held_rel_std=0.0)
@@ -90,9 +90,9 @@ def test_slopes_that_do_not_hold_out_are_not_applied():
         sp = single_pose(ws, _start(S))
         statuses.append(sp.status)
         if sp.status == "refused":
-            assert "do not predict held-out windows better than a constant" in sp.undetermined["temperature slopes"]
+            assert "the per-channel slopes are not told from none" in sp.undetermined["temperature slopes"]
             assert sp.calibration.extended_terms == ()
-    assert statuses.count("refused") >= 3, statuses
+    assert statuses.count("refused") >= 5, statuses
 
 
 def test_many_postures_are_not_one_pose():
