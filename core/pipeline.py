@@ -20,7 +20,6 @@ BLOCKS_MIN_SAMPLES samples or more.
 """
 from __future__ import annotations
 
-import functools
 import logging
 import os
 from dataclasses import dataclass, field
@@ -35,6 +34,7 @@ from gravcal.core.estimators.observability import is_observable
 from gravcal.core.estimators.order import extended_terms, reference_start
 from gravcal.core.estimators.order_fit import AUTO_EXTENDED_TERMS, OrderNotDetermined  # noqa: F401 (the pipeline's API)
 from gravcal.core.estimators.order_fit import fit_order as _fit_order
+from gravcal.core.blas import blas_started_single_threaded, single_threaded_blas as _blas_single_threaded  # noqa: F401
 from gravcal.core.estimators.single_pose import single_pose
 from gravcal.core.estimators.start import bootstrap
 from gravcal.core.fastdetect import BlockStats, block_length, block_stats, detect_blocks, pass_chunks
@@ -306,37 +306,6 @@ class _Steps:
 
     def stage(self) -> None:
         self._report(max(self.done, self.pass_units) + 1)
-
-
-def blas_started_single_threaded() -> bool:
-    """numpy's OpenBLAS was started with one thread: OPENBLAS_NUM_THREADS=1 in the environment, which
-    ``gravcal calibrate`` sets before numpy loads (cli/main.py ``console``). Then nothing needs
-    limiting, and threadpoolctl's import and library scan (~14 ms) are skipped."""
-    if os.environ.get("OPENBLAS_NUM_THREADS", "").strip() != "1":
-        return False
-    try:
-        return "openblas" in str(np.__config__.CONFIG["Build Dependencies"]["blas"]["name"]).lower()
-    except (AttributeError, KeyError, TypeError):  # another numpy build: ask threadpoolctl
-        return False
-
-
-def _blas_single_threaded(fn: Any) -> Any:
-    """Run ``fn`` with BLAS limited to one thread. Every BLAS product of a calibration is small
-    (windows x 3, 3 x 3, 3 x 3P): OpenBLAS's threads cost more in hand-off and spinning than they
-    save (the week's fit: 3.6 -> 1.4 CPU-s), and the block pass runs its own two threads."""
-
-    @functools.wraps(fn)
-    def run(*args: Any, **kwargs: Any) -> Any:
-        if blas_started_single_threaded():
-            return fn(*args, **kwargs)
-        try:
-            from threadpoolctl import threadpool_limits
-        except ImportError:  # pragma: no cover - a dependency; without it BLAS keeps its threads
-            return fn(*args, **kwargs)
-        with threadpool_limits(limits=1, user_api="blas"):
-            return fn(*args, **kwargs)
-
-    return run
 
 
 @_blas_single_threaded

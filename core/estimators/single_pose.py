@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from ..blas import single_threaded_blas
 from ..calibration import Calibration
 from ..heldout import HeldoutResult
 from ..model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
@@ -101,10 +102,8 @@ def channel_slopes(ws: WindowSet, covariate: str) -> dict[str, Any] | None:
         jk = np.sqrt((blocks - 1) / blocks * np.sum((np.array(parts) - np.mean(parts, axis=0)) ** 2, axis=0))
         sd = np.maximum(sd, jk)
     sub = order if len(order) <= REML_MAX_WINDOWS else order[np.linspace(0, len(order) - 1, REML_MAX_WINDOWS).astype(int)]
-    from gravcal.core.pipeline import _blas_single_threaded  # noqa: PLC0415 - the calibration's BLAS rule (small products)
-
     # thinned: not scaled down (a wander does not average out over more windows)
-    sd = np.fmax(sd, _blas_single_threaded(correlated_slope_std)(ws.t[sub], x[sub], ws.mean[sub]))
+    sd = np.fmax(sd, single_threaded_blas(correlated_slope_std)(ws.t[sub], x[sub], ws.mean[sub]))
     unit = COVARIATES[covariate].unit
     return {"unit": f"raw/{unit}", "value": dict(zip("xyz", slope.tolist())), "std": dict(zip("xyz", sd.tolist()))}
 
