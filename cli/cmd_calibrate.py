@@ -288,7 +288,8 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
         lines.append("faces       " + ", ".join(f"{f} ({v['windows']} window(s), tilt {v['tilt_deg']:.2g}°)"
                                              for f, v in out["faces"].items()))
     diagonal = np.allclose(cal.sensitivity, np.diag(np.diag(cal.sensitivity)))
-    lines.append("axis        offset [raw]            sensitivity [raw/g]")
+    lines.append("axis        offset [raw]            sensitivity [raw/g]"
+                 + ("   (applied as held: not determined here)" if out.get("undetermined") else ""))
     for i, ax in enumerate(AXES):
         o_s = std.get(f"o_{ax}")
         s_s = std.get(f"s_{ax}", std.get(f"s_{ax}{ax}", std.get(f"k_{i + 1}{i + 1}")))
@@ -308,7 +309,12 @@ def summary(out: dict[str, Any], cal: Any, saved: Path | None = None) -> str:
     for term, verdict in (out.get("extended_terms") or {}).items():  # model auto: why a term is (not) in
         if isinstance(verdict, dict) and verdict.get("status") != "chosen":
             lines.append(f"{term:<11} {verdict.get('status')}: {verdict.get('reason', '')}")
-    if str(out.get("heldout_scheme") or "").startswith("none"):  # not improved: the start, nothing fitted
+    for name, why in (out.get("undetermined") or {}).items():  # one pose: named, not printed as results
+        lines.append(f"undetermined {name}: {why}")
+    if str(out.get("heldout_scheme") or "").startswith("contiguous per-channel"):
+        lines.append(f"per channel held-out RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg (each channel's reading in "
+                     f"contiguous folds, one pose), in-sample {_fmt(out.get('insample_rms_mg'), '.3g')} mg")
+    elif str(out.get("heldout_scheme") or "").startswith("none"):  # not improved: the start, nothing fitted
         lines.append(f"|a| - 1 g   RMS {_fmt(out.get('heldout_rms_mg'), '.3g')} mg over every window under the start "
                      f"(nothing fitted: every window is held out)")
     elif out.get("heldout_scheme") == "leave-one-face-out":

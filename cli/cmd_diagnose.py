@@ -55,10 +55,12 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise InputError(f"--offer: unknown term(s) {', '.join(unknown)}; terms: {', '.join(sorted(EXTRA_TERMS))}")
     candidates = tuple(CATALOGUE) + tuple(x for x in offered if x not in CATALOGUE)
+    from ..io.offline import device_start_of
+
     rec = read_recording(args.file, check_saturation=args.check_saturation)
     try:
         d = diagnose(rec.t, rec.raw, temp=rec.temp, vsupply=rec.vsupply, fs=rec.fs, replicas=args.replicas,
-                     seed=args.seed, candidates=candidates)
+                     seed=args.seed, candidates=candidates, start=device_start_of(rec))
     except ValueError as exc:
         raise InputError(f"{args.file}: {exc}") from None
     out = d.to_json_dict()

@@ -20,7 +20,6 @@ BLOCKS_MIN_SAMPLES samples or more.
 """
 from __future__ import annotations
 
-import functools
 import logging
 import os
 from dataclasses import dataclass, field
@@ -30,12 +29,13 @@ import numpy as np
 
 from gravcal.core.calibration import Calibration
 from gravcal.core.detectors import DETECTORS
-from gravcal.core.estimators.extended import extended_class
 from gravcal.core.estimators.lotters import START_TOLERANCE, LottersBatch, relative_difference, start_far_note
 from gravcal.core.estimators.observability import is_observable
 from gravcal.core.estimators.order import extended_terms, reference_start
 from gravcal.core.estimators.order_fit import AUTO_EXTENDED_TERMS, OrderNotDetermined  # noqa: F401 (the pipeline's API)
 from gravcal.core.estimators.order_fit import fit_order as _fit_order
+from gravcal.core.blas import blas_started_single_threaded, single_threaded_blas as _blas_single_threaded  # noqa: F401
+from gravcal.core.estimators.single_pose import single_pose
 from gravcal.core.estimators.start import bootstrap
 from gravcal.core.fastdetect import BlockStats, block_length, block_stats, detect_blocks, pass_chunks
 from gravcal.core.model.effect import needed_covariates
@@ -72,6 +72,7 @@ class CalibrationReport:
     order: dict[str, Any] | None = None  # {"model", "reason", "evidence"}: which order was fitted and why
     extended_terms: dict[str, dict[str, Any]] | None = None  # auto: per AUTO_EXTENDED_TERMS term, status and reason
     verdict: Verdict | None = None  # status (core.verdict.STATUSES) and reason
+    single_pose: dict[str, Any] | None = None  # one pose: what it determines and what not (single_pose.SinglePose)
 
     @property
     def status(self) -> str:
@@ -106,6 +107,9 @@ class CalibrationReport:
             "verdict": _jsonable(v.evidence) if v is not None else {},
             "calibration": cal.to_dict(),
         }
+        if self.single_pose is not None:  # named instead of printed: what one pose does not determine
+            d["single_pose"] = _jsonable(self.single_pose)
+            d["undetermined"] = dict(self.single_pose.get("undetermined", {}))
         return d
 
 
@@ -119,7 +123,7 @@ def extended_summary(cal: Calibration) -> dict[str, Any] | None:
         return None
 
     params, std = cal.metadata.get("params") or {}, cal.std
-    names = extended_class(cal.model)(cal.sensitivity, cal.offset).extra_names
+    names = cal.extended_param_names
     return _jsonable({"terms": list(ext.get("terms", [])), "t_ref_c": ext.get("t_ref_c"), "t0_s": ext.get("t0_s"),
                       "params": {n: params[n] for n in names}, "std": {n: std.get(n) for n in names},
                       "magnitudes": ext.get("magnitudes")})
@@ -304,37 +308,6 @@ class _Steps:
         self._report(max(self.done, self.pass_units) + 1)
 
 
-def blas_started_single_threaded() -> bool:
-    """numpy's OpenBLAS was started with one thread: OPENBLAS_NUM_THREADS=1 in the environment, which
-    ``gravcal calibrate`` sets before numpy loads (cli/main.py ``console``). Then nothing needs
-    limiting, and threadpoolctl's import and library scan (~14 ms) are skipped."""
-    if os.environ.get("OPENBLAS_NUM_THREADS", "").strip() != "1":
-        return False
-    try:
-        return "openblas" in str(np.__config__.CONFIG["Build Dependencies"]["blas"]["name"]).lower()
-    except (AttributeError, KeyError, TypeError):  # another numpy build: ask threadpoolctl
-        return False
-
-
-def _blas_single_threaded(fn: Any) -> Any:
-    """Run ``fn`` with BLAS limited to one thread. Every BLAS product of a calibration is small
-    (windows x 3, 3 x 3, 3 x 3P): OpenBLAS's threads cost more in hand-off and spinning than they
-    save (the week's fit: 3.6 -> 1.4 CPU-s), and the block pass runs its own two threads."""
-
-    @functools.wraps(fn)
-    def run(*args: Any, **kwargs: Any) -> Any:
-        if blas_started_single_threaded():
-            return fn(*args, **kwargs)
-        try:
-            from threadpoolctl import threadpool_limits
-        except ImportError:  # pragma: no cover - a dependency; without it BLAS keeps its threads
-            return fn(*args, **kwargs)
-        with threadpool_limits(limits=1, user_api="blas"):
-            return fn(*args, **kwargs)
-
-    return run
-
-
 @_blas_single_threaded
 def calibrate_recording(
     t: Any,
@@ -434,7 +407,20 @@ def calibrate_recording(
     if len(ws) == 0:
         raise ValueError("no quasi-static windows found in the recording (is it all motion? is the start in the "
                          "right units?)")
-    fitted = _fit_order(ws, model, start, lab, sigma_floor_g, folds)
+    try:
+        fitted = _fit_order(ws, model, start, lab, sigma_floor_g, folds)
+    except OrderNotDetermined as exc:  # the norm determines nothing: what one pose determines, if it is one
+        sp = single_pose(ws, start, folds=folds, why_not_norm=" ".join(str(exc).split()))
+        if sp is None:
+            raise
+        if sp.status != "partial":  # nothing to apply: the refusal, with what the one pose showed
+            why = "; ".join(f"{k}: {v}" for k, v in sp.undetermined.items() if k == "temperature slopes")
+            raise OrderNotDetermined(f"{exc}; {sp.reason}" + (f" ({why})" if why else "")) from None
+        ho = sp.heldout
+        return CalibrationReport(sp.calibration, sp.windows, np.nan if ho is None else ho.heldout_rms_mg,
+                                 np.nan if ho is None else ho.insample_rms_mg, len(sp.windows), notes, ho, start,
+                                 {"model": sp.calibration.model, "reason": sp.reason, "evidence": {}}, None,
+                                 Verdict(sp.status, sp.reason), sp.to_json_dict())
     cal = fitted.calibration
     steps.stage()
     change = relative_difference(cal, start)

@@ -141,16 +141,23 @@ def calibrate(rec: Recording, opts: Options, read_s: tuple[float, float] = (0.0,
 
 
 def device_start_of(rec: Recording) -> Any:
-    """The device's own nominal scale as the start, for a device file whose reader states it
+    """The device's own calibration as the start, for a device file whose reader states it
+    (``metadata["device_calibration"]``: the K and o of its counts), else its nominal scale
     (``metadata["nominal_per_g"]``: 1 for a file in g, the header's counts per g); None otherwise (the
     pipeline then bootstraps a scale-free start from the data)."""
-    scale = rec.metadata.get("nominal_per_g") if isinstance(rec.metadata, dict) else None
+    meta = rec.metadata if isinstance(rec.metadata, dict) else {}
+    device = str(meta.get("device") or meta.get("format") or "device")
+    own = meta.get("device_calibration")
+    if isinstance(own, dict):  # the device's own calibration of its counts (an .agdc's calibration.json)
+        from gravcal.core.estimators.start import device_calibration_start
+
+        return device_calibration_start(own["sensitivity"], own["offset"], device, str(own.get("source", "")))
+    scale = meta.get("nominal_per_g")
     if not scale:
         return None
     from gravcal.core.estimators.start import device_start
 
-    return device_start(float(scale), str(rec.metadata.get("device") or rec.metadata.get("format") or "device"),
-                        rec.units)
+    return device_start(float(scale), device, rec.units)
 
 
 @contextmanager

@@ -150,8 +150,8 @@ def offsets_observability(ws: WindowSet, start: Calibration) -> dict[str, Any]:
     if not ok:
         pred = "unbounded" if obs["predicted_mg"] is None else f"{obs['predicted_mg']:.3g} mg"
         out["reason"] = (f"the absolute offsets are not determined (predicted error {pred} > "
-                         f"{TOL_G * 1e3:.0f} mg; {held_note(obs) or 'too few postures'}): `gravcal calibrate` refuses "
-                         f"this recording for that reason; given the held sensitivities the offsets are determined to "
+                         f"{TOL_G * 1e3:.0f} mg; {held_note(obs) or 'too few postures'}): `gravcal calibrate` does not "
+                         f"fit them (in one pose it returns each channel's temperature slope, else it refuses); given the held sensitivities the offsets are determined to "
                          f"{obs['predicted_given_held_mg']} mg, and the terms here are judged relative to them")
     return out
 
@@ -463,8 +463,9 @@ def nested_heldout(ws: WindowSet, base: str, base_cal: Calibration, *, has_temp:
 
 def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, vsupply: np.ndarray | None = None,
              fs: float | None = None, candidates: tuple[str, ...] = CATALOGUE, replicas: int = 40, folds: int = 5,
-             seed: int = 0, simulate: bool = True) -> Diagnosis:
-    """Diagnose a recording: t (N,) [s], raw (N, 3) [raw units], temp (N,) [°C] and vsupply (N,) [V] or None."""
+             seed: int = 0, simulate: bool = True, start: Calibration | None = None) -> Diagnosis:
+    """Diagnose a recording: t (N,) [s], raw (N, 3) [raw units], temp (N,) [°C] and vsupply (N,) [V] or None;
+    ``start``: the device's own calibration or nominal scale (io.offline.device_start_of), else a bootstrap."""
     from gravcal.core.pipeline import calibrate_recording, data_start  # noqa: PLC0415
 
     t = np.asarray(t, dtype=float)
@@ -495,7 +496,7 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
         t, raw = t[keep], raw[keep]
         temp = None if temp is None else temp[keep]
         vsupply = None if vsupply is None else np.asarray(vsupply)[keep]
-    held_start = start0 = data_start(t, raw, fs)
+    held_start = start0 = start if start is not None else data_start(t, raw, fs)
     if HELD_KEY in start0.metadata:
         start0 = given_held(start0)
         notes.append(GIVEN_HELD_NOTE)

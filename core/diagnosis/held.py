@@ -20,10 +20,16 @@ import numpy as np
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.lotters import LottersBatch
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
+from gravcal.core.estimators.single_pose import channel_slopes, held_gain_rel_std
 from gravcal.core.model.terms import CALIBRATION_TERMS, COVARIATES, calibration_view
 from gravcal.core.windows import WindowSet
 
 from .terms import TermSelector
+
+
+def scale_rel_std(held_meta: dict[str, Any] | None, start: Calibration) -> np.ndarray:
+    """(3,) relative std of the held sensitivities (the start's stated held covariance; 0 where none)."""
+    return held_gain_rel_std(start, held_meta)
 
 
 def _magnitudes(sel: TermSelector, base_cal: Calibration, chosen: tuple[str, ...], held: dict[str, list[int]]
@@ -96,51 +102,6 @@ def one_posture_partner(term: str) -> str | None:
         return None
     return next((t for t in CALIBRATION_TERMS if calibration_view(t).acts_on == "sensitivity"
                  and calibration_view(t).covariate == view.covariate), None)
-
-
-JACKKNIFE_BLOCKS = 10  # contiguous time blocks of the slope's std (neighbouring windows share slow errors)
-
-
-def channel_slopes(ws: WindowSet, covariate: str) -> dict[str, Any] | None:
-    """Each raw channel's mean regressed on a covariate over the windows: slope [raw per unit] and its std.
-    Needs no offsets, sensitivities or direction: what an independent least-squares fit sees. The std is the
-    larger of the least-squares one and a delete-one-block jackknife over contiguous time blocks (windows
-    close in time share slow errors, which the least-squares std takes for independent)."""
-    x = ws.covariate(covariate) if covariate != "time" else ws.t / 3600.0
-    if x is None or np.ptp(x) == 0 or len(ws) < 3:
-        return None
-
-    def fit(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        xi = x[idx]
-        A = np.column_stack([np.ones_like(xi), xi - xi.mean()])
-        coef = np.linalg.lstsq(A, ws.mean[idx], rcond=None)[0]
-        resid = ws.mean[idx] - A @ coef
-        s2 = (resid ** 2).sum(axis=0) / max(len(idx) - 2, 1)
-        return coef[1], np.sqrt(s2 / max(float(np.sum((xi - xi.mean()) ** 2)), 1e-300))
-
-    order = np.argsort(ws.t, kind="stable")
-    slope, sd = fit(order)
-    blocks = min(JACKKNIFE_BLOCKS, len(ws) // 5)
-    if blocks >= 5:
-        parts = [fit(np.setdiff1d(order, b, assume_unique=True))[0] for b in np.array_split(order, blocks)]
-        jk = np.sqrt((blocks - 1) / blocks * np.sum((np.array(parts) - np.mean(parts, axis=0)) ** 2, axis=0))
-        sd = np.maximum(sd, jk)
-    unit = COVARIATES[covariate].unit
-    return {"unit": f"raw/{unit}", "value": dict(zip("xyz", slope.tolist())), "std": dict(zip("xyz", sd.tolist()))}
-
-
-def scale_rel_std(held_meta: dict[str, Any] | None, start: Calibration) -> np.ndarray:
-    """(3,) relative std of the held sensitivities (the start's stated held covariance; 0 where none)."""
-    out = np.zeros(3)
-    if not held_meta:
-        return out
-    names, cov = held_meta.get("names", []), np.asarray(held_meta.get("cov", []), dtype=float)
-    s = np.abs(np.diag(start.sensitivity))
-    for n, name in enumerate(names):
-        if name in ("s_x", "s_y", "s_z"):
-            i = "xyz".index(name[2])
-            out[i] = float(np.sqrt(cov[n, n])) / s[i]
-    return out
 
 
 def one_posture_magnitude(tt: Any, ws: WindowSet, scale: np.ndarray, scale_rel_std: np.ndarray) -> None:

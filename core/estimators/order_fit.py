@@ -62,9 +62,11 @@ def fit_order(ws: WindowSet, model: Any, start: Calibration, lab: Calibration | 
             if given is not None and given <= TOL_G * 1e3:
                 why += (f"; given the held sensitivities the offsets would be determined to {given:.3g} mg (the question "
                         f"`gravcal diagnose` answers, relative to them)")
+            device = start.metadata.get("method") == "device_nominal" if isinstance(start.metadata, dict) else False
+            advice = ("" if device else "; with little variety give a --start calibration (the sensor's nominal scale, "
+                                        "or a lab calibration) so the windows are seen in g")
             raise OrderNotDetermined(f"model auto: the windows determine nothing: {why}. Record several "
-                                     f"still postures (sitting, lying, bending); with little variety give a --start calibration "
-                                     f"(the sensor's nominal scale, or a lab calibration) so the windows are seen in g")
+                                     f"still postures (sitting, lying, bending){advice}")
         chosen = d.model
         fit_start = start if chosen == "offsets" else reference_start(chosen, start, lab)
         order = {"model": chosen, "reason": f"auto: {d.reason}", "evidence": d.evidence}

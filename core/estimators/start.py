@@ -43,7 +43,10 @@ ISOTROPIC_SENS_REL_STD = (SENS_LIMITS[1] - SENS_LIMITS[0]) / 2.0 / SENS_TYP  # 0
 # the device already scaled to g with its own calibration, 3 % for raw counts at the header's nominal
 # scale (a MEMS part's gain spread; the ISM_Enabled Link's still norm reads 266 counts for its nominal
 # 256). A fit that holds the sensitivities there carries this into its offsets' uncertainty.
-DEVICE_SENS_REL_STD = {"g": 0.01, "counts": 0.03}
+# A device's own per-axis calibration of its raw counts (an .agdc's calibration.json) is held at the same 3 %:
+# the ActiGraph chamber recording (CPW1C48210013) reads 1.032 g along gravity under its own calibration,
+# a 3 % error of the gain or the offset along gravity that the file's figures do not state.
+DEVICE_SENS_REL_STD = {"g": 0.01, "counts": 0.03, "device_calibration": 0.03}
 FLOOR_CHUNK = 1 << 13  # samples per piece of the noise-floor probe (its temporaries stay in the CPU cache)
 
 
@@ -326,8 +329,8 @@ def bootstrap(t, raw, fs: float | None = None, *, noise_factor: float = 4.0, per
         )
         sd = ISOTROPIC_SENS_REL_STD * scale
         return with_held_uncertainty(iso, {f"s_{a}": sd for a in "xyz"},
-                                     source=f"isotropic fallback: per-axis sensitivities assumed equal "
-                                            f"(±{100 * ISOTROPIC_SENS_REL_STD:.0f} %, a MEMS part's gain spread)")
+                                     source=f"a sensor of unknown make, its per-axis gains assumed equal "
+                                            f"within ±{100 * ISOTROPIC_SENS_REL_STD:.0f} %")
     cal.metadata = {**meta, **cal.metadata, "method": "bootstrap+ellipsoid_fit"}
     cal.message = f"bootstrap from {len(ws)} still segments; " + cal.message
     return cal
@@ -346,6 +349,23 @@ def device_start(scale: float, device: str, units: str) -> Calibration:
                       metadata={"method": "device_nominal", "device": device, "scale": float(scale), "units": units})
     return with_held_uncertainty(cal, {f"s_{a}": rel * scale for a in "xyz"},
                                  source=f"the {device}'s nominal scale, per-axis gains assumed within ±{100 * rel:.0f} %")
+
+
+def device_calibration_start(sensitivity: np.ndarray, offset: np.ndarray, device: str, source: str) -> Calibration:
+    """The start for a device file that carries its own calibration of the raw counts (K [counts per g],
+    o [counts]): held sensitivities with a per-axis gain uncertainty of DEVICE_SENS_REL_STD["device_calibration"]
+    (assumed) for fits that hold them."""
+    K = np.asarray(sensitivity, dtype=float).reshape(3, 3)
+    o = np.asarray(offset, dtype=float).reshape(3)
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(o)) and np.all(np.diag(K) > 0)):
+        raise ValueError(f"the {device}'s own calibration is not usable (non-finite or non-positive gains)")
+    rel = DEVICE_SENS_REL_STD["device_calibration"]
+    cal = Calibration(model="nominal", offset=o, sensitivity=K, converged=True, observable=True,
+                      message=f"the {device}'s own calibration ({source})",
+                      metadata={"method": "device_nominal", "device": device, "source": source, "units": "counts"})
+    return with_held_uncertainty(cal, {f"s_{a}": rel * K[i, i] for i, a in enumerate("xyz")},
+                                 source=f"the {device}'s own calibration ({source}), per-axis gains assumed within "
+                                        f"±{100 * rel:.0f} %")
 
 
 def _noise_floor(t, raw, fs, window_s, percentile) -> float:

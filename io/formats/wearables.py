@@ -104,6 +104,7 @@ def read_actigraph(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], d
             temps = r.calibrate_temperature() if len(r.temperature) else None
             nhanes = bool(r.nhanes)
             info = r.info
+            factory = _factory_calibration(r, info) if not nhanes else None
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - any reader failure is the file's fault, said in one line
@@ -128,7 +129,32 @@ def read_actigraph(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], d
     meta["device"] = f"ActiGraph {getattr(info, 'device_type', '') or 'device'}".strip()
     if units == "g" or scale > 1.0:  # the header's counts per g (an .agdc states 1, which is no scale)
         meta["nominal_per_g"] = 1.0 if units == "g" else scale
+    if factory is not None:
+        meta["device_calibration"] = factory
     return cols, {"units": units, **meta}
+
+
+def _factory_calibration(reader: Any, info: Any) -> dict[str, Any] | None:
+    """The device's own calibration of raw counts, as its file states it (an .agdc's calibration.json, method 2,
+    at the recording's rate): {"offset": o [counts], "sensitivity": K [counts per g], "source"}, in gravcal's
+    convention raw = K a + o; pygt3x's CalibrationV2Service reads the file's fields (a = M (raw - o), K = M^-1).
+    None when the file states none, says its samples are already calibrated, or uses another method."""
+    cal = getattr(reader, "calibration", None)
+    if not isinstance(cal, dict) or cal.get("isCalibrated", True) or cal.get("calibrationMethod") != 2:
+        return None
+    try:
+        from pygt3x.calibration import CalibrationV2Service
+
+        service = CalibrationV2Service(cal, int(info.sample_rate))
+        M = np.asarray(service.sensitivity_matrix, dtype=np.float64)
+        o = np.asarray(service.offset_vector, dtype=np.float64).reshape(3)
+        K = np.linalg.inv(M)
+    except Exception:  # noqa: BLE001 - a calibration for another rate, damaged fields: no factory start
+        return None
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(o)) and np.all(np.diag(K) > 0)):
+        return None
+    return {"offset": o.tolist(), "sensitivity": K.tolist(),
+            "source": f"calibration.json (method 2, {int(info.sample_rate)} Hz)"}
 
 
 def read_skdh(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], dict[str, Any]]:

@@ -48,7 +48,7 @@ def test_actigraph_reveals_temperature_offset(actigraph):
     for i, a in enumerate("xyz"):  # the same slope an outside least-squares fit sees, at the held scale
         assert abs(mag["value"][a] - raw[i] / s * 1e3) <= 0.5 * mag["std_statistical"][a] + 1e-9, (a, mag["value"])
     # the std carries the held counts-per-g scale (one pose cannot determine it) beside the statistics
-    assert mag["std_scale"]["z"] > 3 * mag["std_statistical"]["z"]
+    assert mag["std_scale"]["z"] > 2 * mag["std_statistical"]["z"]  # ±20 % of a scale-free start
     assert abs(sd - np.hypot(mag["std_scale"]["z"], mag["std_statistical"]["z"])) < 1e-12
     # what one pose cannot determine is said, not printed: the gravity channel's change may be offset or
     # sensitivity, the absolute offsets across gravity are unknown (their std withheld in the calibration)
@@ -72,19 +72,20 @@ def test_actigraph_reveals_temperature_offset(actigraph):
 
 
 def test_calibrate_and_diagnose_give_one_answer_on_the_chamber(actigraph):
-    """One observability rule: calibrate refuses the single-pose chamber (absolute offsets not determined,
-    the held sensitivities dominate) and diagnose says the same, judging its terms given those sensitivities."""
-    from gravcal.core.pipeline import OrderNotDetermined, calibrate_recording
+    """One observability rule: the norm fit cannot determine the single-pose chamber's absolute offsets (the held
+    sensitivities dominate), so calibrate returns what one pose determines (a partial calibration, the norm fit's
+    reason among what is undetermined) and diagnose says the same, judging its terms given those sensitivities."""
+    from gravcal.core.pipeline import calibrate_recording
 
     r = D.load("actigraph_cpw_thermal_chamber")
-    with pytest.raises(OrderNotDetermined) as exc:
-        calibrate_recording(r.t, r.acc, temp=r.temp, fs=r.fs)
-    msg = str(exc.value)
+    rep = calibrate_recording(r.t, r.acc, temp=r.temp, fs=r.fs)
+    assert rep.status == "partial" and rep.single_pose is not None, rep.verdict
+    msg = rep.single_pose["undetermined"]["norm fit"]
     assert "not even the offsets are determined" in msg and "given the held sensitivities" in msg
     obs = actigraph.observability
     assert obs["determined"] is False
     assert obs["predicted_mg"] > 10.0 and obs["given_held_mg"] <= 10.0
-    assert "`gravcal calibrate` refuses" in obs["reason"] and "held" in obs["reason"]
+    assert "`gravcal calibrate` does not fit them" in obs["reason"] and "held" in obs["reason"]
     assert obs["reason"] in actigraph.notes
     # the same rule, the same numbers: calibrate's message quotes the predicted error diagnose reports (to 5 %: the
     # pipeline re-detects its windows with the fitted calibration, diagnose keeps the baseline's)
