@@ -220,7 +220,7 @@ def test_a_polled_read_that_may_wait_asks_again_only_a_poll_interval_after_a_dra
             at.append(time.monotonic())
             super().i2c_rdwr(*msgs)
 
-    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: TimedBus(dev, bus), poll_s=0.2)
+    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: TimedBus(dev, bus), poll_s=0.5)
     with drv:
         clock.advance(0.01)
         assert drv.read(timeout=0).shape[0] >= 1
@@ -228,8 +228,8 @@ def test_a_polled_read_that_may_wait_asks_again_only_a_poll_interval_after_a_dra
         clock.advance(0.005)
         called = time.monotonic()
         assert drv.read(timeout=0).shape[0] == 1 and len(at) == n + 1  # no time to wait: asked at once
-        assert at[-1] - called < 0.2
+        assert at[-1] - called < 0.5
         drained = time.monotonic()
         clock.advance(0.005)
         got = drv.read(timeout=1.0)
-    assert got.shape[0] == 1 and len(at) == n + 2 and at[-1] - drained >= 0.2
+    assert got.shape[0] == 1 and len(at) == n + 2 and at[-1] - drained >= 0.5
