@@ -4,7 +4,7 @@
  * wake-up, the read and the send() calls (each waking a client process), which no daemon design avoids.
  *
  *     bare_relay [--uring] TTY SOCKET NCLIENTS LINE_BYTES FRAME_BYTES [OPEN_COMMAND]
- *     bare_relay [--uring] i2c:DEVICE:POLL_US SOCKET NCLIENTS LINE_BYTES 29
+ *     bare_relay [--uring] i2c:DEVICE:POLL_US[:FIRST] SOCKET NCLIENTS LINE_BYTES 29
  *
  * --uring: the clients' sends go as one batch through io_uring (one io_uring_enter per wake-up instead of one
  * send() per client), to tell the system calls' own cost from the kernel's work per send (the socket buffer and
@@ -16,9 +16,11 @@
  * sequence number for serial frames (FRAME_BYTES 29; the wire format's bytes 3-4, little-endian), so a client can
  * time it as it times gravcald's lines; -1 for slcan, whose number is not parsed here.
  * i2c:DEVICE:POLL_US: the logger's FIFO on an I2C bus (drivers/i2c.py's register map) read as gravcald's I2C driver
- * reads it without a DRDY line: one I2C_RDWR of STATUS and FIFO_COUNT, then the frames in I2C_RDWR bursts of up to
- * 16, and a sleep of POLL_US when the FIFO was empty (bench_latency.py runs it under umockdev's preload library
- * against the emulated device, as gravcald).
+ * reads it without a DRDY line: one I2C_RDWR of STATUS, FIFO_COUNT and the FIFO's first FIRST frames (default 1,
+ * the driver's combined poll), then the rest in I2C_RDWR bursts of up to 16, and a sleep of POLL_US when the FIFO
+ * was empty and after each drain; FIRST 0: the driver before its combined poll (STATUS and FIFO_COUNT alone, then
+ * the bursts; asks again right after a drain). bench_latency.py runs it under umockdev's preload library against
+ * the emulated device, as gravcald.
  * It prints "listening" once the socket is bound, "ready" once NCLIENTS are connected, and on SIGTERM the
  * wake-ups, lines and bytes sent.
  */
@@ -149,19 +151,54 @@ static int i2c_enable(int fd)
     return ioctl(fd, I2C_RDWR, &data) < 0 ? -1 : 0;
 }
 
+/* STATUS, FIFO_COUNT and the FIFO's first `first` frames into out in one I2C_RDWR (repeated starts). Returns the
+   frames of out that are the FIFO's: `first` if the count had them, else the count's and any that came in before
+   the data phase (the device reads 0x00 past its content; a frame starts with its sync bytes). */
+static size_t i2c_status_and_first(int fd, unsigned char st[2], unsigned char *out, size_t first, int frame_bytes)
+{
+    unsigned char rs = REG_STATUS, rd = REG_FIFO_DATA;
+    struct i2c_msg msgs[4] = {{.addr = I2C_ADDRESS, .flags = 0, .len = 1, .buf = &rs},
+                              {.addr = I2C_ADDRESS, .flags = I2C_M_RD, .len = 2, .buf = st},
+                              {.addr = I2C_ADDRESS, .flags = 0, .len = 1, .buf = &rd},
+                              {.addr = I2C_ADDRESS, .flags = I2C_M_RD, .len = (unsigned short)(first * frame_bytes),
+                               .buf = out}};
+    struct i2c_rdwr_ioctl_data data = {.msgs = msgs, .nmsgs = 4};
+    if (ioctl(fd, I2C_RDWR, &data) < 0)
+        return (size_t)-1;
+    size_t taken = st[1] < first ? st[1] : first;
+    while (taken < first && out[taken * (size_t)frame_bytes] != 0)
+        taken++;
+    return taken;
+}
+
 /* The frames the FIFO holds, read as the I2C driver reads them; waits POLL_US while it is empty. Returns the bytes
    read into buf (whole frames), 0 when none came, -1 on a bus error. */
-static ssize_t i2c_read_fifo(int fd, long poll_us, unsigned char *buf, size_t cap, int frame_bytes)
+static ssize_t i2c_read_fifo(int fd, long poll_us, size_t first, unsigned char *buf, size_t cap, int frame_bytes)
 {
+    static int drained; /* FIRST > 0, as the driver: after a drain (its lines sent since), POLL_US before asking again */
+    struct timespec ts = {.tv_sec = poll_us / 1000000, .tv_nsec = (poll_us % 1000000) * 1000};
+    if (drained) {
+        drained = 0;
+        nanosleep(&ts, NULL);
+    }
     unsigned char st[2];
-    if (i2c_read_register(fd, REG_STATUS, st, 2) < 0)
-        return -1;
-    size_t count = st[1], n = 0;
-    if (count == 0) {
-        struct timespec ts = {.tv_sec = poll_us / 1000000, .tv_nsec = (poll_us % 1000000) * 1000};
+    size_t count, n = 0;
+    if (first > 0) {
+        size_t taken = i2c_status_and_first(fd, st, buf, first, frame_bytes);
+        if (taken == (size_t)-1)
+            return -1;
+        n = taken * (size_t)frame_bytes;
+        count = st[1] > taken ? st[1] - taken : 0;
+    } else {
+        if (i2c_read_register(fd, REG_STATUS, st, 2) < 0)
+            return -1;
+        count = st[1];
+    }
+    if (count == 0 && n == 0) {
         nanosleep(&ts, NULL);
         return 0;
     }
+    drained = first > 0;
     while (count > 0 && n + (size_t)frame_bytes <= cap) {
         size_t k = count < I2C_BURST_FRAMES ? count : I2C_BURST_FRAMES;
         if (n + k * (size_t)frame_bytes > cap)
@@ -195,12 +232,18 @@ int main(int argc, char **argv)
         return 2;
     }
     long poll_us = -1; /* >= 0: an I2C bus, polled */
+    long i2c_first = 1;
     char *i2c_dev = NULL;
     if (strncmp(argv[1], "i2c:", 4) == 0) {
-        i2c_dev = strdup(argv[1] + 4);
-        char *colon = strrchr(i2c_dev, ':');
-        if (colon == NULL || frame_bytes != 29) {
-            fprintf(stderr, "bare_relay: i2c:DEVICE:POLL_US with FRAME_BYTES 29\n");
+        i2c_dev = strdup(argv[1] + 4); /* DEVICE:POLL_US[:FIRST] (DEVICE is a /dev path: no colon) */
+        char *colon = strchr(i2c_dev, ':');
+        char *second = colon ? strchr(colon + 1, ':') : NULL;
+        if (second) {
+            *second = '\0';
+            i2c_first = atol(second + 1);
+        }
+        if (colon == NULL || frame_bytes != 29 || i2c_first < 0 || i2c_first > I2C_BURST_FRAMES) {
+            fprintf(stderr, "bare_relay: i2c:DEVICE:POLL_US[:FIRST] with FRAME_BYTES 29, FIRST 0..16\n");
             return 2;
         }
         *colon = '\0';
@@ -284,7 +327,7 @@ int main(int argc, char **argv)
     while (!stop) {
         ssize_t n;
         if (i2c_dev) {
-            n = i2c_read_fifo(tty, poll_us, (unsigned char *)buf, READ_BYTES, frame_bytes);
+            n = i2c_read_fifo(tty, poll_us, (size_t)i2c_first, (unsigned char *)buf, READ_BYTES, frame_bytes);
             if (n < 0) {
                 perror("bare_relay: I2C_RDWR");
                 return 1;

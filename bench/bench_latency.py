@@ -303,10 +303,11 @@ def build_relay(tmp: str) -> str | None:
 
 
 def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int, uring: bool = False,
-          budget_s: float | None = None) -> dict:
+          budget_s: float | None = None, i2c_first: int = 1) -> dict:
     """CPU of the bare C relay for the same traffic as gravcald's run: the emulator's stream, ``clients``
     processes each taking one line of ``line_bytes`` per sample; ``uring``: the sends of a wake-up as one
-    io_uring batch."""
+    io_uring batch; ``i2c_first``: frames read with STATUS in each poll's one I2C_RDWR (the driver's combined
+    poll: 1; 0: the driver's pattern before it, STATUS alone first and again right after a drain)."""
     import multiprocessing as mp
 
     frame_bytes, open_cmd = RELAY_BUS[bus]
@@ -328,7 +329,7 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int, u
         if bus == "i2c":  # i2c://1/0x42: the device node, polled as gravcald's driver polls it, under the preload
             from gravcal.drivers.rigs.i2c_dev import preload_env
 
-            tty, env = f"i2c:/dev/i2c-1:{round(i2c_poll_s(budget_s) * 1e6)}", preload_env(testbed)
+            tty, env = f"i2c:/dev/i2c-1:{round(i2c_poll_s(budget_s) * 1e6)}:{i2c_first}", preload_env(testbed)
         else:
             tty = spec.split("://", 1)[1].split("?", 1)[0].removeprefix("slcan")
         relay_proc = subprocess.Popen([relay, *(["--uring"] if uring else []), tty, path, str(clients),
@@ -423,6 +424,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-floor", action="store_true", help="skip the bare C relay (the floor) after each run")
     ap.add_argument("--floor-uring", action="store_true",
                     help="also run the bare relay with each wake-up's sends as one io_uring batch")
+    ap.add_argument("--floor-i2c-status-first", action="store_true",
+                    help="i2c: also run the bare relay as the driver polled before its combined poll (floor0: "
+                         "STATUS alone, then bursts, asking again right after a drain): a baseline tree's floor")
     args = ap.parse_args(argv)
     relay = None if args.no_floor else build_relay(tempfile.mkdtemp(prefix="bench-relay-"))
     buses = [b for b in args.buses.split(",") if b]
@@ -445,12 +449,14 @@ def main(argv=None) -> int:
                 print(f"{'ratio':8s} {bus:6s} {n:3d} client(s)  p50 x{ratio['p50']:.3f}  p99 x{ratio['p99']:.3f}  "
                       f"CPU x{ratio['cpu']:.2f}  RSS x{ratio['rss']:.2f}", flush=True)
             t = pair["this"]
-            floors = [False, True] if args.floor_uring else [False]
-            for uring in floors if relay is not None and bus in RELAY_BUS and t["line_bytes"] else []:
-                pair["floor_uring" if uring else "floor"] = f = floor(relay, bus, n, args.seconds,
-                                                                      round(t["line_bytes"]), uring,
-                                                                      args.latency_budget)
-                print(f"{'floor':8s} {bus:6s} {n:3d} client(s)  a bare C relay of the same traffic, {f['sends']} "
+            floors = [("floor", False, 1)] + ([("floor_uring", True, 1)] if args.floor_uring else [])
+            if bus == "i2c" and args.floor_i2c_status_first:
+                floors.append(("floor_status_first", False, 0))
+            for key, uring, first in floors if relay is not None and bus in RELAY_BUS and t["line_bytes"] else []:
+                pair[key] = f = floor(relay, bus, n, args.seconds, round(t["line_bytes"]), uring,
+                                      args.latency_budget, first)
+                label = "floor" if first else "floor0"
+                print(f"{label:8s} {bus:6s} {n:3d} client(s)  a bare C relay of the same traffic, {f['sends']} "
                       f"({f['line_bytes']} bytes per line, "
                       f"{f['bytes_per_s_per_client'] / f['line_bytes']:.1f} lines/s sent per client, "
                       f"{f['wakeups_per_s']:.1f} wake-ups/s, context switches "

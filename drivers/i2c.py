@@ -20,11 +20,17 @@ an overflow always shows as a sequence gap right after the entries that were in 
 With the DRDY line wired to a GPIO (``drdy=/sys/class/gpio/gpioN/value``, edge "rising"), the
 driver sleeps on the line and wakes when the FIFO reaches the watermark (set from the latency
 budget: 1 sample by default, so each sample is read as soon as it is in the FIFO). Without it,
-the driver polls STATUS+FIFO_COUNT (one two-byte read) every ``poll_s``. Either way it drains
-the FIFO with ``i2c_rdwr`` bursts of up to ``burst_frames`` frames. Woken by DRDY, it reads STATUS,
-FIFO_COUNT and the watermark's frames in one combined ``i2c_rdwr`` (register write, read, register
-write, read, with repeated starts: one I2C_RDWR ioctl), so a sample costs one transfer; ``combined=0``
-keeps a separate STATUS read before the bursts (an adapter without multi-message transfers).
+the driver polls every ``poll_s`` (and after each drain waits that long before asking again). Each poll, or each DRDY wake-up, reads STATUS, FIFO_COUNT and the
+watermark's frames in one combined I2C_RDWR (register write, read, register write, read, with repeated
+starts), so a sample costs one transfer; more frames than that are drained with bursts of up to
+``burst_frames`` frames. ``combined=0`` reads STATUS+FIFO_COUNT alone first (an adapter without
+multi-message transfers, or a slow bus: an empty combined poll still carries the watermark's frame bytes,
+0x00, ~0.7 ms per frame at 400 kHz).
+
+Each transfer is prepared once per connection (:class:`_Transfer`: its messages, read buffers and the
+``i2c_rdwr_ioctl_data`` pointing at them) and run with one ``fcntl.ioctl(fd, I2C_RDWR, data)``, which
+is what ``SMBus.i2c_rdwr`` does after building those structures on every call; a bus object without a
+file descriptor (the test rigs' fake) gets the same messages through its ``i2c_rdwr``.
 """
 from __future__ import annotations
 
@@ -32,10 +38,13 @@ import errno
 import os
 import select
 import time
+from ctypes import create_string_buffer
+from fcntl import ioctl
 from typing import Any, Callable
 
 import numpy as np
 from smbus2 import SMBus, i2c_msg
+from smbus2.smbus2 import I2C_M_RD, I2C_RDWR, i2c_rdwr_ioctl_data
 
 from ..core.samples import FLAG_FIFO_OVERFLOW, FLAG_GAP_BEFORE, SAMPLE_DTYPE
 from .base import (PERMISSION_ERRNOS, Backoff, DriverError, DriverSpec, FramedStreamDriver, boolean_option,
@@ -74,9 +83,32 @@ def odr_code(rate_hz: float) -> int:
     raise ValueError(f"output rate {rate_hz} Hz not supported; choose one of {sorted(ODR_CODES.values())}")
 
 
+SHORT_SLEEP_S = 0.01  # a polled read's waits up to this long are plain sleeps (close() waits one out)
 DRDY_RECHECK_S = 0.1  # with a DRDY line, STATUS is still read this often (a missed edge costs no more)
 
 _NACK_ERRNOS = (errno.ENXIO, errno.EREMOTEIO, errno.EIO, errno.ETIMEDOUT, errno.EAGAIN)
+
+
+class _Transfer:
+    """One combined I2C_RDWR of register reads (a register write, then a read of ``length`` bytes from it, per
+    ``(register, length)`` in ``reads``), built once and run many times: ``buffers[i].raw`` holds read i's bytes
+    after :meth:`run`. On ``fd`` the ioctl gets the prepared ``i2c_rdwr_ioctl_data`` (no ctypes objects made
+    per call); ``fd`` None: ``bus.i2c_rdwr(*msgs)``."""
+
+    __slots__ = ("msgs", "buffers", "_data", "run")
+
+    def __init__(self, bus: Any, fd: int | None, address: int, reads: tuple[tuple[int, int], ...]):
+        msgs, self.buffers = [], []
+        for register, length in reads:
+            buf = create_string_buffer(length)
+            msgs += [i2c_msg.write(address, [register]), i2c_msg(addr=address, flags=I2C_M_RD, len=length, buf=buf)]
+            self.buffers.append(buf)
+        self.msgs = tuple(msgs)
+        if fd is None:
+            self.run = lambda rdwr=bus.i2c_rdwr, msgs=self.msgs: rdwr(*msgs)
+        else:
+            self._data = i2c_rdwr_ioctl_data.create(*msgs)  # holds copies of the messages: same buffers
+            self.run = lambda fd=fd, arg=self._data: ioctl(fd, I2C_RDWR, arg)
 
 
 class I2CDriver(FramedStreamDriver):
@@ -116,8 +148,7 @@ class I2CDriver(FramedStreamDriver):
         self.address = int(address)
         self.rate = rate
         self.burst_frames = max(1, int(burst_frames))
-        # (register, length) -> reusable i2c_msg pair; frames -> the combined read's four messages
-        self._msgs: dict[Any, tuple] = {}
+        self._transfers: dict[Any, _Transfer] = {}  # per connection: burst frames, or ("combined", frames)
         self.poll_s = poll_s
         self.data_ready = data_ready  # the DRDY line: fileno() and wait(timeout) -> bool
         if not latency_budget_s >= 0:
@@ -132,6 +163,7 @@ class I2CDriver(FramedStreamDriver):
         self._overflow_after = 0  # frames the FIFO held when it reported the overflow: its gap comes after them
         self._fifo_at_connect = 0
         self._poll = 0.02
+        self._next_poll_at = 0.0  # polled: the FIFO is not asked before (a read that may wait)
         self.counters.update(fifo_overflows=0, polls=0, bursts=0)
         self._unread: list[bytes] = []  # bursts read for the daemon's C step and handed back undecoded
 
@@ -207,6 +239,9 @@ class I2CDriver(FramedStreamDriver):
         self.backoff.initial_s = min(self.backoff.initial_s, self.backoff.maximum_s)
         self._poll = self.poll_s if self.poll_s else max(0.001, min(fill, max(self.latency_budget_s, 0.5 / rate)))
         self._smbus = sm
+        fd = getattr(sm, "fd", None)
+        self._fd = fd if isinstance(fd, int) else None
+        self._transfers = {}
 
     def _held_at_reconnect(self) -> int:
         return self._fifo_at_connect + sum(len(b) for b in self._unread) // FRAME_LEN
@@ -218,27 +253,22 @@ class I2CDriver(FramedStreamDriver):
 
 
     # -- reading --------------------------------------------------------------------
-    def _messages(self, register: int, length: int) -> tuple:
-        """The (register write, read of ``length`` bytes) message pair, made once per shape and reused: its
-        read buffer is refilled by each transaction and copied out at once."""
-        key = (register, length)
-        got = self._msgs.get(key)
-        if got is None:
-            got = self._msgs[key] = (i2c_msg.write(self.address, [register]), i2c_msg.read(self.address, length))
+    def _transfer(self, key: Any, reads: tuple[tuple[int, int], ...]) -> _Transfer:
+        got = self._transfers[key] = _Transfer(self._smbus, self._fd, self.address, reads)
         return got
 
     def _status(self) -> tuple[int, int]:
-        w, r = self._messages(REG_STATUS, 2)
-        self._smbus.i2c_rdwr(w, r)
+        t = self._transfers.get("status") or self._transfer("status", ((REG_STATUS, 2),))
+        t.run()
         self.counters["polls"] += 1
-        status, count = bytes(r)
+        status, count = t.buffers[0].raw
         return status, count
 
     def _burst(self, frames: int) -> bytes:
-        w, r = self._messages(REG_FIFO_DATA, frames * FRAME_LEN)
-        self._smbus.i2c_rdwr(w, r)
+        t = self._transfers.get(frames) or self._transfer(frames, ((REG_FIFO_DATA, frames * FRAME_LEN),))
+        t.run()
         self.counters["bursts"] += 1
-        return bytes(r)
+        return t.buffers[0].raw
 
     def _read_block(self, deadline: float) -> np.ndarray:
         bursts, self._unread = self._unread or self._read_fifo(deadline), []
@@ -268,16 +298,14 @@ class I2CDriver(FramedStreamDriver):
         """STATUS, FIFO_COUNT and the FIFO's first ``frames`` frames in one combined transaction; the bytes are
         the frames it took: ``frames`` when FIFO_COUNT had them, else the count's and any that came in before
         the data phase (a frame starts with its sync bytes; past the FIFO's content the device reads 0x00)."""
-        msgs = self._msgs.get(frames)
-        if msgs is None:
-            msgs = self._messages(REG_STATUS, 2) + self._messages(REG_FIFO_DATA, frames * FRAME_LEN)
-            self._msgs[frames] = msgs
-        self._smbus.i2c_rdwr(*msgs)
+        key = ("combined", frames)
+        t = self._transfers.get(key) or self._transfer(key, ((REG_STATUS, 2), (REG_FIFO_DATA, frames * FRAME_LEN)))
+        t.run()
         counters = self.counters
         counters["polls"] += 1
         counters["bursts"] += 1
-        status, count = bytes(msgs[1])
-        data = bytes(msgs[3])
+        status, count = t.buffers[0].raw
+        data = t.buffers[1].raw
         if count >= frames:
             return status, count, data
         taken = count
@@ -285,17 +313,33 @@ class I2CDriver(FramedStreamDriver):
             taken += 1
         return status, count, data[:taken * FRAME_LEN]
 
+    def _sleep(self, seconds: float) -> bool:
+        """Wait ``seconds``; True if the driver is closing. A poll interval's wait is a plain sleep (an Event's
+        timed wait costs a lock and a condition per call, ~15 us here, twice a sample): close() waits for it."""
+        if seconds <= SHORT_SLEEP_S:
+            time.sleep(seconds)
+            return self._closing.is_set()
+        return self._closing.wait(seconds)
+
     def _read_fifo(self, deadline: float) -> list[bytes]:
         """The FIFO's content as bursts of whole frames, once it holds any ([] if not by ``deadline``)."""
         bursts = []
+        if self.data_ready is None:  # polled: asking again right after a drain finds the FIFO empty (but for a frame
+            # that came in meanwhile), so a read that may wait sleeps out the poll interval first; one that may not
+            # asks at once
+            now = time.monotonic()
+            wait = self._next_poll_at - now
+            if 0 < wait <= deadline - now and self._sleep(wait):
+                return []
         while True:
             first = b""
             if self.data_ready is not None:  # sleep until the FIFO reaches the watermark
                 high = self.data_ready.wait(max(0.0, min(deadline - time.monotonic(), DRDY_RECHECK_S)))
-                if high and self.combined:
-                    status, count, first = self._status_and_first(min(self.watermark, self.burst_frames))
-                else:
-                    status, count = self._status()
+                combined = high and self.combined
+            else:
+                combined = self.combined
+            if combined:
+                status, count, first = self._status_and_first(min(self.watermark, self.burst_frames))
             else:
                 status, count = self._status()
             if status & STATUS_FIFO_OVERFLOW:
@@ -312,7 +356,7 @@ class I2CDriver(FramedStreamDriver):
             remaining = deadline - time.monotonic()
             if remaining <= 0 or self._closing.is_set():
                 return []
-            if self.data_ready is None and self._closing.wait(min(self._poll, remaining)):
+            if self.data_ready is None and self._sleep(min(self._poll, remaining)):
                 return []
         while count > 0:
             n = min(count, self.burst_frames)
@@ -322,6 +366,7 @@ class I2CDriver(FramedStreamDriver):
                 self._unread = self._unread + bursts
                 raise
             count -= n
+        self._next_poll_at = time.monotonic() + self._poll
         return bursts
 
     # -- the daemon's latency path (daemon/fastpath.py) -----------------------------------

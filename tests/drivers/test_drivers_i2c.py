@@ -159,7 +159,7 @@ def test_an_overflow_during_a_slow_read_is_flagged_on_its_gap():
                     clock.advance(0.2)
             super().i2c_rdwr(*msgs)
 
-    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: SlowBus(dev, bus))
+    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: SlowBus(dev, bus), combined=False)  # STATUS, then one burst
     with drv:
         a = pump(clock, drv, 10, 0.05)
         slow["at"] = slow["n"] + 1
@@ -173,11 +173,13 @@ def test_an_overflow_during_a_slow_read_is_flagged_on_its_gap():
     assert k.shape == (1,) and seq[k[0]] == lost[-1] + 1 and seq[k[0] - 1] == lost[0] - 1
 
 
+@pytest.mark.parametrize("combined", [False, True], ids=["status-then-bursts", "combined-poll"])
 @pytest.mark.parametrize("lost_on_the_wire", [False, True], ids=["burst-refused", "burst-lost"])
-def test_frames_read_before_the_bus_fails_mid_read_are_kept(lost_on_the_wire):
-    # a read of 41 frames (99..139) takes three bursts (16, 16, 9); the bus fails on the last: the 32 frames the
-    # first two took out of the FIFO are decoded after the reconnect, before anything newer. A refused burst leaves
-    # its frames in the FIFO (nothing lost); a burst lost on the wire loses its 9, the reconnect's gap
+def test_frames_read_before_the_bus_fails_mid_read_are_kept(lost_on_the_wire, combined):
+    # a read of 41 frames (99..139) takes three bursts (16, 16, 9) after STATUS, or the combined poll's first frame
+    # and then bursts (16, 16, 8); the bus fails on the last: the frames taken out of the FIFO before it are decoded
+    # after the reconnect, before anything newer. A refused burst leaves its frames in the FIFO (nothing lost); a
+    # burst lost on the wire loses its frames, the reconnect's gap
     clock, dev, _ = rig(depth=64)
     bursts = {"n": 0, "fail_at": None}
 
@@ -191,7 +193,7 @@ def test_frames_read_before_the_bus_fails_mid_read_are_kept(lost_on_the_wire):
             if failing:
                 raise OSError(errno.EREMOTEIO, "Remote I/O error (no ACK)")
 
-    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: FlakyBus(dev, bus))
+    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: FlakyBus(dev, bus), combined=combined)
     drv.backoff.initial_s = 0.0
     with drv:
         a = pump(clock, drv, 10, 0.05)
@@ -202,7 +204,7 @@ def test_frames_read_before_the_bus_fails_mid_read_are_kept(lost_on_the_wire):
     seq = got["seq"]
     sent = np.flatnonzero(dev.fates()["status"] == SENT)
     lost = np.setdiff1d(sent, seq)
-    np.testing.assert_array_equal(lost, np.arange(131, 140) if lost_on_the_wire else [])
+    np.testing.assert_array_equal(lost, np.arange(131 + combined, 140) if lost_on_the_wire else [])
     np.testing.assert_array_equal((got["flags"] & FLAG_GAP_BEFORE) != 0, np.r_[False, np.diff(seq) > 1])
     assert st["disconnects"] == 1 and st["reconnects"] == 1 and st["restarts"] == 0
     assert st["missing"] == lost.shape[0] and st["gaps"] == int(lost.shape[0] > 0)

@@ -4,6 +4,7 @@ transfer per sample, and no frame lost when one comes in between the status and 
 from __future__ import annotations
 
 import errno
+import time
 
 import numpy as np
 import pytest
@@ -28,14 +29,16 @@ class CountingBus(FakeSMBus):
         super().i2c_rdwr(*msgs)
 
 
-def run(combined: bool, *, faults: Faults, stalls=(), latency_budget_s=0.0, depth=16, polls=200, dt=0.005):
-    """A device on a manual clock read by the driver with DRDY, one poll per ``dt`` (each ``stalls`` poll
-    index waits 0.3 s first: the FIFO overflows): (samples, stats, the device's fates, transfers)."""
+def run(combined: bool, *, faults: Faults, stalls=(), latency_budget_s=0.0, depth=16, polls=200, dt=0.005,
+        drdy=True):
+    """A device on a manual clock read by the driver with DRDY (``drdy``; else polled), one read per ``dt``
+    (each ``stalls`` read index waits 0.3 s first: the FIFO overflows): (samples, stats, the device's fates,
+    transfers)."""
     clock, log = ManualClock(), SentLog()
     dev = FakeI2CDevice(pattern_blocks(seed=4, fs=200, duration=10), 200, clock=clock, log=log, faults=faults,
                         fifo_depth=depth)
-    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: CountingBus(dev, bus), data_ready=dev.data_ready,
-                    combined=combined, latency_budget_s=latency_budget_s)
+    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: CountingBus(dev, bus),
+                    data_ready=dev.data_ready if drdy else None, combined=combined, latency_budget_s=latency_budget_s)
     drv.backoff.initial_s = 0.0  # the manual clock does not move during backoff waits
     got = []
     with drv:
@@ -81,12 +84,35 @@ def test_combined_read_with_drops_and_bit_errors_keeps_every_intact_sample():
     assert np.count_nonzero(got["flags"] & FLAG_FIFO_OVERFLOW) == st["fifo_overflows"] == 2
 
 
-def test_one_transfer_per_sample_when_drdy_wakes_for_each():
-    got, st, fates, transfers = run(True, faults=Faults(), polls=100)
-    per_register = run(False, faults=Faults(), polls=100)[3]
+@pytest.mark.parametrize("drdy", [True, False], ids=["drdy", "polled"])
+def test_one_transfer_per_sample_when_drdy_wakes_or_a_poll_finds_one(drdy):
+    got, st, fates, transfers = run(True, faults=Faults(), polls=100, drdy=drdy)
+    per_register = run(False, faults=Faults(), polls=100, drdy=drdy)[3]
     n = got.shape[0]
     assert n >= 99  # a frame per 5 ms poll (a rounding of the manual clock may put two in one)
     assert transfers <= n + 2 and per_register >= 2 * n - 2  # STATUS + burst in one transfer, against two
+
+
+def test_polled_combined_reads_give_the_per_register_paths_samples():
+    """Without DRDY, polls between samples find the FIFO empty (a combined poll then reads only padding) and
+    stalls fill it past the watermark (the rest in bursts): the samples and flags of the per-register path."""
+    a, sa, fa, ta = run(True, faults=Faults(), stalls=(50, 120), dt=0.0025, drdy=False)
+    b, sb, fb, tb = run(False, faults=Faults(), stalls=(50, 120), dt=0.0025, drdy=False)
+    np.testing.assert_array_equal(fa["status"], fb["status"])
+    for name in FIELDS:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+    assert sa["fifo_overflows"] == sb["fifo_overflows"] >= 2 and sa["samples"] == sb["samples"] > 80
+    assert ta < tb  # a poll that finds a frame takes it in the same transfer
+
+
+def test_polled_combined_reads_with_drops_and_bit_errors_keep_every_intact_sample():
+    got, st, fates, _ = run(True, faults=Faults(drop=0.03, ber=2e-4, seed=5), stalls=(50, 120), dt=0.0025,
+                            drdy=False)
+    status = fates["status"]
+    np.testing.assert_array_equal(got["seq"], np.flatnonzero(status == SENT))
+    assert (status == CORRUPTED).any() and (status == DROPPED).any() and (status == FIFO_FULL).any()
+    np.testing.assert_array_equal((got["flags"] & FLAG_GAP_BEFORE) != 0, np.r_[False, np.diff(got["seq"]) > 1])
+    assert np.count_nonzero(got["flags"] & FLAG_FIFO_OVERFLOW) == st["fifo_overflows"]
 
 
 class LateClock(ManualClock):
@@ -180,3 +206,30 @@ def test_the_sampling_thread_raises_drdy_with_the_devices_lock_free():
             dev.stop_sampling()
     assert got >= 50 and len(raised) >= 50
     assert not any(raised)
+
+
+def test_a_polled_read_that_may_wait_asks_again_only_a_poll_interval_after_a_drain():
+    """Right after a drain the FIFO is empty but for a frame that came in meanwhile: a read that may wait sleeps
+    out the poll interval before its next transfer; one that may not (timeout 0) asks at once."""
+    clock = ManualClock()
+    dev = FakeI2CDevice(pattern_blocks(seed=4, fs=200, duration=10), 200, clock=clock, log=SentLog(), fifo_depth=16)
+    at = []
+
+    class TimedBus(FakeSMBus):
+        def i2c_rdwr(self, *msgs):
+            at.append(time.monotonic())
+            super().i2c_rdwr(*msgs)
+
+    drv = I2CDriver(1, 0x42, smbus_factory=lambda bus: TimedBus(dev, bus), poll_s=0.5)
+    with drv:
+        clock.advance(0.01)
+        assert drv.read(timeout=0).shape[0] >= 1
+        n = len(at)
+        clock.advance(0.005)
+        called = time.monotonic()
+        assert drv.read(timeout=0).shape[0] == 1 and len(at) == n + 1  # no time to wait: asked at once
+        assert at[-1] - called < 0.5
+        drained = time.monotonic()
+        clock.advance(0.005)
+        got = drv.read(timeout=1.0)
+    assert got.shape[0] == 1 and len(at) == n + 2 and at[-1] - drained >= 0.5

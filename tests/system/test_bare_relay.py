@@ -83,9 +83,10 @@ def test_every_client_gets_one_numbered_line_per_frame(relay, tmp_path, extra):
     assert counts["bytes"] == CLIENTS * len(seqs) * LINE_BYTES
 
 
-def test_the_i2c_relay_numbers_every_frame_it_polls_from_the_device_node(relay, tmp_path):
-    """i2c:DEVICE:POLL_US under umockdev's preload: the relay enables the emulated logger and relays each frame of
-    its FIFO, in order, as gravcald's driver would read them."""
+@pytest.mark.parametrize("first", ["", ":0"], ids=["combined-poll", "status-first"])
+def test_the_i2c_relay_numbers_every_frame_it_polls_from_the_device_node(relay, tmp_path, first):
+    """i2c:DEVICE:POLL_US[:FIRST] under umockdev's preload: the relay enables the emulated logger and relays each
+    frame of its FIFO, in order, as gravcald's driver would read them (its combined poll, or STATUS first)."""
     require_umockdev()
     fs = 200.0
     samples = next(pattern_blocks(seed=1, fs=fs, duration=1.0, block=200)).copy()
@@ -93,7 +94,7 @@ def test_the_i2c_relay_numbers_every_frame_it_polls_from_the_device_node(relay, 
     device = FakeI2CDevice([samples], fs, speed=2.0, fifo_depth=64)
     path = str(tmp_path / "relay-i2c.sock")
     with I2CDevServer(device) as server:
-        proc = subprocess.Popen([relay, "i2c:/dev/i2c-1:2000", path, "1", str(LINE_BYTES), str(FRAME_BYTES)],
+        proc = subprocess.Popen([relay, f"i2c:/dev/i2c-1:2000{first}", path, "1", str(LINE_BYTES), str(FRAME_BYTES)],
                                 stdout=subprocess.PIPE, text=True, env=server.env())
         c = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
