@@ -4,6 +4,14 @@
 ``../shared/data``). Tests using it skip with a visible reason when the folder is absent,
 and FAIL instead when ``GRAVCAL_REQUIRE_DATA=1`` (CI sets it, so CI always runs them).
 
+Under pytest-xdist (the README's command runs two workers with ``--dist loadgroup``, one per core of the
+reference machine) a module's tests stay together on one worker, so a module-scoped fixture (many hold the
+sessions several tests assert on) is computed once; tests marked ``xdist_group("realtime")`` (rates, wake-ups,
+deadlines in real time) run on one worker one after the other instead of beside each other. Each worker
+limits BLAS to one thread: two workers already fill the cores and OpenBLAS's threads would only spin against
+the other worker's (tests/core/seed_pool.py measured it for the seed pools; it runs its seeds in a plain loop
+under xdist).
+
 Before the session, gravcal's own sources are compiled into their ``__pycache__`` (git-ignored): the
 suite starts a few hundred interpreters (the CLI, gravcald, emulators), and where PYTHONDONTWRITEBYTECODE
 is set each of them would otherwise compile the package's ~90 modules again (~0.25 s a start).
@@ -12,17 +20,36 @@ from __future__ import annotations
 
 import compileall
 import importlib.util
+import os
 
 import pytest
 
 from support.inputs import skip_or_fail
 
 
+_BLAS_LIMIT = None  # the xdist worker's threadpoolctl limit, kept for the worker's life
+
+
 def pytest_sessionstart(session: pytest.Session) -> None:
+    global _BLAS_LIMIT
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        import scipy.linalg  # noqa: F401  (numpy's and scipy's BLAS loaded, so that the limit reaches both)
+        from threadpoolctl import threadpool_limits
+
+        _BLAS_LIMIT = threadpool_limits(limits=1, user_api="blas")
     for package in ("gravcal", "gravcal.core", "gravcal.drivers", "gravcal.daemon"):
         spec = importlib.util.find_spec(package)
         for folder in (spec.submodule_search_locations or []) if spec else []:
             compileall.compile_dir(folder, quiet=2)  # only what is missing or older than its source
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups off the items
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    if getattr(config.option, "dist", "no") != "loadgroup":
+        return
+    for item in items:
+        if not any(item.iter_markers("xdist_group")):
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
 
 
 @pytest.fixture(scope="session")
