@@ -5,8 +5,9 @@
 and FAIL instead when ``GRAVCAL_REQUIRE_DATA=1`` (CI sets it, so CI always runs them).
 
 Under pytest-xdist (the README's command runs two workers with ``--dist loadgroup``, one per core of the
-reference machine) a module's tests stay together on one worker, so a module-scoped fixture (many hold the
-sessions several tests assert on) is computed once; tests marked ``xdist_group("realtime")`` (rates, wake-ups,
+reference machine) the tests of a module with a module-scoped fixture (many hold the sessions several tests
+assert on) stay together on one worker, so that fixture is computed once; other tests go one by one to
+whichever worker is free; tests marked ``xdist_group("realtime")`` (rates, wake-ups,
 deadlines in real time) run on one worker one after the other instead of beside each other. Each worker
 limits BLAS to one thread: two workers already fill the cores and OpenBLAS's threads would only spin against
 the other worker's (tests/core/seed_pool.py measured it for the seed pools; it runs its seeds in a plain loop
@@ -47,9 +48,17 @@ def pytest_sessionstart(session: pytest.Session) -> None:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     if getattr(config.option, "dist", "no") != "loadgroup":
         return
+    shared = {item.nodeid.split("::")[0] for item in items if _uses_a_module_fixture(item)}
     for item in items:
-        if not any(item.iter_markers("xdist_group")):
-            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
+        module = item.nodeid.split("::")[0]
+        if module in shared and not any(item.iter_markers("xdist_group")):
+            item.add_marker(pytest.mark.xdist_group(module))
+
+
+def _uses_a_module_fixture(item: pytest.Item) -> bool:
+    info = getattr(item, "_fixtureinfo", None)
+    return info is not None and any(d.scope in ("class", "module", "package")
+                                    for defs in info.name2fixturedefs.values() for d in defs)
 
 
 @pytest.fixture(scope="session")
