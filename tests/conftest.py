@@ -22,6 +22,9 @@ from __future__ import annotations
 import compileall
 import importlib.util
 import os
+import shutil
+import tempfile
+from pathlib import Path
 
 import pytest
 
@@ -71,3 +74,12 @@ def measured_data_dir():
         skip_or_fail(f"measured data not found: {', '.join(missing)} missing under {root} "
                      f"(set GRAVCAL_DATA to the folder holding them)", "GRAVCAL_REQUIRE_DATA")
     return root
+
+
+@pytest.fixture
+def short_tmp_path():
+    """A fresh directory with a short path, removed after the test, for tests whose Unix sockets gravcald names
+    under it: an AF_UNIX address holds 107 bytes, and pytest's tmp_path grows by pytest-xdist's popen-gwN/."""
+    path = Path(tempfile.mkdtemp(prefix="gravcal-"))
+    yield path
+    shutil.rmtree(path, ignore_errors=True)
