@@ -11,6 +11,10 @@ import pytest
 
 from support.gravcald_process import GravcaldProcess
 
+# measures rates, wake-ups or deadlines in real time: under pytest-xdist (--dist loadgroup) it runs on one
+# worker, after the other real-time tests rather than beside them
+pytestmark = pytest.mark.xdist_group("realtime")
+
 
 @pytest.fixture(scope="module")
 def daemon():

@@ -39,10 +39,10 @@ def test_the_scenario_help_names_every_scenario_the_emulator_takes():
     assert all(name in help_text for name in [*SCENARIOS, PATTERN]), help_text
 
 
-def test_a_bad_i2c_driver_option_is_refused_and_leaves_nothing_behind(tmp_path):
+def test_a_bad_i2c_driver_option_is_refused_and_leaves_nothing_behind(short_tmp_path):
     require_umockdev()
     # a subprocess: gravcald starts again under umockdev's preload library for the emulated I2C bus
-    runtime, testbeds = tmp_path / "run", tmp_path / "tmp"
+    runtime, testbeds = short_tmp_path / "run", short_tmp_path / "tmp"
     runtime.mkdir()
     testbeds.mkdir()
     p = subprocess.run([sys.executable, "-m", "gravcal.daemon.gravcald", "--emulate", "--allow-root", "--bus", "i2c",
@@ -53,10 +53,10 @@ def test_a_bad_i2c_driver_option_is_refused_and_leaves_nothing_behind(tmp_path):
     assert list(runtime.iterdir()) == [] and list(testbeds.iterdir()) == []  # no state dir, no umockdev testbed
 
 
-def test_the_emulated_i2c_bus_is_refused_without_the_preload_library(capsys, monkeypatch, tmp_path):
+def test_the_emulated_i2c_bus_is_refused_without_the_preload_library(capsys, monkeypatch, short_tmp_path):
     monkeypatch.delenv("LD_PRELOAD", raising=False)
-    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(short_tmp_path))
     code = gravcald.main(["--emulate", "--allow-root", "--bus", "i2c"])  # in process: no start again
     err = capsys.readouterr().err
     assert code == 2 and "umockdev's preload library" in err and "Traceback" not in err
-    assert list(tmp_path.iterdir()) == []
+    assert list(short_tmp_path.iterdir()) == []

@@ -4,7 +4,13 @@ every sample in order with no seq gap, acquisition loses nothing, ?POLL stays an
 stays bounded. Long mode (10^4 bad commands, 10 MB lines, 8 MB garbage):
 ``python bench/bench_faults.py --long --only socket_abuse`` (latency p99 with/without)."""
 
+import pytest
+
 from support import faults_socket as bf
+
+# measures rates, wake-ups or deadlines in real time: under pytest-xdist (--dist loadgroup) it runs on one
+# worker, after the other real-time tests rather than beside them
+pytestmark = pytest.mark.xdist_group("realtime")
 
 
 def test_abusers_do_not_touch_acquisition_or_a_well_behaved_client():

@@ -116,6 +116,7 @@ def _flood(sockpath, line, lines_per_s, seconds):
     return len(answers), closed_at
 
 
+@pytest.mark.xdist_group("realtime")  # a per-second budget: one real-time test at a time under xdist
 def test_the_budget_is_charged_per_command_so_a_multi_command_flooder_is_cut_off(sockpath):
     """Ten lines a second is half the line rate the budget allows, but each carries 144 commands: the budget
     counts commands, so the client gets at most burst + rate x time answers and is disconnected once it has

@@ -2,7 +2,13 @@
 good client watching every sample of a real-time 200 Hz gravcald (emulated serial).
 The same figures, longer: ``python bench/bench_starvation.py``."""
 
+import pytest
+
 from support.faults_starvation import run_starvation
+
+# measures rates, wake-ups or deadlines in real time: under pytest-xdist (--dist loadgroup) it runs on one
+# worker, after the other real-time tests rather than beside them
+pytestmark = pytest.mark.xdist_group("realtime")
 
 
 def test_floods_and_slow_readers_do_not_starve_acquisition_or_a_good_client():

@@ -12,6 +12,10 @@ from gravcal.daemon.server import ServerConfig, SocketServer
 
 from test_server import Raw, publish, wait_until
 
+# measures rates, wake-ups or deadlines in real time: under pytest-xdist (--dist loadgroup) it runs on one
+# worker, after the other real-time tests rather than beside them
+pytestmark = pytest.mark.xdist_group("realtime")
+
 
 def _due(srv: SocketServer) -> float:
     """How long the server's loop may sleep now (what its select() is given)."""

@@ -55,6 +55,7 @@ def test_loop_url_roundtrip_with_garbage():
     np.testing.assert_allclose(np.diff(got["t"][:50]), 0.005, atol=1e-6)
 
 
+@pytest.mark.xdist_group("realtime")  # a wall-clock timeout: one real-time test at a time under xdist
 def test_silent_port_returns_empty_within_timeout():
     link = PtyLink()
     link.connect()

@@ -102,6 +102,7 @@ def test_fault_plan_validation_and_bit_flips():
     np.testing.assert_array_equal(g.offline(np.array([0.99, 1.0, 1.49, 1.5])), [False, True, True, False])
 
 
+@pytest.mark.xdist_group("realtime")  # wall-clock pacing: one real-time test at a time under xdist
 def test_emulator_paces_in_time_lapse():
     class Capture(PtyLink):
         def __init__(self):

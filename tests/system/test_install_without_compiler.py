@@ -93,4 +93,6 @@ def test_the_readme_and_ci_run_the_same_commands():
     for path in _native_off_runs(ci)[0]:
         assert (ROOT / path).is_file(), path
     assert "python3 -m venv" in ci and "python3 -m pip install -q -e '.[test,bench]'" in ci
-    assert "python3 -m venv .venv" in readme and "python3 -m pip install -e '.[test,bench]' && python3 -m pytest -q" in readme
+    suite = "python3 -m pytest -q -n 2 --dist loadgroup\n"
+    assert "python3 -m venv .venv" in readme and "python3 -m pip install -e '.[test,bench]' && " + suite in readme
+    assert "\n" + suite in ci

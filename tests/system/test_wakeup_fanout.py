@@ -8,6 +8,10 @@ import pytest
 
 from tests.support.bench_c import build_bench_program
 
+# measures rates, wake-ups or deadlines in real time: under pytest-xdist (--dist loadgroup) it runs on one
+# worker, after the other real-time tests rather than beside them
+pytestmark = pytest.mark.xdist_group("realtime")
+
 @pytest.fixture(scope="module")
 def fanout(tmp_path_factory) -> str:
     return build_bench_program("wakeup_fanout", tmp_path_factory.mktemp("fanout"))
