@@ -49,7 +49,8 @@ def pytest_sessionstart(session: pytest.Session) -> None:
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups off the items
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    if getattr(config.option, "dist", "no") != "loadgroup":
+    # a worker's config.option.dist reads "no"; xdist's own loadgroup flag is set on the controller and workers
+    if not config.getoption("loadgroup", False):
         return
     shared = {item.nodeid.split("::")[0] for item in items if _uses_a_module_fixture(item)}
     for item in items:
