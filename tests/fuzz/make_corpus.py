@@ -29,9 +29,13 @@ def put(target: str, name: str, data: bytes) -> None:
 def main() -> int:
     s = np.concatenate(list(pattern_blocks(seed=1, fs=200, duration=0.05)))  # 10 samples
     frames = encode_frames(s)
-    put("frame_decoder", "ten_frames", frames)
-    put("frame_decoder", "garbage_between", frames[:29] + b"\x7e\x00junk" + frames[29:87] + frames[60:])
-    put("frame_decoder", "truncated", frames[:-5])
+    # frame_decoder: byte 0 where the stream is cut, byte 1 the mode (bit 0 seal, bit 1 consecutive seq)
+    put("frame_decoder", "ten_frames", b"\xa5\x00" + frames)
+    put("frame_decoder", "garbage_between", b"\xa5\x00" + frames[:29] + b"\x7e\x00junk" + frames[29:87] + frames[60:])
+    put("frame_decoder", "truncated", b"\xa5\x00" + frames[:-5])
+    noise = np.random.default_rng(29).integers(0, 256, 29 * 6 + 11, dtype=np.uint8).tobytes()
+    put("frame_decoder", "sealed_noise", b"\x3a\x01" + noise)
+    put("frame_decoder", "sealed_consecutive", b"\x3a\x03" + noise)
     lines = b"".join(b"t%03X%d%s\r" % (0x100 + k, len(d), d.hex().upper().encode())
                      for parts in pack_frames(s[:3]) for k, d in enumerate(parts))
     seq0 = int(s["seq"][0]).to_bytes(2, "little")
