@@ -24,7 +24,7 @@ import numpy as np
 from gravcal.core.samples import SAMPLE_DTYPE
 from gravcal.daemon.config import ConfigError, load_config
 from gravcal.daemon.persistence import StateStore, load_lab_calibration
-from gravcal.daemon.protocol import MAX_REQUEST_BYTES
+from gravcal.daemon.protocol import MAX_REQUEST_BYTES, encode_imu_joined
 from gravcal.daemon.server import ServerConfig, SocketServer
 from gravcal.drivers._framekernel import frame_header, frame_to_row, slcan_samples
 from gravcal.drivers.base import Driver
@@ -176,6 +176,28 @@ def socket_request(data: bytes) -> None:
         assert json.loads(lines[-2])["class"] == "VERSION", lines[-3:]  # nothing lost the client its answer
 
 
+# -- the IMU line: the C line kernel against the block encoder's %-templates -------------------------------
+IMU_INPUT = 90  # a SAMPLE_DTYPE row (56), acc 3 float64 (24), gyro float64 (8), the static code (int8), raw (bit 0)
+
+
+def imu_line(data: bytes) -> None:
+    """Any bits in every field of a sample (NaN payloads, subnormals, 1e308, negative zero, any integer): the
+    one-sample line (the C kernel) is byte for byte the block encoder's, and valid JSON. The native harness
+    (native/linekernel_fuzz.c) reads inputs the same way, so its corpus replays here."""
+    buf = data[:IMU_INPUT].ljust(IMU_INPUT, b"\0")
+    row = np.frombuffer(buf[:56], SAMPLE_DTYPE)
+    acc = np.frombuffer(buf[56:80], "<f8").reshape(1, 3)
+    gyro = np.frombuffer(buf[80:88], "<f8")
+    static = np.array([int.from_bytes(buf[88:89], "little", signed=True)])
+    raw = bool(buf[89] & 1)
+    one = encode_imu_joined(row, acc, gyro, static, raw=raw)
+    two = encode_imu_joined(np.concatenate([row, row]), np.concatenate([acc, acc]), np.concatenate([gyro, gyro]),
+                            np.concatenate([static, static]), raw=raw)
+    assert two == one + one, (one, two)
+    msg = json.loads(one)
+    assert msg["class"] == "IMU" and one.endswith(b"}\n") and one.count(b"\n") == 1
+
+
 # -- files the daemon and the command line read ---------------------------------------------------------
 def _file(name: str, data: bytes) -> Path:
     p = _TMP / name
@@ -255,8 +277,8 @@ def _nothing_printed(target):
     return run
 
 
-TARGETS = {f.__name__: _nothing_printed(f) for f in (frame_decoder, slcan_lines, socket_request, config_file,
-                                                     state_file, calibration_json, recording)}
+TARGETS = {f.__name__: _nothing_printed(f) for f in (frame_decoder, slcan_lines, socket_request, imu_line,
+                                                     config_file, state_file, calibration_json, recording)}
 
 
 def corpus(name: str) -> list[bytes]:
