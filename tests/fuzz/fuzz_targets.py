@@ -1,9 +1,10 @@
 """One fuzz target per boundary where outside bytes enter gravcal: ``TARGETS[name](data)`` takes any bytes and
 raises only when gravcal is wrong (an exception it should have turned into a counted loss or a one-line error, a
-C kernel that disagrees with its Python reference, a request that ends the server).
+C kernel that disagrees with its Python reference, a request that ends the server, a traceback only printed).
 
-Run by the suite on a fixed seed corpus and a fixed number of Hypothesis examples (test_fuzz_short.py), and by
-``python tests/fuzz/run.py NAME`` under atheris for long coverage-guided runs (docs/daemon.md, Security).
+Run by the suite on a fixed seed corpus and a fixed number of Hypothesis examples (test_fuzz_short.py), by
+``python tests/fuzz/run.py NAME`` under atheris for long coverage-guided runs, and on the corpora the native
+harnesses of the C kernels grow (native/, ``run.py NAME --replay``; docs/daemon.md, Security).
 """
 from __future__ import annotations
 
