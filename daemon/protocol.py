@@ -12,6 +12,7 @@ Units on the socket are SI: acceleration in m/s², angular rate in rad/s, time i
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass
@@ -39,6 +40,7 @@ class ProtocolError(ValueError):
     """A request the server cannot honour; the message is sent to the client as ERROR."""
 
 
+@functools.cache  # importlib.metadata parses the package's METADATA: ~2 ms, paid per client and per ?VERSION
 def gravcal_version() -> str:
     try:
         from importlib.metadata import version

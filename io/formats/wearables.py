@@ -157,10 +157,17 @@ def _factory_calibration(reader: Any, info: Any) -> dict[str, Any] | None:
             "source": f"calibration.json (method 2, {int(info.sample_rate)} Hz)"}
 
 
+CWA_HEADER, CWA_BLOCK = 1024, 512  # an Axivity .cwa: a header packet, then whole blocks of samples
+
+
 def read_skdh(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     _reader_module(path, found, "skdh")
     from skdh.io import ReadBin, ReadCwa
 
+    if found.kind == "cwa" and path.stat().st_size < CWA_HEADER + CWA_BLOCK:
+        # skdh's Fortran reader ends the whole process ("Fortran runtime error: End of file") on a shorter one
+        raise InputError(f"{path}: {found.what} of {path.stat().st_size} bytes, shorter than its {CWA_HEADER}-byte "
+                         f"header and one {CWA_BLOCK}-byte block of samples: truncated or not a .cwa")
     reader = ReadCwa() if found.kind == "cwa" else ReadBin()
     try:
         with warnings.catch_warnings():

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 import fuzz_targets as ft
 
 # executions per target beyond its corpus (each run takes a few seconds at most on the CI host)
-EXAMPLES = {"frame_decoder": 400, "slcan_lines": 400, "socket_request": 150, "config_file": 300,
+EXAMPLES = {"frame_decoder": 400, "slcan_lines": 400, "socket_request": 150, "imu_line": 400, "config_file": 300,
             "state_file": 300, "calibration_json": 300, "recording": 60}
 
 
