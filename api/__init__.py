@@ -13,13 +13,12 @@ gravcal.daemon) pays for none of the numerics.
 """
 from __future__ import annotations
 
-from typing import Any
 
 __all__ = ["__version__", "read", "calibrate", "write_calibrated", "Calibration", "Recording", "study_report"]
 _API = {"read", "calibrate", "write_calibrated", "Calibration", "Recording"}
 
 
-def __getattr__(name: str) -> Any:
+def __getattr__(name: str) -> object:
     if name == "__version__":
         from ._version import __version__
 

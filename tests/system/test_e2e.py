@@ -154,7 +154,7 @@ def assert_converges(stream: Stream, bus: str, status: dict, duration_s: float) 
 # -- the serial daemon: convergence, protocol, clients, reload, stop, restart ---------------
 
 SERIAL_SPEED = 50.0
-SERIAL_DURATION_S = 1500.0
+SERIAL_DURATION_S = 6000.0  # 120 s of wall time at SERIAL_SPEED: the later tests need samples still flowing on a loaded host
 
 
 @pytest.fixture(scope="module")
