@@ -17,13 +17,7 @@
 
 #include <stdlib.h>
 
-#define CHECK(cond)                                                                                            \
-    do {                                                                                                       \
-        if (!(cond)) {                                                                                         \
-            fprintf(stderr, "check failed: %s (%s:%d)\n", #cond, __FILE__, __LINE__);                         \
-            abort();                                                                                           \
-        }                                                                                                      \
-    } while (0)
+#include "fuzz_check.h"
 
 static double row_t(const unsigned char *row)
 {

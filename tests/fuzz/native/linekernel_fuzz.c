@@ -10,13 +10,7 @@
 
 #include <stdlib.h>
 
-#define CHECK(cond)                                                                                            \
-    do {                                                                                                       \
-        if (!(cond)) {                                                                                         \
-            fprintf(stderr, "check failed: %s (%s:%d)\n", #cond, __FILE__, __LINE__);                         \
-            abort();                                                                                           \
-        }                                                                                                      \
-    } while (0)
+#include "fuzz_check.h"
 
 #define INPUT 90
 
