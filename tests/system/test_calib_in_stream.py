@@ -6,8 +6,9 @@ published formula) with the values of the last CALIB received, against `gravcald
 six_position session where the estimator accepts several revisions while the stream runs. Tolerance:
 duty is published with 6 decimals (rounding ≤ 5e-7), K⁻¹ entries ≤ 1/0.035 per g, three terms:
 ≤ 3 · 5e-7 / 0.035 · 9.81 ≈ 4.2e-4 m/s², plus acc's own 5-decimal rounding (5e-6): 5e-4 m/s² bounds
-both. Successive early revisions correct many samples differently by more than twice that (asserted),
-so a sample corrected with another revision than announced fails the check.
+both. Successive early revisions correct many samples differently by more than twice that (asserted: the
+stream is read until a thousand such samples were seen), so a sample corrected with another revision than
+announced fails the check.
 """
 from __future__ import annotations
 
@@ -42,8 +43,13 @@ def test_every_sample_after_a_calib_is_corrected_with_it(tmp_path):
         current = None
         bad, n, revisions, deadline = [], 0, [], time.monotonic() + 240
         telling = 0  # samples the previous accepted revision would have corrected differently (> 2 TOL_MS2)
-        while time.monotonic() < deadline and len(revisions) < 4:
-            m = json.loads(f.readline())
+        # read until the check has shown its power (or the stream ends): how soon revisions follow each other
+        # depends on the host's load, so a fixed number of revisions may leave too few telling samples
+        while time.monotonic() < deadline and not (len(revisions) >= 3 and telling > 1000):
+            line = f.readline()
+            if not line:
+                break
+            m = json.loads(line)
             if m["class"] == "CALIB":
                 rev = m.get("applied_revision")
                 if rev is None or rev == m["revision"]:  # a CALIB carrying the applied values
