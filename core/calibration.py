@@ -130,7 +130,9 @@ class Calibration:
         return json.dumps(self.to_dict(), **kwargs)
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "Calibration":
+    def from_dict(cls, d: Any) -> "Calibration":
+        if not isinstance(d, dict):  # a state file's "calibration" may hold anything a hand or a fault wrote
+            raise ValueError(f"a calibration must be a JSON object, got {type(d).__name__}")
         if d.get("schema") != SCHEMA:
             raise ValueError(f"not a gravcal calibration (schema {d.get('schema')!r}, expected {SCHEMA!r})")
         try:
