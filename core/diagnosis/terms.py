@@ -29,12 +29,10 @@ from gravcal.core.calibration import Calibration
 from gravcal.core.crlb import h_variance
 from gravcal.core.estimators.extended import (EXTRA_TERMS, ExtendedParameterization, extended_class,
                                               extended_residuals_g, fit_extended, model_name)
-from gravcal.core.estimators.lotters import START_TOLERANCE
 from gravcal.core.estimators.observability import TOL_G
 from gravcal.core.model.datasheet import THERMAL_LAG_TAU_GRID_S
 from gravcal.core.model.terms import calibration_view
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
-from gravcal.core.estimators.start import ellipsoid_fit
 from gravcal.core.windows import WindowSet
 
 from .magnitude_std import held_axes_considered, t_widened_cov
@@ -181,35 +179,8 @@ class TermSelector:
         free_key = (terms, self.lag_tau_s, _held_key(terms, held), tuple(self.held_base))
         if free_key not in self._free_memo:
             self._free_memo[free_key] = self.free_mask(par, held)
-        free, bound = self._free_memo[free_key], self.bound(terms, fold)
-        f = fit_extended(bound, ws, self.start(terms) if p0 is None else p0, var, free=free)
-        p_start = self.start(terms)
-        nb = par.base.n_params if isinstance(par, ExtendedParameterization) else par.n_params  # raw, raw/g
-        far = not f.converged or np.max(np.abs(f.p - p_start)[:nb]) > START_TOLERANCE * np.mean(
-            np.abs(np.diag(self.base_cal.sensitivity)))
-        alt = self.alt_start(terms) if p0 is None and terms and far else None
-        if alt is not None:  # from the baseline (which absorbed part of the term) Gauss-Newton can stop at another
-            # stationary point, many std off with a chi² several times the optimum's: as LottersBatch, when the fit
-            # ends > 5 % of 1 g from its start or does not converge, also from the ellipsoid start
-            alt = np.where(free, alt, p_start)  # held parameters stay where the baseline holds them
-            try:
-                g = fit_extended(bound, ws, alt, var, free=free)
-                if g.converged and (g.chi2 < f.chi2 * (1 - 1e-9) or not f.converged):
-                    f = g
-            except (ValueError, np.linalg.LinAlgError):
-                pass
-        return par, f
-
-    def alt_start(self, terms: tuple[str, ...]) -> np.ndarray | None:
-        """The ellipsoid fit of all windows (start.ellipsoid_fit, LottersBatch's own start) in par(terms), the terms
-        without effect; None with an offsets-only baseline or when the windows cover too little of the sphere."""
-        if "ellipsoid" not in self._bound_memo:
-            try:
-                self._bound_memo["ellipsoid"] = None if self.base == "offsets" else ellipsoid_fit(self.ws)
-            except (ValueError, np.linalg.LinAlgError):
-                self._bound_memo["ellipsoid"] = None
-        e = self._bound_memo["ellipsoid"]
-        return None if e is None else self.par(terms).pack(e.sensitivity, e.offset)
+        return par, fit_extended(self.bound(terms, fold), ws, self.start(terms) if p0 is None else p0, var,
+                                 free=self._free_memo[free_key])
 
     def start(self, terms: tuple[str, ...]) -> np.ndarray:
         """The parameters of base_cal in par(terms) (the terms without effect): every fit's default start."""
