@@ -15,8 +15,9 @@ Gaussian std) and the sessions refused or stated as not determined. ``--first``:
 against the 6-parameter baseline (tests/support/boundary_sessions.py), diagnosed at the ΔBIC threshold and at
 half of it: the share named at each, beside the share whose ΔBIC would exceed the threshold by theory.
 
-``--diagnose``: instead, the magnitudes diagnose states for a named term (tests/support/diagnose_coverage.py: one
-planted term, offered alone), per kind and regime.
+``--diagnose``: instead, the magnitudes diagnose states for a term (tests/support/diagnose_coverage.py: one
+planted term, offered alone, scored in every session where it is testable, named or not), per kind and regime,
+with the share named and the named ones' z apart.
 """
 from __future__ import annotations
 
@@ -56,7 +57,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", metavar="PATH")
     ap.add_argument("--boundary", type=float, metavar="LAMBDA")
     ap.add_argument("--kind", default="temperature_offset", help="--boundary: the session kind (a term kind)")
-    ap.add_argument("--diagnose", action="store_true", help="diagnose's named-term magnitudes instead of the batch fit")
+    ap.add_argument("--diagnose", action="store_true", help="diagnose's term magnitudes instead of the batch fit")
     a = ap.parse_args(argv)
     if a.boundary is not None:
         return _boundary(a)
@@ -93,30 +94,32 @@ def main(argv=None) -> int:
 
 
 def _diagnose(a) -> int:
-    """diagnose's named term magnitudes (tests/support/diagnose_coverage.py): per kind and regime (the std purely
-    statistical, or with the baseline holding the sensitivities / the term holding an axis: ``|held``)."""
+    """diagnose's term magnitudes (tests/support/diagnose_coverage.py), scored in every session where the term is
+    testable, named or not, per kind and regime; beside them the share named and the z of the named ones alone."""
     from support.diagnose_coverage import DIAGNOSE_KINDS, session_z  # noqa: PLC0415
 
     args = [(k, s) for k in DIAGNOSE_KINDS for s in range(a.first, a.first + a.seeds)]
     t0 = time.perf_counter()
     mapper = _pmap(a.workers)
     results = mapper(session_z, args) if mapper else [session_z(*x) for x in args]
-    by: dict[tuple[str, str], list[float]] = {}
-    for (kind, _), res in zip(args, results):
-        for q, zs in res.items():
-            by.setdefault((kind, q), []).extend(zs)
-    print(f"diagnose, term magnitudes named: RMS z (share beyond 2σ), {a.seeds} sessions per kind, seeds "
+    print(f"diagnose, term magnitudes: RMS z (share beyond 2σ), {a.seeds} sessions per kind, seeds "
           f"{a.first}-{a.first + a.seeds - 1}, {time.perf_counter() - t0:.0f} s\n")
-    print("| kind | statistical std: n, RMS z (beyond 2σ) | with something held: n, RMS z (beyond 2σ) | not named / refused |")
-    print("|---|---|---|---|")
+    print("| kind | statistical: sessions, named | n, RMS z, every session | named only | not named | "
+          "chi² bounds (1e-3) | held: sessions, RMS z | refused / untestable |")
+    print("|---|---|---|---|---|---|---|---|")
     for kind in DIAGNOSE_KINDS:
-        cells = []
-        for regime in ("", "|held"):
-            z = np.asarray(next((v for (k, q), v in by.items() if k == kind and q.endswith(regime) and
-                                 q not in ("refused", "not_found") and ("|" in q) == bool(regime)), []))
-            cells.append(f"{z.size}, {_cell(z)}" if z.size else "")
-        print(f"| {kind} | {cells[0]} | {cells[1]} | {len(by.get((kind, 'not_found'), []))} / "
-              f"{len(by.get((kind, 'refused'), []))} |")
+        res = [r for (k, _), r in zip(args, results) if k == kind]
+        stat = [r for r in res if r["regime"] == "statistical"]
+        z_of = lambda rs: np.asarray([v for r in rs for v in r["z"]])  # noqa: E731
+        z, zn, zu, zh = (z_of(stat), z_of([r for r in stat if r["named"]]), z_of([r for r in stat if not r["named"]]),
+                         z_of([r for r in res if r["regime"] == "held"]))
+        cell = lambda z: f"{z.size}, {_cell(z)}" if z.size else ""  # noqa: E731
+        named = sum(r["named"] for r in stat)
+        bounds = "{:.3f}-{:.3f}".format(*rms_bounds(z.size)) if z.size else ""
+        held = [r for r in res if r["regime"] == "held"]
+        print(f"| {kind} | {len(stat)}, {named / max(len(stat), 1) * 100:.0f} % | {cell(z)} | {cell(zn)} | {cell(zu)} | "
+              f"{bounds} | {len(held)}, {_cell(zh) if zh.size else ''} | "
+              f"{sum(r['regime'] == 'refused' for r in res)} / {sum(r['regime'] == 'untestable' for r in res)} |")
     return 0
 
 

@@ -30,14 +30,14 @@ from gravcal.core.crlb import h_variance
 from gravcal.core.estimators.extended import (EXTRA_TERMS, ExtendedParameterization, extended_class,
                                               extended_residuals_g, fit_extended, model_name)
 from gravcal.core.estimators.observability import TOL_G
-from gravcal.core.estimators.order import term_testability
 from gravcal.core.model.datasheet import THERMAL_LAG_TAU_GRID_S
-from gravcal.core.model.terms import COVARIATES, calibration_view
+from gravcal.core.model.terms import calibration_view
 from gravcal.core.estimators.parameterization import PARAMETERIZATIONS
 from gravcal.core.windows import WindowSet
 
 from .magnitude_std import held_axes_considered, t_widened_cov
 from .noise import DELTA_BIC
+from .term_reasons import axis_reasons, raw_unit, untestable_reason
 
 CONFOUND_FRACTION = 0.02  # a column with < 2 % of its weighted norm outside the model's span is confounded
 
@@ -109,12 +109,21 @@ class TermSelector:
         # base parameters these windows do not determine (e.g. the offsets across the axis of a single
         # posture) stay at base_cal: left free, they would let the fit turn the direction and hide a trend
         self.held_base: list[int] = list(held_base or [])
+        self.judges_held_base = held_base is None
         par, f = self.fit((), {})
         self.var = self.var0 + floor_for(f.resid_g, self.var0, self.m - par.n_params) ** 2  # provisional floor
-        s = float(np.mean(np.abs(np.diag(base_cal.sensitivity))))
-        while held_base is None and len(self.held_base) < par.n_params:  # hold the worst-determined one at a time (a single posture
-            _, f = self.fit((), {})                  # determines one combination of the offsets: keep that one)
-            rel = np.where(np.isin(np.arange(par.n_params), self.held_base), 0.0, f.std / s)
+        if self.judges_held_base:
+            self.hold_undetermined()
+
+    def hold_undetermined(self) -> None:
+        """Hold the worst-determined base parameter, one at a time, while one has a std above TOL_G at the current
+        weights (a single posture determines one combination of the offsets: that one is kept)."""
+        s = float(np.mean(np.abs(np.diag(self.base_cal.sensitivity))))
+        n = self.par(()).n_params
+        self.held_base = []
+        while len(self.held_base) < n:
+            _, f = self.fit((), {})
+            rel = np.where(np.isin(np.arange(n), self.held_base), 0.0, f.std / s)
             if rel.max() <= TOL_G:
                 break
             self.held_base.append(int(np.argmax(rel)))
@@ -210,7 +219,8 @@ class TermSelector:
 
     def heldout_mg(self, terms: tuple[str, ...], held: dict[str, list[int]], n_params_max: int) -> float | None:
         """RMS 1 - |a| [mg] over time-contiguous held-out folds (None: too few windows for 2 folds)."""
-        key = (terms, _held_key(terms, held), n_params_max, float(self.var.sum()), self.lag_tau_s)
+        key = (terms, _held_key(terms, held), n_params_max, tuple(self.held_base), float(self.var.sum()),
+               self.lag_tau_s)
         if key not in self._heldout_memo:
             self._heldout_memo[key] = self._heldout_mg(terms, held, n_params_max)
         return self._heldout_memo[key]
@@ -304,48 +314,6 @@ class TermSelector:
         return out
 
 
-def untestable_reason(term: str, sel: TermSelector, spread_deg: float) -> str | None:
-    """Why ``term`` cannot be tested on these windows (None: it can): the one testability rule
-    (order.term_testability), then what the base model leaves for it to act on."""
-    view = calibration_view(term)
-    if view.covariate == "temp" and not sel.has_temp:
-        return "no temperature column in the recording"
-    ok, why = term_testability(sel.ws, term)
-    if not ok:
-        return why
-    if view.through_sensitivity and sel.base == "offsets":
-        return (f"sensitivities are not observable (all {len(sel.ws)} windows within {spread_deg:.0f}° of one "
-                f"direction), so a term acting through the sensitivity cannot be separated from the offsets")
-    if view.acts_on == "cross" and sel.base in ("9", "12"):
-        return "the base model already estimates the cross-axis terms"
-    return None
-
-
-def _axis_reasons(sel: TermSelector, chosen: tuple[str, ...], term: str, unobservable: list[int],
-                  confounded: list[int]) -> dict[str, str]:
-    """Why each undetermined axis of ``term`` is not estimated (what it is held at: no effect)."""
-    view = calibration_view(term)
-    what = COVARIATES[view.covariate].label if view.covariate in COVARIATES else "these windows"
-    out = {}
-    keys = view.keys
-    for i in unobservable:
-        out[keys[i]] = (f"not observable: its effect std exceeds {TOL_G * 1e3:.0f} mg over the covered {what} range "
-                        f"(for one posture: the norm does not depend on an axis across gravity to first order)")
-    for i in confounded:
-        if keys[i] not in out:
-            out[keys[i]] = ("indistinguishable from " + (", ".join(chosen) if chosen else "the base parameters")
-                            + " with these windows (orientations / covariates)")
-    return out
-
-
-def _raw_unit(term: str) -> str:
-    view = calibration_view(term)
-    if view.acts_on == "cross":
-        return "raw/g"
-    per = {"temp": "°C", "vsupply": "V", "time": "h", "accel": "g²"}.get(view.covariate or "", "")
-    return f"raw{'/g' if view.acts_on == 'sensitivity' else ''}/{per}" if per else "raw"
-
-
 def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, list[int]], term: str,
                   unobservable: list[int], p_max: int, *, verdict_only: bool = False,
                   with_heldout: bool = True) -> TermTest:
@@ -356,7 +324,7 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     ``with_heldout`` False: ΔBIC only (no verdict; the forward step ranks by it first)."""
     conf = sel.confounded(chosen, held, term)
     h = sorted(set(unobservable) | set(conf))
-    reasons = _axis_reasons(sel, chosen, term, unobservable, conf)
+    reasons = axis_reasons(sel, chosen, term, unobservable, conf)
     if len(h) == 3:
         return TermTest(term, "untestable", "indistinguishable from " + (", ".join(chosen) if chosen else
                         "the base parameters") + " with these windows (orientations / covariates)",
@@ -384,7 +352,7 @@ def evaluate_term(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, li
     mag["raw_value"] = {key: (None if i in h else float(f_t.p[k + i])) for i, key in enumerate(keys)}
     mag["raw_std"] = {key: (None if i in h else float(np.sqrt(max(cov_t[k + i, k + i], 0.0))))
                       for i, key in enumerate(keys)}
-    mag["raw_unit"] = _raw_unit(term)
+    mag["raw_unit"] = raw_unit(term)
     if calibration_view(term).convention:
         mag["convention"] = calibration_view(term).convention
     if calibration_view(term).profiled is not None and sel.lag_profile:
@@ -458,33 +426,11 @@ def _strongest_passing(sel: TermSelector, chosen: tuple[str, ...], held: dict[st
     return None
 
 
-def _without(chosen: tuple[str, ...], held: dict[str, list[int]], term: str):
-    return tuple(c for c in chosen if c != term), {k: v for k, v in held.items() if k != term}
 
-
-def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: float, *, report: bool = True
-                 ) -> tuple[tuple[str, ...], dict[str, list[int]], list[TermTest]]:
-    """Joint stepwise selection (module docstring). Returns (terms found, held axes, one TermTest per candidate;
-    none when ``report`` is False: the selection alone, as the nested held-out error needs it).
-
-    Forward: every remaining candidate is re-tested against the current model and the strongest passing one
-    enters; backward: every chosen term is re-tested given all the others and leaves if it no longer passes.
-    The final TermTests are those against the selected model: a found term given the other found terms,
-    a term not found added to all of them."""
-    tests: dict[str, TermTest] = {}
-    testable = []
-    for term in candidates:
-        if term not in EXTRA_TERMS:
-            continue
-        why = untestable_reason(term, sel, spread_deg)
-        if why:
-            tests[term] = TermTest(term, "untestable", why)
-        else:
-            testable.append(term)
-    for term in testable:
-        if calibration_view(term).profiled is not None:
-            profile_lag(sel, term)
-    # one floor for every model: from the largest model (base + all testable terms, determined axes)
+def _floor_and_axes(sel: TermSelector, testable: list[str], tests: dict[str, TermTest]
+                    ) -> tuple[dict[str, list[int]], list[str], int]:
+    """One floor for every model, from the largest model (base + all testable terms, determined axes), set on
+    ``sel``; returns each term's undetermined axes, the terms with one determined and the largest model's size."""
     held_all: dict[str, list[int]] = {t: [] for t in testable}
     provisional = sel.var
     for term in testable:  # each term on its own with the base: hold its worst-determined axis until the rest are
@@ -521,7 +467,45 @@ def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: flo
     floor = floor_for(f.resid_g, sel.var0, dof)
     sel.var = sel.var0 + floor**2
     sel.floor_g, sel.floor_dof = floor, dof
+    return held_all, live, p_max
 
+
+def _without(chosen: tuple[str, ...], held: dict[str, list[int]], term: str):
+    return tuple(c for c in chosen if c != term), {k: v for k, v in held.items() if k != term}
+
+
+def select_terms(sel: TermSelector, candidates: tuple[str, ...], spread_deg: float, *, report: bool = True
+                 ) -> tuple[tuple[str, ...], dict[str, list[int]], list[TermTest]]:
+    """Joint stepwise selection (module docstring). Returns (terms found, held axes, one TermTest per candidate;
+    none when ``report`` is False: the selection alone, as the nested held-out error needs it).
+
+    Forward: every remaining candidate is re-tested against the current model and the strongest passing one
+    enters; backward: every chosen term is re-tested given all the others and leaves if it no longer passes.
+    The final TermTests are those against the selected model: a found term given the other found terms,
+    a term not found added to all of them."""
+    tests: dict[str, TermTest] = {}
+    testable = []
+    for term in candidates:
+        if term not in EXTRA_TERMS:
+            continue
+        why = untestable_reason(term, sel, spread_deg)
+        if why:
+            tests[term] = TermTest(term, "untestable", why)
+        else:
+            testable.append(term)
+    for term in testable:
+        if calibration_view(term).profiled is not None:
+            profile_lag(sel, term)
+    held_all, live, p_max = _floor_and_axes(sel, testable, tests)
+    if sel.judges_held_base and sel.held_base and sel.base != "offsets":
+        # which base parameters the windows do not determine was judged at the baseline's floor, which carries
+        # the misfit the terms explain (a temperature offset makes a gain look undetermined; held at the
+        # baseline's value, which absorbed part of the term, it biases the term and shrinks its std): judged
+        # again at the floor of the terms' model with every base parameter free
+        sel.held_base = []
+        _floor_and_axes(sel, testable, tests)
+        sel.hold_undetermined()
+        held_all, live, p_max = _floor_and_axes(sel, testable, tests)
     chosen: tuple[str, ...] = ()
     held: dict[str, list[int]] = {}
     seen = {chosen}

@@ -315,19 +315,26 @@ def test_lag_not_offered_names_no_cause():
         assert set(sum(r["replaced"], [])) <= set(r["withdrawn"]), r
 
 
-def random_walk_names(seed: int) -> list[str]:
-    return [f["effect"] for f in diagnose_session(misspecified("random_walk", seed)[0]).findings]
+def random_walk_names(seed: int) -> list[list[str]]:
+    """The findings of the procedure a user gets (nested held-out: a term that does not gain on folds the
+    selection never saw is withdrawn), each as the effects it names (a group when the session cannot separate
+    them)."""
+    s = misspecified("random_walk", seed)[0]
+    d = diagnose_windows(s.ws, s.start, has_temp=True, candidates=CALIBRATION_TERMS, simulate=False, nested=True)
+    return [f["group"]["effects"] if f.get("group") else [f["effect"]] for f in d.findings]
 
 
 @pytest.mark.slow
 def test_random_walk_bias_is_not_attributed_to_a_covariate():
-    """Required answer for a 2 mg/sqrt(h) random-walk bias: nothing, or offset_drift (its trend over the hour);
-    never a temperature, supply, sensitivity or nonlinearity term."""
+    """Required answer for a 2 mg/sqrt(h) random-walk bias: nothing, or offset_drift (its trend over the hour),
+    alone or in a group the session cannot separate; never a temperature, supply, sensitivity or nonlinearity
+    term alone. (Seed 3 names sensitivity_drift as the group "sensitivity_drift or offset_drift", r = 1.0 over the
+    session; without the nested held-out seed 1 names thermal_lag, which the delivered procedure withdraws.)"""
     wrong = []
-    for seed, names in enumerate(pmap(random_walk_names, [(seed,) for seed in range(N_MISSPECIFIED)])):
-        if set(names) - {"offset_drift"}:
-            wrong.append((seed, names))
-    assert len(wrong) <= max_count(N_MISSPECIFIED, 0.05), f"misattributed in {len(wrong)}/{N_MISSPECIFIED}: {wrong}"
+    for seed, findings in enumerate(pmap(random_walk_names, [(seed,) for seed in range(N_MISSPECIFIED)])):
+        if any("offset_drift" not in names for names in findings):
+            wrong.append((seed, findings))
+    assert not wrong, f"misattributed in {len(wrong)}/{N_MISSPECIFIED}: {wrong}"
 
 
 def test_the_selection_rule_decides_every_term():
