@@ -1,24 +1,30 @@
-"""How a study runs on this machine: Dask worker threads, started while this process calibrates.
+"""How a study runs on this machine: Dask's threaded scheduler, its worker threads started while this
+process calibrates.
 
 A calibration's heavy parts (the reading pass, detection, the fit's sums) run in C and numpy with the GIL
 released, so threads of one process calibrate files side by side as well as worker processes would,
 without their fixed cost: spawning two worker processes (each starting an interpreter and importing dask
-and numpy again) took 1.6 s here and closing them 0.8 s, against 0.01-0.1 s each for a cluster of
-threads. What stays fixed is importing dask.distributed: 0.7 s of a core on this machine when it is
-quiet, more under load, taken from the calibrations running beside it (DASK_START_S).
+and numpy again) took 1.6 s here and closing them 0.8 s. The threads are Dask's threaded scheduler
+(dask.threaded, a thread pool of this process), not a dask.distributed LocalCluster of threads: that one
+costs 0.25 s of a core to import and start (against 0.09 s) and runs its scheduler, worker event loop and
+system monitor as Python in this process, taking the GIL from the calibrations beside it. Process CPU
+for 19 one-day files on two threads, three runs each (load 8-12): 5.2-5.3 s with the LocalCluster,
+4.6-4.7 s with Dask's threaded scheduler, 4.1-4.3 s with a bare thread pool, 4.4-4.6 s in one thread
+(docs/benchmarks.md). A cluster, for studies larger than one machine: ``--scheduler``.
 
-The plan is measured, not guessed. The first file is calibrated here (it pays the numerics' imports),
-the second here too, timed: its wall time, the CPU this process used (one calibration already keeps
-part of a second core busy) and the cores the machine left idle meanwhile (/proc/stat). Calibrating two
+The plan is measured, not guessed. The first file is calibrated here, timed: its wall time, the CPU this
+process used (one calibration already keeps part of a second core busy) and the cores the machine left
+idle meanwhile (/proc/stat). It also pays the numerics' first imports (~0.1 s of one core against ~0.2 s
+of CPU for a one-day file at 100 Hz), which makes the saving below look larger than it is by up to that
+share; timing the second file instead kept one more file out of the threads. Calibrating two
 files at a time can only use idle cores: the files left would take ``left`` here and about
 ``left * u / (u + extra)`` on the threads (u: cores one calibration used, extra: the idle cores a second
 one could take, at most u). Only when that saving exceeds DASK_START_S does a background thread import
-dask.distributed and start a LocalCluster of threads, while this process goes on calibrating files one
-by one; once the cluster is up, the files left go to its threads, and a study done before that never
-waits for it. One file, two files or one worker run here outright. ``Plan.summary`` says which plan ran
-and why (-v logs the figures).
+Dask while this process goes on calibrating files one by one; once imported, the files left go to the
+worker threads, and a study done before that never waits for it. One file, two files or one worker run
+here outright. ``Plan.summary`` says which plan ran and why (-v logs the figures).
 A worker thread that runs out of memory takes this process with it; the rows written so far stay, and a
-re-run resumes from them (a cluster of worker processes: ``--scheduler``).
+re-run resumes from them (worker processes: ``--scheduler``).
 """
 from __future__ import annotations
 
@@ -33,14 +39,16 @@ from typing import Any, Callable, Iterator
 log = logging.getLogger(__name__)
 
 Item = tuple[str, "str | None"]  # a recording and where its calibrated samples go (None: not written)
-DASK_START_S = 1.0
-"""What starting the cluster costs the study [s]: importing dask.distributed (0.7 s of a core on this
-2-core machine, quiet; its bytecode holds the GIL the calibrations' Python parts need) and the threads."""
+DASK_START_S = 0.2
+"""What starting the worker threads costs the study [s]: importing dask and its threaded scheduler (0.09 s
+of a core on this 2-core machine, quiet; its bytecode holds the GIL the calibrations' Python parts need),
+doubled for a loaded machine."""
 
 
 @dataclass
 class Plan:
-    """What ran where: files calibrated in this process, files on the cluster's threads, and why."""
+    """What ran where: files calibrated in this process, on Dask's worker threads (``threads``) or on a
+    cluster (``--scheduler``: ``on_cluster`` with the reason naming it), and why."""
 
     in_process: int = 0
     on_cluster: int = 0
@@ -49,70 +57,91 @@ class Plan:
 
     def summary(self) -> str:
         if self.threads:
-            return (f"{self.in_process} in this process (two to time the plan, then while Dask started), "
+            return (f"{self.in_process} in this process (one to time the plan, then while Dask was imported), "
                     f"{self.on_cluster} on {self.threads} Dask worker threads")
         if self.on_cluster:
             return f"{self.on_cluster} {self.reason}"  # an existing cluster: "on the scheduler at ADDRESS"
         return f"all in this process: {self.reason}" if self.reason else "all in this process"
 
 
-class ClusterStart(threading.Thread):
-    """Imports dask.distributed and starts a LocalCluster of ``threads`` worker threads and its client;
-    ``ready`` is set when they are up or the start failed (``error``). ``cancel`` closes what started
-    and stops a start still under way at its next step (an import cannot be interrupted)."""
+class DaskStart(threading.Thread):
+    """Imports Dask's threaded scheduler (dask.threaded) in the background; ``ready`` is set when it is
+    imported or the import failed (``error``; ``ok`` False). The import cannot be interrupted: ``cancel``
+    only makes a late success count for nothing."""
 
-    def __init__(self, threads: int) -> None:
-        super().__init__(name="gravcal-dask-start", daemon=True)
-        self.threads = threads
+    def __init__(self) -> None:
+        super().__init__(name="gravcal-dask-import", daemon=True)
         self.ready = threading.Event()
-        self.client: Any = None
+        self.ok = False
         self.error: BaseException | None = None
-        self._lock = threading.Lock()
         self._cancelled = False
-        self._parts: list[Any] = []  # client, cluster: closed by cancel
 
     def run(self) -> None:
         try:
-            from dask.distributed import Client, LocalCluster
+            import dask.threaded  # noqa: F401
 
-            if logging.getLogger().level > logging.INFO:  # the cluster's start/stop chatter only with -v
-                logging.getLogger("distributed").setLevel(logging.WARNING)
-            with self._lock:
-                if self._cancelled:
-                    return
-            cluster = LocalCluster(n_workers=1, threads_per_worker=self.threads, processes=False,
-                                   dashboard_address=None)
-            client = Client(cluster)
-            with self._lock:
-                self._parts = [client, cluster]
-                if not self._cancelled:
-                    self.client = client
-                    return
-            self._close()
-        except BaseException as exc:  # noqa: BLE001 - reported to the study, which goes on without a cluster
+            self.ok = not self._cancelled
+        except BaseException as exc:  # noqa: BLE001 - reported to the study, which goes on without Dask
             self.error = exc
         finally:
             self.ready.set()
 
     def cancel(self) -> None:
-        with self._lock:
-            self._cancelled = True
-        self._close()
+        self._cancelled = True
 
-    def _close(self) -> None:
-        with self._lock:
-            parts, self._parts, self.client = self._parts, [], None
-        for part in parts:
-            try:
-                part.close()
-            except Exception as exc:  # noqa: BLE001 - closing a cluster whose work is done: nothing is lost
-                log.debug("closing the study's Dask cluster: %s", exc)
+
+def thread_rows(items: list[Item], here: Callable[[str, "str | None"], dict], threads: int,
+                failed: Callable[[str, BaseException], dict]) -> Iterator[dict]:
+    """The rows of ``items`` calibrated ``threads`` at a time by Dask's threaded scheduler (its worker
+    threads: a pool of this process), yielded here as they finish; a task that raises is ``failed``'s
+    row. The scheduler runs in a background thread: this generator only waits for rows. Closed early
+    (Ctrl-C, an error writing rows), the files not started are dropped and the pool does not wait."""
+    import queue
+    from concurrent.futures import ThreadPoolExecutor
+
+    import dask.threaded
+
+    finished: queue.SimpleQueue = queue.SimpleQueue()
+    done = object()
+
+    def task(f: str, w: "str | None") -> dict:
+        try:
+            return here(f, w)
+        except Exception as exc:  # noqa: BLE001 - one file's failure is its row, not the study's end
+            return failed(f, exc)
+
+    def posttask(key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
+        finished.put(result)
+
+    graph = {("gravcal-calibrate", i): (task, f, w) for i, (f, w) in enumerate(items)}
+    pool = ThreadPoolExecutor(threads, thread_name_prefix="gravcal-dask")
+
+    def compute() -> None:
+        try:
+            # this computation's callbacks only (start, start_state, pretask, posttask, finish): none registered
+            # for the process, where the caller's own Dask work would see them
+            dask.threaded.get(graph, list(graph), pool=pool, callbacks=[(None, None, None, posttask, None)])
+        except BaseException as exc:  # noqa: BLE001 - the scheduler's own failure: raised in the study
+            finished.put(exc)
+        finally:
+            finished.put(done)
+
+    runner = threading.Thread(target=compute, name="gravcal-dask-scheduler", daemon=True)
+    runner.start()
+    try:
+        while (got := finished.get()) is not done:
+            if isinstance(got, BaseException):
+                raise got
+            yield got
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
 
 
 def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
-               on_cluster: Callable[[Any, list[Item]], Iterator[dict]], workers: int, plan: Plan) -> Iterator[dict]:
-    """The results rows of ``items`` (in the order they finish): ``here`` calibrates one in this process,
-    ``on_cluster(client, items)`` yields the rows of a batch on the cluster; ``plan`` records what ran."""
+               failed: Callable[[str, BaseException], dict], workers: int, plan: Plan) -> Iterator[dict]:
+    """The results rows of ``items`` (in the order they finish): ``here`` calibrates one in this process
+    (never raising), ``failed(file, exc)`` is the row of a worker thread's task that raised; ``plan``
+    records what ran."""
     threads = min(workers, len(items))
     if threads <= 1:
         plan.reason = "one file" if len(items) <= 1 else "one worker"
@@ -121,9 +150,7 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             plan.in_process += 1
         return
     pending = deque(items)
-    yield here(*pending.popleft())  # the numerics' imports: not timed
-    plan.in_process += 1
-    if len(pending) < 2:
+    if len(pending) < 3:
         plan.reason = f"{len(items)} files"
         while pending:
             yield here(*pending.popleft())
@@ -131,7 +158,7 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
         return
     timed = pending.popleft()
     before = _usage()
-    row = here(*timed)
+    row = here(*timed)  # with the numerics' first imports: ~0.1 s of one core, counted as the file's
     plan.in_process += 1
     saving, figures = _threads_saving(before, _usage(), threads, _size_ratio(timed[0], [f for f, _ in pending]))
     yield row
@@ -143,7 +170,7 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             plan.in_process += 1
         return
     log.info("study plan: Dask worker threads, two files at a time saving ~%.1f s (%s)", saving, figures)
-    start = ClusterStart(threads)
+    start = DaskStart()
     start.start()
     try:
         while pending and not start.ready.is_set():
@@ -151,13 +178,13 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             yield here(f, w)
             plan.in_process += 1
         if not pending:
-            plan.reason = "done before a Dask cluster was up"
+            plan.reason = "done before Dask was imported"
             return
         start.ready.wait()
-        if start.client is None:
-            plan.reason = ("no Dask: dask.distributed is not installed (pip install 'gravcal[study]')"
+        if not start.ok:
+            plan.reason = ("no Dask: dask is not installed (pip install 'gravcal[study]')"
                            if isinstance(start.error, ImportError) else
-                           f"no Dask cluster ({type(start.error).__name__}: {' '.join(str(start.error).split())})")
+                           f"no Dask ({type(start.error).__name__}: {' '.join(str(start.error).split())})")
             log.warning("the study goes on in this process: %s", plan.reason)
             while pending:
                 f, w = pending.popleft()
@@ -166,7 +193,7 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             return
         plan.threads = threads
         with _blas_one_thread():
-            for row in on_cluster(start.client, list(pending)):
+            for row in thread_rows(list(pending), here, threads, failed):
                 plan.on_cluster += 1
                 yield row
     finally:
