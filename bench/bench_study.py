@@ -6,10 +6,10 @@
 Compares, on the same files (the first N of one cached set): a sequential loop over the Python API in
 this process (``gravcal.calibrate(gravcal.read(f))``, imports already paid: the in-process rate), and
 the whole ``gravcal calibrate FILES --out results.csv --workers W`` process for each W (0: in that
-process; 2: the study's plan, io/study_plan.py: Dask's threaded scheduler with 2 worker threads, started
-while the first files calibrate there, when the timed second file shows idle cores), interpreter start,
-imports and the threads' start and close included. With ``--forced`` also ``--workers 2`` with the
-plan's Dask threads started whatever its timing says. With ``--processes`` also ``run_study`` on a
+process; 2: the study's plan, io/study_plan.py: Dask's local scheduler with 2 worker processes forked
+from that one, started while the next file calibrates there when the timed first file shows idle cores),
+interpreter start, imports and the workers' start and close included. With ``--forced`` also
+``--workers 2`` with the plan's Dask workers started whatever its timing says. With ``--processes`` also ``run_study`` on a
 dask.distributed LocalCluster of two worker processes started and closed in this process (what
 ``--scheduler`` gives; dask.distributed already imported here). The runs take turns (``--repeat``
 rounds, in the same order each round) and each row reports its fastest: on a shared machine other
@@ -22,9 +22,10 @@ same command in one process: what choosing 2 workers gains or loses). On a machi
 (load average >= the cores) two workers cannot gain and the plan stays in one process; read *x* from
 a quiet machine.
 
-The gravcal package's bytecode is compiled first (compileall, as ``pip install`` leaves it): with
-PYTHONDONTWRITEBYTECODE set and an editable install every command would otherwise compile its
-modules from source (~0.1 s of a core each start), a cost the in-process loop pays before its clock.
+The gravcal package's bytecode is compiled first (bench_calibrate.compile_gravcal_bytecode, as ``pip
+install`` leaves it): with PYTHONDONTWRITEBYTECODE set and an editable install every command would
+otherwise compile its modules from source (~0.1 s of a core each start), a cost the in-process loop
+pays before its clock.
 
 Input: N consecutive days of one simulated daily-living recording (core.simulate.simulate_blocks,
 seed 0, default sensor), one structured .npy per day (t float64, ax/ay/az float32 duty cycles),
@@ -36,13 +37,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from bench_calibrate import compile_gravcal_bytecode
 
 SEED = 0
 DTYPE = np.dtype([("t", "<f8"), ("ax", "<f4"), ("ay", "<f4"), ("az", "<f4")])
@@ -120,24 +122,13 @@ def _children_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def compile_bytecode() -> None:
-    """The gravcal package's bytecode, as ``pip install`` leaves it (an editable install with
-    PYTHONDONTWRITEBYTECODE never writes it: each command would compile its modules from source)."""
-    import compileall
-
-    import gravcal
-
-    skip = re.compile(r"[/\\](\.venv|tests|bench|build)[/\\]")  # what the command never imports
-    compileall.compile_dir(Path(gravcal.__file__).parent, quiet=2, rx=skip)
-
-
 FORCED = ("import sys; import gravcal.io.study_plan as plan; plan.DASK_START_S = -1.0; "
           "sys.argv = ['gravcal', *sys.argv[1:]]; from gravcal.cli.main import console; console()")
 
 
 def cli_study(paths: list[Path], workers: int, forced: bool = False) -> dict:
     """The whole ``gravcal calibrate FILES --out R --workers W`` process, as a user runs it; ``forced``: the
-    plan's Dask threads started whatever the timed file says (io/study_plan.py DASK_START_S below 0)."""
+    plan's Dask workers started whatever the timed file says (io/study_plan.py DASK_START_S below 0)."""
     import subprocess
 
     script = Path(sys.executable).parent / "gravcal"
@@ -153,7 +144,7 @@ def cli_study(paths: list[Path], workers: int, forced: bool = False) -> dict:
         wall, cpu = time.perf_counter() - t0, _children_cpu() - before
         ok = out.read_text().count(",ok,")
     plan = r.stderr.strip().splitlines()[-1] if r.stderr.strip() else ""
-    return {"how": f"gravcal calibrate --workers {workers}" + (", Dask threads forced" if forced else ""),
+    return {"how": f"gravcal calibrate --workers {workers}" + (", Dask workers forced" if forced else ""),
             "workers": workers, "wall_s": wall, "cpu_s": cpu,
             "files_per_s": len(paths) / wall, "ok": ok, "status": r.returncode, "summary": plan}
 
@@ -192,7 +183,7 @@ def main() -> int:
     ap.add_argument("--workers", type=int, nargs="+", default=[0, 2], help="gravcal calibrate --workers W runs")
     ap.add_argument("--processes", action="store_true", help="also a LocalCluster of two worker processes")
     ap.add_argument("--forced", action="store_true",
-                    help="also --workers 2 with the Dask threads started whatever the plan's timing says")
+                    help="also --workers 2 with the Dask workers started whatever the plan's timing says")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--cache")
     ap.add_argument("--json", type=Path)
@@ -201,7 +192,7 @@ def main() -> int:
     folder = cache_dir(a.cache) / f"bench_study_{most}x{a.hours:g}h_{a.fs:g}hz_seed{SEED}"
     folder.mkdir(parents=True, exist_ok=True)
     every = generate(folder, most, a.hours, a.fs)
-    compile_bytecode()
+    compile_gravcal_bytecode()
     load = [os.getloadavg()]
     results = []
     for n in sorted(a.files):

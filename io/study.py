@@ -4,9 +4,9 @@ Rows are appended and flushed as files finish, so an interrupted run (Ctrl-C) le
 file holding the files done so far, and a re-run skips them (resume). Rows are keyed by the file's
 resolved path, so a re-run from another folder finds them; an error row is not done: a re-run
 replaces it with a new attempt. The work runs on an existing dask.distributed cluster (``scheduler``),
-on Dask's threaded scheduler, its worker threads started while this process calibrates the first files
-(``workers``; io/study_plan.py), or with ``workers=0`` in this process. Dask and tqdm are imported here and in
-io/study_plan.py only (the ``study`` extra).
+on Dask's local scheduler, its workers (forked processes, or threads) started while this process
+calibrates the first files (``workers``; io/study_plan.py), or with ``workers=0`` in this process. Dask
+and tqdm are imported here and in io/study_plan.py only (the ``study`` extra).
 """
 from __future__ import annotations
 

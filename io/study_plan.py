@@ -1,35 +1,39 @@
-"""How a study runs on this machine: Dask's threaded scheduler, its worker threads started while this
-process calibrates.
+"""How a study runs on this machine: Dask's local scheduler, its workers started while this process
+calibrates: worker processes forked from this one (Linux), else worker threads.
 
-A calibration's heavy parts (the reading pass, detection, the fit's sums) run in C and numpy with the GIL
-released, so threads of one process calibrate files side by side as well as worker processes would,
-without their fixed cost: spawning two worker processes (each starting an interpreter and importing dask
-and numpy again) took 1.6 s here and closing them 0.8 s. The threads are Dask's threaded scheduler
-(dask.threaded, a thread pool of this process), not a dask.distributed LocalCluster of threads: that one
-costs 0.25 s of a core to import and start (against 0.09 s) and runs its scheduler, worker event loop and
-system monitor as Python in this process, taking the GIL from the calibrations beside it. Process CPU
-for 19 one-day files on two threads, three runs each (load 8-12): 5.2-5.3 s with the LocalCluster,
-4.6-4.7 s with Dask's threaded scheduler, 4.1-4.3 s with a bare thread pool, 4.4-4.6 s in one thread
-(docs/benchmarks.md). A cluster, for studies larger than one machine: ``--scheduler``.
+Forked processes, because a calibration holds the GIL for about half its wall time (py-spy --gil over
+ten one-day files: 4.6 s of 8.9 s; the fit's estimators, detection's and the reading pass's Python
+between the C kernels), so two files on threads of one process queue for it: on the quiet machine
+threads gave 0.82x the in-process API loop against 0.84x for calibrating in one process. Forking costs
+~0.01-0.05 s (the worker starts with everything this process imported), where spawning a worker (a
+dask.distributed LocalCluster of processes: an interpreter importing dask and numpy again) took 1.6 s
+here and closing them 0.8 s. The scheduler is Dask's own local one (dask.multiprocessing, or
+dask.threaded where the platform cannot fork), not a dask.distributed LocalCluster: that one costs 0.25
+s of a core to import and start (against 0.09 s) and runs its scheduler, event loop and system monitor
+as Python in this process, beside the calibrations (process CPU for 19 one-day files on two threads,
+load 8-12: 5.2-5.3 s with a LocalCluster of threads, 4.6-4.7 s with dask.threaded, 4.4-4.6 s in one
+thread). A cluster, for studies larger than one machine: ``--scheduler``.
 
 The plan is measured, not guessed. The first file is calibrated here, timed: its wall time, the CPU this
 process used (one calibration already keeps part of a second core busy) and the cores the machine left
 idle meanwhile (/proc/stat). It also pays the numerics' first imports (~0.1 s of one core against ~0.2 s
 of CPU for a one-day file at 100 Hz), which makes the saving below look larger than it is by up to that
-share; timing the second file instead kept one more file out of the threads. Calibrating two
-files at a time can only use idle cores: the files left would take ``left`` here and about
-``left * u / (u + extra)`` on the threads (u: cores one calibration used, extra: the idle cores a second
+share; timing the second file instead kept one more file off the workers. Calibrating two files at a
+time can only use idle cores: the files left would take ``left`` here and about
+``left * u / (u + extra)`` on the workers (u: cores one calibration used, extra: the idle cores a second
 one could take, at most u). Only when that saving exceeds DASK_START_S does a background thread import
 Dask while this process goes on calibrating files one by one; once imported, the files left go to the
-worker threads, and a study done before that never waits for it. One file, two files or one worker run
-here outright. ``Plan.summary`` says which plan ran and why (-v logs the figures).
-A worker thread that runs out of memory takes this process with it; the rows written so far stay, and a
-re-run resumes from them (worker processes: ``--scheduler``).
+workers, and a study done before that never waits for it. One file, two files or one worker run here
+outright. ``Plan.summary`` says which plan ran and why (-v logs the figures).
+A worker process killed (out of memory) ends the study with that error, a worker thread the whole
+process; the rows written so far stay, and a re-run resumes from them.
 """
 from __future__ import annotations
 
 import logging
 import os
+import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -40,8 +44,8 @@ log = logging.getLogger(__name__)
 
 Item = tuple[str, "str | None"]  # a recording and where its calibrated samples go (None: not written)
 DASK_START_S = 0.2
-"""What starting the worker threads costs the study [s]: importing dask and its threaded scheduler (0.09 s
-of a core on this 2-core machine, quiet; its bytecode holds the GIL the calibrations' Python parts need),
+"""What starting the workers costs the study [s]: importing dask and its local scheduler (0.09 s of a core
+on this 2-core machine, quiet; its bytecode holds the GIL the calibration beside it needs) and forking,
 doubled for a loaded machine."""
 
 
@@ -52,25 +56,28 @@ class Plan:
 
     in_process: int = 0
     on_cluster: int = 0
-    threads: int = 0
+    threads: int = 0  # Dask's local workers: threads, or forked processes
+    processes: bool = False
     reason: str = ""
 
     def summary(self) -> str:
         if self.threads:
             return (f"{self.in_process} in this process (one to time the plan, then while Dask was imported), "
-                    f"{self.on_cluster} on {self.threads} Dask worker threads")
+                    f"{self.on_cluster} on {self.threads} Dask worker "
+                    f"{'processes (forked)' if self.processes else 'threads'}")
         if self.on_cluster:
             return f"{self.on_cluster} {self.reason}"  # an existing cluster: "on the scheduler at ADDRESS"
         return f"all in this process: {self.reason}" if self.reason else "all in this process"
 
 
 class DaskStart(threading.Thread):
-    """Imports Dask's threaded scheduler (dask.threaded) in the background; ``ready`` is set when it is
-    imported or the import failed (``error``; ``ok`` False). The import cannot be interrupted: ``cancel``
-    only makes a late success count for nothing."""
+    """Imports Dask's local scheduler (dask.multiprocessing with ``processes``, else dask.threaded) in the
+    background; ``ready`` is set when it is imported or the import failed (``error``; ``ok`` False). The
+    import cannot be interrupted: ``cancel`` only makes a late success count for nothing."""
 
-    def __init__(self) -> None:
+    def __init__(self, processes: bool = False) -> None:
         super().__init__(name="gravcal-dask-import", daemon=True)
+        self.processes = processes
         self.ready = threading.Event()
         self.ok = False
         self.error: BaseException | None = None
@@ -78,8 +85,9 @@ class DaskStart(threading.Thread):
 
     def run(self) -> None:
         try:
-            import dask.threaded  # noqa: F401
+            import importlib
 
+            importlib.import_module("dask.multiprocessing" if self.processes else "dask.threaded")
             self.ok = not self._cancelled
         except BaseException as exc:  # noqa: BLE001 - reported to the study, which goes on without Dask
             self.error = exc
@@ -90,16 +98,28 @@ class DaskStart(threading.Thread):
         self._cancelled = True
 
 
-def thread_rows(items: list[Item], here: Callable[[str, "str | None"], dict], threads: int,
-                failed: Callable[[str, BaseException], dict]) -> Iterator[dict]:
-    """The rows of ``items`` calibrated ``threads`` at a time by Dask's threaded scheduler (its worker
-    threads: a pool of this process), yielded here as they finish; a task that raises is ``failed``'s
-    row. The scheduler runs in a background thread: this generator only waits for rows. Closed early
-    (Ctrl-C, an error writing rows), the files not started are dropped and the pool does not wait."""
-    import queue
-    from concurrent.futures import ThreadPoolExecutor
+def forking() -> bool:
+    """Whether worker processes can be forked from this one (Linux): a fork starts with everything this
+    process has imported, in ~0.01-0.05 s, where a spawned interpreter imports numpy and gravcal again."""
+    import multiprocessing
 
-    import dask.threaded
+    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+
+
+def _ignore_sigint() -> None:
+    """A worker process leaves Ctrl-C to the study, which ends it (no traceback from a worker)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def worker_rows(items: list[Item], here: Callable[[str, "str | None"], dict], workers: int,
+                failed: Callable[[str, BaseException], dict], processes: bool) -> Iterator[dict]:
+    """The rows of ``items`` calibrated ``workers`` at a time by Dask's local scheduler, yielded here as
+    they finish; a task that raises is ``failed``'s row. ``processes``: Dask's multiprocessing scheduler
+    on worker processes forked from this one (each file's Python runs under its own GIL; ``here`` goes
+    by cloudpickle); else its threaded scheduler (worker threads of this process). The scheduler runs in
+    a background thread: this generator only waits for rows. Closed early (Ctrl-C, an error writing
+    rows), the files not started are dropped and the worker processes are ended."""
+    import queue
 
     finished: queue.SimpleQueue = queue.SimpleQueue()
     done = object()
@@ -114,34 +134,65 @@ def thread_rows(items: list[Item], here: Callable[[str, "str | None"], dict], th
         finished.put(result)
 
     graph = {("gravcal-calibrate", i): (task, f, w) for i, (f, w) in enumerate(items)}
-    pool = ThreadPoolExecutor(threads, thread_name_prefix="gravcal-dask")
+    # this computation's callbacks only (start, start_state, pretask, posttask, finish): none registered
+    # for the process, where the caller's own Dask work would see them
+    callbacks = [(None, None, None, posttask, None)]
+    if processes:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
 
-    def compute() -> None:
+        import dask.multiprocessing
+
+        pool: Any = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                        initializer=_ignore_sigint)
+
+        def compute() -> None:  # one file per task (chunksize 1): rows as they finish, even shares
+            dask.multiprocessing.get(graph, list(graph), pool=pool, callbacks=callbacks, chunksize=1,
+                                     optimize_graph=False)
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        import dask.threaded
+
+        pool = ThreadPoolExecutor(workers, thread_name_prefix="gravcal-dask")
+
+        def compute() -> None:
+            dask.threaded.get(graph, list(graph), pool=pool, callbacks=callbacks)
+
+    def run() -> None:
         try:
-            # this computation's callbacks only (start, start_state, pretask, posttask, finish): none registered
-            # for the process, where the caller's own Dask work would see them
-            dask.threaded.get(graph, list(graph), pool=pool, callbacks=[(None, None, None, posttask, None)])
-        except BaseException as exc:  # noqa: BLE001 - the scheduler's own failure: raised in the study
+            compute()
+        except BaseException as exc:  # noqa: BLE001 - the scheduler's own failure (a worker process killed)
             finished.put(exc)
         finally:
             finished.put(done)
 
-    runner = threading.Thread(target=compute, name="gravcal-dask-scheduler", daemon=True)
+    runner = threading.Thread(target=run, name="gravcal-dask-scheduler", daemon=True)
     runner.start()
+    ended = False
     try:
         while (got := finished.get()) is not done:
             if isinstance(got, BaseException):
                 raise got
             yield got
+        ended = True
     finally:
-        pool.shutdown(wait=False, cancel_futures=True)
+        pool.shutdown(wait=ended, cancel_futures=True)
+        if processes and not ended:
+            import multiprocessing
+
+            for child in multiprocessing.active_children():  # its files are dropped, as unstarted ones
+                if child.name.startswith("ForkProcess"):
+                    child.terminate()
 
 
 def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
-               failed: Callable[[str, BaseException], dict], workers: int, plan: Plan) -> Iterator[dict]:
+               failed: Callable[[str, BaseException], dict], workers: int, plan: Plan,
+               processes: bool | None = None) -> Iterator[dict]:
     """The results rows of ``items`` (in the order they finish): ``here`` calibrates one in this process
-    (never raising), ``failed(file, exc)`` is the row of a worker thread's task that raised; ``plan``
-    records what ran."""
+    (never raising), ``failed(file, exc)`` is the row of a worker's task that raised; ``plan`` records
+    what ran. ``processes``: forked worker processes (default where the platform forks) or threads."""
+    processes = forking() if processes is None else processes
     threads = min(workers, len(items))
     if threads <= 1:
         plan.reason = "one file" if len(items) <= 1 else "one worker"
@@ -170,7 +221,7 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             plan.in_process += 1
         return
     log.info("study plan: Dask worker threads, two files at a time saving ~%.1f s (%s)", saving, figures)
-    start = DaskStart()
+    start = DaskStart(processes)
     start.start()
     try:
         while pending and not start.ready.is_set():
@@ -191,9 +242,9 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
                 yield here(f, w)
                 plan.in_process += 1
             return
-        plan.threads = threads
+        plan.threads, plan.processes = threads, processes
         with _blas_one_thread():
-            for row in thread_rows(list(pending), here, threads, failed):
+            for row in worker_rows(list(pending), here, threads, failed, processes):
                 plan.on_cluster += 1
                 yield row
     finally:

@@ -234,6 +234,7 @@ def test_dask_worker_threads_give_the_same_rows_and_leave_the_log_level(study, t
 
     monkeypatch.setattr(study_plan.DaskStart, "start", study_plan.DaskStart.run)
     monkeypatch.setattr(study_plan, "DASK_START_S", -1.0)
+    monkeypatch.setattr(study_plan, "forking", lambda: False)  # threads, where the platform cannot fork
     monkeypatch.setattr(study_mod, "_calibrate_file", overlapping)
     gravcal_log = logging.getLogger("gravcal")
     before = gravcal_log.level
@@ -244,6 +245,28 @@ def test_dask_worker_threads_give_the_same_rows_and_leave_the_log_level(study, t
     assert gravcal_log.level == before
     key = (lambda r: r["file"])
     assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
+
+
+def test_forked_dask_worker_processes_give_the_same_rows(study, tmp_path, monkeypatch, capsys):
+    """One file here (the plan's timing), three on two worker processes forked from this one: the rows
+    are the in-process rows, the broken file's error row included; no worker process is left."""
+    import multiprocessing
+
+    from gravcal.io import study_plan
+
+    if not study_plan.forking():
+        pytest.skip("worker processes are forked on Linux only")
+    seq, par = tmp_path / "seq.csv", tmp_path / "par.csv"
+    files = [str(study / f"s{i}.npy") for i in range(2)] + [str(study / "broken.csv"), str(study / "site2" / "s3.npy")]
+    assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 2
+    monkeypatch.setattr(study_plan.DaskStart, "start", study_plan.DaskStart.run)
+    monkeypatch.setattr(study_plan, "DASK_START_S", -1.0)
+    assert main(["calibrate", *files, "--out", str(par), "--workers", "2"]) == 2
+    assert "1 in this process (one to time the plan, then while Dask was imported), 3 on 2 Dask worker " \
+           "processes (forked)" in capsys.readouterr().err
+    key = (lambda r: r["file"])
+    assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
+    assert not [p for p in multiprocessing.active_children() if p.name.startswith("ForkProcess")]
 
 
 def test_a_small_study_runs_here_and_says_so(study, tmp_path, monkeypatch, capsys):
@@ -260,6 +283,7 @@ def test_a_small_study_runs_here_and_says_so(study, tmp_path, monkeypatch, capsy
     monkeypatch.setattr(study_plan, "DASK_START_S", -1.0)
     monkeypatch.setattr(study_plan.DaskStart, "start", study_plan.DaskStart.run)
     monkeypatch.setitem(sys.modules, "dask.threaded", None)  # dask not installed
+    monkeypatch.setitem(sys.modules, "dask.multiprocessing", None)
     assert main(["calibrate", *files, "--out", str(tmp_path / "three.csv"), "--workers", "2"]) == 0
     err = capsys.readouterr().err
     assert "the study goes on in this process: no Dask: dask is not installed (pip install 'gravcal[study]')" in err
@@ -286,7 +310,7 @@ def test_the_plan_counts_only_idle_cores():
 
 
 def test_dask_threads_hand_each_row_over_as_it_finishes_and_a_raising_task_is_its_row():
-    """thread_rows: file a waits until the study has b's row (rows are written as files finish, so an
+    """worker_rows on threads: file a waits until the study has b's row (rows are written as files finish, so an
     interrupted study keeps them); c raises on its worker thread and becomes its error row."""
     import threading
 
@@ -305,7 +329,7 @@ def test_dask_threads_hand_each_row_over_as_it_finishes_and_a_raising_task_is_it
         return {"file": f, "status": "error", "message": f"{type(exc).__name__}: {exc}"}
 
     rows = []
-    for row in study_plan.thread_rows([("a", None), ("b", None), ("c", None)], here, 2, failed):
+    for row in study_plan.worker_rows([("a", None), ("b", None), ("c", None)], here, 2, failed, processes=False):
         rows.append(row)
         if row["file"] == "b":
             b_seen.set()
