@@ -3,8 +3,9 @@ calibrates: worker processes forked from this one (Linux), else worker threads.
 
 Forked processes, because a calibration holds the GIL for about half its wall time (py-spy --gil over
 ten one-day files: 4.6 s of 8.9 s; the fit's estimators, detection's and the reading pass's Python
-between the C kernels), so two files on threads of one process queue for it: on the quiet machine
-threads gave 0.82x the in-process API loop against 0.84x for calibrating in one process. Forking costs
+between the C kernels), so two files on threads of one process queue for it: on the quiet machine 20
+one-day files, 16-17 of them on two threads (a LocalCluster's), ran at 0.82-0.84x the in-process API
+loop, as 8 files calibrated in one process did (0.84x): the threads gained nothing. Forking costs
 ~0.01-0.05 s (the worker starts with everything this process imported), where spawning a worker (a
 dask.distributed LocalCluster of processes: an interpreter importing dask and numpy again) took 1.6 s
 here and closing them 0.8 s. The scheduler is Dask's own local one (dask.multiprocessing, or
