@@ -107,6 +107,16 @@ def forking() -> bool:
     return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
 
 
+def only_study_threads() -> bool:
+    """Whether every other live thread of this process is the study's own (gravcal-*, its progress bar's
+    monitor): a fork copies only the forking thread, and a lock another thread holds at that moment stays
+    held in the worker. A process with threads of its own (a notebook's, a server's) gets worker
+    threads instead."""
+    main = threading.main_thread()
+    return all(t is main or not t.is_alive() or t.name.startswith(("gravcal-", "tqdm_monitor"))
+               for t in threading.enumerate())
+
+
 def _ignore_sigint() -> None:
     """A worker process leaves Ctrl-C to the study, which ends it (no traceback from a worker)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -192,8 +202,9 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
                processes: bool | None = None) -> Iterator[dict]:
     """The results rows of ``items`` (in the order they finish): ``here`` calibrates one in this process
     (never raising), ``failed(file, exc)`` is the row of a worker's task that raised; ``plan`` records
-    what ran. ``processes``: forked worker processes (default where the platform forks) or threads."""
-    processes = forking() if processes is None else processes
+    what ran. ``processes``: forked worker processes (default where the platform forks and no thread but
+    the study's runs) or threads."""
+    processes = forking() and only_study_threads() if processes is None else processes
     threads = min(workers, len(items))
     if threads <= 1:
         plan.reason = "one file" if len(items) <= 1 else "one worker"

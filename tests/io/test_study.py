@@ -261,12 +261,32 @@ def test_forked_dask_worker_processes_give_the_same_rows(study, tmp_path, monkey
     assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 2
     monkeypatch.setattr(study_plan.DaskStart, "start", study_plan.DaskStart.run)
     monkeypatch.setattr(study_plan, "DASK_START_S", -1.0)
+    monkeypatch.setattr(study_plan, "only_study_threads", lambda: True)  # earlier tests' Dask threads linger
     assert main(["calibrate", *files, "--out", str(par), "--workers", "2"]) == 2
     assert "1 in this process (one to time the plan, then while Dask was imported), 3 on 2 Dask worker " \
            "processes (forked)" in capsys.readouterr().err
     key = (lambda r: r["file"])
     assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
     assert not [p for p in multiprocessing.active_children() if p.name.startswith("ForkProcess")]
+
+
+def test_workers_are_forked_only_from_a_process_running_no_thread_but_the_studys():
+    import threading
+
+    from gravcal.io import study_plan
+
+    release = threading.Event()
+    for name, expected in (("gravcal-blocks_0", True), ("a notebook's thread", False)):
+        t = threading.Thread(target=release.wait, name=name, daemon=True)
+        others = [x for x in threading.enumerate() if x is not threading.main_thread()
+                  and not x.name.startswith(("gravcal-", "tqdm_monitor"))]
+        t.start()
+        try:
+            assert study_plan.only_study_threads() is (expected and not others)
+        finally:
+            release.set()
+            t.join()
+            release.clear()
 
 
 def test_a_small_study_runs_here_and_says_so(study, tmp_path, monkeypatch, capsys):
