@@ -9,9 +9,9 @@ the whole ``gravcal calibrate FILES --out results.csv --workers W`` process for 
 process; 2: the study's plan, io/study_plan.py: Dask's local scheduler with 2 worker processes forked
 from that one, started while the next file calibrates there when the timed first file shows idle cores),
 interpreter start, imports and the workers' start and close included. With ``--forced`` also
-``--workers 2`` with the plan's Dask workers started whatever its timing says. With ``--processes`` also ``run_study`` on a
-dask.distributed LocalCluster of two worker processes started and closed in this process (what
-``--scheduler`` gives; dask.distributed already imported here). The runs take turns (``--repeat``
+``--workers 2`` with the plan's Dask workers started whatever its timing says. With ``--processes``
+also ``run_study`` on a dask.distributed LocalCluster of two spawned worker processes started and
+closed in this process (what ``--scheduler`` gives; dask.distributed already imported here). The runs take turns (``--repeat``
 rounds, in the same order each round) and each row reports its fastest: on a shared machine other
 load only ever slows a run down. Each row also gives the CPU time it used (this process's for the API
 loop, the child's user + sys for a command), which load inflates far less than wall time.

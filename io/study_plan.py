@@ -52,7 +52,7 @@ doubled for a loaded machine."""
 
 @dataclass
 class Plan:
-    """What ran where: files calibrated in this process, on Dask's worker threads (``threads``) or on a
+    """What ran where: files calibrated in this process, on Dask's local workers (``threads`` of them) or on a
     cluster (``--scheduler``: ``on_cluster`` with the reason naming it), and why."""
 
     in_process: int = 0
@@ -232,7 +232,7 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             yield here(*pending.popleft())
             plan.in_process += 1
         return
-    log.info("study plan: Dask worker threads, two files at a time saving ~%.1f s (%s)", saving, figures)
+    log.info("study plan: Dask workers, two files at a time saving ~%.1f s (%s)", saving, figures)
     start = DaskStart(processes)
     start.start()
     try:
