@@ -25,6 +25,7 @@ from ..windows import WindowSet
 from .consider import with_held_uncertainty
 
 MIN_WINDOWS = {False: 6, True: 9}  # unknowns of the axis-aligned / general quadric
+MIN_RESIDUAL_DOF = 3  # windows beyond the unknowns: an exact fit (no residual) cannot state its own uncertainty
 MIN_CAP_DEG = 20.0  # refuse when every window is within this angle of one direction (Lötters θ)
 MAX_COND = 1e8  # condition number of the (normalised) design matrix
 HUBER_K, HUBER_ITERS = 1.345, 3  # Huber weights for the first iterations
@@ -73,10 +74,11 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
     mean = np.asarray(ws.mean, dtype=float).reshape(-1, 3)
     mean = mean[np.isfinite(mean).all(axis=1)]
     m = mean.shape[0]
-    need = MIN_WINDOWS[bool(full)]
+    need = MIN_WINDOWS[bool(full)] + MIN_RESIDUAL_DOF
     if m < need:
         kind = "general" if full else "axis-aligned"
-        raise ValueError(f"ellipsoid_fit ({kind}) needs at least {need} quasi-static windows, got {m}")
+        raise ValueError(f"ellipsoid_fit ({kind}) needs at least {need} quasi-static windows ({MIN_WINDOWS[bool(full)]} "
+                         f"unknowns and {MIN_RESIDUAL_DOF} to state their uncertainty), got {m}")
 
     # Normalise so that counts (~3e4) and g (~1) give the same conditioning.
     c0 = np.median(mean, axis=0)
