@@ -11,7 +11,7 @@ the slopes' chi² against none is beyond chance); what one pose does not determi
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from gravcal.core.calibration import Calibration
 from gravcal.core.estimators.single_pose import TERM, single_pose
@@ -19,17 +19,14 @@ from gravcal.core.windows import WindowSet
 
 from .held import one_posture_partner
 
-if TYPE_CHECKING:
-    from .diagnose import Diagnosis
-
 PER_CHANNEL_RULE = ("one pose, per channel: found = the line in the temperature predicts each channel's reading in "
                     "held-out contiguous time folds better than a constant, and the slopes' chi² against none "
                     "exceeds chi²(3) at 0.999")
 
 
-def one_pose_temperature(d: "Diagnosis", ws: WindowSet, start: Calibration) -> None:
+def one_pose_temperature(d: Any, ws: WindowSet, start: Calibration) -> None:
     """Where ``ws`` hold one pose and the norm-based selection did not test temperature_offset (untestable, or
-    not found through the norm), test it per channel and update ``d`` in place: a finding with the per-channel
+    not found through the norm), test it per channel and update ``d`` (diagnose.Diagnosis) in place: a finding with the per-channel
     slopes [mg/°C] (std: statistical under the windows' covariance and the held gains' stated relative std), or
     not_found with the reason; the quantities one pose does not determine join ``d.undetermined``.
     ``start``: the calibration the slopes are converted through, with its held covariance (the gains' std)."""

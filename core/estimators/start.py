@@ -112,9 +112,10 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
         else:  # then Tukey bisquare: windows far off the ellipsoid get weight 0
             z = r / (TUKEY_C * sigma)
             w_new = np.where(np.abs(z) < 1, (1 - z * z) ** 2, 0.0)
-        if np.count_nonzero(w_new) < need:
+        if np.count_nonzero(w_new) < MIN_WINDOWS[bool(full)]:  # the residual's dof were asked of the windows given
             raise ValueError(f"ellipsoid_fit: only {np.count_nonzero(w_new)} of {m} windows agree with a common "
-                             f"ellipsoid (need {need}); the windows are not quasi-static or coverage is too poor")
+                             f"ellipsoid (need {MIN_WINDOWS[bool(full)]}); the windows are not quasi-static or "
+                             f"coverage is too poor")
         done = it >= HUBER_ITERS and o_u is not None and np.allclose(o_new, o_u, atol=1e-12) and np.allclose(K_new, K_u, atol=1e-12)
         o_u, K_u, w = o_new, K_new, w_new
         if done:
