@@ -25,7 +25,7 @@ from ..windows import WindowSet
 from .consider import with_held_uncertainty
 
 MIN_WINDOWS = {False: 6, True: 9}  # unknowns of the axis-aligned / general quadric
-MIN_RESIDUAL_DOF = 3  # windows beyond the unknowns: an exact fit (no residual) cannot state its own uncertainty
+MIN_RESIDUAL_DOF = 3  # kept windows beyond the unknowns for the fit to state its own uncertainty
 MIN_CAP_DEG = 20.0  # refuse when every window is within this angle of one direction (Lötters θ)
 MAX_COND = 1e8  # condition number of the (normalised) design matrix
 HUBER_K, HUBER_ITERS = 1.345, 3  # Huber weights for the first iterations
@@ -74,11 +74,10 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
     mean = np.asarray(ws.mean, dtype=float).reshape(-1, 3)
     mean = mean[np.isfinite(mean).all(axis=1)]
     m = mean.shape[0]
-    need = MIN_WINDOWS[bool(full)] + MIN_RESIDUAL_DOF
+    need = MIN_WINDOWS[bool(full)]
     if m < need:
         kind = "general" if full else "axis-aligned"
-        raise ValueError(f"ellipsoid_fit ({kind}) needs at least {need} quasi-static windows ({MIN_WINDOWS[bool(full)]} "
-                         f"unknowns and {MIN_RESIDUAL_DOF} to state their uncertainty), got {m}")
+        raise ValueError(f"ellipsoid_fit ({kind}) needs at least {need} quasi-static windows, got {m}")
 
     # Normalise so that counts (~3e4) and g (~1) give the same conditioning.
     c0 = np.median(mean, axis=0)
@@ -112,10 +111,9 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
         else:  # then Tukey bisquare: windows far off the ellipsoid get weight 0
             z = r / (TUKEY_C * sigma)
             w_new = np.where(np.abs(z) < 1, (1 - z * z) ** 2, 0.0)
-        if np.count_nonzero(w_new) < MIN_WINDOWS[bool(full)]:  # the residual's dof were asked of the windows given
+        if np.count_nonzero(w_new) < need:
             raise ValueError(f"ellipsoid_fit: only {np.count_nonzero(w_new)} of {m} windows agree with a common "
-                             f"ellipsoid (need {MIN_WINDOWS[bool(full)]}); the windows are not quasi-static or "
-                             f"coverage is too poor")
+                             f"ellipsoid (need {need}); the windows are not quasi-static or coverage is too poor")
         done = it >= HUBER_ITERS and o_u is not None and np.allclose(o_new, o_u, atol=1e-12) and np.allclose(K_new, K_u, atol=1e-12)
         o_u, K_u, w = o_new, K_new, w_new
         if done:
@@ -163,8 +161,19 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
             "sensitivity_rel_std": k_std_rel,
         },
     )
-    return with_held_uncertainty(cal, names=names, cov=cov_raw,
-                                 source=f"ellipsoid fit ({'general' if full else 'axis-aligned'}) linearised LS covariance")
+    kind = "general" if full else "axis-aligned"
+    dof = int(np.count_nonzero(used)) - MIN_WINDOWS[bool(full)]
+    if dof < MIN_RESIDUAL_DOF:
+        # (nearly) an exact fit: no residual to scale its covariance (6 windows stated their gains to 0.04 %
+        # while 15 % off). A start still, but held as uncertain as the equal-gain start: each gain ±20 %, each
+        # offset the same fraction of 1 g
+        scale = float(np.mean(np.abs(np.diag(K))))
+        sd = {n: ISOTROPIC_SENS_REL_STD * (abs(float(K["xyz".index(n[2]), "xyz".index(n[2])]))
+                                           if n[0] == "s" and len(n) == 3 else scale) for n in names}
+        return with_held_uncertainty(cal, sd, source=f"ellipsoid fit ({kind}) with {dof} window(s) beyond its "
+                                                     f"unknowns: no residual to state its uncertainty; held as an "
+                                                     f"equal-gain start (±{100 * ISOTROPIC_SENS_REL_STD:.0f} %)")
+    return with_held_uncertainty(cal, names=names, cov=cov_raw, source=f"ellipsoid fit ({kind}) linearised LS covariance")
 
 
 def _raw_parameter_covariance(coef, design, w, full, c0, r0) -> tuple[list[str], np.ndarray]:
