@@ -31,7 +31,6 @@ POSE_HOLD_DEG = 0.5  # the pose once each channel's temperature line is out (9 m
 MIN_POSE_WINDOWS = 6  # a line and its scatter need a few windows; fewer determine nothing
 MIN_POSE_SHARE = 0.5  # the pose holds most windows (a chamber's handling is brief): else it is a wearer's day
 FOLDS = 5  # contiguous folds of the held-out check
-JACKKNIFE_BLOCKS = 10  # contiguous time blocks of the slope's std (neighbouring windows share slow errors)
 REML_TAUS = 10  # wander time constants tried, log-spaced from the windows' spacing to the session
 REML_SHARES = np.linspace(0.0, 0.99, 34)  # the wander's share of the windows' variance tried
 REML_MAX_WINDOWS = 250  # the covariance fit's windows (evenly thinned beyond: its cost grows as m^3)
@@ -48,7 +47,7 @@ def _wander_grid(t: np.ndarray, X: np.ndarray, y: np.ndarray):
     """Restricted maximum likelihood of white-plus-wander covariances V = s2 ((1 - lam) I + lam exp(-|dt| / tau))
     on a grid (the share profiled through one eigendecomposition per tau). Per column: -2 log REML of the best
     grid point and of white errors (lam 0), and the best point's (tau, lam, s2)."""
-    m, c = X.shape[0], y.shape[1]
+    (m, k), c = X.shape, y.shape[1]
     span, step = float(np.ptp(t)), float(np.median(np.diff(t)))
     lags = np.abs(t[:, None] - t[None])
     best_ll, best = np.full(c, np.inf), np.zeros((c, 3))
@@ -61,8 +60,8 @@ def _wander_grid(t: np.ndarray, X: np.ndarray, y: np.ndarray):
             d = (1.0 - lam) + lam * e
             A = (Xt / d[:, None]).T @ Xt
             B = np.linalg.solve(A, (Xt / d[:, None]).T @ Yt)
-            s2 = np.sum((Yt - Xt @ B) ** 2 / d[:, None], axis=0) / (m - 2)
-            ll = (m - 2) * np.log(np.maximum(s2, 1e-300)) + np.sum(np.log(d)) + np.linalg.slogdet(A)[1]
+            s2 = np.sum((Yt - Xt @ B) ** 2 / d[:, None], axis=0) / (m - k)
+            ll = (m - k) * np.log(np.maximum(s2, 1e-300)) + np.sum(np.log(d)) + np.linalg.slogdet(A)[1]
             if lam == 0.0:
                 white_ll = ll
             better = ll < best_ll
@@ -92,24 +91,26 @@ def _satterthwaite_dof(lags: np.ndarray, X: np.ndarray, h: np.ndarray, tau: floa
     return 2.0 * v * v / var_v if var_v > 0 else np.inf
 
 
-def correlated_slope_std(t: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(c,) std of each column's least-squares slope of ``y`` (m, c) on ``x`` (``t`` ascending): its variance
-    h' V h under the windows' covariance V, which is white unless a slow wander (exp(-|dt| / tau): a chamber's
-    drift, a warm-up's lag) improves the restricted likelihood by more than WANDER_LR. The wander's share and
-    tau are estimated from this one session, so the variance has few degrees of freedom (nu, Satterthwaite):
-    an error over such a std is t-distributed with variance nu / (nu - 2), and the std is widened by that
-    factor so that it is the error's std, not its typical scale."""
+def correlated_slope_std(t: np.ndarray, x: np.ndarray | None, y: np.ndarray, coef: int = 1) -> np.ndarray:
+    """(c,) std of each column's least-squares slope (``coef`` 1; 0: the line's value at the mean of ``x``, or
+    the mean where ``x`` is None) of ``y`` (m, c) on ``x`` (``t`` ascending): its variance h' V h under the
+    windows' covariance V, which is white unless a slow wander (exp(-|dt| / tau): a chamber's drift, a
+    warm-up's lag) improves the restricted likelihood by more than WANDER_LR. The wander's share and tau are
+    estimated from this one session, so the variance has few degrees of freedom (nu, Satterthwaite): an error
+    over such a std is t-distributed with variance nu / (nu - 2), and the std is widened by that factor so
+    that it is the error's std, not its typical scale."""
     m = len(t)
-    X = np.column_stack([np.ones(m), x - x.mean()])
-    h = X @ np.linalg.inv(X.T @ X)[:, 1]  # the least-squares slope's weights on the windows
+    X = np.ones((m, 1)) if x is None else np.column_stack([np.ones(m), x - x.mean()])
+    k = X.shape[1]
+    h = X @ np.linalg.inv(X.T @ X)[:, coef]  # the least-squares estimate's weights on the windows
     if m < 8 or not np.ptp(t) > 0 or not np.median(np.diff(t)) > 0:
         return np.full(y.shape[1], np.nan)
     lags, white_ll, best_ll, best = _wander_grid(t, X, y)
     out = np.empty(y.shape[1])
     for j, (tau, lam, s2) in enumerate(best):
-        white_s2 = float(np.sum((y[:, j] - X @ np.linalg.lstsq(X, y[:, j], rcond=None)[0]) ** 2) / (m - 2))
+        white_s2 = float(np.sum((y[:, j] - X @ np.linalg.lstsq(X, y[:, j], rcond=None)[0]) ** 2) / (m - k))
         if lam == 0.0 or white_ll[j] - best_ll[j] <= WANDER_LR:
-            out[j] = np.sqrt(white_s2 * (h @ h) * (m - 2) / (m - 4))  # white: t with m - 2 dof
+            out[j] = np.sqrt(white_s2 * (h @ h) * (m - k) / (m - k - 2))  # white: t with m - k dof
             continue
         a, b = s2 * (1.0 - lam), s2 * lam
         v = a * (h @ h) + b * (h @ np.exp(-lags / tau) @ h)
@@ -187,23 +188,19 @@ def dominant_pose(ws: WindowSet, start: Calibration, tol_deg: float = POSE_TOL_D
 
 def _mean_and_std(pose: WindowSet, v: np.ndarray) -> tuple[float, float]:
     """``v`` (one value per window) at the pose's mean temperature (a line in it where there is one) and that
-    value's std: the larger of the white one and a 10-block contiguous jackknife (a wander is shared by
-    neighbouring windows)."""
+    value's std under the windows' covariance, as the slopes' (``correlated_slope_std``, coef 0)."""
     temp = pose.covariate("temp")
-    x = temp - np.mean(temp) if temp is not None and np.all(np.isfinite(temp)) and np.ptp(temp) > 0 else None
-    A = np.ones((len(v), 1)) if x is None else np.column_stack([np.ones(len(v)), x])
-
-    def at_mean(idx: np.ndarray) -> float:
-        return float(np.linalg.lstsq(A[idx], v[idx], rcond=None)[0][0])
-
+    x = temp if temp is not None and np.all(np.isfinite(temp)) and np.ptp(temp) > 0 else None
+    A = np.ones((len(v), 1)) if x is None else np.column_stack([np.ones(len(v)), x - x.mean()])
+    value = float(np.linalg.lstsq(A, v, rcond=None)[0][0])
     order = np.argsort(pose.t, kind="stable")
-    value = at_mean(order)
-    resid = v - A @ np.linalg.lstsq(A, v, rcond=None)[0]
-    sd = float(np.sqrt(np.sum(resid ** 2) / max(len(v) - A.shape[1], 1) / len(v)))
-    blocks = min(JACKKNIFE_BLOCKS, len(v) // 5)
-    if blocks >= 5:
-        parts = np.array([at_mean(np.setdiff1d(order, b, assume_unique=True)) for b in np.array_split(order, blocks)])
-        sd = max(sd, float(np.sqrt((blocks - 1) / blocks * np.sum((parts - parts.mean()) ** 2))))
+    sub = order if len(order) <= REML_MAX_WINDOWS else order[np.linspace(0, len(order) - 1, REML_MAX_WINDOWS).astype(int)]
+    # thinned: not scaled down (the white part is then generous)
+    sd = float(single_threaded_blas(correlated_slope_std)(pose.t[sub], None if x is None else x[sub], v[sub, None],
+                                                          coef=0)[0])
+    if not np.isfinite(sd):
+        resid = v - A @ np.linalg.lstsq(A, v, rcond=None)[0]
+        sd = float(np.sqrt(np.sum(resid ** 2) / max(len(v) - A.shape[1], 1) / len(v)))
     return value, sd
 
 

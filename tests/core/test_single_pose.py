@@ -9,7 +9,7 @@ windows (0.3 mg, AR(1) of 10 min), the two regimes of the slope's std (white; wh
 covariance is estimated from the session). Tolerances from the count: n independent standard normal z have
 their RMS within sqrt(chi²_n quantiles / n) and the count beyond 2σ within the binomial (n, 4.55 %)
 quantiles, each at 1e-3 two-sided over all the checks (coverage_runs.rms_bounds / beyond_2sigma_bounds):
-per corner (n = 180) the RMS must lie in [0.81, 1.20], pooled (n = 720) in [0.90, 1.10]; a std scaled by 0.7
+per corner (n = 180) the RMS must lie in [0.80, 1.21], pooled (n = 720) in [0.90, 1.10]; a std scaled by 0.7
 puts it near 1.43, by 1.4 near 0.71 (both measured red). The 150-session corners are in
 bench/bench_single_pose_coverage.py (docs/sensor-model.md).
 """
@@ -29,7 +29,7 @@ SEEDS = range(60)
 # (kind, held gains' relative std: exact and stated as such, or off by 3 %, wander [g])
 CASES = tuple((kind, rel, wander) for kind, rel in (("offset", 0.0), ("offset_and_gain", 0.03))
               for wander in (0.0, 3e-4))
-ALPHA = 1e-3 / (2 * (len(CASES) + 1))  # RMS and beyond-2σ, per corner and pooled, share the level
+ALPHA = 1e-3 / (2 * (len(CASES) + 2))  # RMS and beyond-2σ, per corner, pooled and the norm, share the level
 
 
 def _start(S):
@@ -39,13 +39,23 @@ def _start(S):
     return start
 
 
-def _z(kind: str, rel: float, wander: float, seed: int) -> tuple[str, list[float]]:
+def _norm_truth(S, sp) -> float:
+    """|a| - 1 g [mg] of the pose's noise-free window means under the held calibration, as the estimate takes
+    it: the least-squares line in the temperature over the pose's windows, at their mean temperature."""
+    idx = np.array([np.flatnonzero(S.windows.t == t)[0] for t in sp.windows.t])  # the pose's windows
+    norm = (np.linalg.norm(np.linalg.solve(S.held_K, (S.clean_mean[idx] - S.held_o).T), axis=0) - 1.0) * 1e3
+    return float(np.mean(norm))  # the line's value at the mean temperature is the mean of its fitted values
+
+
+def _z(kind: str, rel: float, wander: float, seed: int) -> tuple[str, list[float], float]:
     S = window_session(seed, kind=kind, held_rel_std=rel, wander_g=wander)
     sp = single_pose(S.windows, _start(S))
     if sp is None or sp.status != "partial":
-        return "none" if sp is None else sp.status, []
+        return "none" if sp is None else sp.status, [], np.nan
     mag = sp.determined["temperature_slopes"]
-    return sp.status, [(mag["value"][a] - S.truth_mg_per_c[i]) / mag["std"][a] for i, a in enumerate("xyz")]
+    along = sp.determined["norm_along_gravity_mg"]
+    return (sp.status, [(mag["value"][a] - S.truth_mg_per_c[i]) / mag["std"][a] for i, a in enumerate("xyz")],
+            (along["value"] - _norm_truth(S, sp)) / along["std"])
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +65,7 @@ def scored():
 
 def test_every_session_is_a_partial_calibration(scored):
     for case, runs in scored.items():
-        assert [st for st, _ in runs].count("partial") == len(SEEDS), (case, [st for st, _ in runs])
+        assert [r[0] for r in runs].count("partial") == len(SEEDS), (case, [r[0] for r in runs])
 
 
 def _covers(z: np.ndarray, label) -> None:
@@ -69,8 +79,15 @@ def _covers(z: np.ndarray, label) -> None:
 
 def test_temperature_slope_std_covers_the_truth_in_every_corner(scored):
     for case, runs in scored.items():
-        _covers(np.array([v for _, zs in runs for v in zs]), case)
-    _covers(np.array([v for runs in scored.values() for _, zs in runs for v in zs]), "pooled")
+        _covers(np.array([v for _, zs, _ in runs for v in zs]), case)
+    _covers(np.array([v for runs in scored.values() for _, zs, _ in runs for v in zs]), "pooled")
+
+
+def test_norm_along_gravity_std_covers_the_noise_free_norm(scored):
+    """|a| - 1 g of the pose under the held calibration (a measurement of it, not applied): its std, under the
+    windows' covariance like the slopes', covers the noise-free windows' value (n = 240 over the corners: RMS in
+    [0.82, 1.18]; measured 0.92, per corner 0.75-1.17, docs/sensor-model.md)."""
+    _covers(np.array([zn for runs in scored.values() for _, _, zn in runs]), "norm along gravity")
 
 
 def test_what_one_pose_does_not_determine_is_named_not_printed():
