@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gravcal.core.diagnosis.diagnose import diagnose_windows
+from gravcal.core.diagnosis import diagnose_windows  # the package binds its functions over the submodule
 from gravcal.core.diagnosis.one_pose import one_pose_temperature
 from gravcal.core.estimators.single_pose import single_pose
 from gravcal.core.estimators.start import device_calibration_start
