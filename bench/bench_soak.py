@@ -1,6 +1,6 @@
 """Week-long soak of the daemon's estimator path at accelerated time, not a test.
 
-    python bench/bench_soak.py [--days 7] [--seed 0] [--process-noise 3e-12] [--max-window-s 10] [--adapt-walk] [--quick] [--json PATH]
+    python bench/bench_soak.py [--days 7] [--seed 0] [--process-noise 3e-12] [--max-window-s 10] [--adapt-walk] [--adapt-floor] [--quick] [--json PATH]
     python bench/bench_soak.py --controls 20        # false selection rate of the temperature term
     python bench/bench_soak.py --remount-seeds 10   # re-mount detection rate, delay, angle, false alarms
 
@@ -37,6 +37,9 @@ def main(argv=None) -> int:
     ap.add_argument("--adapt-walk", action="store_true",
                     help="adapt each parameter's walk from --process-noise (core/estimators/adaptive_walk.py; not the "
                          "service's default)")
+    ap.add_argument("--adapt-floor", action="store_true",
+                    help="estimate the recursion's floor from its residuals (core/estimators/adaptive_floor.py; not the "
+                         "service's default)")
     ap.add_argument("--quick", action="store_true", help="2 days instead of --days")
     ap.add_argument("--controls", type=int, default=0, help="only: temperature-term false selections over N seeds")
     ap.add_argument("--remount-seeds", type=int, default=0, help="only: re-mount detection over N seeds")
@@ -49,7 +52,7 @@ def main(argv=None) -> int:
         out = run_remount(a.remount_seeds)
     else:
         out = run_soak(2.0 if a.quick else a.days, a.seed, process_noise=a.process_noise, progress=a.progress,
-                       max_window_s=a.max_window_s, adapt_walk=a.adapt_walk)
+                       max_window_s=a.max_window_s, adapt_walk=a.adapt_walk, adapt_floor=a.adapt_floor)
         out.pop("_processor")
     print(json.dumps(out, indent=2))
     if a.json:
