@@ -230,6 +230,10 @@ class OnlineCalibrator:
         if self.recursive is not None:
             self.floor.attach(self.recursive)
 
+    def _fit_floor_g(self) -> float | None:
+        """The floor of a re-seed's batch fit: the adapted one (adapt_floor), else the configured one."""
+        return self.floor.floor_g if self.floor is not None else self.sigma_floor_g
+
     def feed(self, window: Window) -> OnlineStep:
         """Every decision from one window to an accepted calibration (core/estimators/online_policy.py):
         screen, re-mount, update, bootstrap, give-up, acceptance. ``update`` is the recursion alone."""
@@ -482,7 +486,7 @@ class OnlineCalibrator:
             # not outlier-gated (LottersBatch outlier_gate_sigma): with drifting parameters the oldest stored windows
             # sit off a fit of the whole store and were cut, which left the week-long soak over-confident (5.6 %
             # of its checks beyond 3 sigma vs 1.9 % ungated, bench_soak.py --quick)
-            cal = LottersBatch(model, sigma_floor_g=self.sigma_floor_g).fit(ws, fit_start)
+            cal = LottersBatch(model, sigma_floor_g=self._fit_floor_g()).fit(ws, fit_start)
         except ValueError as exc:
             log.info("re-seed with order %s not possible: %s", model, exc)
             self.reason += f"; re-seed with order {model} failed ({exc}), order {self.model} kept"
@@ -496,7 +500,7 @@ class OnlineCalibrator:
         base = extended_base(model)
         start = here if here.model == model else reference_start(base, here, self.lab)
         try:
-            fit, floor = fit_extended_floor(model, ws, start, sigma_floor_g=self.sigma_floor_g)
+            fit, floor = fit_extended_floor(model, ws, start, sigma_floor_g=self._fit_floor_g())
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.reason += f"; re-seed with {model} failed ({exc}), order {self.model} kept"
             return

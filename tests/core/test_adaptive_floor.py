@@ -66,3 +66,23 @@ def test_the_floor_is_found_from_successive_windows_and_the_published_std_cover_
     tol = 3 * math.sqrt(2 / n_mem) / 2 + 0.05
     # the floor found is the generator's
     assert np.all(np.abs(floors / FLOOR_G - 1) <= tol), (floors * 1e3).round(3)
+
+
+def test_the_online_calibrator_gives_the_found_floor_to_its_recursion_and_its_re_seeds():
+    """OnlineCalibrator.adapt_floor: the recursion and every later re-seed's batch fit use the floor found (one
+    session, 16 h; the configured 2 mg would leave the recursion at 2 mg)."""
+    from gravcal.core.estimators.online import OnlineCalibrator
+    from gravcal.core.windows import WindowSet
+
+    t, means, cm, _, start = drifting_triad(1, hours=16)
+    m, n = len(t), 2000
+    ws = WindowSet(means, np.broadcast_to(cm * n, (m, 3, 3)).copy(), np.full(m, float(n)), t, np.zeros((m, 0)),
+                   np.arange(m, dtype=np.int64), np.arange(m, dtype=np.int64) + 1)
+    oc = OnlineCalibrator(start, process_noise=Q0, sigma_floor_g=CONFIGURED_G, candidates=("offsets", "6"))
+    oc.adapt_floor()
+    oc.update(ws)
+    assert oc.recursive is not None and oc.n_reseeds >= 1, oc.reason
+    found = oc.floor.floor_g
+    assert abs(found / FLOOR_G - 1) <= 3 * math.sqrt(2 / oc.floor.n) / 2 + 0.05, (found, oc.floor.n)
+    assert math.isclose(math.sqrt(oc.recursive.R_floor), found, rel_tol=1e-12)
+    assert math.isclose(oc._fit_floor_g(), found, rel_tol=1e-12)
