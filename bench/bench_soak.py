@@ -7,7 +7,8 @@
 soak: a simulated wearer (core.scenarios daily_living, window level: core.estimators.remount.session_windows)
 with a sensor whose offsets and sensitivities drift (the model's offset_drift 1 mg/h and sensitivity_drift
 0.02 %/h typical rates, core/model/defaults.py), fed window by window through gravcald's Processor (the
-datasheet start, bootstrap, OnlineCalibrator with the configured process noise (``--adapt-walk``: adapted per parameter), acceptance, re-mount
+datasheet start, bootstrap, OnlineCalibrator with the configured process noise (``--adapt-walk``: adapted
+per parameter; ``--adapt-floor``: the recursion's floor from successive windows), acceptance, re-mount
 detector) -- the daemon minus the threads and the socket, as fast as the estimator goes. Every sensor hour
 each accepted parameter is compared with the truth at that time: the fraction within the reported 1σ and 2σ
 (68 % / 95 % for honest Gaussian uncertainties). Memory: RSS (/proc/self/statm) and the number of live
