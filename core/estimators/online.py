@@ -49,6 +49,7 @@ from ..model.effect import needed_covariates, references
 from ..model.terms import COVARIATES, calibration_view
 from ..windows import Window, WindowSet, validate_windows
 from .inuse12 import with_frame
+from .adaptive_floor import AdaptiveFloor
 from .adaptive_walk import AdaptiveWalk, drift_walk
 from .consider import datasheet_held_uncertainty
 from .extended import EXTRA_TERMS, extended_class, model_name, parameterization
@@ -158,6 +159,7 @@ class OnlineCalibrator:
         self.every, self.compare_every = max(1, int(every)), max(1, int(compare_every))
         self.sigma_floor_g, self.process_noise, self.gate_sigma = sigma_floor_g, process_noise, float(gate_sigma)
         self.walk: AdaptiveWalk | None = None  # adapt_walk(): each parameter's walk adapted (adaptive_walk.py)
+        self.floor: AdaptiveFloor | None = None  # adapt_floor(): the recursion's floor from its residuals
         full = "12" if lab is not None else "9"
         cands = tuple(candidates) if candidates is not None else ("offsets", "6", full)
         self.candidates = tuple(c for c in cands if "+" not in c)  # the orders select_order chooses among
@@ -220,6 +222,17 @@ class OnlineCalibrator:
         self.walk = AdaptiveWalk(float(self.process_noise))
         if self.recursive is not None:
             self.walk.attach(self.recursive)
+
+    def adapt_floor(self) -> None:
+        """Estimate the recursion's quasi-static floor from its own residuals (adaptive_floor.py) from now on,
+        starting from the configured ``sigma_floor_g``. Not the service's default (docs/daemon.md, "Soak")."""
+        self.floor = AdaptiveFloor(self.sigma_floor_g if self.sigma_floor_g is not None else SIGMA_FLOOR_G)
+        if self.recursive is not None:
+            self.floor.attach(self.recursive)
+
+    def _fit_floor_g(self) -> float | None:
+        """The floor of a re-seed's batch fit: the adapted one (adapt_floor), else the configured one."""
+        return self.floor.floor_g if self.floor is not None else self.sigma_floor_g
 
     def feed(self, window: Window) -> OnlineStep:
         """Every decision from one window to an accepted calibration (core/estimators/online_policy.py):
@@ -318,8 +331,11 @@ class OnlineCalibrator:
         if self.recursive is not None and usable:
             if not self.recursive.step(mean, cov / n, t, aux):
                 self.n_rejected += 1
-            elif self.walk is not None:
-                self.walk.observe(self.recursive, mean, cov / n)
+            else:
+                if self.walk is not None:
+                    self.walk.observe(self.recursive, mean, cov / n)
+                if self.floor is not None:
+                    self.floor.observe(self.recursive, mean, cov / n, t)
         self._since_check += 1
         self._since_compare += 1
         self._since_seed += 1
@@ -470,7 +486,7 @@ class OnlineCalibrator:
             # not outlier-gated (LottersBatch outlier_gate_sigma): with drifting parameters the oldest stored windows
             # sit off a fit of the whole store and were cut, which left the week-long soak over-confident (5.6 %
             # of its checks beyond 3 sigma vs 1.9 % ungated, bench_soak.py --quick)
-            cal = LottersBatch(model, sigma_floor_g=self.sigma_floor_g).fit(ws, fit_start)
+            cal = LottersBatch(model, sigma_floor_g=self._fit_floor_g()).fit(ws, fit_start)
         except ValueError as exc:
             log.info("re-seed with order %s not possible: %s", model, exc)
             self.reason += f"; re-seed with order {model} failed ({exc}), order {self.model} kept"
@@ -484,7 +500,7 @@ class OnlineCalibrator:
         base = extended_base(model)
         start = here if here.model == model else reference_start(base, here, self.lab)
         try:
-            fit, floor = fit_extended_floor(model, ws, start, sigma_floor_g=self.sigma_floor_g)
+            fit, floor = fit_extended_floor(model, ws, start, sigma_floor_g=self._fit_floor_g())
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.reason += f"; re-seed with {model} failed ({exc}), order {self.model} kept"
             return
@@ -558,6 +574,8 @@ class OnlineCalibrator:
         """``rec`` with the walk estimated so far (adaptive_walk.py), its blocks starting now."""
         if self.walk is not None:
             self.walk.attach(rec)
+        if self.floor is not None:
+            self.floor.attach(rec)
         return rec
 
     def stats(self) -> dict[str, Any]:

@@ -46,10 +46,12 @@ def drifting_model(seed: int):
 
 def run_soak(days: float, seed: int = 0, *, process_noise: float = 5e-12, check_every_s: float = 3600.0,
              warmup_s: float = 86400.0, day_start_h: float = 8.0, progress: bool = False,
-             max_window_s: float = 10.0, adapt_walk: bool = False) -> dict[str, Any]:
+             max_window_s: float = 10.0, adapt_walk: bool = False,
+             adapt_floor: bool = False) -> dict[str, Any]:
     """The soak (module docstring); returns the figures. ``max_window_s``: the longest quasi-static window
     (longer: fewer windows per day, the same information, a faster run). ``adapt_walk``: each parameter's walk
-    adapted from ``process_noise`` (OnlineCalibrator.adapt_walk; not the service's default)."""
+    adapted from ``process_noise`` (OnlineCalibrator.adapt_walk; not the service's default). ``adapt_floor``: the
+    recursion's floor from its residuals (OnlineCalibrator.adapt_floor)."""
     from gravcal.core.estimators.remount import session_windows
 
     t0 = time.perf_counter()
@@ -60,6 +62,8 @@ def run_soak(days: float, seed: int = 0, *, process_noise: float = 5e-12, check_
     p = processor(process_noise)
     if adapt_walk:
         p.online.adapt_walk()
+    if adapt_floor:
+        p.online.adapt_floor()
     z: list[list[float]] = []
     checks_t: list[float] = []
     mem: list[tuple[float, float, int, int]] = []  # (t [h], RSS [MB], live objects, stored windows)
@@ -95,7 +99,8 @@ def run_soak(days: float, seed: int = 0, *, process_noise: float = 5e-12, check_
     t_run = time.perf_counter() - t1
     za = np.abs(np.array(z)) if z else np.zeros((0, len(PARAMS)))
     out: dict[str, Any] = {
-        "days": days, "seed": seed, "process_noise": process_noise, "adapt_walk": adapt_walk, "windows": len(ws),
+        "days": days, "seed": seed, "process_noise": process_noise, "adapt_walk": adapt_walk, "adapt_floor": adapt_floor,
+        "floor_mg": None if p.online.floor is None else round(p.online.floor.floor_g * 1e3, 4), "windows": len(ws),
         "generate_s": round(t_gen, 2), "run_s": round(t_run, 2),
         "windows_per_s": round(len(ws) / max(t_run, 1e-9), 1),
         "checks": int(za.shape[0]), "check_values": int(za.size), "hourly_checks": len(hourly),
