@@ -1,6 +1,8 @@
-"""The C step on the I2C FIFO (daemon/fastpath.py feeding ``take`` with the bursts smbus2 read) against the
-Python path: the same device stream (a 16-bit wrap, gaps, a device restart) through gravcald with and without
-it; every client receives the same bytes (``t`` apart), the driver's counters agree.
+"""The C step on the I2C FIFO (daemon/_i2cpoll.c: the FIFO polled through the I2C_RDWR ioctl and its frames
+through the engine, without the GIL) against the Python path: the same device stream (a 16-bit wrap, gaps, a
+device restart) through gravcald with and without it; every client receives the same bytes (``t`` apart), the
+driver's counters agree, and every sample is the reference model's (tests/support/correction_reference.py) under
+an extended calibration (temperature and supply terms).
 
 The device is served at /dev/i2c-1 from this process (drivers/rigs/i2c_dev.py) and gravcald runs in a child
 process under umockdev's preload library, reading it with the production I2C driver through the device node;
@@ -20,7 +22,11 @@ from gravcal.drivers.rigs.fake_i2c import FakeI2CDevice, ManualClock
 from gravcal.drivers.rigs.i2c_dev import I2CDevServer
 from gravcal.drivers.rigs.sources import pattern_blocks
 from support.umockdev import require_umockdev
-from test_fastpath import assert_same_counts, assert_same_streams
+from test_fastpath import EXTENDED, assert_same_counts, assert_same_streams
+
+from gravcal.daemon.protocol import STANDARD_GRAVITY
+from gravcal.drivers.codec import wire_roundtrip
+from support.correction_reference import extended_model
 
 FS = 200.0
 HERE = Path(__file__).resolve().parent
@@ -31,10 +37,10 @@ import base64, json, sys
 sys.path[:0] = [{tests!r}, {here!r}]
 from pathlib import Path
 from gravcal.drivers import open_driver
-from test_fastpath import Reader, settle, start_daemon, stop_all
+from test_fastpath import EXTENDED, Reader, settle, start_daemon, stop_all
 tmp, fast = Path(sys.argv[1]), sys.argv[2] == "fast"
 drv = open_driver("i2c://1/0x42?tick_hz=1000000")
-d = start_daemon(tmp, fast, drv.open())
+d = start_daemon(tmp, fast, drv.open(), EXTENDED)
 cfg = d.cfg
 readers = {{}}
 try:
@@ -44,7 +50,8 @@ try:
     sys.stdin.readline()
     settle(d, a)
     stats = {{**drv.stats(), "taken_by_c": d._fast.taken if d._fast is not None else 0,
-             "published": d.server.published_samples}}
+             "nogil": d._fast.nogil if d._fast is not None else 0, "published": d.server.published_samples,
+             "fs": cfg.device.fs_hz}}
 finally:
     out = stop_all(d, readers)
 (tmp / f"out-{{fast}}.json").write_text(json.dumps(
@@ -72,8 +79,9 @@ def run(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
                                  stderr=subprocess.PIPE, text=True)
         try:
             assert child.stdout.readline().strip() == "ready", child.stderr.read()[-3000:]
-            for _ in range(samples.shape[0]):
-                clock.advance(1 / FS)
+            # one sample per poll interval, and every 40th step 6 at once: the combined poll's frame, then a burst
+            for i in range(samples.shape[0]):
+                clock.advance((6 if i % 40 == 39 else 1) / FS)
                 time.sleep(0.004)
             _, err = child.communicate("settle\n", timeout=120)
         finally:
@@ -89,7 +97,18 @@ def test_i2c_clients_receive_the_same_bytes_with_and_without_the_c_step(tmp_path
     require_umockdev()
     slow, slow_stats = run(tmp_path, fast=False)
     fast, fast_stats = run(tmp_path, fast=True)
-    assert_same_counts(slow_stats, fast_stats, ("frames", "crc_errors", "gaps", "missing", "restarts", "samples"),
+    assert_same_counts(slow_stats, fast_stats, ("frames", "crc_errors", "gaps", "missing", "restarts", "samples",
+                                                           "bytes_skipped", "fifo_overflows"),
                        min_share=0.5)
     assert slow_stats["gaps"] >= 1 and slow_stats["restarts"] == 1
+    assert fast_stats["bursts"] - fast_stats["polls"] >= 10, fast_stats  # bursts after a combined poll, read in C
     assert_same_streams(slow, fast, min_imu=600)
+    # the oracle: each sample published is the device's (found by its tick), corrected by the extended model
+    imu = [json.loads(x) for x in fast["raw"].splitlines() if b'"IMU"' in x]
+    device = wire_roundtrip(stream())
+    index = {int(t): i for i, t in enumerate(device["tick"])}
+    rows = device[[index[m["tick"]] for m in imu]]
+    assert len(imu) == fast_stats["published"] >= 600
+    rows["seq"] = [m["seq"] for m in imu]
+    want = extended_model(EXTENDED, rows, fast_stats["fs"], STANDARD_GRAVITY)
+    np.testing.assert_allclose(np.array([m["acc"] for m in imu]), want, rtol=0, atol=6e-6)  # the line's 5 decimals
