@@ -2,6 +2,8 @@
 
     python bench/bench_latency.py [--buses serial,can,i2c] [--clients 1,32] [--seconds 20] [--json PATH]
                                   [--baseline-src DIR] [--latency-budget S]
+    python bench/bench_latency.py --medians RUN1.json RUN2.json ...   (repeats run one after the other, each
+                                  gravcald run followed by its relay: the medians of CPU, ratio and p99)
 
 Each run starts ``gravcald --emulate --bus BUS --fs 200 --speed 1 --scenario six_position``: the emulator in its
 own process on a pty (serial), an slcan pty (can) or behind /dev/i2c-1 of a umockdev testbed (i2c: gravcald runs
@@ -419,6 +421,27 @@ def _show(r: dict) -> str:
             + f"\n{'':9s}the emulator's own process (not gravcald's): CPU {r['cpu_percent_emulator_process']:.2f} %")
 
 
+def medians(paths: list[str]) -> None:
+    """The medians over several runs' --json files (interleaved repeats): per bus and client count, gravcald's CPU,
+    the bare relay's and their ratio (the median of each run's ratio, so a run's load cancels), and p99 of both."""
+    rows: dict[tuple[str, int], list[dict]] = {}
+    for path in paths:
+        with open(path, encoding="utf-8") as fh:
+            for pair in json.load(fh)["runs"]:
+                rows.setdefault((pair["this"]["bus"], pair["this"]["clients"]), []).append(pair)
+    for (bus, n), pairs in rows.items():
+        with_floor = [p for p in pairs if "floor" in p]
+        med = lambda xs: float(np.median(xs)) if xs else float("nan")  # noqa: E731
+        ratios = [p["this"]["cpu_percent"] / p["floor"]["cpu_percent"] for p in with_floor]
+        p99_floor = [p["floor"]["latency_ms"]["p99"] for p in with_floor if p["floor"].get("latency_ms")]
+        print(f"median of {len(pairs)}  {bus:6s} {n:3d} client(s)  CPU gravcald "
+              f"{med([p['this']['cpu_percent'] for p in pairs]):.2f} %  relay "
+              f"{med([p['floor']['cpu_percent'] for p in with_floor]):.2f} %  ratio x{med(ratios):.2f} "
+              f"(runs: {', '.join(f'{r:.2f}' for r in ratios)})  p99 gravcald "
+              f"{med([p['this']['latency_ms']['p99'] for p in pairs]):.2f} ms  relay {med(p99_floor):.2f} ms",
+              flush=True)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--buses", default="serial,can,i2c")
@@ -434,7 +457,12 @@ def main(argv=None) -> int:
     ap.add_argument("--floor-i2c-status-first", action="store_true",
                     help="i2c: also run the bare relay as the driver polled before its combined poll (floor0: "
                          "STATUS alone, then bursts, asking again right after a drain): a baseline tree's floor")
+    ap.add_argument("--medians", nargs="+", metavar="JSON",
+                    help="print the medians over these runs' --json files (interleaved repeats) and exit")
     args = ap.parse_args(argv)
+    if args.medians:
+        medians(args.medians)
+        return 0
     relay = None if args.no_floor else build_relay(tempfile.mkdtemp(prefix="bench-relay-"))
     buses = [b for b in args.buses.split(",") if b]
     counts = [int(c) for c in args.clients.split(",") if c]

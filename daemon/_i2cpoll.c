@@ -89,8 +89,10 @@ static Py_ssize_t read_fifo(int fd, long long *bus, long long deadline, unsigned
     *n_read = 0;
     if (drdy < 0) { /* polled: asking right after a drain finds the FIFO empty; wait out the poll interval */
         long long now = now_ns(), wait = bus[IB_NEXT_POLL_NS] - now;
-        if (wait > deadline - now)
-            return 0; /* not within this call: the next one waits it out */
+        if (wait > deadline - now) { /* not within this call: wait to its end, the next call waits the rest */
+            sleep_until(deadline);
+            return 0;
+        }
         if (wait > 0)
             sleep_until(bus[IB_NEXT_POLL_NS]);
     }
@@ -103,7 +105,7 @@ static Py_ssize_t read_fifo(int fd, long long *bus, long long deadline, unsigned
         unsigned char st[2], reg[2] = {REG_STATUS, REG_FIFO_DATA}, *out[2] = {st, buf};
         unsigned short len[2] = {2, (unsigned short)(first * GRAVCAL_FRAME_LEN)};
         if (rdwr(fd, addr, combined ? 2 : 1, reg, out, len) < 0) {
-            bus[IB_ERRNO] = errno;
+            bus[IB_ERRNO] = errno ? errno : EIO;
             return -1;
         }
         bus[IB_POLLS]++;
@@ -140,7 +142,7 @@ static Py_ssize_t read_fifo(int fd, long long *bus, long long deadline, unsigned
         unsigned char reg = REG_FIFO_DATA, *out = buf + n;
         unsigned short len = (unsigned short)(k * GRAVCAL_FRAME_LEN);
         if (rdwr(fd, addr, 1, &reg, &out, &len) < 0) {
-            bus[IB_ERRNO] = errno;
+            bus[IB_ERRNO] = errno ? errno : EIO;
             *n_read = n;
             return -1;
         }

@@ -24,6 +24,7 @@ from gravcal.drivers.rigs.sources import pattern_blocks
 from support.umockdev import require_umockdev
 from test_fastpath import EXTENDED, assert_same_counts, assert_same_streams
 
+from gravcal.core.samples import FLAG_FIFO_OVERFLOW
 from gravcal.daemon.protocol import STANDARD_GRAVITY
 from gravcal.drivers.codec import wire_roundtrip
 from support.correction_reference import extended_model
@@ -79,9 +80,12 @@ def run(tmp_path, fast: bool) -> tuple[dict[str, bytes], dict]:
                                  stderr=subprocess.PIPE, text=True)
         try:
             assert child.stdout.readline().strip() == "ready", child.stderr.read()[-3000:]
-            # one sample per poll interval, and every 40th step 6 at once: the combined poll's frame, then a burst
+            # one sample per poll interval, every 40th step 6 at once (the combined poll's frame, then a burst),
+            # and once, with the FIFO drained, 40 at once into its 32 frames: an overflow, 8 samples lost
             for i in range(samples.shape[0]):
-                clock.advance((6 if i % 40 == 39 else 1) / FS)
+                if i == 500:
+                    time.sleep(0.3)
+                clock.advance((40 if i == 500 else 6 if i % 40 == 39 else 1) / FS)
                 time.sleep(0.004)
             _, err = child.communicate("settle\n", timeout=120)
         finally:
@@ -100,7 +104,7 @@ def test_i2c_clients_receive_the_same_bytes_with_and_without_the_c_step(tmp_path
     assert_same_counts(slow_stats, fast_stats, ("frames", "crc_errors", "gaps", "missing", "restarts", "samples",
                                                            "bytes_skipped", "fifo_overflows"),
                        min_share=0.5)
-    assert slow_stats["gaps"] >= 1 and slow_stats["restarts"] == 1
+    assert slow_stats["gaps"] >= 2 and slow_stats["restarts"] == 1 and slow_stats["fifo_overflows"] == 1
     assert fast_stats["bursts"] - fast_stats["polls"] >= 10, fast_stats  # bursts after a combined poll, read in C
     assert_same_streams(slow, fast, min_imu=600)
     # the oracle: each sample published is the device's (found by its tick), corrected by the extended model
@@ -109,6 +113,7 @@ def test_i2c_clients_receive_the_same_bytes_with_and_without_the_c_step(tmp_path
     index = {int(t): i for i, t in enumerate(device["tick"])}
     rows = device[[index[m["tick"]] for m in imu]]
     assert len(imu) == fast_stats["published"] >= 600
+    assert sum(bool(m["flags"] & FLAG_FIFO_OVERFLOW) for m in imu) == 1  # flagged by the driver, after C handed it back
     rows["seq"] = [m["seq"] for m in imu]
     want = extended_model(EXTENDED, rows, fast_stats["fs"], STANDARD_GRAVITY)
     np.testing.assert_allclose(np.array([m["acc"] for m in imu]), want, rtol=0, atol=6e-6)  # the line's 5 decimals
