@@ -7,6 +7,11 @@ in pipeline order (bus bytes -> frames -> correction -> IMU lines -> sockets), a
 latest every HOUSEKEEPING_S (or once a block for the analysis is staged) for the rest: the counters of
 the driver, the unwrapper, the processor and the server, which are applied here from its results.
 
+The step owns the bus's reads: a tty's (serial, slcan: ``step``) or the I2C FIFO's through the I2C_RDWR ioctl
+(``i2c_step``, daemon/_i2cpoll.c). Events come back by its return, the one channel: (leftover bytes, the
+snapshot of a stopped delivery) and a reason code in ``ist`` (on I2C also the ``bus`` array: transfers, a FIFO
+overflow, a failed transfer's errno), applied here; nothing calls back into Python from the loop.
+
 Everything else takes the Python path, exactly as without the C step: the step hands back undecoded the
 bytes of any read that is not such frames (a gap, a stray, a restart, a CRC error, a partial frame; the
 driver decodes them in its next read; on CAN over slcan a "frame" is a sample's four slcan lines, and
