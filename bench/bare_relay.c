@@ -133,12 +133,16 @@ static long long send_ring_batch(struct send_ring *ring, const int *fds, int ncl
 #define CTRL_FIFO_RESET_ENABLE 0x03
 #define I2C_BURST_FRAMES 16
 
+static long long i2c_polls, i2c_bursts; /* STATUS reads, FIFO_DATA reads (a combined poll counts in both) */
+
 /* One I2C_RDWR: a write of the register number, then a read of len bytes from it (repeated start). */
 static int i2c_read_register(int fd, unsigned char reg, unsigned char *out, unsigned short len)
 {
     struct i2c_msg msgs[2] = {{.addr = I2C_ADDRESS, .flags = 0, .len = 1, .buf = &reg},
                               {.addr = I2C_ADDRESS, .flags = I2C_M_RD, .len = len, .buf = out}};
     struct i2c_rdwr_ioctl_data data = {.msgs = msgs, .nmsgs = 2};
+    i2c_polls += reg == REG_STATUS;
+    i2c_bursts += reg == REG_FIFO_DATA;
     return ioctl(fd, I2C_RDWR, &data) < 0 ? -1 : 0;
 }
 
@@ -163,6 +167,8 @@ static size_t i2c_status_and_first(int fd, unsigned char st[2], unsigned char *o
                               {.addr = I2C_ADDRESS, .flags = I2C_M_RD, .len = (unsigned short)(first * frame_bytes),
                                .buf = out}};
     struct i2c_rdwr_ioctl_data data = {.msgs = msgs, .nmsgs = 4};
+    i2c_polls++;
+    i2c_bursts++;
     if (ioctl(fd, I2C_RDWR, &data) < 0)
         return (size_t)-1;
     size_t taken = st[1] < first ? st[1] : first;
@@ -385,6 +391,7 @@ int main(int argc, char **argv)
             }
         sent_lines += (long long)k * nclients;
     }
-    printf("wakeups %lld lines %lld bytes %lld\n", wakeups, sent_lines, sent_bytes);
+    printf("wakeups %lld lines %lld bytes %lld polls %lld bursts %lld\n", wakeups, sent_lines, sent_bytes, i2c_polls,
+           i2c_bursts);
     return 0;
 }

@@ -3,7 +3,7 @@
     python bench/bench_i2c_poll.py [--seconds 8] [--poll 0.0025,0.005] [--baseline-src DIR]
 
 This process serves a 200 Hz logger at /dev/i2c-1 of a umockdev testbed (drivers/rigs/i2c_dev.py); a child under
-the preload runs ``I2CDriver.fast_read`` (gravcald's loop without the C step, the sends or the daemon) for
+the preload runs the I2C driver's Python read loop (``I2CDriver._read_fifo``: the Python path's, without the daemon) for
 ``--seconds`` per poll interval: CPU per frame (the child's, the preload's round trips included), I2C_RDWR
 transfers per frame (counted by the serving side over the child's whole run) and frames read. ``--baseline-src DIR`` (a tree holding gravcal/...)
 runs the same child with that tree first on PYTHONPATH, in the same session.
@@ -26,11 +26,11 @@ poll, seconds = float(sys.argv[1]), float(sys.argv[2])
 drv = I2CDriver(1, 0x42, poll_s=poll).open()
 end, warm = time.monotonic() + 1.0, 0  # warm up
 while time.monotonic() < end:
-    warm += sum(len(b) for b in drv.fast_read(end) or []) // 29
+    warm += sum(len(b) for b in drv._read_fifo(end)) // 29
 p0, c0, t0 = drv.counters["polls"], cpu(), time.monotonic()
 frames, end = 0, t0 + seconds
 while time.monotonic() < end:
-    frames += sum(len(b) for b in drv.fast_read(end) or []) // 29
+    frames += sum(len(b) for b in drv._read_fifo(end)) // 29
 c, polls = cpu() - c0, drv.counters["polls"] - p0
 drv.close()
 print(json.dumps({"frames": frames, "all_frames": warm + frames, "polls": polls, "cpu_s": c, "seconds": seconds}))

@@ -2,6 +2,8 @@
 
     python bench/bench_latency.py [--buses serial,can,i2c] [--clients 1,32] [--seconds 20] [--json PATH]
                                   [--baseline-src DIR] [--latency-budget S]
+    python bench/bench_latency.py --medians RUN1.json RUN2.json ...   (repeats run one after the other, each
+                                  gravcald run followed by its relay: the medians of CPU, ratio and p99)
 
 Each run starts ``gravcald --emulate --bus BUS --fs 200 --speed 1 --scenario six_position``: the emulator in its
 own process on a pty (serial), an slcan pty (can) or behind /dev/i2c-1 of a umockdev testbed (i2c: gravcald runs
@@ -275,8 +277,11 @@ def run(bus: str, clients: int, seconds: float, src: str | None, budget_s: float
     # the C step's batches (reads) delivered without taking the GIL, per sample (None: a tree without the count)
     nogil = None if "batches_without_gil" not in dev1 else (
         (dev1["batches_without_gil"] - dev0["batches_without_gil"]) / max(1, dev1["samples"] - dev0["samples"]))
+    # I2C: the driver's STATUS reads (polls) and FIFO_DATA reads (bursts; a combined poll counts in both) per sample
+    per_sample = {k: (dev1[k] - dev0[k]) / max(1, dev1["samples"] - dev0["samples"])
+                  for k in ("polls", "bursts") if k in dev1 and k in dev0}
     return {"bus": bus, "clients": clients, "samples": int(a.shape[0]), "seconds": wall, "share_in_c": in_c,
-            "nogil_batches_per_sample": nogil,
+            "nogil_batches_per_sample": nogil, "i2c_reads_per_sample": per_sample or None,
             "samples_per_s": a.shape[0] / wall, "latency_ms": pct, "cpu_percent": cpu / wall * 100,
             "cpu_percent_daemon": None if device is None else cpu / wall * 100 - device,
             "cpu_percent_emulated_device": device, "cpu_percent_emulator_process": emu_cpu / wall * 100,
@@ -381,7 +386,9 @@ def floor(relay: str, bus: str, clients: int, seconds: float, line_bytes: int, u
             "wakeups_per_s": stats.get("wakeups", 0) / lifetime if stats else None,
             "voluntary_switches_per_s": (sw1[0] - sw0[0]) / wall,
             "involuntary_switches_per_s": (sw1[1] - sw0[1]) / wall,
-            "bytes_per_s_per_client": stats.get("bytes", 0) / clients / lifetime if stats else None}
+            "bytes_per_s_per_client": stats.get("bytes", 0) / clients / lifetime if stats else None,
+            "i2c_reads_per_sample": {k: stats[k] / max(1, stats.get("lines", 0) / clients) for k in ("polls", "bursts")}
+            if bus == "i2c" and "polls" in stats else None}
 
 
 def _floor_latency(f: dict) -> str:
@@ -397,7 +404,9 @@ def _show(r: dict) -> str:
             f"RSS {r['rss_mb']:6.1f} MB (peak {r['rss_peak_mb']:.1f})"
             + ("" if r.get("share_in_c") is None else f"  C step {r['share_in_c'] * 100:.1f} % of samples")
             + ("" if r.get("nogil_batches_per_sample") is None
-               else f", {r['nogil_batches_per_sample']:.3f} batches per sample without the GIL") + "\n"
+               else f", {r['nogil_batches_per_sample']:.3f} batches per sample without the GIL")
+            + ("" if not r.get("i2c_reads_per_sample") else f", I2C reads per sample: " + ", ".join(
+                f"{k} {v:.3f}" for k, v in r["i2c_reads_per_sample"].items())) + "\n"
             f"{'':9s}CPU by thread:" + "".join(f" {k} {v:.2f} %" for k, v in sorted(
                 r["cpu_percent_by_thread"].items(), key=lambda kv: -kv[1]) if v >= 0.005)
             + ("" if not r.get("wakeups_by_thread") else f"\n{'':9s}wake-ups per sample by thread (voluntary + "
@@ -410,6 +419,27 @@ def _show(r: dict) -> str:
                f"thread and its bus accesses from the driver's thread)"
                if r["bus"] == "i2c" and r["cpu_percent_emulated_device"] else "")
             + f"\n{'':9s}the emulator's own process (not gravcald's): CPU {r['cpu_percent_emulator_process']:.2f} %")
+
+
+def medians(paths: list[str]) -> None:
+    """The medians over several runs' --json files (interleaved repeats): per bus and client count, gravcald's CPU,
+    the bare relay's and their ratio (the median of each run's ratio, so a run's load cancels), and p99 of both."""
+    rows: dict[tuple[str, int], list[dict]] = {}
+    for path in paths:
+        with open(path, encoding="utf-8") as fh:
+            for pair in json.load(fh)["runs"]:
+                rows.setdefault((pair["this"]["bus"], pair["this"]["clients"]), []).append(pair)
+    for (bus, n), pairs in rows.items():
+        with_floor = [p for p in pairs if "floor" in p]
+        med = lambda xs: float(np.median(xs)) if xs else float("nan")  # noqa: E731
+        ratios = [p["this"]["cpu_percent"] / p["floor"]["cpu_percent"] for p in with_floor]
+        p99_floor = [p["floor"]["latency_ms"]["p99"] for p in with_floor if p["floor"].get("latency_ms")]
+        print(f"median of {len(pairs)}  {bus:6s} {n:3d} client(s)  CPU gravcald "
+              f"{med([p['this']['cpu_percent'] for p in pairs]):.2f} %  relay "
+              f"{med([p['floor']['cpu_percent'] for p in with_floor]):.2f} %  ratio x{med(ratios):.2f} "
+              f"(runs: {', '.join(f'{r:.2f}' for r in ratios)})  p99 gravcald "
+              f"{med([p['this']['latency_ms']['p99'] for p in pairs]):.2f} ms  relay {med(p99_floor):.2f} ms",
+              flush=True)
 
 
 def main(argv=None) -> int:
@@ -427,7 +457,12 @@ def main(argv=None) -> int:
     ap.add_argument("--floor-i2c-status-first", action="store_true",
                     help="i2c: also run the bare relay as the driver polled before its combined poll (floor0: "
                          "STATUS alone, then bursts, asking again right after a drain): a baseline tree's floor")
+    ap.add_argument("--medians", nargs="+", metavar="JSON",
+                    help="print the medians over these runs' --json files (interleaved repeats) and exit")
     args = ap.parse_args(argv)
+    if args.medians:
+        medians(args.medians)
+        return 0
     relay = None if args.no_floor else build_relay(tempfile.mkdtemp(prefix="bench-relay-"))
     buses = [b for b in args.buses.split(",") if b]
     counts = [int(c) for c in args.clients.split(",") if c]
@@ -463,7 +498,9 @@ def main(argv=None) -> int:
                       f"{f['voluntary_switches_per_s']:.1f} + "
                       f"{f['involuntary_switches_per_s']:.1f}/s, {f['voluntary_switches_per_s'] / FS:.3f} + "
                       f"{f['involuntary_switches_per_s'] / FS:.3f} per sample): "
-                      f"CPU {f['cpu_percent']:.2f} %  (gravcald {t['cpu_percent']:.2f} %)" + _floor_latency(f),
+                      f"CPU {f['cpu_percent']:.2f} %  (gravcald {t['cpu_percent']:.2f} %)" + _floor_latency(f)
+                      + ("" if not f.get("i2c_reads_per_sample") else ", I2C reads per sample: " + ", ".join(
+                          f"{k} {v:.3f}" for k, v in f["i2c_reads_per_sample"].items())),
                       flush=True)
             results.append(pair)
     if args.json:

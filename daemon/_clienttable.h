@@ -28,7 +28,7 @@ int gravcal_lock_with_gil(pthread_mutex_t *m, int blocking, double timeout);
  *   policy: the watch policy the step may send under, None while it must not (the client is closed or has
  *     output pending); set by ClientState.regate (daemon/client_limits.py) each time the client's lock is
  *     released by Python, so it is exact whenever the step holds that lock;
- *   sent_messages, sent_bytes, last_progress: what fanout.deliver adds to the ClientState for a block taken
+ *   sent_messages, sent_bytes, last_progress: what fanout._sent adds to the ClientState for a block taken
  *     whole, accumulated here and folded into the ClientState by take() (under the client's lock). */
 typedef struct {
     PyObject_HEAD

@@ -52,7 +52,7 @@ int gravcal_reserve(Bytes *b, Py_ssize_t more)
     return 0;
 }
 
-/* fanout.deliver's plain case for one watcher: 1 sent whole (counted in its record), 2 stopped with the lock held
+/* fanout.deliver for one plain watcher (its general _send and _sent, for a block the socket takes whole): 1 sent whole (counted in its record), 2 stopped with the lock held
    (*sent: bytes the socket took, -1: not tried; a closed client too: fanout skips it), -1 error (lock released) */
 static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double now, Py_ssize_t *sent)
 {
@@ -83,7 +83,7 @@ static int deliver_one(PyObject *entry, const Bytes *lines, long long k, double 
         *sent = s > 0 ? s : 0; /* EAGAIN, EPIPE, a partial send: fanout's bookkeeping */
         return 2;
     }
-    rec->sent_messages += k; /* fanout.deliver: c.sent_messages += n; c.sent_bytes += sent; c.last_progress = now */
+    rec->sent_messages += k; /* fanout._sent: c.sent_messages += n; c.sent_bytes += sent; c.last_progress = now */
     rec->sent_bytes += s;
     rec->last_progress = now;
     return release_keeping_error(PyTuple_GET_ITEM(entry, ENTRY_RELEASE)) < 0 ? -1 : 1;
@@ -337,7 +337,7 @@ int call_process_nogil(Call *C, const unsigned char *buf, Py_ssize_t n, PyThread
             const Bytes *b = &C->lines[w->raw];
             ssize_t s = send(w->fd, b->buf, (size_t)b->n, MSG_NOSIGNAL | MSG_DONTWAIT);
             if (s == b->n) {
-                rec->sent_messages += k; /* fanout.deliver's counters for a block taken whole */
+                rec->sent_messages += k; /* fanout._sent's counters for a block taken whole */
                 rec->sent_bytes += s;
                 rec->last_progress = t_recv;
                 pthread_mutex_unlock(&rec->mu);

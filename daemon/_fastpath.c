@@ -2,7 +2,8 @@
  *
  * step(fd, seconds, max_frames, ist, fst, staged, box, engine, rows, acc, gyro, static)
  *     -> (leftover bytes, the watcher snapshot of a stopped delivery or None)
- * take(data, max_frames, ist, ...)  the same for the bytes of one read the caller made (the I2C FIFO)
+ * i2c_step(fd, seconds, max_frames, bus, ist, ...)  the same for the logger's FIFO on /dev/i2c-N, read through
+ *     the I2C_RDWR ioctl in C (daemon/_i2cpoll.c)
  * Engine, WatcherBox, ClientRecord: the objects the step shares with Python (_engine.c, _clienttable.c)
  *
  * Python's control plane hands the engine its parameters through one setter, Engine.set_params (the calibration,
@@ -30,7 +31,7 @@
  *   encoding (daemon/_linekernel.c), one non-blocking send() per watcher in snapshot order under the client's
  *   lock; Gravcald._acquire: the records appended to ``staged`` (the analysis' bytes). It returns at the latest
  *   after ``seconds`` or once ``staged`` holds ist[IST_STAGE_LIMIT] bytes, for the Python loop's housekeeping.
- * step holds the GIL only for what needs Python (see step and "Locks" in _clienttable.h); take holds it throughout.
+ * step and i2c_step hold the GIL only for what needs Python (see step and "Locks" in _clienttable.h).
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -46,6 +47,7 @@
 #include <unistd.h>
 
 #include "_fastcall.h"
+#include "_i2cpoll.h"
 
 #define READ_BYTES 65536 /* drivers/serial.py READ_BYTES: more than the kernel's tty buffer holds */
 #define SLCAN_SAMPLE_BYTES 78 /* a CAN sample's four slcan lines: t<id><dlc><hex>\r with dlc 8, 7, 7, 5 */
@@ -197,27 +199,6 @@ done:
     return call_close(&C, ok);
 }
 
-/* take(data, ...): the bytes of one read made by the caller (the I2C FIFO's bursts, read by smbus2) */
-static PyObject *take(PyObject *self, PyObject *args)
-{
-    Py_buffer data;
-    Call C;
-    if (!PyArg_ParseTuple(args, "y*iw*w*O!O!O!w*w*w*w*:take", &data, &C.max_frames, &C.ist, &C.fst,
-                          &PyByteArray_Type, &C.staged, &GravcalWatcherBoxType, &C.box, &GravcalEngineType, &C.engine,
-                          &C.rows, &C.acc, &C.gyro, &C.codes))
-        return NULL;
-    int ok = 0;
-    if (call_open(&C, data.len / GRAVCAL_FRAME_LEN + 1) == 0) { /* its one batch: whole 29-byte frames at most */
-        PyObject *snapshot;
-        int plain = call_prepare(&C, &snapshot);
-        if (plain == 0)
-            C.leftover = PyBytes_FromStringAndSize(data.buf, data.len);
-        ok = plain == 0 ? C.leftover != NULL : plain == 1 && call_process(&C, data.buf, data.len, snapshot) >= 0;
-    }
-    PyBuffer_Release(&data);
-    return call_close(&C, ok);
-}
-
 /* latest(ist, rows, acc, gyro, static, row, acc1, gyro1, static1): the newest batch's last sample copied out under
    gravcal_latest_mu (the step may be writing the arrays without the GIL): whether there was one */
 static PyObject *latest(PyObject *self, PyObject *args)
@@ -258,9 +239,9 @@ static PyMethodDef methods[] = {
     {"step", step, METH_VARARGS,
      "step(fd, seconds, max_frames, ist, fst, staged, box, engine, rows, acc, gyro, static) -> (leftover, "
      "stopped snapshot or None): the latency path's common case from the bus to the sockets (see daemon/fastpath.py)."},
-    {"take", take, METH_VARARGS,
-     "take(data, max_frames, ist, fst, staged, box, engine, rows, acc, gyro, static) -> (leftover, stopped "
-     "snapshot or None): as step for the bytes of one read made by the caller."},
+    {"i2c_step", gravcal_i2c_step, METH_VARARGS,
+     "i2c_step(fd, seconds, max_frames, bus, ist, fst, staged, box, engine, rows, acc, gyro, static) -> (leftover, "
+     "stopped snapshot or None): as step for the logger's FIFO on /dev/i2c-N, polled in C (daemon/_i2cpoll.c)."},
     {"latest", latest, METH_VARARGS,
      "latest(ist, rows, acc, gyro, static, row, acc1, gyro1, static1) -> bool: the newest batch's last sample copied "
      "into the one-record buffers (False: none yet)."},

@@ -38,14 +38,7 @@ def deliver(watchers: Iterable[ClientState], block: ImuBlock, now: float) -> tup
             if lines is not None:
                 w, lost = _send(c, b"".join(lines), len(lines), now)
             else:
-                data = block.joined(watch.raw)
-                sent = _send_now(c, data)
-                if sent == len(data):  # the usual case, per client per sample: taken whole
-                    c.sent_messages += n
-                    c.sent_bytes += sent
-                    c.last_progress = now
-                    continue
-                w, lost = _sent(c, data, n, sent, now)
+                w, lost = _send(c, block.joined(watch.raw), n, now)
             wake, dropped = wake or (w and not c.want_write), dropped + lost
     return wake, dropped
 

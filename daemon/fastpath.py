@@ -7,6 +7,11 @@ in pipeline order (bus bytes -> frames -> correction -> IMU lines -> sockets), a
 latest every HOUSEKEEPING_S (or once a block for the analysis is staged) for the rest: the counters of
 the driver, the unwrapper, the processor and the server, which are applied here from its results.
 
+The step owns the bus's reads: a tty's (serial, slcan: ``step``) or the I2C FIFO's through the I2C_RDWR ioctl
+(``i2c_step``, daemon/_i2cpoll.c). Events come back by its return, the one channel: (leftover bytes, the
+snapshot of a stopped delivery) and a reason code in ``ist`` (on I2C also the ``bus`` array: transfers, a FIFO
+overflow, a failed transfer's errno), applied here; nothing calls back into Python from the loop.
+
 Everything else takes the Python path, exactly as without the C step: the step hands back undecoded the
 bytes of any read that is not such frames (a gap, a stray, a restart, a CRC error, a partial frame; the
 driver decodes them in its next read; on CAN over slcan a "frame" is a sample's four slcan lines, and
@@ -20,13 +25,12 @@ set by the processor through Engine.set_params).
 from __future__ import annotations
 
 import math
-import time
 from typing import Any
 
 import numpy as np
 
 from ..core.samples import SAMPLE_DTYPE
-from ._fastpath import latest, step, take
+from ._fastpath import i2c_step, latest, step
 from .protocol import ImuBlock
 
 HOUSEKEEPING_S = 0.25  # the longest the C step runs before the Python loop's housekeeping
@@ -36,6 +40,9 @@ IST_EXPECT, IST_SEQ, IST_FRAMES, IST_TICK, IST_UNKNOWN, IST_REASON, IST_CLIENT, 
     IST_STAGE_LIMIT, IST_CAN, IST_NOGIL, IST_N = range(13)
 FST_LAST_T, FST_TICK_HZ, FST_T_RECV, FST_TICK_PERIOD, FST_N = range(5)
 R_DUE, R_BYTES, R_DELIVERY, R_NOT_PLAIN, R_EOF, R_ERROR = range(6)
+# i2c_step's bus array (daemon/_i2cpoll.h)
+IB_ADDRESS, IB_FIRST, IB_BURST, IB_COMBINED, IB_POLL_NS, IB_DRDY_FD, IB_NEXT_POLL_NS, IB_POLLS, IB_BURSTS, \
+    IB_OVERFLOW, IB_ERRNO, IB_N = range(12)
 
 
 class FastPath:
@@ -55,15 +62,17 @@ class FastPath:
         self.acc = np.zeros((self.max_frames, 3))
         self.gyro = np.zeros(self.max_frames)
         self.codes = np.zeros(self.max_frames, dtype=np.int8)
+        self.bus = np.zeros(IB_N, dtype=np.int64)
         self.latest = _Latest(self)
         self.taken = 0
         self.nogil = 0  # batches the step delivered without taking the GIL
 
     @classmethod
     def for_driver(cls, driver: Any, *args: Any, **kwargs: Any) -> "FastPath | None":
-        """A FastPath when the driver offers its bytes to the C step: its descriptor (drivers/serial.py and, for
-        slcan, drivers/can.py ``fast_entry``) or the bytes it reads (drivers/i2c.py ``fast_ready``); else None."""
-        ok = hasattr(driver, "fast_entry") or hasattr(driver, "fast_ready")
+        """A FastPath when the driver offers the C step its descriptor: a tty's (drivers/serial.py and, for
+        slcan, drivers/can.py ``fast_entry``) or the I2C bus's with its transfers (drivers/i2c.py ``fast_bus``);
+        else None."""
+        ok = hasattr(driver, "fast_entry") or hasattr(driver, "fast_bus")
         return cls(driver, *args, **kwargs) if ok else None
 
     def run(self, staged: bytearray, seconds: float = HOUSEKEEPING_S) -> tuple[int, bool]:
@@ -71,8 +80,8 @@ class FastPath:
         the Python path reads next: bytes or a case the step does not take are waiting)."""
         if self.server.fast_watchers is None:
             return 0, True
-        if hasattr(self.driver, "fast_ready"):
-            return self._run_fed(staged, seconds)
+        if hasattr(self.driver, "fast_bus"):
+            return self._run_i2c(staged, seconds)
         entry = self.driver.fast_entry()
         if entry is None:
             return 0, True
@@ -92,43 +101,34 @@ class FastPath:
             self.driver.unread(leftover)
         return n, int(self.ist[IST_REASON]) != R_DUE
 
-    def _run_fed(self, staged: bytearray, seconds: float) -> tuple[int, bool]:
-        """As :meth:`run` for a driver whose reads are Python calls (I2C: smbus2): each read's bytes go to the
-        C step's ``take``; the counters are applied once at the end."""
+    def _run_i2c(self, staged: bytearray, seconds: float) -> tuple[int, bool]:
+        """As :meth:`run` for the logger's FIFO on /dev/i2c-N: the C step polls it too (``i2c_step``), as the
+        driver's read does; what the driver must decide (a FIFO overflow, a failed transfer) goes back to it."""
         drv = self.driver
-        entry = drv.fast_ready()
-        if entry is None:
+        entry, bus = drv.fast_ready(), drv.fast_bus()
+        if entry is None or bus is None:
             return 0, True
+        fd, address, first, burst, combined, poll_s, drdy_fd, next_poll_at = bus
+        b = self.bus
+        b[:IB_POLLS] = (address, first, burst, int(combined), round(poll_s * 1e9), drdy_fd,
+                        round(next_poll_at * 1e9) if math.isfinite(next_poll_at) else 0)
         self._start(*entry)
-        end = time.monotonic() + seconds
-        ist, n, unknown, read_next = self.ist, 0, 0, False
-        limit, item, monotonic, fast_read = int(ist[IST_STAGE_LIMIT]), ist.item, time.monotonic, drv.fast_read
-        box, engine = self.server.fast_box, self.processor.engine
+        stopped, leftover = None, b""
         try:
-            while len(staged) < limit and monotonic() < end:
-                bursts = fast_read(end)
-                if bursts is None:  # the bus failed: the Python path reconnects
-                    read_next = True
-                    break
-                if not bursts:
-                    continue
-                ist[IST_FRAMES] = ist[IST_UNKNOWN] = 0
-                stopped = None
-                try:
-                    leftover, stopped = take(bursts[0] if len(bursts) == 1 else b"".join(bursts), self.max_frames,
-                                             ist, self.fst, staged, box, engine, self.rows,
-                                             self.acc, self.gyro, self.codes)
-                finally:
-                    n, unknown = n + item(IST_FRAMES), unknown + item(IST_UNKNOWN)
-                    self._finish(stopped)
-                if leftover:
-                    drv.unread(bursts)
-                if item(IST_REASON) != R_DUE:
-                    read_next = True
-                    break
+            leftover, stopped = i2c_step(fd, seconds, self.max_frames, b, self.ist, self.fst, staged,
+                                         self.server.fast_box, self.processor.engine, self.rows, self.acc, self.gyro,
+                                         self.codes)
         finally:
-            self._account(n, unknown)
-        return n, read_next
+            self.nogil += int(self.ist[IST_NOGIL])
+            try:
+                n = self._account(int(self.ist[IST_FRAMES]), int(self.ist[IST_UNKNOWN]))
+            finally:
+                self._finish(stopped)
+                if leftover:  # first: after a failed transfer these come before the reconnect's
+                    drv.unread([leftover])
+                drv.fast_polled(int(b[IB_POLLS]), int(b[IB_BURSTS]), int(b[IB_NEXT_POLL_NS]) * 1e-9,
+                                bool(b[IB_OVERFLOW]), int(b[IB_ERRNO]))
+        return n, int(self.ist[IST_REASON]) != R_DUE
 
     def _start(self, raw: int, seq: int, last_t: float) -> None:
         ist, fst = self.ist, self.fst

@@ -112,8 +112,9 @@ static void stamp(unsigned char *rows, const uint32_t *ticks, Py_ssize_t k, doub
     *last_t = newest;
 }
 
-/* The records of a read that only continues the stream (the unwrapper's rule 2 with a step of 1, sequence.py
-   SeqUnwrapper.continue_one: no gap, no stray, no restart; the 16-bit counter may wrap), stamped as
+/* The records of a read that only continues the stream (the unwrapper's rule 2 with a step of 1, as
+   SeqUnwrapper.unwrap decides it; the rule's one-frame reference: tests/support/sequence_reference.py
+   continue_one): no gap, no stray, no restart; the 16-bit counter may wrap. Stamped as
    base.py Driver._stamp: one frame at t_recv, several back from the newest by their tick distance (32-bit;
    a backwards step counts 0) / tick_hz (tick_hz 0: all at t_recv), never before the newest stamp so far. */
 static Py_ssize_t continuing_c(const unsigned char *buf, Py_ssize_t n, long long expect, Py_ssize_t max_frames,
@@ -179,8 +180,9 @@ static int slcan_line(const unsigned char *p, long long id, int dlc, unsigned ch
 /* The records of one read of slcan bytes when it is exactly k <= max_samples samples, each the four frames
    base_id..base_id+3 in order (drivers/can.py: TIMING seq u16, tick u32, gyro u16; CHIP_A/B seq_lo, T1 x2, T2;
    HOUSEKEEPING seq_lo, temp_raw, vsupply_raw) whose seq continue ``expect`` one by one and whose frames all carry
-   its low byte: SampleAssembler's complete sample, then record_to_sample's row (the unwrapper's rule 2 with a
-   step of 1), stamped as the driver stamps a read. k, or 0 (nothing written). */
+   its low byte: SampleAssembler's complete sample, then the row of the reference's record_to_sample
+   (tests/support/sequence_reference.py: the unwrapper's rule 2 with a step of 1), stamped as the driver stamps
+   a read. k, or 0 (nothing written). */
 static Py_ssize_t slcan_continuing_c(const unsigned char *buf, Py_ssize_t n, long long base_id, long long expect,
                                      Py_ssize_t max_samples, long long seq0, double tick_hz, double t_recv,
                                      double *last_t, unsigned char *rows, uint32_t *ticks)

@@ -37,7 +37,6 @@ import serial
 
 from ..core.samples import FLAG_GAP_BEFORE, FLAG_PARTIAL, SAMPLE_DTYPE
 from .base import PERMISSION_ERRNOS, Backoff, Driver, DriverError, DriverSpec, permission_hint, take_options
-from ._framekernel import sample_to_row
 from .slcan import BufferedSlcanBus
 from .codec import (
     ADC_MISSING,
@@ -172,13 +171,6 @@ class SampleAssembler(can.Listener):
         """Some sample is assembled and waiting for ``take()``."""
         return bool(self._ready)
 
-    def take_one(self) -> tuple | None:
-        """The assembled record (seq, tick, gyro, t1[4], t2[2], temp_raw, vsupply_raw, present) when exactly
-        one waits (the per-sample case), taken; else None (nothing taken)."""
-        if len(self._ready) != 1:
-            return None
-        return self._ready.pop()
-
     def take(self) -> np.ndarray:
         """Assembled records so far (raw fields + ``present`` bit mask), oldest first."""
         out = np.array(self._ready, dtype=_RECORD) if self._ready else np.zeros(0, _RECORD)
@@ -202,19 +194,6 @@ def records_to_samples(rec: np.ndarray, unwrapper: SeqUnwrapper) -> np.ndarray:
     out["seq"] = seq
     out["flags"][gap] |= FLAG_GAP_BEFORE
     return out
-
-
-def record_to_sample(record: tuple, unwrapper: SeqUnwrapper) -> np.ndarray | None:
-    """:func:`records_to_samples` of one record that continues the stream (SeqUnwrapper.continue_one), its
-    row written in C (_framekernel.sample_to_row); None: not that case (nothing done)."""
-    seq, tick, gyro, t1, t2, temp_raw, vsupply_raw, present = record
-    one = unwrapper.continue_one(seq, tick)
-    if one is None:
-        return None
-    flags = (FLAG_PARTIAL if present != _ALL else 0) | (FLAG_GAP_BEFORE if one[1] else 0)
-    row = np.empty(1, dtype=SAMPLE_DTYPE)
-    sample_to_row(row, one[0], tick, gyro, t1, t2, temp_raw, vsupply_raw, flags)
-    return row
 
 
 class CanDriver(Driver):
@@ -392,11 +371,7 @@ class CanDriver(Driver):
                 # so the reconnect flag lands on the first sample after the outage.
                 self._deferred = exc
         asm.poll()
-        one = asm.take_one()
-        if one is None:
-            return records_to_samples(asm.take(), self.unwrapper)
-        row = record_to_sample(one, self.unwrapper)
-        return row if row is not None else records_to_samples(np.array([one], dtype=_RECORD), self.unwrapper)
+        return records_to_samples(asm.take(), self.unwrapper)
 
 
 def _check_device_path(path: str) -> None:

@@ -30,7 +30,6 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from ..core.samples import FLAG_GAP_BEFORE, SAMPLE_DTYPE
-from ._framekernel import frame_header, frame_to_row
 from .sequence import MAX_U16, SeqUnwrapper  # SeqUnwrapper: part of the codec's interface
 
 SYNC = b"\xa5\x5a"
@@ -264,10 +263,6 @@ class FrameDecoder:
     tail: bytes = b""  # the start of a frame not complete yet
 
     def feed(self, data: bytes | bytearray | memoryview) -> np.ndarray:
-        if not self.tail and len(data) == FRAME_LEN:  # one frame per read: the per-sample path
-            one = self._continue_one(data)
-            if one is not None:
-                return one
         buf = self.tail + bytes(data) if self.tail else bytes(data)
         res = scan(buf)
         st = self._stats
@@ -285,21 +280,6 @@ class FrameDecoder:
         samples["flags"][gap] |= FLAG_GAP_BEFORE
         st.frames += samples.shape[0]
         return samples
-
-    def _continue_one(self, frame: bytes | bytearray | memoryview) -> np.ndarray | None:
-        """An intact frame that continues the stream, as one SAMPLE_DTYPE row written by the C kernel
-        (_framekernel.c: wire_to_samples' values for one frame, without structured-array copies).
-        None: anything else (the general path decides)."""
-        head = frame_header(frame)
-        if head is None:
-            return None
-        one = self.unwrapper.continue_one(*head)
-        if one is None:
-            return None
-        row = np.empty(1, dtype=SAMPLE_DTYPE)
-        frame_to_row(frame, row, one[0], FLAG_GAP_BEFORE if one[1] else 0)
-        self._stats.frames += 1
-        return row
 
     def count_frames(self, n: int) -> None:
         """``n`` intact frames were decoded outside (the daemon's C step, drivers/serial.py fast_entry)."""

@@ -159,6 +159,7 @@ class I2CDriver(FramedStreamDriver):
         self.smbus_factory = smbus_factory
         self.decoder = FrameDecoder()
         self._smbus = None
+        self._fd: int | None = None  # the bus's descriptor (None: a bus object without one)
         self._overflow_pending = False
         self._overflow_after = 0  # frames the FIFO held when it reported the overflow: its gap comes after them
         self._fifo_at_connect = 0
@@ -372,7 +373,7 @@ class I2CDriver(FramedStreamDriver):
     # -- the daemon's latency path (daemon/fastpath.py) -----------------------------------
     def fast_ready(self) -> tuple[int, int, float] | None:
         """(raw seq, output seq, last t) when the FIFO's next frames may go to the daemon's C step
-        (daemon/_fastpath.c ``take``), which takes only whole intact frames each continuing the stream by one
+        (daemon/_i2cpoll.c), which takes only whole intact frames each continuing the stream by one
         (``raw seq`` the next) and hands anything else back (:meth:`unread`); None: they go through
         :meth:`read` (an outage or a reconnect in hand, a partial frame or samples waiting, a sequence
         question open, a FIFO overflow to flag)."""
@@ -382,18 +383,31 @@ class I2CDriver(FramedStreamDriver):
         nxt = self.decoder.unwrapper.next_frame()
         return None if nxt is None else (nxt[0], nxt[1], self._last_t)
 
-    def fast_read(self, deadline: float) -> list[bytes] | None:
-        """The FIFO's bursts as :meth:`read` reads them ([]: none by ``deadline``); None: they go through
-        :meth:`read` (the bus failed: it reconnects; a FIFO overflow: it flags the gap)."""
-        try:
-            bursts = self._read_fifo(deadline)
-        except self.transient_errors as exc:
-            self._lost(exc)
+    def fast_bus(self) -> tuple[int, int, int, int, bool, float, int, float] | None:
+        """What the daemon's C step needs to read the FIFO as :meth:`_read_fifo` does: (fd, address, frames read
+        with STATUS, burst frames, combined, poll interval [s], the DRDY line's fd or -1, the next poll's
+        time.monotonic()); None: the bus has no file descriptor (the test rigs' in-process fake) or the DRDY
+        line is not a sysfs GPIO: :meth:`read` reads it."""
+        drdy = self.data_ready
+        if not self._connected or self._fd is None or (drdy is not None and not isinstance(drdy, SysfsDataReady)):
             return None
-        if self._overflow_pending:  # its gap is flagged by read(), which decodes these first
-            self.unread(bursts)
-            return None
-        return bursts
+        return (self._fd, self.address, min(self.watermark, self.burst_frames), self.burst_frames, self.combined,
+                self._poll, -1 if drdy is None else drdy.fileno(), self._next_poll_at)
+
+    def fast_polled(self, polls: int, bursts: int, next_poll_at: float, overflow: bool, err: int) -> None:
+        """What the C step's reads did, as :meth:`_read_fifo` counts it: the transfers, the next poll's time, a
+        FIFO overflow STATUS reported (its frames were handed back: :meth:`read` flags the gap), the errno of a
+        transfer that failed (0: none; the bus is lost and reconnects, the frames read before it come first)."""
+        counters = self.counters
+        counters["polls"] += polls
+        counters["bursts"] += bursts
+        self._next_poll_at = next_poll_at
+        if overflow:
+            counters["fifo_overflows"] += 1
+            if not self._overflow_pending:  # no reconnect in hand (fast_ready): the gap is the first one
+                self._overflow_pending, self._overflow_after = True, 0
+        if err:
+            self._lost(OSError(err, os.strerror(err)))
 
     def unread(self, bursts: list[bytes]) -> None:
         """Bursts the C step did not take: the next :meth:`read` decodes them first, as if just read."""

@@ -88,10 +88,6 @@ class SeqUnwrapper:
     def unwrap(self, seq_raw: np.ndarray, ticks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(keep mask, unwrapped seq of kept frames, gap-before flag of kept frames); ``ticks`` (the
         frames' device ticks) let a device restart behind an outage be told from a long loss."""
-        if len(seq_raw) == 1:
-            one = self.continue_one(int(seq_raw[0]), None if ticks is None else int(ticks[0]))
-            if one is not None:
-                return np.ones(1, bool), np.array([one[0]], np.int64), np.array([one[1]])
         s = np.asarray(seq_raw).astype(np.int64)
         if s.shape[0] == 0:
             return np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0, bool)
@@ -116,31 +112,9 @@ class SeqUnwrapper:
                 self._learn_step(tick_before, int(t[0]), 1)
         return keep, seq, gap
 
-    def continue_one(self, raw: int, tick: int | None) -> tuple[int, bool] | None:
-        """(unwrapped seq, gap before) of one frame that continues the head (rule 2, no outage, nothing
-        pending), in Python ints: what :meth:`unwrap` does for it, without numpy. None: not that case
-        (nothing done; :meth:`unwrap` decides)."""
-        if self._pending or self._head is None or self._after_outage or self._expected is not None:
-            return None
-        step = (raw - self._head) & MAX_U16
-        if not 1 <= step <= self.STRAY_JUMP_MIN:
-            return None
-        if step > 1:
-            self.gaps += 1
-            self.missing += step - 1
-            self._fallback, self._jumped = self._head, [[-1, step - 1]]
-        else:
-            self._fallback, self._jumped = None, []
-        self._head = self.last = self._head + step
-        if tick is not None:
-            if step == 1:
-                self._learn_step(self._tick_last, tick, 1)
-            self._tick_last = tick
-        return self._head + self.offset, step > 1
-
     def next_frame(self) -> tuple[int, int] | None:
-        """(raw 16-bit seq, output seq) of the frame that continues the stream by one in the case
-        :meth:`continue_one` takes (nothing pending, no outage); None: not that case."""
+        """(raw 16-bit seq, output seq) of the frame that continues the stream by one while rule 2 alone decides
+        it (nothing pending, no outage): what the daemon's C step takes; None: not that case."""
         if self._pending or self._head is None or self._after_outage or self._expected is not None:
             return None
         return (self._head + 1) & MAX_U16, self._head + 1 + self.offset

@@ -1,11 +1,12 @@
-"""The CAN driver's one-sample path (a read that completes exactly one sample, the per-sample case):
+"""The frame kernel's one-sample writer under the one-frame continuation rule (tests/support/sequence_reference.py):
 the row the C kernel writes is the numpy block form's (records_to_samples), bit for bit, with the same
 unwrapping and counters, over streams with losses, duplicates, strays, partial samples and missing
 or reserved ADC codes."""
 import numpy as np
 import pytest
 
-from gravcal.drivers.can import _ALL, _RECORD, record_to_sample, records_to_samples
+from gravcal.drivers.can import _ALL, _RECORD, records_to_samples
+from support.sequence_reference import record_to_sample
 from gravcal.drivers.sequence import SeqUnwrapper
 
 

@@ -1,10 +1,12 @@
-"""The decoder's one-frame path (a read that holds exactly one frame, the per-sample case) gives the
-bytes the general path gives: every field, the unwrapped seq, the flags and the counters."""
+"""The frame kernel's one-frame writer under the one-frame continuation rule (tests/support/sequence_reference.py
+decode_one) gives the bytes the decoder's general path gives: every field, the unwrapped seq, the flags and the
+counters."""
 import numpy as np
 import pytest
 
 from gravcal.drivers.codec import FRAME_LEN, FrameDecoder, encode_frames
 from gravcal.drivers.rigs.sources import pattern_blocks
+from support.sequence_reference import decode_one
 
 
 def _chunks(rng: np.random.Generator, n: int) -> list[bytes]:
@@ -39,10 +41,10 @@ def _chunks(rng: np.random.Generator, n: int) -> list[bytes]:
 
 
 def _decode(chunks: list[bytes], one_path: bool) -> tuple[bytes, dict]:
-    dec = FrameDecoder()
-    if not one_path:
-        dec._continue_one = lambda frame: None
-    got = [dec.feed(c) for c in chunks]
+    dec, got = FrameDecoder(), []
+    for c in chunks:
+        one = decode_one(dec, c) if one_path else None
+        got.append(dec.feed(c) if one is None else one)
     return np.concatenate(got).tobytes(), dec.stats()
 
 

@@ -13,6 +13,7 @@ from gravcal.drivers import open_driver
 from gravcal.drivers.codec import TICK_HZ, SeqUnwrapper, encode_frames
 from gravcal.drivers.rigs.emulator import PtyLink
 from gravcal.drivers.rigs.sources import pattern_blocks
+from support.sequence_reference import OneFrameUnwrapper
 
 PERIOD = TICK_HZ // 200  # ticks per sample at 200 Hz
 
@@ -112,9 +113,7 @@ def test_a_young_session_continuing_after_an_outage_is_not_a_restart(hint):
 def test_a_stream_read_one_frame_at_a_time_still_tells_a_restart_from_a_wrap(path):
     # an event-driven reader gets one frame per read (the CAN and serial latency paths): the tick period is
     # never seen inside one read, yet a device that restarts behind an outage must not count as a 16-bit wrap
-    u = SeqUnwrapper()
-    if path == "block":
-        u.continue_one = lambda raw, tick: None
+    u = OneFrameUnwrapper() if path == "one-frame" else SeqUnwrapper()
     _session(u, [29999])
     _session(u, [30000])
     if path == "c-step":  # then daemon/_fastpath.c takes the frames that continue the stream; 50 per return

@@ -1,9 +1,11 @@
-"""The one-frame path of SeqUnwrapper (Python ints, the per-sample case) decides every frame as the
-block path does: same kept frames, unwrapped seq, gap flags and counters, frame by frame."""
+"""The one-frame continuation rule (tests/support/sequence_reference.py, the rule the C step's frame kernel takes
+frames by) decides every frame as SeqUnwrapper's block path does: same kept frames, unwrapped seq, gap flags and
+counters, frame by frame."""
 import numpy as np
 import pytest
 
 from gravcal.drivers.sequence import MAX_U16, SeqUnwrapper
+from support.sequence_reference import OneFrameUnwrapper
 
 
 def _stream(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -36,9 +38,7 @@ def _stream(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _run(seq, tick, one_path: bool, outages) -> tuple[list, dict]:
-    u = SeqUnwrapper()
-    if not one_path:
-        u.continue_one = lambda raw, t: None
+    u = OneFrameUnwrapper() if one_path else SeqUnwrapper()
     out = []
     for i in range(seq.shape[0]):
         if i in outages:
