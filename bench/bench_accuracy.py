@@ -296,7 +296,9 @@ def heldout(rec: Rec, ws: WindowSet, peer_names: list[str], k: int) -> dict[str,
         res: dict[str, Any] = {}
         for name, fit in meths:
             cal_err, used_err, declined, seconds, models = [], [], [], 0.0, []
+            per_fold: list[float | None] = []  # each fold's held-out RMS; None: declined or nothing to test
             for i, fold in enumerate(folds):
+                per_fold.append(None)
                 if fold.test.size == 0:
                     continue
                 ft = fit(fit_samples(n, fold), ws.subset(fold.fit))
@@ -305,13 +307,14 @@ def heldout(rec: Rec, ws: WindowSet, peer_names: list[str], k: int) -> dict[str,
                 used_err.append(e)
                 if ft.ok:
                     cal_err.append(e)
+                    per_fold[i] = _rms([e])
                     if ft.model:
                         models.append(ft.model)
                 else:
                     declined.append(f"fold {i}: {ft.message}")
             res[name] = {"heldout_rms_mg": _rms(cal_err), "as_used_rms_mg": _rms(used_err),
                          "folds_fitted": len(cal_err), "folds": len(used_err), "declined": declined,
-                         "models": models, "fit_seconds": seconds}
+                         "fold_rms_mg": per_fold, "models": models, "fit_seconds": seconds}
         out[scheme] = {"folds": len(folds), "test_windows": [int(f.test.size) for f in folds],
                        "fit_windows": [int(f.fit.size) for f in folds], "methods": res}
     return out

@@ -1,18 +1,31 @@
 """Benchmark: a study of N one-day recordings, files per second, for several N in one run.
 
     python bench/bench_study.py [--files 8 20] [--hours 24] [--fs 100] [--workers 0 2] [--forced]
-                                [--processes] [--repeat 2] [--cache DIR] [--json PATH]
+                                [--processes] [--repeat 3] [--cache DIR] [--json PATH]
 
 Compares, on the same files (the first N of one cached set): a sequential loop over the Python API in
 this process (``gravcal.calibrate(gravcal.read(f))``, imports already paid: the in-process rate), and
 the whole ``gravcal calibrate FILES --out results.csv --workers W`` process for each W (0: in that
-process; 2: the study's plan, io/study_plan.py: Dask worker threads started while the first files
-calibrate there), interpreter start, imports and the cluster's start and close included. With
-``--forced`` also ``--workers 2`` with the plan's Dask threads started whatever its timing says. With
-``--processes`` also ``run_study`` on a LocalCluster of two worker processes started and closed in
-this process (the plan before worker threads; dask.distributed already imported here). The runs are
-repeated in turn (``--repeat``) and each reports its fastest: on a shared machine other load only
-ever slows a run down. The load average is printed; *x* is a row's files/s over the in-process rate.
+process; 2: the study's plan, io/study_plan.py: Dask's local scheduler with 2 worker processes forked
+from that one, started while the next file calibrates there when the timed first file shows idle cores),
+interpreter start, imports and the workers' start and close included. With ``--forced`` also
+``--workers 2`` with the plan's Dask workers started whatever its timing says. With ``--processes``
+also ``run_study`` on a dask.distributed LocalCluster of two spawned worker processes started and
+closed in this process (what ``--scheduler`` gives; dask.distributed already imported here). The runs take turns (``--repeat``
+rounds, in the same order each round) and each row reports its fastest: on a shared machine other
+load only ever slows a run down. Each row also gives the CPU time it used (this process's for the API
+loop, the child's user + sys for a command), which load inflates far less than wall time.
+
+Printed: the load average before and after, *x* = a row's files/s over the in-process rate (the
+issue's criterion: ``--workers 2`` >= 0.9x) and *x w0* = over ``gravcal calibrate --workers 0`` (the
+same command in one process: what choosing 2 workers gains or loses). On a machine with no idle core
+(load average >= the cores) two workers cannot gain and the plan stays in one process; read *x* from
+a quiet machine.
+
+The gravcal package's bytecode is compiled first (bench_calibrate.compile_gravcal_bytecode, as ``pip
+install`` leaves it): with PYTHONDONTWRITEBYTECODE set and an editable install every command would
+otherwise compile its modules from source (~0.1 s of a core each start), a cost the in-process loop
+pays before its clock.
 
 Input: N consecutive days of one simulated daily-living recording (core.simulate.simulate_blocks,
 seed 0, default sensor), one structured .npy per day (t float64, ax/ay/az float32 duty cycles),
@@ -30,6 +43,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from bench_calibrate import compile_gravcal_bytecode
 
 SEED = 0
 DTYPE = np.dtype([("t", "<f8"), ("ax", "<f4"), ("ay", "<f4"), ("az", "<f4")])
@@ -86,7 +101,7 @@ def sequential_api(paths: list[Path]) -> dict:
     gravcal.calibrate  # noqa: B018 - imports paid before the clock starts
     import gravcal.api  # noqa: F401
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     ok = 0
     for p in paths:
         try:
@@ -94,8 +109,17 @@ def sequential_api(paths: list[Path]) -> dict:
             ok += cal.status == "ok"  # the verdict, as the study's rows count it
         except ValueError:
             pass
-    wall = time.perf_counter() - t0
-    return {"how": "sequential Python API", "wall_s": wall, "files_per_s": len(paths) / wall, "ok": ok}
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return {"how": "sequential Python API loop", "wall_s": wall, "cpu_s": cpu, "files_per_s": len(paths) / wall,
+            "ok": ok}
+
+
+def _children_cpu() -> float:
+    """User + system CPU [s] of this process's finished children."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
 
 
 FORCED = ("import sys; import gravcal.io.study_plan as plan; plan.DASK_START_S = -1.0; "
@@ -104,7 +128,7 @@ FORCED = ("import sys; import gravcal.io.study_plan as plan; plan.DASK_START_S =
 
 def cli_study(paths: list[Path], workers: int, forced: bool = False) -> dict:
     """The whole ``gravcal calibrate FILES --out R --workers W`` process, as a user runs it; ``forced``: the
-    plan's Dask threads started whatever the timed file says (io/study_plan.py DASK_START_S below 0)."""
+    plan's Dask workers started whatever the timed file says (io/study_plan.py DASK_START_S below 0)."""
     import subprocess
 
     script = Path(sys.executable).parent / "gravcal"
@@ -113,14 +137,15 @@ def cli_study(paths: list[Path], workers: int, forced: bool = False) -> dict:
         cmd = [sys.executable, "-c", FORCED]
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "results.csv"
+        before = _children_cpu()  # the children run one at a time: the difference is this one's
         t0 = time.perf_counter()
         r = subprocess.run([*cmd, "calibrate", *map(str, paths), "--out", str(out), "--workers", str(workers)],
                            capture_output=True, text=True, timeout=3600)
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, _children_cpu() - before
         ok = out.read_text().count(",ok,")
     plan = r.stderr.strip().splitlines()[-1] if r.stderr.strip() else ""
-    return {"how": f"gravcal calibrate --workers {workers}" + (", threads forced" if forced else ""),
-            "workers": workers, "wall_s": wall,
+    return {"how": f"gravcal calibrate --workers {workers}" + (", Dask workers forced" if forced else ""),
+            "workers": workers, "wall_s": wall, "cpu_s": cpu,
             "files_per_s": len(paths) / wall, "ok": ok, "status": r.returncode, "summary": plan}
 
 
@@ -135,7 +160,7 @@ def process_cluster_study(paths: list[Path]) -> dict:
 
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "results.csv"
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time() + _children_cpu()
         environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", default={}).items()
                    if k != "MALLOC_TRIM_THRESHOLD_"}  # with it every large numpy temporary is a fresh mmap
         with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
@@ -144,9 +169,9 @@ def process_cluster_study(paths: list[Path]) -> dict:
             run_study(paths, out, Options(), scheduler=cluster.scheduler_address, quiet=True)
         finally:
             cluster.close()
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() + _children_cpu() - c0
         ok = out.read_text().count(",ok,")
-    return {"how": "run_study, LocalCluster of 2 worker processes", "workers": 2, "wall_s": wall,
+    return {"how": "run_study, LocalCluster of 2 worker processes", "workers": 2, "wall_s": wall, "cpu_s": cpu,
             "files_per_s": len(paths) / wall, "ok": ok}
 
 
@@ -158,8 +183,8 @@ def main() -> int:
     ap.add_argument("--workers", type=int, nargs="+", default=[0, 2], help="gravcal calibrate --workers W runs")
     ap.add_argument("--processes", action="store_true", help="also a LocalCluster of two worker processes")
     ap.add_argument("--forced", action="store_true",
-                    help="also --workers 2 with the Dask threads started whatever the plan's timing says")
-    ap.add_argument("--repeat", type=int, default=2)
+                    help="also --workers 2 with the Dask workers started whatever the plan's timing says")
+    ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--cache")
     ap.add_argument("--json", type=Path)
     a = ap.parse_args()
@@ -167,6 +192,7 @@ def main() -> int:
     folder = cache_dir(a.cache) / f"bench_study_{most}x{a.hours:g}h_{a.fs:g}hz_seed{SEED}"
     folder.mkdir(parents=True, exist_ok=True)
     every = generate(folder, most, a.hours, a.fs)
+    compile_gravcal_bytecode()
     load = [os.getloadavg()]
     results = []
     for n in sorted(a.files):
@@ -176,22 +202,30 @@ def main() -> int:
             runs.append(lambda: cli_study(paths, 2, forced=True))
         if a.processes:
             runs.append(lambda: process_cluster_study(paths))
-        best: list[dict] = [{}] * len(runs)
+        rounds: list[list[dict]] = []
         for _ in range(a.repeat):
-            for i, run in enumerate(runs):
-                r = run()
-                if not best[i] or r["wall_s"] < best[i]["wall_s"]:
-                    best[i] = r
+            rounds.append([run() for run in runs])
+        best = [min((rnd[i] for rnd in rounds), key=lambda r: r["wall_s"]) for i in range(len(runs))]
+        for i, r in enumerate(best):  # each round's ratio to the loop of the same round: load shared alike
+            r["round_x"] = [rnd[0]["wall_s"] / rnd[i]["wall_s"] for rnd in rounds]
+            r["round_wall_s"] = [rnd[i]["wall_s"] for rnd in rounds]
         results.append({"files": n, "runs": best})
         load.append(os.getloadavg())
-    print(f"{a.hours:g} h files at {a.fs:g} Hz ({os.cpu_count()} CPUs, load average (1, 5, 15 min) "
-          f"{' -> '.join(', '.join(f'{x:.1f}' for x in l) for l in (load[0], load[-1]))}), fastest of {a.repeat}")
+    print(f"{a.hours:g} h files at {a.fs:g} Hz, {os.cpu_count()} CPUs, load average (1, 5, 15 min) "
+          f"{' -> '.join(', '.join(f'{x:.1f}' for x in l) for l in (load[0], load[-1]))}; "
+          f"every row the fastest of {a.repeat} rounds")
+    print("x: files/s over the API loop's (the in-process rate); x w0: over `--workers 0`'s; "
+          "rounds: x of each round against the loop of the same round")
     for res in results:
         base = res["runs"][0]["files_per_s"]
-        print(f"{res['files']} files")
+        w0 = next((r["files_per_s"] for r in res["runs"] if r.get("workers") == 0 and "forced" not in r["how"]),
+                  None)
+        print(f"{res['files']} files {'':<42} {'wall s':>8} {'CPU s':>6} {'files/s':>8} {'x':>6} {'x w0':>6}  rounds")
         for r in res["runs"]:
-            print(f"  {r['how']:<48} {r['wall_s']:7.2f} s  {r['files_per_s']:6.3f} files/s  "
-                  f"{r['files_per_s'] / base:5.2f}x  ({r['ok']} of {res['files']} ok)")
+            xw0 = f"{r['files_per_s'] / w0:6.2f}" if w0 else f"{'':6}"
+            print(f"  {r['how']:<50} {r['wall_s']:8.2f} {r['cpu_s']:6.2f} {r['files_per_s']:8.3f} "
+                  f"{r['files_per_s'] / base:6.2f} {xw0}  {' '.join(f'{x:.2f}' for x in r['round_x'])}"
+                  f"  ({r['ok']} of {res['files']} ok)")
             if r.get("summary"):
                 print(f"      {r['summary']}")
     if a.json:

@@ -9,8 +9,8 @@ were fitted and why). Every readable recording gets a verdict: "status" (ok, par
 refused; gravcal.core.verdict) and "reason", in the JSON and the summary; exit 0 for ok and partial,
 exit 3 (the JSON still printed) for the others.
 
-Several files, a directory, or ``--out``: a study (daemon.study), one results row per file, on a
-dask.distributed cluster (``--workers``, ``--scheduler``).
+Several files, a directory, or ``--out``: a study (io.study), one results row per file, on Dask worker
+processes forked from this one (``--workers``; io.study_plan) or a dask.distributed cluster (``--scheduler``).
 """
 from __future__ import annotations
 
@@ -77,9 +77,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, metavar="RESULTS.csv",
                    help="study results, one row per file, written as each finishes; files already in it are skipped")
     p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="study: local dask.distributed workers (default: the CPU count; 0: in this process, no Dask)")
+                   help="study: Dask workers (processes forked from this one), started when timing the first file shows idle "
+                        "cores to gain from (default: the CPU count; 0: in this process, no Dask)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="study: an existing dask.distributed scheduler, e.g. "
-                                                          "tcp://head-node:8786, instead of a local cluster")
+                                                          "tcp://head-node:8786, instead of local workers")
     p.add_argument("--quiet", action="store_true", help="no progress bar (one is shown only on a terminal)")
     p.add_argument("--report", type=Path, metavar="DIR",
                    help="study: also write DIR/index.html, the study's QC page (error before/after, model orders, "

@@ -97,9 +97,12 @@ def summary(out: dict[str, Any], name: str) -> str:
             lines.append(f"  FOUND {group['text']}")
             lines.append(f"    if {f['effect']} alone: {magnitude_text(f['magnitude'])}")
             continue
-        lines.append(f"  FOUND {f['effect']}: {magnitude_text(f['magnitude'])} "
-                     f"(ΔBIC {f['evidence'].get('delta_bic')}, nested held-out gain "
-                     f"{fmt(f['evidence'].get('nested_heldout_gain_mg'))} mg)")
+        ev = f["evidence"]
+        lines.append(f"  FOUND {f['effect']}: {magnitude_text(f['magnitude'])} " + (
+            f"(ΔBIC {ev.get('delta_bic')}, nested held-out gain {fmt(ev.get('nested_heldout_gain_mg'))} mg)"
+            if ev.get("delta_bic") is not None or "heldout_gain_mg" not in ev else
+            f"(one pose, per channel: held-out {fmt(ev['heldout_rms_mg_without'])} → {fmt(ev['heldout_rms_mg_with'])} "
+            f"mg on {ev['folds']} contiguous folds)"))
         for axis, why in f["magnitude"].get("undetermined", {}).items():
             lines.append(f"    {axis} undetermined: {why}")
         for note in f["magnitude"].get("notes", []):

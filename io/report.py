@@ -185,10 +185,14 @@ def _findings(j: dict[str, Any]) -> list[str]:
     L.append("")
     for x in j["findings"]:
         mag, ev = x["magnitude"], x["evidence"]
-        L.append(f"- **{x['effect']}**: ΔBIC {num(ev.get('delta_bic'), 4)} "
-                 f"(threshold {num(ev.get('delta_bic_threshold'))}); "
-                 f"held-out RMS {num(ev.get('heldout_rms_mg_without'))} → {num(ev.get('heldout_rms_mg_with'))} mg; "
-                 f"gain on folds the selection never saw {num(ev.get('nested_heldout_gain_mg'))} mg")
+        if ev.get("delta_bic") is None and "heldout_gain_mg" in ev:  # one pose: tested on each channel's reading
+            L.append(f"- **{x['effect']}**: {ev['test']}; held-out RMS per channel {num(ev['heldout_rms_mg_without'])}"
+                     f" → {num(ev['heldout_rms_mg_with'])} mg ({ev['heldout_scheme']}); chi² {num(ev['chi2'], 4)}")
+        else:
+            L.append(f"- **{x['effect']}**: ΔBIC {num(ev.get('delta_bic'), 4)} "
+                     f"(threshold {num(ev.get('delta_bic_threshold'))}); "
+                     f"held-out RMS {num(ev.get('heldout_rms_mg_without'))} → {num(ev.get('heldout_rms_mg_with'))} mg; "
+                     f"gain on folds the selection never saw {num(ev.get('nested_heldout_gain_mg'))} mg")
         for note in mag.get("notes", []):
             L.append(f"  - {note}")
         if mag.get("convention"):

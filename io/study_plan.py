@@ -1,29 +1,40 @@
-"""How a study runs on this machine: Dask worker threads, started while this process calibrates.
+"""How a study runs on this machine: Dask's local scheduler, its workers started while this process
+calibrates: worker processes forked from this one (Linux), else worker threads.
 
-A calibration's heavy parts (the reading pass, detection, the fit's sums) run in C and numpy with the GIL
-released, so threads of one process calibrate files side by side as well as worker processes would,
-without their fixed cost: spawning two worker processes (each starting an interpreter and importing dask
-and numpy again) took 1.6 s here and closing them 0.8 s, against 0.01-0.1 s each for a cluster of
-threads. What stays fixed is importing dask.distributed: 0.7 s of a core on this machine when it is
-quiet, more under load, taken from the calibrations running beside it (DASK_START_S).
+Forked processes, because a calibration holds the GIL for about half its wall time (py-spy --gil over
+ten one-day files: 4.6 s of 8.9 s; the fit's estimators, detection's and the reading pass's Python
+between the C kernels), so two files on threads of one process queue for it: on the quiet machine 20
+one-day files, 16-17 of them on two threads (a LocalCluster's), ran at 0.82-0.84x the in-process API
+loop, as 8 files calibrated in one process did (0.84x): the threads gained nothing. Forking costs
+~0.01-0.05 s (the worker starts with everything this process imported), where spawning a worker (a
+dask.distributed LocalCluster of processes: an interpreter importing dask and numpy again) took 1.6 s
+here and closing them 0.8 s. The scheduler is Dask's own local one (dask.multiprocessing, or
+dask.threaded where the platform cannot fork), not a dask.distributed LocalCluster: that one costs 0.25
+s of a core to import and start (against 0.09 s) and runs its scheduler, event loop and system monitor
+as Python in this process, beside the calibrations (process CPU for 19 one-day files on two threads,
+load 8-12: 5.2-5.3 s with a LocalCluster of threads, 4.6-4.7 s with dask.threaded, 4.4-4.6 s in one
+thread). A cluster, for studies larger than one machine: ``--scheduler``.
 
-The plan is measured, not guessed. The first file is calibrated here (it pays the numerics' imports),
-the second here too, timed: its wall time, the CPU this process used (one calibration already keeps
-part of a second core busy) and the cores the machine left idle meanwhile (/proc/stat). Calibrating two
-files at a time can only use idle cores: the files left would take ``left`` here and about
-``left * u / (u + extra)`` on the threads (u: cores one calibration used, extra: the idle cores a second
+The plan is measured, not guessed. The first file is calibrated here, timed: its wall time, the CPU this
+process used (one calibration already keeps part of a second core busy) and the cores the machine left
+idle meanwhile (/proc/stat). It also pays the numerics' first imports (~0.1 s of one core against ~0.2 s
+of CPU for a one-day file at 100 Hz), which makes the saving below look larger than it is by up to that
+share; timing the second file instead kept one more file off the workers. Calibrating two files at a
+time can only use idle cores: the files left would take ``left`` here and about
+``left * u / (u + extra)`` on the workers (u: cores one calibration used, extra: the idle cores a second
 one could take, at most u). Only when that saving exceeds DASK_START_S does a background thread import
-dask.distributed and start a LocalCluster of threads, while this process goes on calibrating files one
-by one; once the cluster is up, the files left go to its threads, and a study done before that never
-waits for it. One file, two files or one worker run here outright. ``Plan.summary`` says which plan ran
-and why (-v logs the figures).
-A worker thread that runs out of memory takes this process with it; the rows written so far stay, and a
-re-run resumes from them (a cluster of worker processes: ``--scheduler``).
+Dask while this process goes on calibrating files one by one; once imported, the files left go to the
+workers, and a study done before that never waits for it. One file, two files or one worker run here
+outright. ``Plan.summary`` says which plan ran and why (-v logs the figures).
+A worker process killed (out of memory) ends the study with that error, a worker thread the whole
+process; the rows written so far stay, and a re-run resumes from them.
 """
 from __future__ import annotations
 
 import logging
 import os
+import signal
+import sys
 import threading
 import time
 from collections import deque
@@ -33,86 +44,167 @@ from typing import Any, Callable, Iterator
 log = logging.getLogger(__name__)
 
 Item = tuple[str, "str | None"]  # a recording and where its calibrated samples go (None: not written)
-DASK_START_S = 1.0
-"""What starting the cluster costs the study [s]: importing dask.distributed (0.7 s of a core on this
-2-core machine, quiet; its bytecode holds the GIL the calibrations' Python parts need) and the threads."""
+DASK_START_S = 0.2
+"""What starting the workers costs the study [s]: importing dask and its local scheduler (0.09 s of a core
+on this 2-core machine, quiet; its bytecode holds the GIL the calibration beside it needs) and forking,
+doubled for a loaded machine."""
 
 
 @dataclass
 class Plan:
-    """What ran where: files calibrated in this process, files on the cluster's threads, and why."""
+    """What ran where: files calibrated in this process, on Dask's local workers (``threads`` of them) or on a
+    cluster (``--scheduler``: ``on_cluster`` with the reason naming it), and why."""
 
     in_process: int = 0
     on_cluster: int = 0
-    threads: int = 0
+    threads: int = 0  # Dask's local workers: threads, or forked processes
+    processes: bool = False
     reason: str = ""
 
     def summary(self) -> str:
         if self.threads:
-            return (f"{self.in_process} in this process (two to time the plan, then while Dask started), "
-                    f"{self.on_cluster} on {self.threads} Dask worker threads")
+            return (f"{self.in_process} in this process (one to time the plan, then while Dask was imported), "
+                    f"{self.on_cluster} on {self.threads} Dask worker "
+                    f"{'processes (forked)' if self.processes else 'threads'}")
         if self.on_cluster:
             return f"{self.on_cluster} {self.reason}"  # an existing cluster: "on the scheduler at ADDRESS"
         return f"all in this process: {self.reason}" if self.reason else "all in this process"
 
 
-class ClusterStart(threading.Thread):
-    """Imports dask.distributed and starts a LocalCluster of ``threads`` worker threads and its client;
-    ``ready`` is set when they are up or the start failed (``error``). ``cancel`` closes what started
-    and stops a start still under way at its next step (an import cannot be interrupted)."""
+class DaskStart(threading.Thread):
+    """Imports Dask's local scheduler (dask.multiprocessing with ``processes``, else dask.threaded) in the
+    background; ``ready`` is set when it is imported or the import failed (``error``; ``ok`` False). The
+    import cannot be interrupted: ``cancel`` only makes a late success count for nothing."""
 
-    def __init__(self, threads: int) -> None:
-        super().__init__(name="gravcal-dask-start", daemon=True)
-        self.threads = threads
+    def __init__(self, processes: bool = False) -> None:
+        super().__init__(name="gravcal-dask-import", daemon=True)
+        self.processes = processes
         self.ready = threading.Event()
-        self.client: Any = None
+        self.ok = False
         self.error: BaseException | None = None
-        self._lock = threading.Lock()
         self._cancelled = False
-        self._parts: list[Any] = []  # client, cluster: closed by cancel
 
     def run(self) -> None:
         try:
-            from dask.distributed import Client, LocalCluster
+            import importlib
 
-            if logging.getLogger().level > logging.INFO:  # the cluster's start/stop chatter only with -v
-                logging.getLogger("distributed").setLevel(logging.WARNING)
-            with self._lock:
-                if self._cancelled:
-                    return
-            cluster = LocalCluster(n_workers=1, threads_per_worker=self.threads, processes=False,
-                                   dashboard_address=None)
-            client = Client(cluster)
-            with self._lock:
-                self._parts = [client, cluster]
-                if not self._cancelled:
-                    self.client = client
-                    return
-            self._close()
-        except BaseException as exc:  # noqa: BLE001 - reported to the study, which goes on without a cluster
+            importlib.import_module("dask.multiprocessing" if self.processes else "dask.threaded")
+            self.ok = not self._cancelled
+        except BaseException as exc:  # noqa: BLE001 - reported to the study, which goes on without Dask
             self.error = exc
         finally:
             self.ready.set()
 
     def cancel(self) -> None:
-        with self._lock:
-            self._cancelled = True
-        self._close()
+        self._cancelled = True
 
-    def _close(self) -> None:
-        with self._lock:
-            parts, self._parts, self.client = self._parts, [], None
-        for part in parts:
-            try:
-                part.close()
-            except Exception as exc:  # noqa: BLE001 - closing a cluster whose work is done: nothing is lost
-                log.debug("closing the study's Dask cluster: %s", exc)
+
+def forking() -> bool:
+    """Whether worker processes can be forked from this one (Linux): a fork starts with everything this
+    process has imported, in ~0.01-0.05 s, where a spawned interpreter imports numpy and gravcal again."""
+    import multiprocessing
+
+    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+
+
+def only_study_threads() -> bool:
+    """Whether every other live thread of this process is the study's own (gravcal-*, its progress bar's
+    monitor): a fork copies only the forking thread, and a lock another thread holds at that moment stays
+    held in the worker. A process with threads of its own (a notebook's, a server's) gets worker
+    threads instead."""
+    main = threading.main_thread()
+    return all(t is main or not t.is_alive() or t.name.startswith(("gravcal-", "tqdm_monitor"))
+               for t in threading.enumerate())
+
+
+def _ignore_sigint() -> None:
+    """A worker process leaves Ctrl-C to the study, which ends it (no traceback from a worker)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def worker_rows(items: list[Item], here: Callable[[str, "str | None"], dict], workers: int,
+                failed: Callable[[str, BaseException], dict], processes: bool) -> Iterator[dict]:
+    """The rows of ``items`` calibrated ``workers`` at a time by Dask's local scheduler, yielded here as
+    they finish; a task that raises is ``failed``'s row. ``processes``: Dask's multiprocessing scheduler
+    on worker processes forked from this one (each file's Python runs under its own GIL; ``here`` goes
+    by cloudpickle); else its threaded scheduler (worker threads of this process). The scheduler runs in
+    a background thread: this generator only waits for rows. Closed early (Ctrl-C, an error writing
+    rows), the files not started are dropped and the worker processes are ended."""
+    import queue
+
+    finished: queue.SimpleQueue = queue.SimpleQueue()
+    done = object()
+
+    def task(f: str, w: "str | None") -> dict:
+        try:
+            return here(f, w)
+        except Exception as exc:  # noqa: BLE001 - one file's failure is its row, not the study's end
+            return failed(f, exc)
+
+    def posttask(key: Any, result: Any, dsk: Any, state: Any, worker_id: Any) -> None:
+        finished.put(result)
+
+    graph = {("gravcal-calibrate", i): (task, f, w) for i, (f, w) in enumerate(items)}
+    # this computation's callbacks only (start, start_state, pretask, posttask, finish): none registered
+    # for the process, where the caller's own Dask work would see them
+    callbacks = [(None, None, None, posttask, None)]
+    if processes:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        import dask.multiprocessing
+
+        pool: Any = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                        initializer=_ignore_sigint)
+
+        def compute() -> None:  # one file per task (chunksize 1): rows as they finish, even shares
+            dask.multiprocessing.get(graph, list(graph), pool=pool, callbacks=callbacks, chunksize=1,
+                                     optimize_graph=False)
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        import dask.threaded
+
+        pool = ThreadPoolExecutor(workers, thread_name_prefix="gravcal-dask")
+
+        def compute() -> None:
+            dask.threaded.get(graph, list(graph), pool=pool, callbacks=callbacks)
+
+    def run() -> None:
+        try:
+            compute()
+        except BaseException as exc:  # noqa: BLE001 - the scheduler's own failure (a worker process killed)
+            finished.put(exc)
+        finally:
+            finished.put(done)
+
+    runner = threading.Thread(target=run, name="gravcal-dask-scheduler", daemon=True)
+    runner.start()
+    ended = False
+    try:
+        while (got := finished.get()) is not done:
+            if isinstance(got, BaseException):
+                raise got
+            yield got
+        ended = True
+    finally:
+        pool.shutdown(wait=ended, cancel_futures=True)
+        if processes and not ended:
+            import multiprocessing
+
+            for child in multiprocessing.active_children():  # its files are dropped, as unstarted ones
+                if child.name.startswith("ForkProcess"):
+                    child.terminate()
 
 
 def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
-               on_cluster: Callable[[Any, list[Item]], Iterator[dict]], workers: int, plan: Plan) -> Iterator[dict]:
-    """The results rows of ``items`` (in the order they finish): ``here`` calibrates one in this process,
-    ``on_cluster(client, items)`` yields the rows of a batch on the cluster; ``plan`` records what ran."""
+               failed: Callable[[str, BaseException], dict], workers: int, plan: Plan,
+               processes: bool | None = None) -> Iterator[dict]:
+    """The results rows of ``items`` (in the order they finish): ``here`` calibrates one in this process
+    (never raising), ``failed(file, exc)`` is the row of a worker's task that raised; ``plan`` records
+    what ran. ``processes``: forked worker processes (default where the platform forks and no thread but
+    the study's runs) or threads."""
+    processes = forking() and only_study_threads() if processes is None else processes
     threads = min(workers, len(items))
     if threads <= 1:
         plan.reason = "one file" if len(items) <= 1 else "one worker"
@@ -121,9 +213,7 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             plan.in_process += 1
         return
     pending = deque(items)
-    yield here(*pending.popleft())  # the numerics' imports: not timed
-    plan.in_process += 1
-    if len(pending) < 2:
+    if len(pending) < 3:
         plan.reason = f"{len(items)} files"
         while pending:
             yield here(*pending.popleft())
@@ -131,7 +221,7 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
         return
     timed = pending.popleft()
     before = _usage()
-    row = here(*timed)
+    row = here(*timed)  # with the numerics' first imports: ~0.1 s of one core, counted as the file's
     plan.in_process += 1
     saving, figures = _threads_saving(before, _usage(), threads, _size_ratio(timed[0], [f for f, _ in pending]))
     yield row
@@ -142,8 +232,8 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             yield here(*pending.popleft())
             plan.in_process += 1
         return
-    log.info("study plan: Dask worker threads, two files at a time saving ~%.1f s (%s)", saving, figures)
-    start = ClusterStart(threads)
+    log.info("study plan: Dask workers, two files at a time saving ~%.1f s (%s)", saving, figures)
+    start = DaskStart(processes)
     start.start()
     try:
         while pending and not start.ready.is_set():
@@ -151,22 +241,22 @@ def local_rows(items: list[Item], here: Callable[[str, "str | None"], dict],
             yield here(f, w)
             plan.in_process += 1
         if not pending:
-            plan.reason = "done before a Dask cluster was up"
+            plan.reason = "done before Dask was imported"
             return
         start.ready.wait()
-        if start.client is None:
-            plan.reason = ("no Dask: dask.distributed is not installed (pip install 'gravcal[study]')"
+        if not start.ok:
+            plan.reason = ("no Dask: dask is not installed (pip install 'gravcal[study]')"
                            if isinstance(start.error, ImportError) else
-                           f"no Dask cluster ({type(start.error).__name__}: {' '.join(str(start.error).split())})")
+                           f"no Dask ({type(start.error).__name__}: {' '.join(str(start.error).split())})")
             log.warning("the study goes on in this process: %s", plan.reason)
             while pending:
                 f, w = pending.popleft()
                 yield here(f, w)
                 plan.in_process += 1
             return
-        plan.threads = threads
+        plan.threads, plan.processes = threads, processes
         with _blas_one_thread():
-            for row in on_cluster(start.client, list(pending)):
+            for row in worker_rows(list(pending), here, threads, failed, processes):
                 plan.on_cluster += 1
                 yield row
     finally:

@@ -35,6 +35,7 @@ from gravcal.core.windows import WindowSet
 from .compare import Comparison, simulate_compare
 from .noise import AllanResult, flat_stretches
 from .held import channel_slopes, held_contributions, one_posture_magnitude, one_posture_partner, scale_rel_std
+from .one_pose import one_pose_temperature
 from .sample_tests import SAMPLE_TESTS
 from .standin import stand_ins
 from .structure import residual_structure
@@ -522,6 +523,7 @@ def diagnose(t: np.ndarray, raw: np.ndarray, *, temp: np.ndarray | None = None, 
     if not d.observability["determined"]:
         notes.append(d.observability["reason"])
     d.notes = notes + d.notes
+    one_pose_temperature(d, ws, held_start)  # the norm cannot test it in one pose; each channel can
     # noise tests on static stretches, on the residual after the deterministic terms: each sample corrected by
     # the extended calibration at its own temperature, supply and time (a temperature or drift term left in
     # the samples would read as colored noise), the stretch mean removed

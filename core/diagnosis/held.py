@@ -139,8 +139,8 @@ def one_posture_magnitude(tt: Any, ws: WindowSet, scale: np.ndarray, scale_rel_s
                 "std_scale": dict(zip("xyz", (np.abs(value) * scale_rel_std).tolist())),
                 "raw_value": slopes["value"], "raw_std": slopes["std"], "raw_unit": slopes["unit"],
                 "raw_channel_slopes": slopes, "method": "per-channel least squares of the window means on the "
-                "covariate; std: the larger of least squares and a contiguous-block jackknife, with the held "
-                "sensitivity's relative std"})
+                "covariate; std: the slope's under the windows' covariance (white, or white plus a slow wander, "
+                "widened for its few degrees of freedom), with the held sensitivity's relative std"})
     for key in ("undetermined", "std_noise", "std_held", "held"):
         mag.pop(key, None)
     mag.setdefault("notes", []).append(

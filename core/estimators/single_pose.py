@@ -31,10 +31,11 @@ POSE_HOLD_DEG = 0.5  # the pose once each channel's temperature line is out (9 m
 MIN_POSE_WINDOWS = 6  # a line and its scatter need a few windows; fewer determine nothing
 MIN_POSE_SHARE = 0.5  # the pose holds most windows (a chamber's handling is brief): else it is a wearer's day
 FOLDS = 5  # contiguous folds of the held-out check
-JACKKNIFE_BLOCKS = 10  # contiguous time blocks of the slope's std (neighbouring windows share slow errors)
 REML_TAUS = 10  # wander time constants tried, log-spaced from the windows' spacing to the session
 REML_SHARES = np.linspace(0.0, 0.99, 34)  # the wander's share of the windows' variance tried
 REML_MAX_WINDOWS = 250  # the covariance fit's windows (evenly thinned beyond: its cost grows as m^3)
+WANDER_LR = 2.71  # -2 log REML gain for a wander: the 5 % point of one variance component on its boundary
+MIN_DOF = 3.0  # a variance with fewer Satterthwaite dof is taken as 3 (the t's variance is infinite at 2)
 SLOPES_CHI2 = 16.27  # chi²(3) at 0.999: the slopes applied only when they are not noise (and hold out better)
 # the registered term a channel's slope on the temperature is held as: the zero-g level's, unlagged
 TERM = next(t for t in CALIBRATION_TERMS if calibration_view(t).acts_on == "offset"
@@ -42,68 +43,101 @@ TERM = next(t for t in CALIBRATION_TERMS if calibration_view(t).acts_on == "offs
 HELD_KEY = "held_covariance"  # consider.HELD_KEY: the start's stated uncertainty of what a fit holds
 
 
-def correlated_slope_std(t: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(c,) std of each column's least-squares slope of ``y`` (m, c) on ``x`` when the windows' errors are white
-    plus a slow wander, exp(-|dt| / tau) correlated in time (a chamber's drift, a warm-up's lag): the
-    covariance's share ``lam`` and ``tau`` chosen by restricted maximum likelihood on a grid (the share profiled
-    through one eigendecomposition per tau), the slope's variance the least-squares sandwich under it."""
-    m = len(t)
-    X = np.column_stack([np.ones(m), x - x.mean()])
-    XtX_inv = np.linalg.inv(X.T @ X)
-    span = float(np.ptp(t))
-    step = float(np.median(np.diff(np.sort(t)))) if m > 1 else 0.0
-    if m < 8 or not span > 0 or not step > 0:
-        return np.full(y.shape[1], np.nan)
+def _wander_grid(t: np.ndarray, X: np.ndarray, y: np.ndarray):
+    """Restricted maximum likelihood of white-plus-wander covariances V = s2 ((1 - lam) I + lam exp(-|dt| / tau))
+    on a grid (the share profiled through one eigendecomposition per tau). Per column: -2 log REML of the best
+    grid point and of white errors (lam 0), and the best point's (tau, lam, s2)."""
+    (m, k), c = X.shape, y.shape[1]
+    span, step = float(np.ptp(t)), float(np.median(np.diff(t)))
     lags = np.abs(t[:, None] - t[None])
-    best_ll = np.full(y.shape[1], np.inf)
-    best_var = np.full(y.shape[1], np.nan)
+    best_ll, best = np.full(c, np.inf), np.zeros((c, 3))
+    white_ll = np.full(c, np.nan)
     for tau in np.geomspace(step, span, REML_TAUS):
         e, U = np.linalg.eigh(np.exp(-lags / tau))
         e = np.clip(e, 0.0, None)
-        Xt, Yt, XtU = U.T @ X, U.T @ y, X.T @ U
+        Xt, Yt = U.T @ X, U.T @ y
         for lam in REML_SHARES:
             d = (1.0 - lam) + lam * e
             A = (Xt / d[:, None]).T @ Xt
             B = np.linalg.solve(A, (Xt / d[:, None]).T @ Yt)
-            s2 = np.sum((Yt - Xt @ B) ** 2 / d[:, None], axis=0) / (m - 2)
-            ll = (m - 2) * np.log(np.maximum(s2, 1e-300)) + np.sum(np.log(d)) + np.linalg.slogdet(A)[1]
+            s2 = np.sum((Yt - Xt @ B) ** 2 / d[:, None], axis=0) / (m - k)
+            ll = (m - k) * np.log(np.maximum(s2, 1e-300)) + np.sum(np.log(d)) + np.linalg.slogdet(A)[1]
+            if lam == 0.0:
+                white_ll = ll
             better = ll < best_ll
-            if np.any(better):
-                G = XtX_inv @ (XtU * d) @ XtU.T @ XtX_inv  # (X'X)^-1 X' V X (X'X)^-1, V = U diag(d) U'
-                best_ll = np.where(better, ll, best_ll)
-                best_var = np.where(better, s2 * G[1, 1], best_var)
-    return np.sqrt(best_var)
+            best_ll = np.where(better, ll, best_ll)
+            best[better] = np.column_stack([np.full(c, tau), np.full(c, lam), s2])[better]
+    return lags, white_ll, best_ll, best
+
+
+def _satterthwaite_dof(lags: np.ndarray, X: np.ndarray, h: np.ndarray, tau: float, a: float, b: float) -> float:
+    """Degrees of freedom of the slope variance v = h' V h estimated through V = a I + b exp(-|dt| / tau):
+    2 v² / Var(v), Var(v) by the delta method with the REML information of (a, b, tau) (Kenward & Roger's
+    Satterthwaite step)."""
+    C = np.exp(-lags / tau)
+    e, U = np.linalg.eigh(C)
+    d = a + b * np.clip(e, 0.0, None)
+    Xt = U.T @ X
+    XdX = (Xt / d[:, None]).T @ Xt
+    DiX = Xt / d[:, None]
+    P = np.diag(1.0 / d) - DiX @ np.linalg.solve(XdX, DiX.T)  # the REML projection, in C's eigenbasis
+    dV = [np.ones_like(d), np.clip(e, 0.0, None), U.T @ (b * C * lags / tau ** 2) @ U]
+    PdV = [P * D[None, :] if D.ndim == 1 else P @ D for D in dV]
+    info = np.array([[0.5 * np.sum(Pi * Pj.T) for Pj in PdV] for Pi in PdV])
+    ht = U.T @ h
+    grad = np.array([ht @ ht, ht @ (dV[1] * ht), ht @ dV[2] @ ht])
+    v = a * (ht @ ht) + b * (ht @ (dV[1] * ht))
+    var_v = float(grad @ np.linalg.pinv(info) @ grad)
+    return 2.0 * v * v / var_v if var_v > 0 else np.inf
+
+
+def correlated_slope_std(t: np.ndarray, x: np.ndarray | None, y: np.ndarray, coef: int = 1) -> np.ndarray:
+    """(c,) std of each column's least-squares slope (``coef`` 1; 0: the line's value at the mean of ``x``, or
+    the mean where ``x`` is None) of ``y`` (m, c) on ``x`` (``t`` ascending): its variance h' V h under the
+    windows' covariance V, which is white unless a slow wander (exp(-|dt| / tau): a chamber's drift, a
+    warm-up's lag) improves the restricted likelihood by more than WANDER_LR. The wander's share and tau are
+    estimated from this one session, so the variance has few degrees of freedom (nu, Satterthwaite): an error
+    over such a std is t-distributed with variance nu / (nu - 2), and the std is widened by that factor so
+    that it is the error's std, not its typical scale."""
+    m = len(t)
+    X = np.ones((m, 1)) if x is None else np.column_stack([np.ones(m), x - x.mean()])
+    k = X.shape[1]
+    h = X @ np.linalg.inv(X.T @ X)[:, coef]  # the least-squares estimate's weights on the windows
+    if m < 8 or not np.ptp(t) > 0 or not np.median(np.diff(t)) > 0:
+        return np.full(y.shape[1], np.nan)
+    lags, white_ll, best_ll, best = _wander_grid(t, X, y)
+    out = np.empty(y.shape[1])
+    for j, (tau, lam, s2) in enumerate(best):
+        white_s2 = float(np.sum((y[:, j] - X @ np.linalg.lstsq(X, y[:, j], rcond=None)[0]) ** 2) / (m - k))
+        if lam == 0.0 or white_ll[j] - best_ll[j] <= WANDER_LR:
+            out[j] = np.sqrt(white_s2 * (h @ h) * (m - k) / (m - k - 2))  # white: t with m - k dof
+            continue
+        a, b = s2 * (1.0 - lam), s2 * lam
+        v = a * (h @ h) + b * (h @ np.exp(-lags / tau) @ h)
+        nu = max(_satterthwaite_dof(lags, X, h, tau, a, b), MIN_DOF)
+        out[j] = np.sqrt(v * nu / (nu - 2.0))
+    return out
 
 
 def channel_slopes(ws: WindowSet, covariate: str) -> dict[str, Any] | None:
     """Each raw channel's mean regressed on a covariate over the windows: slope [raw per unit] and its std.
     Needs no offsets, sensitivities or direction: what an independent least-squares fit sees. The std is the
-    largest of the least-squares one, a delete-one-block jackknife over contiguous time blocks and the
-    least-squares variance under a white-plus-wander covariance fitted to the windows
-    (``correlated_slope_std``): windows close in time share slow errors, which the least-squares std takes
-    for independent."""
+    least-squares slope's under the windows' covariance (``correlated_slope_std``): white, or white plus a slow
+    wander where the windows show one (windows close in time then share errors that a white std would take for
+    independent), widened for the few degrees of freedom a wander's estimate has."""
     x = ws.covariate(covariate) if covariate != "time" else ws.t / 3600.0
     if x is None or np.ptp(x) == 0 or len(ws) < 3:
         return None
-
-    def fit(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        xi = x[idx]
-        A = np.column_stack([np.ones_like(xi), xi - xi.mean()])
-        coef = np.linalg.lstsq(A, ws.mean[idx], rcond=None)[0]
-        resid = ws.mean[idx] - A @ coef
-        s2 = (resid ** 2).sum(axis=0) / max(len(idx) - 2, 1)
-        return coef[1], np.sqrt(s2 / max(float(np.sum((xi - xi.mean()) ** 2)), 1e-300))
-
     order = np.argsort(ws.t, kind="stable")
-    slope, sd = fit(order)
-    blocks = min(JACKKNIFE_BLOCKS, len(ws) // 5)
-    if blocks >= 5:
-        parts = [fit(np.setdiff1d(order, b, assume_unique=True))[0] for b in np.array_split(order, blocks)]
-        jk = np.sqrt((blocks - 1) / blocks * np.sum((np.array(parts) - np.mean(parts, axis=0)) ** 2, axis=0))
-        sd = np.maximum(sd, jk)
+    A = np.column_stack([np.ones(len(ws)), x - x.mean()])
+    slope = np.linalg.lstsq(A, ws.mean, rcond=None)[0][1]
     sub = order if len(order) <= REML_MAX_WINDOWS else order[np.linspace(0, len(order) - 1, REML_MAX_WINDOWS).astype(int)]
-    # thinned: not scaled down (a wander does not average out over more windows)
-    sd = np.fmax(sd, single_threaded_blas(correlated_slope_std)(ws.t[sub], x[sub], ws.mean[sub]))
+    # thinned: not scaled down (a wander does not average out over more windows; the white part is then generous)
+    sd = single_threaded_blas(correlated_slope_std)(ws.t[sub], x[sub], ws.mean[sub])
+    if not np.all(np.isfinite(sd)):  # too few windows for a covariance: the least-squares std
+        resid = ws.mean - A @ np.linalg.lstsq(A, ws.mean, rcond=None)[0]
+        s2 = (resid ** 2).sum(axis=0) / max(len(ws) - 2, 1)
+        sd = np.sqrt(s2 / max(float(np.sum((x - x.mean()) ** 2)), 1e-300))
     unit = COVARIATES[covariate].unit
     return {"unit": f"raw/{unit}", "value": dict(zip("xyz", slope.tolist())), "std": dict(zip("xyz", sd.tolist()))}
 
@@ -154,23 +188,19 @@ def dominant_pose(ws: WindowSet, start: Calibration, tol_deg: float = POSE_TOL_D
 
 def _mean_and_std(pose: WindowSet, v: np.ndarray) -> tuple[float, float]:
     """``v`` (one value per window) at the pose's mean temperature (a line in it where there is one) and that
-    value's std: the larger of the white one and a 10-block contiguous jackknife (a wander is shared by
-    neighbouring windows)."""
+    value's std under the windows' covariance, as the slopes' (``correlated_slope_std``, coef 0)."""
     temp = pose.covariate("temp")
-    x = temp - np.mean(temp) if temp is not None and np.all(np.isfinite(temp)) and np.ptp(temp) > 0 else None
-    A = np.ones((len(v), 1)) if x is None else np.column_stack([np.ones(len(v)), x])
-
-    def at_mean(idx: np.ndarray) -> float:
-        return float(np.linalg.lstsq(A[idx], v[idx], rcond=None)[0][0])
-
+    x = temp if temp is not None and np.all(np.isfinite(temp)) and np.ptp(temp) > 0 else None
+    A = np.ones((len(v), 1)) if x is None else np.column_stack([np.ones(len(v)), x - x.mean()])
+    value = float(np.linalg.lstsq(A, v, rcond=None)[0][0])
     order = np.argsort(pose.t, kind="stable")
-    value = at_mean(order)
-    resid = v - A @ np.linalg.lstsq(A, v, rcond=None)[0]
-    sd = float(np.sqrt(np.sum(resid ** 2) / max(len(v) - A.shape[1], 1) / len(v)))
-    blocks = min(JACKKNIFE_BLOCKS, len(v) // 5)
-    if blocks >= 5:
-        parts = np.array([at_mean(np.setdiff1d(order, b, assume_unique=True)) for b in np.array_split(order, blocks)])
-        sd = max(sd, float(np.sqrt((blocks - 1) / blocks * np.sum((parts - parts.mean()) ** 2))))
+    sub = order if len(order) <= REML_MAX_WINDOWS else order[np.linspace(0, len(order) - 1, REML_MAX_WINDOWS).astype(int)]
+    # thinned: not scaled down (the white part is then generous)
+    sd = float(single_threaded_blas(correlated_slope_std)(pose.t[sub], None if x is None else x[sub], v[sub, None],
+                                                          coef=0)[0])
+    if not np.isfinite(sd):
+        resid = v - A @ np.linalg.lstsq(A, v, rcond=None)[0]
+        sd = float(np.sqrt(np.sum(resid ** 2) / max(len(v) - A.shape[1], 1) / len(v)))
     return value, sd
 
 
@@ -295,9 +325,15 @@ def single_pose(ws: WindowSet, start: Calibration, *, folds: int = FOLDS, why_no
                      "std_gain": dict(zip("xyz", (np.abs(value) * rel).tolist())),
                      "raw_channel_slopes": slopes,
                      "method": "per-channel least squares of the pose's window means on the temperature; std: the "
-                               "largest of least squares, a contiguous-block jackknife and the slope's variance under "
-                               "a white-plus-wander covariance (REML), with the held gains' relative std"}
+                               "slope's under the windows' covariance (white, or white plus a slow wander where it "
+                               "gains the restricted likelihood), widened for the wander's few degrees of freedom "
+                               "(Satterthwaite), with the held gains' relative std"}
         chi2 = float(np.sum((raw / raw_sd) ** 2))  # the three slopes against none, in their own std
+        magnitude["test"] = {"heldout_rms_mg_with": with_mg, "heldout_rms_mg_without": without_mg,
+                             "heldout_gain_mg": without_mg - with_mg, "folds": folds, "fold_rms_mg": fold_rms,
+                             "heldout_scheme": "each channel's reading in contiguous time folds, the line fitted on the "
+                                               "other folds, against a constant fitted likewise",
+                             "chi2": chi2, "chi2_threshold": SLOPES_CHI2}
         if with_mg < without_mg and chi2 > SLOPES_CHI2:
             determined["temperature_slopes"] = magnitude
             names = view.param_names()

@@ -25,6 +25,7 @@ from ..windows import WindowSet
 from .consider import with_held_uncertainty
 
 MIN_WINDOWS = {False: 6, True: 9}  # unknowns of the axis-aligned / general quadric
+MIN_RESIDUAL_DOF = 3  # kept windows beyond the unknowns for the fit to state its own uncertainty
 MIN_CAP_DEG = 20.0  # refuse when every window is within this angle of one direction (Lötters θ)
 MAX_COND = 1e8  # condition number of the (normalised) design matrix
 HUBER_K, HUBER_ITERS = 1.345, 3  # Huber weights for the first iterations
@@ -160,8 +161,19 @@ def ellipsoid_fit(ws: WindowSet, *, full: bool = False, max_iter: int = 20,
             "sensitivity_rel_std": k_std_rel,
         },
     )
-    return with_held_uncertainty(cal, names=names, cov=cov_raw,
-                                 source=f"ellipsoid fit ({'general' if full else 'axis-aligned'}) linearised LS covariance")
+    kind = "general" if full else "axis-aligned"
+    dof = int(np.count_nonzero(used)) - MIN_WINDOWS[bool(full)]
+    if dof < MIN_RESIDUAL_DOF:
+        # (nearly) an exact fit: no residual to scale its covariance (6 windows stated their gains to 0.04 %
+        # while 15 % off). A start still, but held as uncertain as the equal-gain start: each gain ±20 %, each
+        # offset the same fraction of 1 g
+        scale = float(np.mean(np.abs(np.diag(K))))
+        sd = {n: ISOTROPIC_SENS_REL_STD * (abs(float(K["xyz".index(n[2]), "xyz".index(n[2])]))
+                                           if n[0] == "s" and len(n) == 3 else scale) for n in names}
+        return with_held_uncertainty(cal, sd, source=f"ellipsoid fit ({kind}) with {dof} window(s) beyond its "
+                                                     f"unknowns: no residual to state its uncertainty; held as an "
+                                                     f"equal-gain start (±{100 * ISOTROPIC_SENS_REL_STD:.0f} %)")
+    return with_held_uncertainty(cal, names=names, cov=cov_raw, source=f"ellipsoid fit ({kind}) linearised LS covariance")
 
 
 def _raw_parameter_covariance(coef, design, w, full, c0, r0) -> tuple[list[str], np.ndarray]:

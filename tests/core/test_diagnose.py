@@ -48,7 +48,9 @@ def test_actigraph_reveals_temperature_offset(actigraph):
     for i, a in enumerate("xyz"):  # the same slope an outside least-squares fit sees, at the held scale
         assert abs(mag["value"][a] - raw[i] / s * 1e3) <= 0.5 * mag["std_statistical"][a] + 1e-9, (a, mag["value"])
     # the std carries the held counts-per-g scale (one pose cannot determine it) beside the statistics
-    assert mag["std_scale"]["z"] > 2 * mag["std_statistical"]["z"]  # ±20 % of a scale-free start
+    # ±20 % of a scale-free start: 0.055 mg/°C against the statistical 0.033 (the residual wanders: its
+    # covariance widens the statistical std, docs/sensor-model.md "One pose")
+    assert mag["std_scale"]["z"] > 1.3 * mag["std_statistical"]["z"]
     assert abs(sd - np.hypot(mag["std_scale"]["z"], mag["std_statistical"]["z"])) < 1e-12
     # what one pose cannot determine is said, not printed: the gravity channel's change may be offset or
     # sensitivity, the absolute offsets across gravity are unknown (their std withheld in the calibration)

@@ -280,3 +280,24 @@ def test_noise_floor_in_pieces_equals_the_whole_segment_at_once(monkeypatch, chu
     assert floor == expected
     if chunk < raw.shape[0] // 2:
         assert quantum == 1.0 and floor == 0.5
+
+
+def test_an_exact_fit_states_the_equal_gain_uncertainty_not_its_own():
+    """Six windows for six unknowns leave no residual: the linearised covariance would be ~0 whatever the
+    error (a one-pose chamber's six handling moments: gains 15 % off, stated to 0.04 %). The fit is kept as
+    a start, held at ±20 % per gain like the equal-gain start; with 3 windows more its own covariance."""
+    from gravcal.core.estimators.start import ISOTROPIC_SENS_REL_STD
+
+    rng = np.random.default_rng(31)
+
+    def held_rel(m):
+        cal = ellipsoid_fit(WindowSet.from_points(_points(rng, m, 1e-3), 1e-8))
+        held = cal.metadata["held_covariance"]
+        sd = np.sqrt(np.diag(np.asarray(held["cov"])))
+        return np.array([sd[held["names"].index(f"s_{a}")] for a in "xyz"]) / np.abs(np.diag(cal.sensitivity)), held
+
+    rel, held = held_rel(6)
+    np.testing.assert_allclose(rel, ISOTROPIC_SENS_REL_STD)
+    assert "no residual" in held["source"]
+    rel, held = held_rel(40)
+    assert np.all(rel < 0.01) and "linearised LS covariance" in held["source"]

@@ -199,8 +199,8 @@ def test_a_rerun_retries_error_rows_keys_by_resolved_path_and_starts_nothing_whe
 
 
 def test_dask_worker_threads_give_the_same_rows_and_leave_the_log_level(study, tmp_path, monkeypatch, capsys):
-    """Two files here (the plan's timing), then (any saving worth a cluster; its start run in this thread)
-    the other two on the two worker threads, side by side: the rows are the in-process rows, and the gravcal logger's
+    """One file here (the plan's timing), then (any saving worth Dask; its import run in this thread)
+    the other three on Dask's two worker threads, two side by side: the rows are the in-process rows, and the gravcal logger's
     level, lowered while any file runs, is what it was before, also when the first of the two to start
     ends first (a per-file save and restore would leave it at the second one's saved ERROR)."""
     import logging
@@ -232,18 +232,61 @@ def test_dask_worker_threads_give_the_same_rows_and_leave_the_log_level(study, t
             if k == 1:
                 first_out.set()
 
-    monkeypatch.setattr(study_plan.ClusterStart, "start", study_plan.ClusterStart.run)
+    monkeypatch.setattr(study_plan.DaskStart, "start", study_plan.DaskStart.run)
     monkeypatch.setattr(study_plan, "DASK_START_S", -1.0)
+    monkeypatch.setattr(study_plan, "forking", lambda: False)  # threads, where the platform cannot fork
     monkeypatch.setattr(study_mod, "_calibrate_file", overlapping)
     gravcal_log = logging.getLogger("gravcal")
     before = gravcal_log.level
     assert main(["calibrate", *files, "--out", str(par), "--workers", "2"]) == 0
-    assert "2 in this process (two to time the plan, then while Dask started), 2 on 2 Dask worker threads" in \
+    assert "1 in this process (one to time the plan, then while Dask was imported), 3 on 2 Dask worker threads" in \
         capsys.readouterr().err
     assert len(set(entered)) == 2 and main_thread not in entered
     assert gravcal_log.level == before
     key = (lambda r: r["file"])
     assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
+
+
+def test_forked_dask_worker_processes_give_the_same_rows(study, tmp_path, monkeypatch, capsys):
+    """One file here (the plan's timing), three on two worker processes forked from this one: the rows
+    are the in-process rows, the broken file's error row included; no worker process is left."""
+    import multiprocessing
+
+    from gravcal.io import study_plan
+
+    if not study_plan.forking():
+        pytest.skip("worker processes are forked on Linux only")
+    seq, par = tmp_path / "seq.csv", tmp_path / "par.csv"
+    files = [str(study / f"s{i}.npy") for i in range(2)] + [str(study / "broken.csv"), str(study / "site2" / "s3.npy")]
+    assert main(["calibrate", *files, "--out", str(seq), "--workers", "0", "--quiet"]) == 2
+    monkeypatch.setattr(study_plan.DaskStart, "start", study_plan.DaskStart.run)
+    monkeypatch.setattr(study_plan, "DASK_START_S", -1.0)
+    monkeypatch.setattr(study_plan, "only_study_threads", lambda: True)  # earlier tests' Dask threads linger
+    assert main(["calibrate", *files, "--out", str(par), "--workers", "2"]) == 2
+    assert "1 in this process (one to time the plan, then while Dask was imported), 3 on 2 Dask worker " \
+           "processes (forked)" in capsys.readouterr().err
+    key = (lambda r: r["file"])
+    assert sorted(rows_of(seq), key=key) == sorted(rows_of(par), key=key)
+    assert not [p for p in multiprocessing.active_children() if p.name.startswith("ForkProcess")]
+
+
+def test_workers_are_forked_only_from_a_process_running_no_thread_but_the_studys():
+    import threading
+
+    from gravcal.io import study_plan
+
+    release = threading.Event()
+    for name, expected in (("gravcal-blocks_0", True), ("a notebook's thread", False)):
+        t = threading.Thread(target=release.wait, name=name, daemon=True)
+        others = [x for x in threading.enumerate() if x is not threading.main_thread()
+                  and not x.name.startswith(("gravcal-", "tqdm_monitor"))]
+        t.start()
+        try:
+            assert study_plan.only_study_threads() is (expected and not others)
+        finally:
+            release.set()
+            t.join()
+            release.clear()
 
 
 def test_a_small_study_runs_here_and_says_so(study, tmp_path, monkeypatch, capsys):
@@ -252,17 +295,18 @@ def test_a_small_study_runs_here_and_says_so(study, tmp_path, monkeypatch, capsy
     files = [str(study / f"s{i}.npy") for i in range(3)]
     assert main(["calibrate", files[0], "--out", str(tmp_path / "one.csv"), "--workers", "2"]) == 0
     assert "1 file(s) calibrated (1 ok; all in this process: one file)" in capsys.readouterr().err
-    monkeypatch.setattr(study_plan.ClusterStart, "start", lambda self: pytest.fail("a cluster for 0.1 s of work"))
+    monkeypatch.setattr(study_plan.DaskStart, "start", lambda self: pytest.fail("Dask for 0.1 s of work"))
     assert main(["calibrate", *files, "--out", str(tmp_path / "small.csv"), "--workers", "2"]) == 0
     err = capsys.readouterr().err
     saving = float(err.split("all in this process: two files at a time would save ~")[1].split(" s, ")[0])
     assert 0 <= saving < study_plan.DASK_START_S and " s left here, one file keeping " in err
     monkeypatch.setattr(study_plan, "DASK_START_S", -1.0)
-    monkeypatch.setattr(study_plan.ClusterStart, "start", study_plan.ClusterStart.run)
-    monkeypatch.setitem(sys.modules, "dask.distributed", None)  # dask.distributed not installed
+    monkeypatch.setattr(study_plan.DaskStart, "start", study_plan.DaskStart.run)
+    monkeypatch.setitem(sys.modules, "dask.threaded", None)  # dask not installed
+    monkeypatch.setitem(sys.modules, "dask.multiprocessing", None)
     assert main(["calibrate", *files, "--out", str(tmp_path / "three.csv"), "--workers", "2"]) == 0
     err = capsys.readouterr().err
-    assert "the study goes on in this process: no Dask: dask.distributed is not installed (pip install 'gravcal[study]')" in err
+    assert "the study goes on in this process: no Dask: dask is not installed (pip install 'gravcal[study]')" in err
     assert "3 file(s) calibrated (3 ok; all in this process: no Dask: " in err
     assert [r["status"] for r in rows_of(tmp_path / "three.csv")] == ["ok", "ok", "ok"]
 
@@ -283,3 +327,32 @@ def test_the_plan_counts_only_idle_cores():
     assert saving == 0.0
     saving, _ = study_plan._threads_saving((0.0, 0.0, 0.0, 0.0), (2.0, 1.0, 0.75 * 2 * jiffies, 2 * jiffies), 2, 3.0)
     assert saving == pytest.approx(3.0)  # 6 s left, used 0.5, extra 0.5: half saved
+
+
+def test_dask_threads_hand_each_row_over_as_it_finishes_and_a_raising_task_is_its_row():
+    """worker_rows on threads: file a waits until the study has b's row (rows are written as files finish, so an
+    interrupted study keeps them); c raises on its worker thread and becomes its error row."""
+    import threading
+
+    from gravcal.io import study_plan
+
+    b_seen = threading.Event()
+
+    def here(f, w):
+        if f == "a":
+            return {"file": f, "status": "ok", "b_first": b_seen.wait(timeout=30)}
+        if f == "c":
+            raise RuntimeError("boom")
+        return {"file": f, "status": "ok"}
+
+    def failed(f, exc):
+        return {"file": f, "status": "error", "message": f"{type(exc).__name__}: {exc}"}
+
+    rows = []
+    for row in study_plan.worker_rows([("a", None), ("b", None), ("c", None)], here, 2, failed, processes=False):
+        rows.append(row)
+        if row["file"] == "b":
+            b_seen.set()
+    by_file = {r["file"]: r for r in rows}
+    assert len(rows) == 3 and by_file["a"]["b_first"] is True
+    assert by_file["c"] == {"file": "c", "status": "error", "message": "RuntimeError: boom"}

@@ -40,6 +40,7 @@ class PoseSession:
     held_rel_std: float
     g_dir: np.ndarray  # the pose's gravity in the sensor frame
     n_handling: int  # windows in other postures
+    clean_mean: np.ndarray | None = None  # (m, 3) the window means without noise, floor or wander [counts]
 
 
 def _rng(kind: str, seed: int) -> np.random.Generator:
@@ -116,7 +117,8 @@ def window_session(seed: int, *, kind: str = "offset", m: int = 200, duration_s:
     ws = WindowSet(mean=mean, cov=cov, n=n.astype(float), t=t_mid, aux=np.column_stack([temp, np.full(m, 3.3)]),
                    start=start, end=start + n)
     truth = (c_o + c_s * s * g) / s * 1e3
-    return PoseSession(ws, truth, held_K, held_o, held_rel_std, g, h)
+    clean = gain * dirs + o + c_o * dT[:, None]
+    return PoseSession(ws, truth, held_K, held_o, held_rel_std, g, h, clean)
 
 
 def sample_session(seed: int, *, duration_s: float = 5400.0, fs: float = 16.0, noise_g: float = 0.004,

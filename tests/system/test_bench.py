@@ -217,3 +217,31 @@ def test_peers_fit_their_own_model_on_given_windows(name):
     cap = a[a[:, 2] > 0.5]
     low = peers_windows.fit(name, cap * SENS + OFFSET_G, None)
     assert not low.ok and ("sphere" in low.message or "10 mg" in low.message), low.message
+
+
+def test_the_accuracy_verdict_scores_only_the_folds_both_calibrated():
+    """Four folds of 10, 30, 10, 50 held-out windows: gravcal fits 0-2, the peer 1-3. Scored on folds 1-2
+    (pooled by window count: sqrt((30 * 2^2 + 10 * 1^2) / 40) = 1.80 mg against sqrt((30 * 2.5^2 + 10 *
+    0.5^2) / 40) = 2.18), fold 3 (the peer alone) shown as open, not scored; the pooled figures over each
+    side's own folds (gravcal's worse than the peer's: its fold 0 is hard) would have said not met."""
+    def method(per_fold):
+        return {"fold_rms_mg": per_fold, "folds": 4, "folds_fitted": sum(x is not None for x in per_fold),
+                "declined": [f"fold {i}: too few postures" for i, x in enumerate(per_fold) if x is None],
+                "heldout_rms_mg": 0.0}
+
+    def verdict(gravcal, peer):
+        ms = {"nominal (no calibration)": method([40.0, 40.0, 40.0, 60.0]), "gravcal 6": method(gravcal),
+              "skdh (same windows)": method(peer)}
+        d = {"recordings": {"r": {"heldout": {"blocks": {"test_windows": [10, 30, 10, 50], "methods": ms}}}}}
+        return report_page.accuracy_verdict(d)
+
+    [line] = verdict([9.0, 2.0, 1.0, None], [None, 2.5, 0.5, 0.3])
+    assert line.startswith("- r / blocks: **open** — gravcal 6 1.80 mg vs skdh (same windows) 2.18 mg on the 2/4 fold")
+    assert "1 fold(s) that skdh (same windows) calibrated (0.30 mg there, uncalibrated 60.00 mg)" in line
+    assert "fold 3: too few postures" in line
+    [line] = verdict([9.0, 2.0, 1.0, 0.2], [None, 2.5, 0.5, 0.3])  # nothing only the peer fitted
+    assert line.startswith("- r / blocks: met — gravcal 6 1.") and "open" not in line
+    [line] = verdict([9.0, 2.6, 1.0, 0.2], [None, 2.5, 0.5, 0.3])  # worse on the folds both calibrated
+    assert line.startswith("- r / blocks: **not met** — gravcal 6 ")
+    [line] = verdict([9.0, 2.5, 0.5, None], [None, 2.5, 0.5, None])  # equal at 2 decimals: 4 are shown
+    assert "**not met** — gravcal 6 2.1794 mg vs skdh (same windows) 2.1794 mg" in line
