@@ -2,7 +2,7 @@
 
     python bench/bench_coverage.py [--seeds 400] [--first 1000] [--workers 2] [--json PATH]
     python bench/bench_coverage.py --boundary 20 [--seeds 80] [--kind temperature_offset]
-    python bench/bench_coverage.py --diagnose [--seeds 100]
+    python bench/bench_coverage.py --diagnose [--seeds 100] [--kinds temperature_offset,supply_offset]
 
 Sessions from tests/support/independent_sessions.py (the physics written anew, its own random streams; the
 kinds are listed there), each fitted with the model it was made with (tests/support/coverage_runs.py, the same
@@ -58,6 +58,7 @@ def main(argv=None) -> int:
     ap.add_argument("--boundary", type=float, metavar="LAMBDA")
     ap.add_argument("--kind", default="temperature_offset", help="--boundary: the session kind (a term kind)")
     ap.add_argument("--diagnose", action="store_true", help="diagnose's term magnitudes instead of the batch fit")
+    ap.add_argument("--kinds", help="--diagnose: only these kinds (comma-separated; a quick look at a few)")
     a = ap.parse_args(argv)
     if a.boundary is not None:
         return _boundary(a)
@@ -98,16 +99,20 @@ def _diagnose(a) -> int:
     testable, named or not, per kind and regime; beside them the share named and the z of the named ones alone."""
     from support.diagnose_coverage import DIAGNOSE_KINDS, session_z  # noqa: PLC0415
 
-    args = [(k, s) for k in DIAGNOSE_KINDS for s in range(a.first, a.first + a.seeds)]
+    kinds = tuple(a.kinds.split(",")) if a.kinds else DIAGNOSE_KINDS
+    unknown = sorted(set(kinds) - set(DIAGNOSE_KINDS))
+    if unknown:
+        raise SystemExit(f"unknown kind(s) {unknown}: choose from {', '.join(DIAGNOSE_KINDS)}")
+    args = [(k, s) for k in kinds for s in range(a.first, a.first + a.seeds)]
     t0 = time.perf_counter()
     mapper = _pmap(a.workers)
     results = mapper(session_z, args) if mapper else [session_z(*x) for x in args]
     print(f"diagnose, term magnitudes: RMS z (share beyond 2σ), {a.seeds} sessions per kind, seeds "
           f"{a.first}-{a.first + a.seeds - 1}, {time.perf_counter() - t0:.0f} s\n")
     print("| kind | statistical: sessions, named | n, RMS z, every session | named only | not named | "
-          "chi² bounds (1e-3) | held: sessions, RMS z | refused / untestable |")
-    print("|---|---|---|---|---|---|---|---|")
-    for kind in DIAGNOSE_KINDS:
+          "chi² bounds (1e-3) | held: sessions, n, RMS z | held: chi² bounds | refused / untestable |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for kind in kinds:
         res = [r for (k, _), r in zip(args, results) if k == kind]
         stat = [r for r in res if r["regime"] == "statistical"]
         z_of = lambda rs: np.asarray([v for r in rs for v in r["z"]])  # noqa: E731
@@ -118,7 +123,7 @@ def _diagnose(a) -> int:
         bounds = "{:.3f}-{:.3f}".format(*rms_bounds(z.size)) if z.size else ""
         held = [r for r in res if r["regime"] == "held"]
         print(f"| {kind} | {len(stat)}, {named / max(len(stat), 1) * 100:.0f} % | {cell(z)} | {cell(zn)} | {cell(zu)} | "
-              f"{bounds} | {len(held)}, {_cell(zh) if zh.size else ''} | "
+              f"{bounds} | {len(held)}, {cell(zh)} | {'{:.3f}-{:.3f}'.format(*rms_bounds(zh.size)) if zh.size else ''} | "
               f"{sum(r['regime'] == 'refused' for r in res)} / {sum(r['regime'] == 'untestable' for r in res)} |")
     return 0
 

@@ -295,10 +295,15 @@ def diagnose_windows(ws: WindowSet, start: Calibration, *, has_temp: bool, candi
     verdict = unexplained(structures, rms_e, ref_mg, ref_name, outer, bool(selected_all),
                           None if ho_b is None or ho_e is None else ho_b - ho_e)
     verdict["withdrawn"] = [{"effect": k, "why": v} for k, v in withdrawn.items()]
+    # every tested magnitude carries what the fit held, named or not (its std does not depend on the selection)
+    scored = {t.effect: ["xyz".index(a) for a in t.undetermined_axes] for t in tests
+              if t.status == "not_found" and t.magnitude.get("std")}
     held_sd, held_sources = held_contributions(sel, chosen, held, base=base, base_cal=base_cal, ws_base=ws_base,
-                                               start=start, held_meta=held_meta)
+                                               start=start, held_meta=held_meta, also=scored)
     findings, partial = [], []
     for t in tests:
+        if t.effect in scored:
+            fold_held_std(t.magnitude, held_sd.get(t.effect), held_sources)
         if t.status == "found":
             honest_magnitude(t, held_sd.get(t.effect), held_sources, one_posture=base == "offsets", ws=ws,
                              scale=np.abs(np.diag(base_cal.sensitivity)), scale_rel_std=scale_rel_std(held_meta, start),
@@ -348,16 +353,7 @@ def honest_magnitude(tt: TermTest, held_sd: np.ndarray | None, sources: list[str
     the magnitude is each channel's own slope (held.one_posture_magnitude: ``scale`` [raw/g] and its relative
     std convert it); with tilts about one dominant posture the norm's change along gravity, the partner named."""
     mag = tt.magnitude
-    keys = list(mag.get("value", {}))
-    if held_sd is not None and sources:
-        mag["std_noise"] = dict(mag.get("std", {}))
-        mag["std_held"] = {k: (None if mag["value"][k] is None else float(held_sd[i])) for i, k in enumerate(keys)}
-        for std_key, off in (("std", 0), ("raw_std", 3)):
-            d = mag.get(std_key, {})
-            for i, k in enumerate(keys):
-                if d.get(k) is not None:
-                    d[k] = float(np.hypot(d[k], held_sd[off + i]))
-        mag["held"] = list(sources)
+    fold_held_std(mag, held_sd, sources)
     partner = one_posture_partner(tt.effect) if one_posture else None
     if partner is None:
         return
@@ -376,6 +372,22 @@ def honest_magnitude(tt: TermTest, held_sd: np.ndarray | None, sources: list[str
         f"the value along gravity is their sum; " + (f"{', '.join(across)} not determined (across gravity)" if across
                                                     else "the axes across gravity are determined through the tilts "
                                                          "about the posture"))
+
+
+def fold_held_std(mag: dict[str, Any], held_sd: np.ndarray | None, sources: list[str]) -> None:
+    """Root-sum-square the held quantities' (6,) contribution ``held_sd`` (report x3, raw x3) into a magnitude's
+    std and raw std, keeping the fit's own as ``std_noise``."""
+    if held_sd is None or not sources:
+        return
+    keys = list(mag.get("value", {}))
+    mag["std_noise"] = dict(mag.get("std", {}))
+    mag["std_held"] = {k: (None if mag["value"][k] is None else float(held_sd[i])) for i, k in enumerate(keys)}
+    for std_key, off in (("std", 0), ("raw_std", 3)):
+        d = mag.get(std_key, {})
+        for i, k in enumerate(keys):
+            if d.get(k) is not None:
+                d[k] = float(np.hypot(d[k], held_sd[off + i]))
+    mag["held"] = list(sources)
 
 
 def name_group(f: dict[str, Any], group: dict[str, Any], joint_gain_mg: float | None) -> None:

@@ -57,18 +57,31 @@ def _perturbed_base(base: str, cal: Calibration, j: int, step: float) -> Calibra
 
 def held_contributions(sel: TermSelector, chosen: tuple[str, ...], held: dict[str, list[int]], *, base: str,
                        base_cal: Calibration, ws_base: WindowSet, start: Calibration,
-                       held_meta: dict[str, Any] | None) -> tuple[dict[str, np.ndarray], list[str]]:
+                       held_meta: dict[str, Any] | None, also: dict[str, list[int]] | None = None
+                       ) -> tuple[dict[str, np.ndarray], list[str]]:
     """Per chosen term the (6,) std contribution (report units x3, raw units x3) of everything held, and the
     list of what was propagated. ``ws_base``: the windows the baseline is fitted on; ``held_meta``: the start's
-    stated held covariance (consider.HELD_KEY), None when it states none."""
-    if not chosen:
+    stated held covariance (consider.HELD_KEY), None when it states none. ``also`` {term: axes held at 0}: terms
+    not chosen whose magnitude is evaluated in the model chosen + term (a test's estimate, named or not):
+    each gets its contribution from that model, so its std does not depend on the selection."""
+    models = [(chosen, held)] + [(chosen + (t,), {**held, t: list(h)}) for t, h in (also or {}).items()
+                                 if t not in chosen]
+    models = [m for m in models if m[0]]
+    if not models:
         return {}, []
-    var: dict[str, np.ndarray] = {t: np.zeros(6) for t in chosen}
+    var: dict[str, np.ndarray] = {t: np.zeros(6) for t in chosen + tuple(also or ())}
     sources: list[str] = []
+
+    def mags(bc: Calibration) -> dict[str, np.ndarray]:
+        out: dict[str, np.ndarray] = {}
+        for i, (terms, h) in enumerate(models):
+            m = _magnitudes(sel, bc, terms, h)
+            out.update(m if i == 0 and terms == chosen else {terms[-1]: m[terms[-1]]})
+        return out
 
     def add(label: str, plus: dict[str, np.ndarray], minus: dict[str, np.ndarray]) -> None:
         sources.append(label)
-        for t in chosen:
+        for t in var:
             var[t] += ((plus[t] - minus[t]) / 2.0) ** 2
 
     if held_meta and base == "offsets":  # the sensitivities the baseline holds, as uncertain as the start says
@@ -82,15 +95,14 @@ def held_contributions(sel: TermSelector, chosen: tuple[str, ...], held: dict[st
                 K = start.sensitivity.copy()
                 K[i, i] += sign * sd
                 bc = LottersBatch(base).fit(ws_base, dataclasses.replace(start, sensitivity=K))
-                fits.append(_magnitudes(sel, bc, chosen, held))
+                fits.append(mags(bc))
             add(f"{name} ± {sd:.4g} raw/g ({held_meta.get('source', 'stated held uncertainty')})", *fits)
     names = PARAMETERIZATIONS[base](base_cal.sensitivity, base_cal.offset).names
     for j in sel.held_base:  # base parameters these windows do not determine, held at the all-window fit
         sd = float(np.sqrt(max(base_cal.covariance[j, j], 0.0))) if base_cal.covariance.shape[0] > j else 0.0
         if sd > 0:
             add(f"{names[j]} ± {sd:.4g} (held at the all-window baseline)",
-                _magnitudes(sel, _perturbed_base(base, base_cal, j, sd), chosen, held),
-                _magnitudes(sel, _perturbed_base(base, base_cal, j, -sd), chosen, held))
+                mags(_perturbed_base(base, base_cal, j, sd)), mags(_perturbed_base(base, base_cal, j, -sd)))
     return {t: np.sqrt(v) for t, v in var.items()}, sources
 
 
