@@ -6,9 +6,10 @@ One child per process, started on first use and kept (the readers' imports, seco
 are paid once, not per file), started again after one died. It takes requests on its stdin, one JSON line each:
 READER ("module:function", taking (path, Sniffed) and returning (columns, meta) as the in-process readers do),
 the file, a directory; it writes each column there as NAME.npy and the rest as meta.json, or the reader's
-InputError as error.txt, then answers one line on its own pipe (its stdout is the readers'). The parent loads
-the columns: no pickled copies. A subprocess, not multiprocessing: a study's dask workers are daemonic processes,
-which multiprocessing forbids to have children.
+InputError as error.txt (any other exception, a bug, as raised.txt: raised here as RuntimeError), then answers
+one line on its own pipe (its stdout is the readers'). The parent loads the columns: no pickled copies. A
+subprocess, not multiprocessing: a study's dask workers are daemonic processes, which multiprocessing forbids to
+have children.
 """
 from __future__ import annotations
 
@@ -109,6 +110,8 @@ def read_in_child(reader: str, path: Path, found: Sniffed, name: str) -> tuple[d
                              f"({_how(died[0])}{_last_line(died[1])}); not read")
         if (out / "error.txt").exists():
             raise InputError((out / "error.txt").read_text("utf-8", "replace").strip())
+        if (out / "raised.txt").exists():  # as the reader in this process would have raised it
+            raise RuntimeError(f"{reader} raised {(out / 'raised.txt').read_text('utf-8', 'replace')}")
         done = json.loads((out / "meta.json").read_text("utf-8"))
         cols = {c: np.load(out / f"{c}.npy", allow_pickle=False) for c in done["columns"]}
         return cols, done["meta"]
@@ -141,8 +144,8 @@ def _read_one(reader: str, path: str, out: str) -> None:
     except InputError as exc:
         (dest / "error.txt").write_text(" ".join(str(exc).split()), "utf-8")
         return
-    except Exception as exc:  # noqa: BLE001 - the reader's fault, said in one line as the in-process path would
-        (dest / "error.txt").write_text(f"{path}: its reader failed ({type(exc).__name__})", "utf-8")
+    except Exception as exc:  # noqa: BLE001 - a bug (the readers turn the file's faults into InputError): raised
+        (dest / "raised.txt").write_text(" ".join(f"{type(exc).__name__}: {exc}".split())[:500], "utf-8")
         return
     for c, values in cols.items():
         np.save(dest / f"{c}.npy", np.ascontiguousarray(values), allow_pickle=False)

@@ -71,3 +71,13 @@ def test_a_study_goes_on_after_a_reader_aborts_and_calibrate_exits_2(truncated_c
         rec = read_recording(Path(os.environ["GRAVCAL_SKDH_FIXTURES"]) / "ax6_sample.cwa", check_saturation=False)
         assert rec.raw.shape[0] > 0
     assert isolated._CHILD.proc is None or isolated._CHILD.proc.poll() is None
+
+
+def _buggy_reader(path, found):
+    return {}["t"], {}
+
+
+def test_a_bug_in_the_child_is_raised_not_taken_for_a_damaged_file(truncated_cwa, monkeypatch):
+    monkeypatch.setattr(wearables, "SKDH_READER", f"{__name__}:_buggy_reader")
+    with pytest.raises(RuntimeError, match=r"_buggy_reader raised KeyError: 't'$"):
+        read_recording(truncated_cwa)
