@@ -126,6 +126,15 @@ def parse_requests(line: bytes | str) -> list[Request | ProtocolError]:
     else:
         text = line
     text = text.strip()
+    if _PLAIN.fullmatch(text.strip(" \t\r;")):  # the common case, commands without arguments: no walk through it
+        names = [m.upper() for m in _PLAIN_NAME.findall(text)]
+        if all(name in COMMANDS for name in names):
+            return [Request(name) for name in names]
+    return _parse_walk(text)
+
+
+def _parse_walk(text: str) -> list[Request | ProtocolError]:
+    """parse_requests' general case: command by command, JSON arguments, the first error."""
     out: list[Request | ProtocolError] = []
     pos, n = 0, len(text)
     while True:
@@ -161,6 +170,10 @@ def parse_requests(line: bytes | str) -> list[Request | ProtocolError]:
         out.append(Request(name, args))
 
 
+# "?STATUS;?POLL", "?VERSION" (separators at the ends stripped: every one left is followed by a "?", so the match
+# is linear in the line, whatever it holds)
+_PLAIN = re.compile(r"(?:\?[A-Za-z]+(?:[ \t\r;]+\?[A-Za-z]+)*)?")
+_PLAIN_NAME = re.compile(r"\?([A-Za-z]+)")
 _GAP = re.compile(r"[ \t\r;]*")  # between commands
 _NAME = re.compile(r"\w*")  # a command's name: str.isalnum() or "_", as \w is for str patterns
 

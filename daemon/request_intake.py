@@ -57,7 +57,16 @@ class RequestIntake:
             self._flush(c)
 
     def _take_lines(self, c: _Client) -> None:
-        """Answer every whole line in the client's buffer within its budget (replies queued, not sent)."""
+        """Answer every whole line in the client's buffer within its budget (the replies queued together, not
+        sent)."""
+        out: list[bytes] = []
+        try:
+            self._answer_lines(c, out)
+        finally:
+            if out and c.id in self._clients:
+                self._enqueue(c, out)
+
+    def _answer_lines(self, c: _Client, out: list[bytes]) -> None:
         limit = self.config.max_request_bytes
         buf = c.inbuf
         now = time.monotonic()  # what one read brought arrived at once
@@ -72,6 +81,7 @@ class RequestIntake:
                 continue
             if nl < 0:
                 if len(buf) > limit:
+                    self._queue(c, out)  # before the ERROR that follows them
                     self._oversized(c)
                     if c.id not in self._clients:
                         return
@@ -79,11 +89,13 @@ class RequestIntake:
                     c.discarding = True
                 break
             if not c.budget.take(1, now):  # a line costs one request, empty or not ...
+                self._queue(c, out)
                 self._throttle(c)
                 return
             line = bytes(buf[:nl])
             del buf[: nl + 1]
             if len(line) > limit:
+                self._queue(c, out)
                 self._oversized(c)
                 if c.id not in self._clients:
                     return
@@ -93,13 +105,20 @@ class RequestIntake:
             if not requests:
                 continue
             granted = len(requests) if len(requests) == 1 else 1 + c.budget.take(len(requests) - 1, now)
-            self._handle_line(c, line, requests[:granted])  # ... and each further command on it one more
+            self._handle_line(c, line, requests[:granted], out)  # ... and each further command on it one more
             if c.id not in self._clients:
                 return
             if granted < len(requests):
+                self._queue(c, out)
                 self._throttle(c, len(requests) - granted)
                 return
         c.flood_since = None  # all it sent was within the budget: a later flood starts its own clock
+
+    def _queue(self, c: _Client, out: list[bytes]) -> None:
+        """Queue the replies gathered so far (before one that does not wait for them)."""
+        if out:
+            self._enqueue(c, out)
+            out.clear()
 
     def _throttle(self, c: _Client, refused_on_line: int = 0) -> None:
         """Over the request budget: discard what is buffered, say so once, stop reading for a while."""
@@ -145,9 +164,12 @@ class RequestIntake:
             c.close_when_flushed = True  # answer what it asked, then hang up
         self._flush(c)
 
-    def _handle_line(self, c: _Client, line: bytes, requests: list | None = None) -> None:
-        """Execute a line's commands in order; their replies are queued together."""
-        out: list[bytes] = []
+    def _handle_line(self, c: _Client, line: bytes, requests: list | None = None,
+                     out: list[bytes] | None = None) -> None:
+        """Execute a line's commands in order; their replies go to ``out`` (queued by the caller), or are queued
+        here without it."""
+        mine = out is None
+        out = [] if out is None else out
         for req in protocol.parse_requests(line) if requests is None else requests:
             if isinstance(req, ProtocolError):
                 c.errors += 1
@@ -163,7 +185,7 @@ class RequestIntake:
                 log.error("client %d: ?%s raised %s: %s", c.id, req.command, type(exc).__name__, exc)
                 out.append(protocol.encode(protocol.error_message(f"internal error answering ?{req.command}",
                                                                   _text(line))))
-        if out:
+        if mine and out:
             self._enqueue(c, out)
 
 
