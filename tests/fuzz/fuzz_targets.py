@@ -148,6 +148,7 @@ def slcan_lines(data: bytes) -> None:
 # -- socket requests through the real server ----------------------------------------------------------
 _SERVER: SocketServer | None = None
 _CONN: socket.socket | None = None  # one client connection, reused while the server keeps no state of an input
+_CONN_ID = -1  # the server's id of that client
 HANG_UP = b"\x04"  # an input ending in ^D: the client half-closes after it (as `echo ... | nc -U` does)
 
 
@@ -155,7 +156,7 @@ def _server() -> SocketServer:
     global _SERVER
     if _SERVER is None or not _SERVER.alive:
         _SERVER = SocketServer(str(_TMP / "fuzz.sock"), config=ServerConfig(
-            request_rate_hz=1e6, request_burst=10**6, idle_timeout_s=60),  # the budget is tested elsewhere
+            request_rate_hz=1e6, request_burst=10**6, idle_timeout_s=1e9),  # budget and idle limit: tested elsewhere
             status_provider=lambda: {"device": {"bus": "fuzz"}}).start()
     return _SERVER
 
@@ -187,7 +188,7 @@ def socket_request(data: bytes) -> None:
     in ^D, the client half-closes instead of sending the marker: the server answers what it got, then hangs up.
     The connection is reused while the server holds nothing of an input that could change the next one's
     answers (no oversized request counted, the default WATCH policy): each input is answered as on a fresh one."""
-    global _CONN
+    global _CONN, _CONN_ID
     srv = _server()
     data = data[: 4 * MAX_REQUEST_BYTES]
     hang_up = data.endswith(HANG_UP)
@@ -198,8 +199,11 @@ def socket_request(data: bytes) -> None:
         c.shutdown(socket.SHUT_WR)  # half-closed: the server answers what it got, then hangs up
         marker = None
     else:
+        if _CONN is not None and _CONN_ID not in srv._clients:
+            _hang_up()  # the server let it go between inputs (stopped, restarted): a fresh one
         if _CONN is None:
             _CONN = _connect(srv)
+            _CONN_ID = max(list(srv._clients), default=-1)  # the newest: ours (the only client that connects)
         c, n = _CONN, 0
         while b"END%d" % n in data:  # a command no reply to this input can name
             n += 1
@@ -234,7 +238,7 @@ def socket_request(data: bytes) -> None:
     if hang_up and not hung_up_at_limit or complete and not hang_up:
         assert json.loads(lines[-2 if hang_up else -3])["class"] == "VERSION", lines[-3:]
     if _CONN is not None:
-        client = srv._clients.get(max(list(srv._clients), default=-1))  # ours: the newest
+        client = srv._clients.get(_CONN_ID)
         if client is None or client.oversize_count or client.watch != WatchPolicy():
             _hang_up()  # the next input starts on a fresh connection
 
