@@ -185,7 +185,8 @@ def socket_request(data: bytes) -> None:
     """Bytes a client sends (cut into lines as sent), then ``?WATCH={"enable":false};?VERSION;`` and a marker
     line: every reply is one JSON line, the VERSION asked for comes back (nothing lost the client its answer)
     unless the server hung up at its stated limit (oversized requests), and the server thread lives on. Ending
-    in ^D, the client half-closes instead of sending the marker: the server answers what it got, then hangs up.
+    in ^D, the client sends the WATCH and VERSION as a last line without its newline and half-closes instead of
+sending the marker: the server answers what it got, that line included, then hangs up.
     The connection is reused while the server holds nothing of an input that could change the next one's
     answers (no oversized request counted, the default WATCH policy): each input is answered as on a fresh one."""
     global _CONN, _CONN_ID
@@ -195,8 +196,8 @@ def socket_request(data: bytes) -> None:
     if hang_up:
         _hang_up()
         c = _connect(srv)
-        c.sendall(data[:-1] + b'\n?WATCH={"enable":false};?VERSION;\n')
-        c.shutdown(socket.SHUT_WR)  # half-closed: the server answers what it got, then hangs up
+        c.sendall(data[:-1] + b'\n?WATCH={"enable":false};?VERSION;')  # a last line without its newline ...
+        c.shutdown(socket.SHUT_WR)  # ... then half-closed: the server answers what it got, then hangs up
         marker = None
     else:
         if _CONN is not None and _CONN_ID not in srv._clients:
