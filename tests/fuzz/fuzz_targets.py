@@ -186,7 +186,7 @@ def socket_request(data: bytes) -> None:
     line: every reply is one JSON line, the VERSION asked for comes back (nothing lost the client its answer)
     unless the server hung up at its stated limit (oversized requests), and the server thread lives on. Ending
     in ^D, the client sends the WATCH and VERSION as a last line without its newline and half-closes instead of
-sending the marker: the server answers what it got, that line included, then hangs up.
+    sending the marker: the server answers what it got, that line included, then hangs up.
     The connection is reused while the server holds nothing of an input that could change the next one's
     answers (no oversized request counted, the default WATCH policy): each input is answered as on a fresh one."""
     global _CONN, _CONN_ID
