@@ -31,8 +31,9 @@ from ...errors import InputError
 from .sniff import Sniffed, sniff
 
 STDERR_TAIL = 2048  # bytes of the child's stderr kept to say how it ended
-# columns pass through memory where there is a tmpfs
-_TRANSFER_DIR = "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else None
+SHM = "/dev/shm"
+COLUMN_BYTES_PER_FILE_BYTE = 16  # float64 columns per byte of a .cwa (packed samples) or a .bin (hex text), bounded
+SHM_MARGIN = 64 << 20  # bytes /dev/shm keeps free beyond a file's columns
 
 
 class _Child:
@@ -102,7 +103,7 @@ atexit.register(_CHILD.close)
 def read_in_child(reader: str, path: Path, found: Sniffed, name: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     """``reader(path, found)`` run in this process's reader child; InputError naming the file and ``name`` (the
     reader, for the user) if the child ended without a result."""
-    with tempfile.TemporaryDirectory(prefix="gravcal-reader-", dir=_TRANSFER_DIR) as tmp:
+    with tempfile.TemporaryDirectory(prefix="gravcal-reader-", dir=_transfer_dir(path)) as tmp:
         out = Path(tmp)
         died = _CHILD.run(reader, path, out)
         if died is not None:
@@ -115,6 +116,17 @@ def read_in_child(reader: str, path: Path, found: Sniffed, name: str) -> tuple[d
         done = json.loads((out / "meta.json").read_text("utf-8"))
         cols = {c: np.load(out / f"{c}.npy", allow_pickle=False) for c in done["columns"]}
         return cols, done["meta"]
+
+
+def _transfer_dir(path: Path) -> str | None:
+    """/dev/shm (the columns through memory) when it has room for them, else the temporary directory's disk: a
+    full tmpfs would otherwise end the child (and be taken for the file's fault)."""
+    try:
+        st = os.statvfs(SHM)
+        need = COLUMN_BYTES_PER_FILE_BYTE * os.path.getsize(path) + SHM_MARGIN
+        return SHM if st.f_bavail * st.f_frsize >= need and os.access(SHM, os.W_OK) else None
+    except OSError:
+        return None
 
 
 def _how(returncode: int) -> str:
