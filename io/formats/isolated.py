@@ -50,8 +50,11 @@ class _Child:
         r, w = os.pipe()
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))  # this process's gravcal
         try:
+            # its own session: a Ctrl-C at the terminal interrupts the parent, which decides, not the child mid-read
+            # (taken for the file's fault); the child ends when its stdin closes
             self.proc = subprocess.Popen([sys.executable, "-m", __name__, str(w)], stdin=subprocess.PIPE,
-                                         stdout=subprocess.DEVNULL, stderr=self.stderr, env=env, pass_fds=(w,))
+                                         stdout=subprocess.DEVNULL, stderr=self.stderr, env=env, pass_fds=(w,),
+                                         start_new_session=True)
         finally:
             os.close(w)
         self.replies = os.fdopen(r, "rb")
@@ -72,6 +75,9 @@ class _Child:
                 answered = self.replies.readline() == b"done\n"
             except (BrokenPipeError, ConnectionResetError):
                 answered = False
+            except BaseException:  # interrupted (Ctrl-C): its answer would be taken for the next request's
+                self.close(kill=True)
+                raise
             if answered:
                 return None
             status = self.proc.wait()
@@ -81,8 +87,10 @@ class _Child:
             self.close()
             return status, tail
 
-    def close(self) -> None:
+    def close(self, kill: bool = False) -> None:
         if self.proc is not None:
+            if kill:
+                self.proc.kill()
             for f in (self.proc.stdin, self.replies, self.stderr):
                 try:
                     f.close()

@@ -5,13 +5,18 @@ from __future__ import annotations
 
 import csv
 import os
+import signal
+import threading
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from gravcal.cli.main import main
 from gravcal.errors import InputError
 from gravcal.io.formats import isolated, wearables
+from gravcal.io.formats.sniff import Sniffed
 from gravcal.io.recordings import read_recording
 
 # the recording fuzz target's find: byte 0 chose the suffix, the rest is a .cwa cut inside its first block
@@ -81,3 +86,30 @@ def test_a_bug_in_the_child_is_raised_not_taken_for_a_damaged_file(truncated_cwa
     monkeypatch.setattr(wearables, "SKDH_READER", f"{__name__}:_buggy_reader")
     with pytest.raises(RuntimeError, match=r"_buggy_reader raised KeyError: 't'$"):
         read_recording(truncated_cwa)
+
+
+def _slow_reader(path, found):
+    (path.parent / "started").touch()
+    time.sleep(5)
+    return {"t": np.arange(3.0)}, {"n": 3}
+
+
+def _tiny_reader(path, found):
+    return {"t": np.arange(2.0)}, {"n": 2}
+
+
+def test_an_interrupted_read_leaves_no_answer_for_the_next(tmp_path):
+    p = tmp_path / "x.bin"
+    p.write_bytes(b"x")
+    found = Sniffed("bin", "a test file")
+
+    def interrupt_once_started():
+        while not (tmp_path / "started").exists():
+            time.sleep(0.01)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=interrupt_once_started, daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        isolated.read_in_child(f"{__name__}:_slow_reader", p, found, "a slow reader")
+    cols, meta = isolated.read_in_child(f"{__name__}:_tiny_reader", p, found, "a quick reader")
+    assert meta == {"n": 2} and cols["t"].tolist() == [0.0, 1.0]
