@@ -15,6 +15,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+import re
 from dataclasses import dataclass
 from typing import Any
 
@@ -125,19 +126,25 @@ def parse_requests(line: bytes | str) -> list[Request | ProtocolError]:
     else:
         text = line
     text = text.strip()
+    if _PLAIN.fullmatch(text.strip(" \t\r;")):  # the common case, commands without arguments: no walk through it
+        names = [m.upper() for m in _PLAIN_NAME.findall(text)]
+        if all(name in COMMANDS for name in names):
+            return [Request(name) for name in names]
+    return _parse_walk(text)
+
+
+def _parse_walk(text: str) -> list[Request | ProtocolError]:
+    """parse_requests' general case: command by command, JSON arguments, the first error."""
     out: list[Request | ProtocolError] = []
-    pos = 0
+    pos, n = 0, len(text)
     while True:
-        while pos < len(text) and text[pos] in " \t\r;":
-            pos += 1
-        if pos >= len(text):
+        pos = _GAP.match(text, pos).end()
+        if pos >= n:
             return out
         if text[pos] != "?":
             out.append(ProtocolError(f"requests start with '?', e.g. ?WATCH={{\"enable\":true}}; got {_excerpt(text[pos:])!r}"))
             return out
-        end = pos + 1
-        while end < len(text) and (text[end].isalnum() or text[end] == "_"):
-            end += 1
+        end = _NAME.match(text, pos + 1).end()
         name = text[pos + 1 : end].upper()
         if name not in COMMANDS:
             shown = text[pos:end] or text[pos : pos + 10]
@@ -145,7 +152,7 @@ def parse_requests(line: bytes | str) -> list[Request | ProtocolError]:
             return out
         args = None
         pos = end
-        if pos < len(text) and text[pos] == "=":
+        if pos < n and text[pos] == "=":
             if name != "WATCH":
                 out.append(ProtocolError(f"?{name} takes no arguments"))
                 return out
@@ -157,18 +164,33 @@ def parse_requests(line: bytes | str) -> list[Request | ProtocolError]:
             if not isinstance(args, dict):
                 out.append(ProtocolError(f"?{name}: argument must be a JSON object, got {type(args).__name__}"))
                 return out
-        if pos < len(text) and text[pos] not in " \t\r;":
+        if pos < n and text[pos] not in " \t\r;":
             out.append(ProtocolError(f"?{name}: unexpected text after the command: {_excerpt(text[pos:])!r}"))
             return out
         out.append(Request(name, args))
 
 
+# "?STATUS;?POLL", "?VERSION" (separators at the ends stripped: every one left is followed by a "?", so the match
+# is linear in the line, whatever it holds)
+_PLAIN = re.compile(r"(?:\?[A-Za-z]+(?:[ \t\r;]+\?[A-Za-z]+)*)?")
+_PLAIN_NAME = re.compile(r"\?([A-Za-z]+)")
+_GAP = re.compile(r"[ \t\r;]*")  # between commands
+_NAME = re.compile(r"\w*")  # a command's name: str.isalnum() or "_", as \w is for str patterns
+
+
 # -- messages ------------------------------------------------------------------------
 
 
+_ENCODE = json.JSONEncoder(separators=(",", ":"), allow_nan=False).encode  # json.dumps with these builds one per call
+
+
 def encode(message: dict[str, Any]) -> bytes:
-    """One message as a JSON line (non-finite floats become null)."""
-    return (json.dumps(_finite(message), separators=(",", ":"), allow_nan=False) + "\n").encode()
+    """One message as a JSON line (non-finite floats become null, numpy scalars and arrays plain JSON)."""
+    try:  # most messages hold neither: encoded as they are, not walked first
+        text = _ENCODE(message)
+    except (ValueError, TypeError):  # a NaN or an infinity, a numpy value
+        text = _ENCODE(_finite(message))
+    return (text + "\n").encode()
 
 
 def _finite(x: Any) -> Any:
@@ -185,6 +207,11 @@ def _finite(x: Any) -> Any:
     return x
 
 
+@functools.cache  # every client gets it on connecting: encoded once
+def version_line() -> bytes:
+    return encode(version_message())
+
+
 def version_message() -> dict[str, Any]:
     return {
         "class": "VERSION",
@@ -192,6 +219,11 @@ def version_message() -> dict[str, Any]:
         "proto_major": PROTOCOL_MAJOR,
         "proto_minor": PROTOCOL_MINOR,
     }
+
+
+NO_CALIB_LINE = encode({"class": "CALIB", "revision": 0, "accepted": False, "model": None,
+                        "message": "no calibration yet"})
+"""?CALIB's answer before the first calibration."""
 
 
 DEVICE_FIELDS = ("bus", "device", "connected", "rate_hz", "samples", "reconnects")

@@ -8,6 +8,8 @@ that every bound on what a client may send sits in one place:
 - the budget (client_limits.RequestBudget) is charged one request per line and one more per further command on
   it (``?STATUS;?POLL;`` is two): over it, the rest of the line and whatever is buffered is discarded with one
   ERROR and reading pauses; ``flood_timeout_s`` of flooding without a read within the budget disconnects;
+- the answers to everything one read brought are sent together: a line of many commands costs one send, not
+  one per command;
 - whatever one client's bytes raise on this path (a bug reached by a request) closes that client with one log
   line: no request can end the server thread.
 """
@@ -38,6 +40,7 @@ class RequestIntake:
                 self._close(c, f"request failed ({type(exc).__name__})")
 
     def _on_readable(self, c: _Client) -> None:
+        """Read what the client sent, answer its whole lines, and send the answers in one go."""
         try:
             data = c.sock.recv(65536)
         except (BlockingIOError, InterruptedError):
@@ -48,9 +51,25 @@ class RequestIntake:
         if not data:
             self._on_eof(c)
             return
+        c.inbuf += data
+        self._take_lines(c)
+        if c.id in self._clients:
+            self._flush(c)
+
+    def _take_lines(self, c: _Client) -> None:
+        """Answer every whole line in the client's buffer within its budget (the replies queued together, not
+        sent)."""
+        out: list[bytes] = []
+        try:
+            self._answer_lines(c, out)
+        finally:
+            if out and c.id in self._clients:
+                self._enqueue(c, out)
+
+    def _answer_lines(self, c: _Client, out: list[bytes]) -> None:
         limit = self.config.max_request_bytes
         buf = c.inbuf
-        buf += data
+        now = time.monotonic()  # what one read brought arrived at once
         while True:
             nl = buf.find(b"\n")
             if c.discarding:
@@ -62,33 +81,44 @@ class RequestIntake:
                 continue
             if nl < 0:
                 if len(buf) > limit:
+                    self._queue(c, out)  # before the ERROR that follows them
                     self._oversized(c)
                     if c.id not in self._clients:
                         return
                     buf.clear()
                     c.discarding = True
                 break
-            now = time.monotonic()
             if not c.budget.take(1, now):  # a line costs one request, empty or not ...
+                self._queue(c, out)
                 self._throttle(c)
                 return
             line = bytes(buf[:nl])
             del buf[: nl + 1]
             if len(line) > limit:
+                self._queue(c, out)
                 self._oversized(c)
                 if c.id not in self._clients:
                     return
                 continue
             c.last_request = now
             requests = protocol.parse_requests(line)
-            granted = len(requests) if len(requests) <= 1 else 1 + c.budget.take(len(requests) - 1, now)
-            self._handle_line(c, line, requests[:granted])  # ... and each further command on it one more
+            if not requests:
+                continue
+            granted = len(requests) if len(requests) == 1 else 1 + c.budget.take(len(requests) - 1, now)
+            self._handle_line(c, line, requests[:granted], out)  # ... and each further command on it one more
             if c.id not in self._clients:
                 return
             if granted < len(requests):
+                self._queue(c, out)
                 self._throttle(c, len(requests) - granted)
                 return
         c.flood_since = None  # all it sent was within the budget: a later flood starts its own clock
+
+    def _queue(self, c: _Client, out: list[bytes]) -> None:
+        """Queue the replies gathered so far (before one that does not wait for them)."""
+        if out:
+            self._enqueue(c, out)
+            out.clear()
 
     def _throttle(self, c: _Client, refused_on_line: int = 0) -> None:
         """Over the request budget: discard what is buffered, say so once, stop reading for a while."""
@@ -108,7 +138,7 @@ class RequestIntake:
             self._close(c, f"flooding requests for {now - c.flood_since:.0f} s ({c.refused} refused)")
             return
         self._reply(c, protocol.error_message(
-            f"too many requests (limit {self.config.request_rate_hz:g}/s): {refused} discarded", None), flush=False)
+            f"too many requests (limit {self.config.request_rate_hz:g}/s): {refused} discarded", None))
         c.paused_until = now + max(c.budget.wait_for_one(now), 0.25)
         self._flush(c)
 
@@ -134,20 +164,31 @@ class RequestIntake:
             c.close_when_flushed = True  # answer what it asked, then hang up
         self._flush(c)
 
-    def _handle_line(self, c: _Client, line: bytes, requests: list | None = None) -> None:
-        text = line.decode("utf-8", "replace").strip()
+    def _handle_line(self, c: _Client, line: bytes, requests: list | None = None,
+                     out: list[bytes] | None = None) -> None:
+        """Execute a line's commands in order; their replies go to ``out`` (queued by the caller), or are queued
+        here without it."""
+        mine = out is None
+        out = [] if out is None else out
         for req in protocol.parse_requests(line) if requests is None else requests:
             if isinstance(req, ProtocolError):
                 c.errors += 1
-                self._reply(c, protocol.error_message(str(req), text))
+                out.append(protocol.encode(protocol.error_message(str(req), _text(line))))
                 continue
             try:
-                self._execute(c, req)
+                self._execute(c, req, out)
             except ProtocolError as exc:
                 c.errors += 1
-                self._reply(c, protocol.error_message(str(exc), text))
+                out.append(protocol.encode(protocol.error_message(str(exc), _text(line))))
             except Exception as exc:  # the server's fault, not the client's: say so, log it once, carry on
                 c.errors += 1
                 log.error("client %d: ?%s raised %s: %s", c.id, req.command, type(exc).__name__, exc)
-                self._reply(c, protocol.error_message(f"internal error answering ?{req.command}", text))
+                out.append(protocol.encode(protocol.error_message(f"internal error answering ?{req.command}",
+                                                                  _text(line))))
+        if mine and out:
+            self._enqueue(c, out)
 
+
+def _text(line: bytes) -> str:
+    """A request line as an ERROR quotes it."""
+    return line.decode("utf-8", "replace").strip()

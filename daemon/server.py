@@ -96,6 +96,7 @@ class SocketServer(RequestIntake):
         self.fast_box = WatcherBox(())  # the C step's watchers: fast_box[0] = fanout.fast_snapshot(...)
         self._next_id = 1
         self._calib: dict[str, Any] | None = None
+        self._calib_line: bytes | None = None  # self._calib encoded, as notify() sent it
         self._last_block: ImuBlock | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -199,7 +200,8 @@ class SocketServer(RequestIntake):
         """Push a message to every watcher now, in order with this thread's samples (CALIB: kept for new ones)."""
         line = protocol.encode(msg)
         with self._calib_lock:
-            self._calib = msg if current_calib else self._calib
+            if current_calib:
+                self._calib, self._calib_line = msg, line
             wake, dropped = deliver_line(self._watchers, line, time.monotonic())
         self._dropped_direct += dropped
         if wake:
@@ -312,7 +314,7 @@ class SocketServer(RequestIntake):
             self._sel.register(conn, selectors.EVENT_READ, c)
             c.events = selectors.EVENT_READ
             log.debug("client %d connected", c.id)
-            self._enqueue(c, [protocol.encode(protocol.version_message())])
+            self._enqueue(c, [protocol.version_line()])
             self._flush(c)
 
     def _close(self, c: _Client, why: str) -> None:
@@ -345,35 +347,37 @@ class SocketServer(RequestIntake):
             self._close(oldest, f"idle for {now - oldest.last_request:.0f} s, room made for a new client")
 
     # -- requests (read, split into lines and charged to the budget by RequestIntake) ------
-    def _execute(self, c: _Client, req: protocol.Request) -> None:
+    def _execute(self, c: _Client, req: protocol.Request, out: list[bytes]) -> None:
+        """Append the replies to one command to ``out`` (queued per line by the intake, sent once per read: a
+        line of many commands costs one send); ?WATCH queues ``out`` with its own under the client's lock."""
         if req.command == "WATCH":
             was = c.watch.enable
             watch = c.watch.updated(req.args)
+            out.append(protocol.encode(watch.to_message()))
             with self._calib_lock, c.lock:  # the replies are queued before publish() sees the new policy
                 c.watch = watch
                 if watch.enable and not was:
                     c.last_bucket = -np.inf
-                self._reply(c, watch.to_message(), flush=False)
-                if watch.enable and not was and self._calib is not None:
-                    self._reply(c, self._calib, flush=False)
+                    if self._calib_line is not None:
+                        out.append(self._calib_line)
+                self._enqueue(c, out)
                 self._set_watchers()
-            self._flush(c)
+            out.clear()
         elif req.command == "POLL":
             imu = []
             if self._last_block is not None:
                 m = self._last_block.last_message(raw=c.watch.raw)
                 if m is not None:
                     imu.append(m)
-            self._reply(c, {"class": "POLL", "time": time.time(), "imu": imu})
+            out.append(protocol.encode({"class": "POLL", "time": time.time(), "imu": imu}))
         elif req.command == "CALIB":
-            self._reply(c, self._calib if self._calib is not None else
-                        {"class": "CALIB", "revision": 0, "accepted": False, "model": None,
-                         "message": "no calibration yet"})
+            with self._calib_lock:
+                line = self._calib_line
+            out.append(line if line is not None else protocol.NO_CALIB_LINE)
         elif req.command in ("STATUS", "DEVICES"):  # both from the cached status
-            self._enqueue(c, [protocol.status_reply(req.command, self._status_line())])
-            self._flush(c)
+            out.append(protocol.status_reply(req.command, self._status_line()))
         elif req.command == "VERSION":
-            self._reply(c, protocol.version_message())
+            out.append(protocol.version_line())
 
     def _status_line(self) -> bytes:
         """The encoded STATUS, rebuilt at most every ``status_cache_s``: however many clients ask,
@@ -396,10 +400,9 @@ class SocketServer(RequestIntake):
         msg["class"] = "STATUS"
         return msg
 
-    def _reply(self, c: _Client, message: dict[str, Any], *, flush: bool = True) -> None:
+    def _reply(self, c: _Client, message: dict[str, Any]) -> None:
+        """Queue one message (sent by the caller's next _flush)."""
         self._enqueue(c, [protocol.encode(message)])
-        if flush:
-            self._flush(c)
 
     # -- output ----------------------------------------------------------------------
     def _enqueue(self, c: _Client, lines: list[bytes], joined: bytes | None = None) -> None:

@@ -1,13 +1,16 @@
 """Wearable device files through their existing readers (the ``formats`` extra).
 
 ActiGraph .gt3x / .agdc with pygt3x (raw counts, or g in the old NHANES-era .gt3x); Axivity .cwa and
-GENEActiv .bin with scikit-digital-health (g, as its readers return them). Temperature, where the
+GENEActiv .bin with scikit-digital-health (g, as its readers return them; in a child process, isolated.py:
+its compiled readers end their process on some damaged files). Temperature, where the
 device records it, is interpolated onto the sample times as the ``temp`` covariate [°C].
 """
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import logging
+import sys
 import warnings
 import zipfile
 from pathlib import Path
@@ -16,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ...errors import InputError
+from .isolated import read_in_child
 from .sniff import EXTRA_FOR, Sniffed
 
 
@@ -25,6 +29,16 @@ def _reader_module(path: Path, found: Sniffed, module: str) -> Any:
     except ImportError:
         need, extra = EXTRA_FOR[found.kind]
         raise InputError(f"{path}: {found.what}; reading it needs {need}: pip install 'gravcal[{extra}]'") from None
+
+
+def _installed(module: str) -> bool:
+    """Whether ``module`` can be imported, without importing it here."""
+    if module in sys.modules:
+        return sys.modules[module] is not None
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        return False
 
 
 def _on_sample_times(t: np.ndarray, t_cov: np.ndarray, cov: np.ndarray) -> np.ndarray | None:
@@ -160,14 +174,26 @@ def _factory_calibration(reader: Any, info: Any) -> dict[str, Any] | None:
 CWA_HEADER, CWA_BLOCK = 1024, 512  # an Axivity .cwa: a header packet, then whole blocks of samples
 
 
+SKDH_READER = "gravcal.io.formats.wearables:read_skdh_here"  # run in a child process (isolated.py)
+
+
 def read_skdh(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """scikit-digital-health's readers (Fortran and C) in a child process: they end their process on some damaged
+    files (a truncated .cwa: "Fortran runtime error: End of file", exit status 2)."""
+    if not _installed("skdh"):
+        _reader_module(path, found, "skdh")  # the InputError saying which extra installs it
+    if found.kind == "cwa" and path.stat().st_size < CWA_HEADER + CWA_BLOCK:
+        # refused in one line without starting a child for it
+        raise InputError(f"{path}: {found.what} of {path.stat().st_size} bytes, shorter than its {CWA_HEADER}-byte "
+                         f"header and one {CWA_BLOCK}-byte block of samples: truncated or not a .cwa")
+    return read_in_child(SKDH_READER, path, found, "scikit-digital-health")
+
+
+def read_skdh_here(path: Path, found: Sniffed) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """scikit-digital-health's reader in this process (the child of read_skdh)."""
     _reader_module(path, found, "skdh")
     from skdh.io import ReadBin, ReadCwa
 
-    if found.kind == "cwa" and path.stat().st_size < CWA_HEADER + CWA_BLOCK:
-        # skdh's Fortran reader ends the whole process ("Fortran runtime error: End of file") on a shorter one
-        raise InputError(f"{path}: {found.what} of {path.stat().st_size} bytes, shorter than its {CWA_HEADER}-byte "
-                         f"header and one {CWA_BLOCK}-byte block of samples: truncated or not a .cwa")
     reader = ReadCwa() if found.kind == "cwa" else ReadBin()
     try:
         with warnings.catch_warnings():

@@ -50,10 +50,10 @@ def test_an_exception_inside_one_request_costs_that_client_only(server, sockpath
     caplog.set_level(logging.INFO, "gravcal.server")
     real = server._execute
 
-    def broken(c, req):
+    def broken(c, req, out):
         if req.command == "POLL":
             raise RuntimeError("a bug reached by ?POLL")
-        return real(c, req)
+        return real(c, req, out)
 
     monkeypatch.setattr(server, "_execute", broken)
     bad, good = Raw(sockpath), Raw(sockpath)
@@ -67,6 +67,20 @@ def test_an_exception_inside_one_request_costs_that_client_only(server, sockpath
     assert good.line()["class"] == "VERSION" and server.alive
     logged = [r for r in caplog.records if "a bug reached by ?POLL" in r.getMessage()]
     assert len(logged) == 1 and logged[0].getMessage().count("\n") == 0, [r.getMessage() for r in logged]
+
+
+def test_a_line_of_many_commands_is_answered_in_one_send(server, sockpath, monkeypatch):
+    # each reply sent on its own was a system call per command: a line of 90 cost 90 sends
+    flushes = []
+    real = server._flush
+    monkeypatch.setattr(server, "_flush", lambda c: (flushes.append(c.id), real(c)))
+    client = Raw(sockpath)
+    assert client.line()["class"] == "VERSION"
+    flushes.clear()
+    client.send(b"?STATUS;?POLL;?CALIB;" * 30 + b"\n")  # 90 commands: within the default burst of 100
+    classes = [client.line()["class"] for _ in range(90)]
+    assert classes == ["STATUS", "POLL", "CALIB"] * 30
+    assert len(flushes) == 1, flushes
 
 
 def test_an_exception_while_reading_one_client_closes_that_client_only(server, sockpath, monkeypatch, caplog):

@@ -3,6 +3,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from gravcal.core.calibration import Calibration
 from gravcal.core.samples import empty
@@ -166,3 +168,16 @@ def test_static_codes_encode_true_false_and_null(raw, nan_acc):
     codes = np.array([1, 0, protocol.STATIC_UNKNOWN], dtype=np.int8)
     msgs = [json.loads(x) for x in protocol.encode_imu_joined(s, acc, np.zeros(3), codes, raw=raw).splitlines()]
     assert [m["static"] for m in msgs] == [True, False, None]
+
+
+def _parsed(requests):
+    return [(type(r).__name__, r.command, r.args) if isinstance(r, Request) else ("error", str(r)) for r in requests]
+
+
+@settings(max_examples=400, derandomize=True, database=None)
+@given(st.lists(st.sampled_from(["?POLL", "?poll", "?Status", "?VERSION", "?calib", "?DEVICES", "?WATCH", "?x", "?",
+                                 "POLL", "=", "{}", '{"enable":true}', ";", " ", "\t", "\r", "x", "_", "1", "ſ", "ı",
+                                 "²", "\u00a0"]), max_size=12).map("".join))
+def test_the_plain_command_shortcut_parses_as_the_general_walk(text):
+    # lines of commands without arguments take a regular expression; every line parses as the walk would
+    assert _parsed(parse_requests(text)) == _parsed(protocol._parse_walk(text.strip()))

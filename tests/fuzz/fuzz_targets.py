@@ -25,7 +25,7 @@ import numpy as np
 from gravcal.core.samples import SAMPLE_DTYPE
 from gravcal.daemon.config import ConfigError, load_config
 from gravcal.daemon.persistence import StateStore, load_lab_calibration
-from gravcal.daemon.protocol import MAX_REQUEST_BYTES, encode_imu_joined
+from gravcal.daemon.protocol import MAX_REQUEST_BYTES, WatchPolicy, encode_imu_joined
 from gravcal.daemon.server import ServerConfig, SocketServer
 from gravcal.drivers._framekernel import frame_header, frame_to_row, slcan_samples
 from gravcal.drivers.base import Driver
@@ -76,18 +76,24 @@ def frame_decoder(data: bytes) -> None:
     assert got.shape[0] <= want.shape[0]  # the unwrapper may drop strays and duplicates, never invent
     assert set(got["tick"].tolist()) <= set(want["tick"].tolist())
     starts = set(scan(stream, final=True).starts) | set(range(0, max(0, len(stream) - FRAME_LEN + 1), 7))
+    intact = []
     for p in sorted(starts):
         frame = stream[p:p + FRAME_LEN]
-        ref = scan(frame, final=True).starts == [0]
+        # scan's first step: no sync word at 0, no frame at 0 (scan itself on the windows that have one)
+        ref = frame.startswith(SYNC) and scan(frame, final=True).starts == [0]
         head = frame_header(frame)
         assert (head is not None) == ref, (p, head)
         if ref:
-            row = decode_frames(frame)
-            assert head == (int(row["seq"][0]), int(row["tick"][0]))
-            mine = np.empty(1, SAMPLE_DTYPE)
-            frame_to_row(frame, mine, int(row["seq"][0]), mode)
-            row["flags"] = mode
-            assert mine.tobytes() == row.tobytes()
+            intact.append((frame, head))
+    if intact:  # the reference's rows of all intact windows in one pass: each is a frame, so is their sequence
+        rows = decode_frames(b"".join(f for f, _ in intact))
+        assert rows.shape[0] == len(intact)
+        rows["flags"] = mode
+        mine = np.empty(1, SAMPLE_DTYPE)
+        for (frame, head), row in zip(intact, rows):
+            assert head == (int(row["seq"]), int(row["tick"]))
+            frame_to_row(frame, mine, int(row["seq"]), mode)
+            assert mine[0].tobytes() == row.tobytes()
 
 
 # -- slcan lines: python-can's parser at the CAN driver's boundary, and the C reader against it ---------------
@@ -141,40 +147,101 @@ def slcan_lines(data: bytes) -> None:
 
 # -- socket requests through the real server ----------------------------------------------------------
 _SERVER: SocketServer | None = None
+_CONN: socket.socket | None = None  # one client connection, reused while the server keeps no state of an input
+_CONN_ID = -1  # the server's id of that client
+HANG_UP = b"\x04"  # an input ending in ^D: the client half-closes after it (as `echo ... | nc -U` does)
 
 
 def _server() -> SocketServer:
     global _SERVER
     if _SERVER is None or not _SERVER.alive:
         _SERVER = SocketServer(str(_TMP / "fuzz.sock"), config=ServerConfig(
-            request_rate_hz=1e6, request_burst=10**6, idle_timeout_s=60),  # the budget is tested elsewhere
+            request_rate_hz=1e6, request_burst=10**6, idle_timeout_s=1e9),  # budget and idle limit: tested elsewhere
             status_provider=lambda: {"device": {"bus": "fuzz"}}).start()
     return _SERVER
 
 
-def socket_request(data: bytes) -> None:
-    """Bytes a client sends (cut into lines as sent): every reply is one JSON line, the connection ends only by
-    the client's hang-up or the server's stated limit, and the server thread lives on."""
-    srv = _server()
+def _connect(srv: SocketServer) -> socket.socket:
     c = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     c.settimeout(5)
     c.connect(srv.address)
+    banner = b""
+    while not banner.endswith(b"\n"):
+        chunk = c.recv(4096)
+        assert chunk, "the server hung up before its VERSION banner"
+        banner += chunk
+    assert json.loads(banner)["class"] == "VERSION", banner[:200]
+    return c
+
+
+def _hang_up() -> None:
+    global _CONN
+    if _CONN is not None:
+        _CONN.close()
+        _CONN = None
+
+
+def socket_request(data: bytes) -> None:
+    """Bytes a client sends (cut into lines as sent), then ``?WATCH={"enable":false};?VERSION;`` and a marker
+    line: every reply is one JSON line, the VERSION asked for comes back (nothing lost the client its answer)
+    unless the server hung up at its stated limit (oversized requests), and the server thread lives on. Ending
+    in ^D, the client sends the WATCH and VERSION as a last line without its newline and half-closes instead of
+    sending the marker: the server answers what it got, that line included, then hangs up.
+    The connection is reused while the server holds nothing of an input that could change the next one's
+    answers (no oversized request counted, the default WATCH policy): each input is answered as on a fresh one."""
+    global _CONN, _CONN_ID
+    srv = _server()
+    data = data[: 4 * MAX_REQUEST_BYTES]
+    hang_up = data.endswith(HANG_UP)
+    if hang_up:
+        _hang_up()
+        c = _connect(srv)
+        c.sendall(data[:-1] + b'\n?WATCH={"enable":false};?VERSION;')  # a last line without its newline ...
+        c.shutdown(socket.SHUT_WR)  # ... then half-closed: the server answers what it got, then hangs up
+        marker = None
+    else:
+        if _CONN is not None and _CONN_ID not in srv._clients:
+            _hang_up()  # the server let it go between inputs (stopped, restarted): a fresh one
+        if _CONN is None:
+            _CONN = _connect(srv)
+            _CONN_ID = max(list(srv._clients), default=-1)  # the newest: ours (the only client that connects)
+        c, n = _CONN, 0
+        while b"END%d" % n in data:  # a command no reply to this input can name
+            n += 1
+        marker = b"'?END%d'" % n
+        c.sendall(data + b'\n?WATCH={"enable":false};?VERSION;\n?END%d\n' % n)
+    out = bytearray()
     try:
-        c.sendall(data[: 4 * MAX_REQUEST_BYTES] + b'\n?WATCH={"enable":false};?VERSION;\n')
-        c.shutdown(socket.SHUT_WR)  # half-closed: the server answers what it got, then hangs up
-        out = b""
-        while chunk := c.recv(1 << 16):
+        while not (marker and out.endswith(b"\n") and marker in out[out.rfind(b"\n", 0, len(out) - 1) + 1:]):
+            chunk = c.recv(1 << 16)
+            if not chunk:
+                break
             out += chunk
+    except ConnectionResetError:  # the server hung up on bytes it had not read: judged below
+        pass
+    except BaseException:
+        _hang_up()
+        raise
     finally:
-        c.close()
-    lines = out.split(b"\n")
-    assert lines[-1] == b"", out[-200:]
+        if hang_up:
+            c.close()
+    lines = bytes(out).split(b"\n")
+    assert lines[-1] == b"", bytes(out[-200:])
     for line in lines[:-1]:
         msg = json.loads(line)
         assert isinstance(msg, dict) and isinstance(msg.get("class"), str), line[:200]
     assert srv.alive
-    if not any(b"longer than" in x for x in lines):
-        assert json.loads(lines[-2])["class"] == "VERSION", lines[-3:]  # nothing lost the client its answer
+    hung_up_at_limit = any(b"longer than" in x for x in lines)
+    complete = marker is None or (len(lines) >= 2 and marker in lines[-2])
+    if not complete or hang_up:
+        _hang_up()
+        assert complete or hung_up_at_limit, lines[-3:]  # the server ended the connection only at its stated limit
+    if hang_up and not hung_up_at_limit or complete and not hang_up:
+        assert json.loads(lines[-2 if hang_up else -3])["class"] == "VERSION", lines[-3:]
+    if _CONN is not None:
+        client = srv._clients.get(_CONN_ID)
+        if client is None or client.oversize_count or client.watch != WatchPolicy():
+            _hang_up()  # the next input starts on a fresh connection
 
 
 # -- the IMU line: the C line kernel against the block encoder's %-templates -------------------------------
@@ -289,6 +356,7 @@ def corpus(name: str) -> list[bytes]:
 
 
 def cleanup() -> None:
+    _hang_up()
     if _SERVER is not None:
         _SERVER.stop()
     for root, dirs, files in os.walk(_TMP, topdown=False):

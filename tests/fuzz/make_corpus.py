@@ -47,6 +47,7 @@ def main() -> int:
     put("socket_request", "nested", b"?WATCH=" + b"[" * 1000 + b"\n")
     put("socket_request", "multi", b"?STATUS;?POLL;" * 72 + b"\n")
     put("socket_request", "oversized", b"?" + b"A" * 2000 + b"\n")
+    put("socket_request", "hang_up_after_partial_line", b'?WATCH={"enable":true,"raw":true};?VERSION;\n?POLL;?CALIB\x04')
     # imu_line: a SAMPLE_DTYPE row, acc 3 float64, gyro float64, the static code (int8), raw (bit 0)
     acc = np.array([0.1, -9.81, 0.25])
     put("imu_line", "raw", s[:1].tobytes() + acc.tobytes() + np.float64(0.01).tobytes() + b"\x01\x01")
