@@ -1,7 +1,7 @@
 """``gravcal diagnose FILE [--json] [--report DIR]``: measured data against the simulation.
 
 Reads a recording in the ``calibrate`` format (daemon.recordings), runs
-gravcal.core.diagnosis.diagnose (baseline fit and held-out error; window-level re-simulation
+gravcal.core.diagnosis.procedure (baseline fit and held-out error; window-level re-simulation
 with the fitted baseline and the measured noise; catalogue terms tested by held-out error and
 BIC; extended model refit and held-out gain; re-simulation with it) and prints a summary, or
 with ``--json`` exactly one JSON object ``{"findings": [...], "baseline": {...}, "extended":

@@ -13,8 +13,8 @@ def __getattr__(name: str) -> Any:
     if name in __all__:
         import importlib
 
-        module = importlib.import_module(".diagnose", __name__)
-        # the submodule's import binds the name "diagnose" to itself: bind the functions over it
+        module = importlib.import_module(".procedure", __name__)
+        # the functions live in .procedure, so no submodule shadows the function "diagnose"
         globals().update({n: getattr(module, n) for n in __all__})
         return globals()[name]
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

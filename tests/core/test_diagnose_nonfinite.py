@@ -13,7 +13,7 @@ from tests.support.child import run_child
 CHILD = textwrap.dedent("""
     import json
     import numpy as np
-    from gravcal.core.diagnosis.diagnose import diagnose_windows
+    from gravcal.core.diagnosis.procedure import diagnose_windows
     from gravcal.core.diagnosis.synthetic import PLANT, window_session
     from gravcal.core.model.terms import CALIBRATION_TERMS, calibration_view
 

@@ -36,7 +36,7 @@ def named_share(kind: str, seeds: range, lam: float, thresholds: tuple[float, ..
     """Share of the sessions in which diagnosis (windows only, no simulation, no nested folds) names the planted
     term (and any other term: a false positive), at each ΔBIC threshold (set on the diagnosis module for the run and restored), with its ΔBIC."""
     from gravcal.core.diagnosis import terms as T  # noqa: PLC0415
-    from gravcal.core.diagnosis.diagnose import diagnose_windows  # noqa: PLC0415
+    from gravcal.core.diagnosis.procedure import diagnose_windows  # noqa: PLC0415
     from gravcal.core.estimators.start import ellipsoid_fit  # noqa: PLC0415
 
     named = {t: [] for t in thresholds}

@@ -1,4 +1,4 @@
-"""diagnose: what the baseline simulation gets wrong on a recording, the cause, the extension, the gain.
+"""The diagnose procedure: what the baseline simulation gets wrong on a recording, the cause, the extension, the gain.
 
     a. windows (core.pipeline.calibrate_recording's detector and screening), baseline = the
        simulator's default terms at calibration level (6 parameters; offsets only when the
