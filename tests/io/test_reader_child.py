@@ -103,13 +103,22 @@ def test_an_interrupted_read_leaves_no_answer_for_the_next(tmp_path):
     p.write_bytes(b"x")
     found = Sniffed("bin", "a test file")
 
+    main = threading.get_ident()
+
     def interrupt_once_started():
         while not (tmp_path / "started").exists():
             time.sleep(0.01)
-        os.kill(os.getpid(), signal.SIGINT)
+        # at the main thread, as a Ctrl-C reaches it: a process-directed signal may land on this thread and leave the
+        # main thread's read uninterrupted until the child answers
+        signal.pthread_kill(main, signal.SIGINT)
 
-    threading.Thread(target=interrupt_once_started, daemon=True).start()
-    with pytest.raises(KeyboardInterrupt):
-        isolated.read_in_child(f"{__name__}:_slow_reader", p, found, "a slow reader")
+    # Ctrl-C's own handler, whatever the test runner's worker installed
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        threading.Thread(target=interrupt_once_started, daemon=True).start()
+        with pytest.raises(KeyboardInterrupt):
+            isolated.read_in_child(f"{__name__}:_slow_reader", p, found, "a slow reader")
+    finally:
+        signal.signal(signal.SIGINT, previous)
     cols, meta = isolated.read_in_child(f"{__name__}:_tiny_reader", p, found, "a quick reader")
     assert meta == {"n": 2} and cols["t"].tolist() == [0.0, 1.0]
