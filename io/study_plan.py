@@ -276,15 +276,18 @@ def _usage() -> tuple[float, float, float, float]:
     return time.perf_counter(), time.process_time(), idle, total
 
 
-def _threads_saving(before: tuple[float, ...], after: tuple[float, ...], threads: int, left_files: float
-                    ) -> tuple[float, str]:
+def _threads_saving(before: tuple[float, ...], after: tuple[float, ...], threads: int, left_files: float,
+                    cores: int | None = None, online: int | None = None) -> tuple[float, str]:
     """The wall time [s] calibrating ``threads`` files at a time would save on the files left (``left_files``
-    of the timed one), from the timed file's usage; and the figures, as words."""
+    of the timed one), from the timed file's usage; and the figures, as words. ``cores``: the cores this
+    process may run on, ``online``: the machine's (the idle jiffies count over all of them); default this host's."""
     wall = max(after[0] - before[0], 1e-9)
     used = max((after[1] - before[1]) / wall, 1e-3)  # cores this process kept busy
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    if cores is None:
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    online = online or os.cpu_count() or 1
     d_total = after[3] - before[3]
-    idle = ((after[2] - before[2]) / d_total * (os.cpu_count() or 1)) if d_total > 0 else cores - used
+    idle = ((after[2] - before[2]) / d_total * online) if d_total > 0 else cores - used
     idle = min(max(idle, 0.0), max(cores - used, 0.0))
     extra = min(idle, (threads - 1) * used)
     left = wall * left_files
